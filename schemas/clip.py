@@ -1,0 +1,206 @@
+"""The ``clip.yaml`` input contract (DESIGN.md, "Input contract: a clip folder").
+
+A clip folder holds one bag per agent plus this file, which says what the bags cannot: the
+conditions, which agent is the reference, and per sensor the topic, message type, field
+mapping and calibration source. Real recordings are ingested by writing one of these files,
+never by changing code, so every driver-specific quirk (time field name, unit, reference)
+must be expressible here.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from pathlib import Path
+from typing import Self
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from schemas.calibration import CameraIntrinsics
+from schemas.geometry import Transform
+
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_\-]*$"
+
+
+class Weather(StrEnum):
+    CLEAR = "clear"
+    OVERCAST = "overcast"
+    RAIN = "rain"
+    SNOW = "snow"
+    FOG = "fog"
+
+
+class Lighting(StrEnum):
+    DAY = "day"
+    DAWN = "dawn"
+    DUSK = "dusk"
+    DIRECT_SUN = "direct_sun"
+    NIGHT = "night"
+
+
+class RoadType(StrEnum):
+    HIGHWAY = "highway"
+    ARTERIAL = "arterial"
+    COLLECTOR = "collector"
+    LOCAL = "local"
+
+
+class AgentKind(StrEnum):
+    VEHICLE = "vehicle"
+    ROADSIDE = "roadside"
+
+
+class AgentRole(StrEnum):
+    REFERENCE = "reference"
+    COOPERATIVE = "cooperative"
+
+
+class Modality(StrEnum):
+    LIDAR = "lidar"
+    CAMERA = "camera"
+    INS = "ins"
+    IMU = "imu"
+    GNSS = "gnss"
+    RADAR = "radar"
+
+
+class TimeUnit(StrEnum):
+    S = "s"
+    MS = "ms"
+    US = "us"
+    NS = "ns"
+
+
+class TimeReference(StrEnum):
+    """What a per-point time field is measured from."""
+
+    ABSOLUTE = "absolute"  # GNSS epoch time
+    HEADER = "header"  # offset from the message header stamp (Ouster ``t``, Velodyne ``time``)
+
+
+class PointTimeField(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    field: str
+    unit: TimeUnit
+    reference: TimeReference
+
+
+class LidarFields(BaseModel):
+    """Which PointCloud2 fields carry what. ``None`` means the sensor does not provide it."""
+
+    model_config = ConfigDict(frozen=True)
+
+    x: str = "x"
+    y: str = "y"
+    z: str = "z"
+    intensity: str | None = "intensity"
+    ring: str | None = "ring"
+    return_id: str | None = None
+    time: PointTimeField
+
+
+class SensorConfig(BaseModel):
+    """One sensor of one agent.
+
+    Calibration comes from ``extrinsic`` / ``intrinsics`` when given, else from the agent's
+    ``tf_static_topic`` (looked up by ``frame_id``) and ``camera_info_topic``.
+    """
+
+    model_config = ConfigDict(frozen=True)
+
+    name: str = Field(pattern=ID_PATTERN, description="channel name, e.g. LIDAR_TOP, CAM_FRONT")
+    modality: Modality
+    topic: str = Field(pattern=r"^/")
+    msg_type: str = Field(description="ROS type name, e.g. sensor_msgs/msg/PointCloud2")
+    frame_id: str | None = None
+    fields: LidarFields | None = None
+    extrinsic: Transform | None = Field(default=None, description="T_ego_sensor")
+    intrinsics: CameraIntrinsics | None = None
+    camera_info_topic: str | None = None
+    rate_hz: float | None = Field(default=None, gt=0)
+
+    @model_validator(mode="after")
+    def _lidar_needs_fields(self) -> Self:
+        if self.modality is Modality.LIDAR and self.fields is None:
+            raise ValueError(f"lidar sensor {self.name!r} needs a 'fields' mapping with a time field")
+        return self
+
+
+class AgentConfig(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    agent_id: str = Field(pattern=ID_PATTERN)
+    kind: AgentKind
+    role: AgentRole
+    bag: str = Field(description="bag path relative to the clip folder")
+    ego_frame: str = Field(default="base_link", description="the INS/IMU frame in tf_static")
+    tf_static_topic: str | None = "/tf_static"
+    sensors: list[SensorConfig]
+
+    @model_validator(mode="after")
+    def _unique_sensors(self) -> Self:
+        names = [s.name for s in self.sensors]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"agent {self.agent_id!r}: duplicate sensor names {sorted(dup)}")
+        return self
+
+    def sensor(self, name: str) -> SensorConfig:
+        for s in self.sensors:
+            if s.name == name:
+                return s
+        raise KeyError(f"agent {self.agent_id!r} has no sensor {name!r}")
+
+    def sensors_of(self, modality: Modality) -> list[SensorConfig]:
+        return [s for s in self.sensors if s.modality is modality]
+
+
+class ClipConfig(BaseModel):
+    """The whole ``clip.yaml``."""
+
+    model_config = ConfigDict(frozen=True)
+
+    clip_id: str = Field(pattern=ID_PATTERN)
+    location: str
+    road_type: RoadType
+    weather: Weather
+    lighting: Lighting
+    work_zone: bool = False
+    agents: list[AgentConfig] = Field(min_length=1)
+    message_definitions: list[str] = Field(
+        default_factory=list,
+        description=".msg files (relative to the clip folder) for custom types, e.g. a vendor INS",
+    )
+    annotations: str | None = Field(default=None, description="annotation file, relative path")
+
+    @model_validator(mode="after")
+    def _one_reference(self) -> Self:
+        refs = [a.agent_id for a in self.agents if a.role is AgentRole.REFERENCE]
+        if len(refs) != 1:
+            raise ValueError(f"exactly one agent must have role 'reference', got {refs}")
+        ids = [a.agent_id for a in self.agents]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"agent ids must be unique, got {ids}")
+        return self
+
+    @property
+    def reference_agent(self) -> AgentConfig:
+        return next(a for a in self.agents if a.role is AgentRole.REFERENCE)
+
+    def agent(self, agent_id: str) -> AgentConfig:
+        for a in self.agents:
+            if a.agent_id == agent_id:
+                return a
+        raise KeyError(f"clip {self.clip_id!r} has no agent {agent_id!r}")
+
+    @classmethod
+    def load(cls, clip_dir: str | Path) -> ClipConfig:
+        path = Path(clip_dir) / "clip.yaml"
+        with path.open() as f:
+            return cls.model_validate(yaml.safe_load(f))
+
+    def dump(self, clip_dir: str | Path) -> Path:
+        path = Path(clip_dir) / "clip.yaml"
+        path.write_text(yaml.safe_dump(self.model_dump(mode="json", exclude_none=True), sort_keys=False))
+        return path

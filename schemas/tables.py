@@ -1,0 +1,334 @@
+"""Row models of every lake table; Arrow schemas come from ``schemas.arrow.arrow_schema``.
+
+Time columns ending in ``_ns`` are int64 nanoseconds: GNSS epoch time in the raw zone, the
+clip's relative axis (starting at 0.1 s) in the clean zone. Positions in the clean zone are
+local ENU metres (DESIGN.md). ``clip_id`` / ``agent_id`` are hive partition keys in the lake
+(``table/clip_id=.../agent_id=.../*.parquet``): the storage layer strips them from the file
+and the catalog adds them back from the path.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import pyarrow as pa
+from pydantic import BaseModel, ConfigDict
+
+from schemas.arrow import F32, F64, I32, I64, U8, U16, ArrowType
+
+DictStr = Annotated[str, ArrowType(pa.dictionary(pa.int32(), pa.string()))]
+
+
+class _Row(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class ClipRow(_Row):
+    clip_id: str
+    location: str
+    road_type: str
+    weather: str
+    lighting: str
+    work_zone: bool
+    n_agents: int
+    reference_agent: str
+    duration_s: float
+    source: str  # "simulated" | "recorded"
+    status: str  # "ok" | "quarantined"
+
+
+class AgentRow(_Row):
+    clip_id: str
+    agent_id: str
+    kind: str
+    role: str
+    has_ins: bool
+
+
+class SensorRow(_Row):
+    clip_id: str
+    agent_id: str
+    sensor: str
+    modality: str
+    topic: str
+    msg_type: str
+    n_messages: int
+
+
+class CalibratedSensorRow(_Row):
+    clip_id: str
+    agent_id: str
+    sensor: str
+    modality: str
+    tx: float
+    ty: float
+    tz: float
+    qw: float
+    qx: float
+    qy: float
+    qz: float
+    width: int | None = None
+    height: int | None = None
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    distortion_model: str | None = None
+    distortion: list[float] | None = None
+    source: str  # "clip.yaml" | "tf_static" | "camera_info"
+
+
+class InsRow(_Row):
+    """Raw zone only: what the INS said, in WGS84 and local-level attitude."""
+
+    clip_id: str
+    agent_id: str
+    t_ns: I64
+    lat: F64
+    lon: F64
+    alt: F64
+    roll: F64
+    pitch: F64
+    azimuth: F64
+    ve: F64
+    vn: F64
+    vu: F64
+    rtk_status: int
+
+
+class EgoPoseRow(_Row):
+    """Clean zone: ``T_world_ego`` in the clip's local ENU frame."""
+
+    clip_id: str
+    agent_id: str
+    t_ns: I64
+    x: F64
+    y: F64
+    z: F64
+    qw: F64
+    qx: F64
+    qy: F64
+    qz: F64
+    vx: F64
+    vy: F64
+    vz: F64
+    rtk_status: int
+
+
+class ImuRow(_Row):
+    clip_id: str
+    agent_id: str
+    sensor: str
+    t_ns: I64
+    wx: F64
+    wy: F64
+    wz: F64
+    ax: F64
+    ay: F64
+    az: F64
+
+
+class GnssRow(_Row):
+    """Raw: lat/lon/alt. Clean: the same fix as local ENU metres in ``x``/``y``/``z``."""
+
+    clip_id: str
+    agent_id: str
+    t_ns: I64
+    lat: F64 | None = None
+    lon: F64 | None = None
+    alt: F64 | None = None
+    x: F64 | None = None
+    y: F64 | None = None
+    z: F64 | None = None
+    status: int
+    sigma_h: F64 | None = None
+
+
+class LidarFrameRow(_Row):
+    clip_id: str
+    agent_id: str
+    sensor: str
+    frame_idx: I32
+    stamp_ns: I64
+    t_start_ns: I64
+    t_end_ns: I64
+    n_points: I64
+    n_nan: I64
+    n_uncovered: I64 | None = None
+    deskew_ref_ns: I64 | None = None
+    deskew_max_shift_m: F32 | None = None
+    deskew_rms_shift_m: F32 | None = None
+
+
+class LidarPointRow(_Row):
+    """One point; in the lake one row group per frame, floats without dictionary encoding."""
+
+    clip_id: str
+    agent_id: str
+    sensor: DictStr
+    frame_idx: I32
+    t_ns: I64
+    x: F32
+    y: F32
+    z: F32
+    intensity: F32
+    ring: U16
+    return_id: U8
+
+
+class CameraFrameRow(_Row):
+    clip_id: str
+    agent_id: str
+    sensor: str
+    frame_idx: I32
+    stamp_ns: I64
+    width: int
+    height: int
+    blob: str  # key of the PNG in the zone's blob store
+    sha256: str
+    anonymizer: str | None = None  # detector name and version that blurred this image
+    n_blurred: int | None = None
+
+
+class AnnotationRow(_Row):
+    clip_id: str
+    agent_id: str
+    sensor: str
+    frame_idx: I32
+    t_ns: I64
+    instance_id: str
+    category: str
+    cx: F64
+    cy: F64
+    cz: F64
+    w: F64
+    l: F64
+    h: F64
+    qw: F64
+    qx: F64
+    qy: F64
+    qz: F64
+    vx: F64 | None = None
+    vy: F64 | None = None
+    vz: F64 | None = None
+    links: list[str]
+    num_lidar_pts: int | None = None
+
+
+class InstanceRow(_Row):
+    clip_id: str
+    instance_id: str
+    category: str
+    n_annotations: int
+    agents: list[str]
+    first_t_ns: I64
+    last_t_ns: I64
+    links: list[str]
+
+
+class RegistrationRow(_Row):
+    """Eq. 1a initial and eq. 1b refined ``T_L1_L2`` per frame pair, with its quality."""
+
+    clip_id: str
+    agent_ref: str
+    agent_other: str
+    frame_idx: I32
+    t_ns: I64
+    init_tx: F64
+    init_ty: F64
+    init_tz: F64
+    init_qw: F64
+    init_qx: F64
+    init_qy: F64
+    init_qz: F64
+    tx: F64
+    ty: F64
+    tz: F64
+    qw: F64
+    qx: F64
+    qy: F64
+    qz: F64
+    fitness: F64
+    inlier_rmse: F64
+    correction_m: F64
+    correction_deg: F64
+    accepted: bool
+    method: str
+    reason: str
+
+
+class AlignmentRow(_Row):
+    """Which camera frame a LiDAR frame (or one target in it) is aligned with (Sec. 5)."""
+
+    clip_id: str
+    agent_id: str
+    lidar_frame_idx: I32
+    camera: str
+    method: str  # stamp | frame | target
+    instance_id: str | None = None
+    camera_frame_idx: I32
+    camera_t_ns: I64
+    points_t_ns: I64  # the point time the association was made on
+    mean_iou: F64 | None = None
+    center_offset_px: F64 | None = None
+
+
+class QaCheckRow(_Row):
+    clip_id: str
+    agent_id: str | None = None
+    sensor: str | None = None
+    check: str
+    passed: bool
+    severity: str  # "error" quarantines the clip, "warning" does not
+    value: F64 | None = None
+    threshold: F64 | None = None
+    detail: str
+
+
+class AnonymizationAuditRow(_Row):
+    """What was blurred, never the pixels themselves."""
+
+    clip_id: str
+    agent_id: str
+    sensor: str
+    frame_idx: I32
+    detector: str
+    kind: str  # face | plate
+    x0: F32
+    y0: F32
+    x1: F32
+    y1: F32
+    score: F32
+
+
+class ManifestRow(_Row):
+    clip_id: str
+    stage: str
+    status: str  # done | failed | skipped
+    code_version: str
+    params_hash: str
+    inputs_hash: str
+    outputs: str  # JSON list of {path, rows, sha256}
+    error: str | None = None
+
+
+LAKE_TABLES: dict[str, type[_Row]] = {
+    "clips": ClipRow,
+    "agents": AgentRow,
+    "sensors": SensorRow,
+    "calibrated_sensors": CalibratedSensorRow,
+    "ins": InsRow,
+    "ego_poses": EgoPoseRow,
+    "imu": ImuRow,
+    "gnss": GnssRow,
+    "lidar_frames": LidarFrameRow,
+    "lidar_points": LidarPointRow,
+    "camera_frames": CameraFrameRow,
+    "annotations": AnnotationRow,
+    "instances": InstanceRow,
+    "registrations": RegistrationRow,
+    "alignments": AlignmentRow,
+    "qa_checks": QaCheckRow,
+    "anonymization_audit": AnonymizationAuditRow,
+    "manifests": ManifestRow,
+}

@@ -1,0 +1,40 @@
+"""The one error type a stage raises for bad input.
+
+It always names the clip, agent, topic (or file) and reason, because the person reading it
+is looking at a quarantine report for one of hundreds of clips and must know where to look.
+"""
+
+from __future__ import annotations
+
+
+class ClipError(Exception):
+    """Bad input in one clip: quarantine the clip, keep going with the others."""
+
+    def __init__(
+        self,
+        clip_id: str,
+        reason: str,
+        *,
+        agent_id: str | None = None,
+        topic: str | None = None,
+        path: str | None = None,
+        stage: str | None = None,
+    ) -> None:
+        self.clip_id, self.reason = clip_id, reason
+        self.agent_id, self.topic, self.path, self.stage = agent_id, topic, path, stage
+        where = [f"clip {clip_id}"]
+        if agent_id:
+            where.append(f"agent {agent_id}")
+        if topic:
+            where.append(f"topic {topic}")
+        if path:
+            where.append(f"file {path}")
+        if stage:
+            where.insert(0, f"[{stage}]")
+        super().__init__(f"{', '.join(where)}: {reason}")
+
+    def to_dict(self) -> dict[str, str | None]:
+        return {
+            "clip_id": self.clip_id, "agent_id": self.agent_id, "topic": self.topic,
+            "path": self.path, "stage": self.stage, "reason": self.reason, "message": str(self),
+        }
