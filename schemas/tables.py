@@ -215,6 +215,11 @@ class AnnotationRow(_Row):
     num_lidar_pts: int | None = None
 
 
+class AnnotationWorldRow(AnnotationRow):
+    """The same boxes in the clip's local ENU world frame (``T_world_ego(t0) T_ego_lidar``);
+    velocity rotated alike. Written by the annotate stage for exports (nuScenes, OpenCOOD)."""
+
+
 class InstanceRow(_Row):
     clip_id: str
     instance_id: str
@@ -325,6 +330,7 @@ LAKE_TABLES: dict[str, type[_Row]] = {
     "lidar_points": LidarPointRow,
     "camera_frames": CameraFrameRow,
     "annotations": AnnotationRow,
+    "annotations_world": AnnotationWorldRow,
     "instances": InstanceRow,
     "registrations": RegistrationRow,
     "alignments": AlignmentRow,

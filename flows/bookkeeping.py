@@ -1,0 +1,132 @@
+"""The flow's side of the bookkeeping: manifest keys, quarantine, catalog access.
+
+Stages only compute and write tables; the flow decides whether a stage must run
+(``storage.manifest``: inputs -> parameters -> code, with upstream stages' recorded outputs
+as inputs), records the manifest afterwards, quarantines a clip on ``ClipError``
+(``storage.quarantine`` + forgetting its manifests so a fixed clip reprocesses from scratch)
+and refreshes / queries the DuckDB catalog.
+"""
+
+from __future__ import annotations
+
+import inspect
+import logging
+import typing
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+from pydantic import BaseModel
+
+from flows.stages import DEFAULT_STAGES, StageSpec
+from schemas.stage import StageReport
+from storage import manifest
+from storage.lake import Lake
+
+log = logging.getLogger("v2xlake.flows")
+
+
+
+# ---------------------------------------------------------------- cache (storage.manifest)
+def stage_config(fn: Callable[..., Any]) -> Any:
+    """The stage's default config object (what its manifest's params_hash is taken of).
+
+    Entry points declare ``config: XConfig | None = None`` or ``config: XConfig = XConfig()``;
+    either way the default parameters are an ``XConfig()``.
+    """
+    try:
+        param = inspect.signature(fn).parameters.get("config")
+    except (TypeError, ValueError):
+        return None
+    if param is None:
+        return None
+    if isinstance(param.default, BaseModel):
+        return param.default
+    try:
+        hint = typing.get_type_hints(fn).get("config")
+    except Exception:
+        return None
+    for cand in (hint, *typing.get_args(hint)):
+        if isinstance(cand, type) and issubclass(cand, BaseModel):
+            try:
+                return cand()
+            except Exception:
+                return None
+    return None
+
+
+def stage_key(lake: Lake, clip_id: str, spec: StageSpec, fn: Callable[..., Any],
+              upstream: Sequence[str], clip_dir: Path | None) -> manifest.StageKey:
+    """storage.manifest's key: inputs (files or upstream outputs), parameters, code."""
+    default = next((s for s in DEFAULT_STAGES if s.name == spec.name), None)
+    code_paths: list[str] | None = None
+    if default is None or default.target != spec.target:  # not a registry stage: hash its file
+        src = inspect.getsourcefile(fn)
+        code_paths = [src] if src else []
+    input_files: list[Path] | None = None
+    if spec.input == "clip_dir" and clip_dir is not None:
+        if default is not None and default.target == spec.target and spec.name == "ingest":
+            from tasks.ingest import clip_inputs
+
+            input_files = list(clip_inputs(clip_dir)[1])
+        else:
+            input_files = sorted(p for p in Path(clip_dir).rglob("*") if p.is_file())
+    return manifest.stage_key(lake, clip_id, spec.name, stage_config(fn), list(upstream),
+                              input_files=input_files, code_paths=code_paths)
+
+
+def cached_report(lake: Lake, clip_id: str, stage: str,
+                  key: manifest.StageKey) -> StageReport | None:
+    """The recorded result when the stage is current (same key, outputs still there)."""
+    if not manifest.is_current(lake, clip_id, stage, key):
+        return None
+    m = manifest.read(lake, clip_id, stage)
+    assert m is not None
+    images = [lake.path(o.path) if not o.path.startswith(lake.base) else o.path
+              for o in m.outputs if o.path.endswith(".png")]
+    return StageReport(stage=stage, clip_id=clip_id, outputs=m.outputs, metrics=m.metrics,
+                       notes=m.notes, images=images)
+
+
+def record(lake: Lake, report: StageReport, key: manifest.StageKey) -> None:
+    manifest.record(lake, report, key, "done")
+
+
+def processed_clip_ids(lake: Lake) -> set[str]:
+    """Clips the lake has seen (with manifests or quarantined): the landing scan skips them."""
+    seen = set()
+    for zone in ("manifests", "quarantine"):
+        root = lake.path(zone)
+        for f in lake.list_files(root, ".json"):
+            rel = f[len(root):].strip("/")
+            seen.add(rel.split("/", 1)[0])
+    return seen
+
+
+# ---------------------------------------------------------------- quarantine
+def quarantine(lake: Lake, clip_id: str, error: Exception, *, stage: str) -> str:
+    """storage.quarantine (report, raw/clean removed) + forget the clip's manifests."""
+    from storage.quarantine import quarantine as storage_quarantine
+    from storage.quarantine import report_path
+
+    storage_quarantine(lake, clip_id, error, stage=stage)
+    manifest.clear(lake, clip_id)
+    return report_path(lake, clip_id)
+
+
+# ---------------------------------------------------------------- catalog
+def refresh_catalog(lake: Lake) -> None:
+    """Re-scan the lake's tables (new tables become views; rewrites catalog.duckdb)."""
+    from storage.catalog import Catalog
+
+    with Catalog(lake):  # __init__ refreshes
+        pass
+
+
+def query(lake: Lake, sql: str) -> pa.Table:
+    """Run SQL over the lake's catalog (views over the Parquet files, always current)."""
+    from storage.catalog import Catalog
+
+    with Catalog(lake, read_only=True) as cat:
+        return cat.query(sql)

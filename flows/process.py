@@ -1,0 +1,299 @@
+"""Per-clip processing flows: ``process_clip`` chains the stages, ``process_clips`` maps it.
+
+``process_clip`` runs the registry's stages in order as Prefect tasks (retries for transient
+errors, none for bad input), skips a stage whose cache key (clip fingerprint -> parameters
+-> code -> upstream key) matches its last successful run, quarantines the clip when a stage
+raises :class:`tasks.errors.ClipError` (the flow run then ends Failed with the reason), and
+publishes artifacts: a stage table, per-stage metrics, the QA checks and links to pictures.
+
+``process_clips`` runs one ``process_clip`` flow per clip: one after another with the local
+runner, or each inside a task on a Dask cluster (``--runner dask[=ADDRESS]``), so that every
+clip has its own flow run and state, and one bad clip never stops the others.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+from uuid import UUID
+
+import yaml
+from prefect import flow, get_run_logger, task
+from prefect.artifacts import (
+    create_markdown_artifact,
+    create_progress_artifact,
+    create_table_artifact,
+    update_progress_artifact,
+)
+
+from flows import bookkeeping
+from flows.stages import StageSpec, check_available, resolve_registry, select
+from schemas.stage import StageReport
+from storage.lake import Lake
+from tasks.errors import ClipError
+
+# The CLI sets this to drive its progress display (only for in-process runs).
+ProgressHook = Callable[[dict[str, Any]], None]
+PROGRESS_HOOK: ProgressHook | None = None
+
+
+def _emit(**event: Any) -> None:
+    hook = PROGRESS_HOOK
+    if hook is not None:
+        try:
+            hook(event)
+        except Exception:  # a display problem must never fail a clip
+            pass
+
+
+class ClipFailed(Exception):
+    """A clip's flow failed; carries the per-stage summary so the caller can report it."""
+
+    def __init__(self, message: str, summary: dict[str, Any]) -> None:
+        super().__init__(message, summary)
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+    @property
+    def summary(self) -> dict[str, Any]:
+        return dict(self.args[1])
+
+
+def peek_clip_id(clip_dir: str | Path) -> str:
+    """The clip id from clip.yaml (the folder name when the file is unreadable)."""
+    path = Path(clip_dir) / "clip.yaml"
+    try:
+        data = yaml.safe_load(path.read_text())
+        cid = data.get("clip_id") if isinstance(data, dict) else None
+        if isinstance(cid, str) and cid:
+            return cid
+    except (OSError, yaml.YAMLError):
+        pass
+    return Path(clip_dir).resolve().name
+
+
+def _artifact_key(*parts: str) -> str:
+    return re.sub(r"[^a-z0-9-]+", "-", "-".join(parts).lower()).strip("-")[:100]
+
+
+def _no_retry_on_bad_input(task: Any, task_run: Any, state: Any) -> bool:
+    """Retry transient failures only: bad input stays bad."""
+    try:
+        state.result()
+    except ClipError:
+        return False
+    except Exception:
+        return True
+    return False
+
+
+@task(name="stage", retries=2, retry_delay_seconds=2, retry_condition_fn=_no_retry_on_bad_input,
+      task_run_name="{clip_id}:{stage_spec}")
+def run_stage(stage_spec: str, lake_uri: str, target: str, clip_id: str,
+              upstream: list[str]) -> dict[str, Any]:
+    """Run one stage on one clip unless its manifest says it is current."""
+    logger = get_run_logger()
+    spec = StageSpec.parse(stage_spec)
+    fn = spec.load()
+    lake = Lake(lake_uri)
+    clip_dir = Path(target) if spec.input == "clip_dir" else None
+    key = bookkeeping.stage_key(lake, clip_id, spec, fn, upstream, clip_dir)
+    cached = bookkeeping.cached_report(lake, clip_id, spec.name, key)
+    if cached is not None:
+        logger.info("%s: %s unchanged since its last run, skipped", clip_id, spec.name)
+        return {"stage": spec.name, "status": "cached", "seconds": 0.0,
+                "report": cached.model_dump(mode="json")}
+    t0 = time.perf_counter()
+    report = fn(lake, clip_dir if clip_dir is not None else target)
+    if not isinstance(report, StageReport):
+        report = StageReport.model_validate(report)
+    seconds = time.perf_counter() - t0
+    if report.clip_id != clip_id:
+        key = bookkeeping.stage_key(lake, report.clip_id, spec, fn, upstream, clip_dir)
+    bookkeeping.record(lake, report, key)
+    logger.info("%s: %s done in %.1f s %s", report.clip_id, spec.name, seconds, report.metrics)
+    return {"stage": spec.name, "status": "done", "seconds": seconds,
+            "report": report.model_dump(mode="json")}
+
+
+def _stage_row(outcome: dict[str, Any]) -> dict[str, Any]:
+    rep = outcome.get("report") or {}
+    metrics = rep.get("metrics") or {}
+    shown = ", ".join(f"{k}={_fmt(v)}" for k, v in list(metrics.items())[:6])
+    return {"stage": outcome["stage"], "status": outcome["status"],
+            "seconds": round(float(outcome.get("seconds", 0.0)), 2), "metrics": shown,
+            "error": outcome.get("error", "")}
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def _publish_artifacts(lake: Lake, summary: dict[str, Any]) -> None:
+    clip_id = summary["clip_id"]
+    rows = [_stage_row(o) for o in summary["stages"]]
+    create_table_artifact(table=rows, key=_artifact_key("clip", clip_id, "stages"),
+                          description=f"Stages of clip {clip_id}: {summary['status']}")
+    metric_rows = [
+        {"stage": o["stage"], "metric": k, "value": v}
+        for o in summary["stages"]
+        for k, v in ((o.get("report") or {}).get("metrics") or {}).items()
+    ]
+    if metric_rows:
+        create_table_artifact(
+            table=metric_rows, key=_artifact_key("clip", clip_id, "metrics"),
+            description="Headline metrics per stage (alignment, registration, QA)")
+    try:
+        qa = bookkeeping.query(lake, f"SELECT * FROM qa_checks WHERE clip_id = '{clip_id}'")
+        if qa.num_rows:
+            create_table_artifact(
+                table=[{k: v for k, v in r.items() if k != "clip_id"} for r in qa.to_pylist()],
+                key=_artifact_key("clip", clip_id, "qa"), description="QA checks")
+    except Exception:  # no qa table yet (stage missing or failed early)
+        pass
+    images = [img for o in summary["stages"] for img in (o.get("report") or {}).get("images", [])]
+    lines = [f"# Clip `{clip_id}`: {summary['status']}", "", f"Lake: `{lake.uri}`", ""]
+    if summary.get("error"):
+        lines += [f"**Error:** {summary['error']}", ""]
+    if images:
+        lines += ["## Pictures", ""] + [f"- `{p}`" for p in images]
+    create_markdown_artifact(markdown="\n".join(lines),
+                             key=_artifact_key("clip", clip_id, "summary"))
+
+
+def _flow_run_name() -> str:
+    from prefect.runtime import flow_run
+
+    params = flow_run.parameters or {}
+    return f"clip-{Path(str(params.get('clip_dir', 'clip'))).name}"
+
+
+@flow(name="process-clip", flow_run_name=_flow_run_name, log_prints=True)
+def process_clip(clip_dir: str, lake: str, stages: list[str] | None = None,
+                 registry: list[str] | None = None, refresh_catalog: bool = True) -> dict[str, Any]:
+    """Run the available stages on one clip folder; quarantine it on bad input."""
+    logger = get_run_logger()
+    the_lake = Lake(lake)
+    specs = select(resolve_registry(registry), stages)
+    avail = check_available(specs)
+    clip_id = peek_clip_id(clip_dir)
+    missing = [a for a in avail if not a.ok]
+    for a in missing:
+        logger.warning("stage %s unavailable (%s): skipped", a.spec.name, a.error)
+    summary: dict[str, Any] = {
+        "clip_dir": str(clip_dir), "clip_id": clip_id, "status": "ok", "error": None,
+        "quarantine_report": None,
+        "stages": [{"stage": a.spec.name, "status": "unavailable", "seconds": 0.0,
+                    "error": a.error} for a in missing],
+    }
+    runnable = [a.spec for a in avail if a.ok]
+    order = {s.name: k for k, s in enumerate(specs)}
+    created = create_progress_artifact(
+        progress=0.0, key=_artifact_key("clip", clip_id, "progress"),
+        description=f"Stages done for clip {clip_id}")
+    # the sync call returns the id itself (the async variant a coroutine)
+    progress_id: UUID | None = created if isinstance(created, UUID) else None
+    upstream: list[str] = []  # stages whose recorded outputs are this stage's inputs
+    for i, spec in enumerate(runnable):
+        _emit(event="stage_start", clip_id=clip_id, stage=spec.name, index=i, total=len(runnable))
+        target = str(Path(clip_dir).resolve()) if spec.input == "clip_dir" else clip_id
+        try:
+            outcome = run_stage(spec.format(), lake, target, clip_id, upstream)
+        except ClipError as exc:
+            report_path = bookkeeping.quarantine(the_lake, exc.clip_id or clip_id, exc,
+                                                 stage=spec.name)
+            summary["stages"].append({"stage": spec.name, "status": "failed",
+                                      "seconds": 0.0, "error": str(exc)})
+            summary.update(status="quarantined", error=str(exc), quarantine_report=report_path)
+            _emit(event="stage_end", clip_id=clip_id, stage=spec.name, status="failed",
+                  error=str(exc))
+            summary["stages"].sort(key=lambda o: order.get(o["stage"], 99))
+            logger.error("clip %s quarantined at stage %s: %s (report: %s)",
+                         clip_id, spec.name, exc, report_path)
+            _publish_artifacts(the_lake, summary)
+            raise ClipFailed(f"clip {clip_id} quarantined at stage {spec.name}: {exc}",
+                             summary) from exc
+        except Exception as exc:
+            summary["stages"].append({"stage": spec.name, "status": "failed",
+                                      "seconds": 0.0, "error": f"{type(exc).__name__}: {exc}"})
+            summary.update(status="failed", error=f"{spec.name}: {type(exc).__name__}: {exc}")
+            summary["stages"].sort(key=lambda o: order.get(o["stage"], 99))
+            _emit(event="stage_end", clip_id=clip_id, stage=spec.name, status="failed",
+                  error=str(exc))
+            _publish_artifacts(the_lake, summary)
+            raise ClipFailed(f"clip {clip_id} failed at stage {spec.name}: "
+                             f"{type(exc).__name__}: {exc}", summary) from exc
+        clip_id = outcome["report"]["clip_id"] or clip_id
+        upstream.append(spec.name)
+        summary["clip_id"] = clip_id
+        summary["stages"].append(outcome)
+        _emit(event="stage_end", clip_id=clip_id, stage=spec.name, status=outcome["status"],
+              seconds=outcome["seconds"], metrics=outcome["report"].get("metrics", {}))
+        if progress_id is not None:
+            update_progress_artifact(progress_id, progress=100.0 * (i + 1) / len(runnable))
+    summary["stages"].sort(key=lambda o: order.get(o["stage"], 99))
+    if refresh_catalog:
+        bookkeeping.refresh_catalog(the_lake)
+    _publish_artifacts(the_lake, summary)
+    return summary
+
+
+def summary_from_state(clip_dir: str, state: Any) -> dict[str, Any]:
+    """A clip summary from a finished ``process_clip`` flow state, whatever it ended as."""
+    if state.is_completed():
+        return dict(state.result())
+    err = state.result(raise_on_failure=False)
+    if isinstance(err, ClipFailed):
+        out = err.summary
+    else:
+        out = {"clip_dir": clip_dir, "clip_id": peek_clip_id(clip_dir), "status": "failed",
+               "error": str(err), "stages": [], "quarantine_report": None}
+    out["state"] = state.name
+    out["message"] = state.message
+    return out
+
+
+@task(name="clip", task_run_name="clip-{clip_dir}")
+def clip_task(clip_dir: str, lake: str, stages: list[str] | None,
+              registry: list[str] | None) -> dict[str, Any]:
+    """One clip's whole flow inside a task, so a Dask worker runs it (its own flow run)."""
+    state = process_clip(clip_dir, lake, stages, registry, refresh_catalog=False,
+                         return_state=True)
+    return summary_from_state(clip_dir, state)
+
+
+@flow(name="process-clips-distributed")
+def _process_clips_on_runner(clip_dirs: list[str], lake: str, stages: list[str] | None,
+                             registry: list[str] | None) -> list[dict[str, Any]]:
+    futures = [clip_task.submit(d, lake, stages, registry) for d in clip_dirs]
+    return [f.result() for f in futures]
+
+
+@flow(name="process-clips", log_prints=True)
+def process_clips(clip_dirs: list[str], lake: str, stages: list[str] | None = None,
+                  registry: list[str] | None = None, runner: str = "local") -> list[dict[str, Any]]:
+    """Process several clip folders; returns one summary per clip (never raises for a clip)."""
+    from flows.runners import make_task_runner, parse_runner
+
+    logger = get_run_logger()
+    dirs = [str(Path(d).resolve()) for d in clip_dirs]
+    if parse_runner(runner).kind == "local":
+        results = []
+        for d in dirs:
+            state = process_clip(d, lake, stages, registry, refresh_catalog=False,
+                                 return_state=True)
+            results.append(summary_from_state(d, state))
+    else:
+        results = _process_clips_on_runner.with_options(task_runner=make_task_runner(runner))(
+            dirs, lake, stages, registry)
+    bookkeeping.refresh_catalog(Lake(lake))
+    bad = [r for r in results if r["status"] != "ok"]
+    logger.info("%d clip(s) processed, %d ok, %d not", len(results), len(results) - len(bad),
+                len(bad))
+    return results

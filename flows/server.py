@@ -1,0 +1,147 @@
+"""Start and stop a real ``prefect server`` (and process workers) on a free port.
+
+WHY: schedules only fire on a real server (the temporary one refuses them) and Dask workers
+must all talk to one API. Used by ``v2xlake process --runner dask`` when no
+``PREFECT_API_URL`` is set, by ``deploy/start_server.py`` and by the tests. Processes are
+started in their own process group and stopped by group, so no child outlives them.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from flows.settings import configure_prefect
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _prefect_exe() -> list[str]:
+    exe = Path(sys.executable).with_name("prefect")
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "prefect"]
+
+
+def stop_process(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> None:
+    """SIGTERM the process group, then SIGKILL whatever is left."""
+    if proc.poll() is not None:
+        return
+    try:
+        os.killpg(proc.pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait(5)
+
+
+@dataclass
+class PrefectServer:
+    """A running ``prefect server start``: its URL, log file and process."""
+
+    port: int
+    home: Path
+    log_path: Path
+    proc: subprocess.Popen[bytes]
+    env: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def api_url(self) -> str:
+        return f"http://127.0.0.1:{self.port}/api"
+
+    def healthy(self) -> bool:
+        try:
+            with urllib.request.urlopen(f"{self.api_url}/health", timeout=2) as r:
+                return bool(r.status == 200)
+        except OSError:
+            return False
+
+    def stop(self) -> None:
+        stop_process(self.proc)
+
+
+def start_server(home: Path, *, port: int | None = None, timeout: float = 120.0,
+                 scheduler_loop_seconds: float | None = None) -> PrefectServer:
+    """Start a server with its own PREFECT_HOME (SQLite there); wait until /health answers."""
+    configure_prefect()
+    home = Path(home)
+    home.mkdir(parents=True, exist_ok=True)
+    port = port or free_port()
+    env = dict(os.environ)
+    env.pop("PREFECT_API_URL", None)
+    env.update({
+        "PREFECT_HOME": str(home),
+        "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+        "DO_NOT_TRACK": "1",
+        "PREFECT_UI_ENABLED": "false",
+        "PREFECT_SERVER_API_HOST": "127.0.0.1",
+        "PREFECT_SERVER_API_PORT": str(port),
+    })
+    if scheduler_loop_seconds is not None:
+        env["PREFECT_SERVER_SERVICES_SCHEDULER_LOOP_SECONDS"] = str(scheduler_loop_seconds)
+    log_path = home / f"server-{port}.log"
+    with open(log_path, "wb") as log:
+        proc = subprocess.Popen(
+            [*_prefect_exe(), "server", "start", "--host", "127.0.0.1", "--port", str(port)],
+            env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    server = PrefectServer(port, home, log_path, proc, env)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"prefect server exited ({proc.returncode}):\n"
+                               f"{log_path.read_text()[-3000:]}")
+        if server.healthy():
+            return server
+        time.sleep(0.5)
+    server.stop()
+    raise TimeoutError(f"prefect server not healthy after {timeout} s:\n"
+                       f"{log_path.read_text()[-3000:]}")
+
+
+def start_worker(api_url: str, pool: str, *, home: Path, cwd: Path,
+                 extra_env: dict[str, str] | None = None,
+                 query_seconds: float = 2.0) -> subprocess.Popen[bytes]:
+    """``prefect worker start --pool POOL --type process`` against the given API."""
+    env = dict(os.environ)
+    env.update({"PREFECT_API_URL": api_url, "PREFECT_HOME": str(home),
+                "PREFECT_WORKER_QUERY_SECONDS": str(query_seconds),
+                "PREFECT_WORKER_PREFETCH_SECONDS": "5",
+                "DO_NOT_TRACK": "1", "PREFECT_SERVER_ANALYTICS_ENABLED": "false"})
+    env.update(extra_env or {})
+    log = open(Path(home) / f"worker-{pool}.log", "ab")  # owned by the child process
+    return subprocess.Popen(
+        [*_prefect_exe(), "worker", "start", "--pool", pool, "--type", "process"],
+        env=env, cwd=str(cwd), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+@contextmanager
+def running_server(home: Path, **kwargs: float) -> Iterator[PrefectServer]:
+    """A server for the duration of the block, with PREFECT_API_URL exported meanwhile."""
+    server = start_server(home, **kwargs)  # type: ignore[arg-type]
+    old = os.environ.get("PREFECT_API_URL")
+    os.environ["PREFECT_API_URL"] = server.api_url
+    try:
+        yield server
+    finally:
+        if old is None:
+            os.environ.pop("PREFECT_API_URL", None)
+        else:
+            os.environ["PREFECT_API_URL"] = old
+        server.stop()

@@ -1,0 +1,235 @@
+"""The DuckDB catalog: every lake table as SQL, straight over the Parquet files.
+
+Why views over hive-partitioned Parquet and not DuckLake (full reasoning in
+``docs/architecture-catalog.md``): each clip's stage writes its own files with an atomic rename
+(or a single S3 PUT), so there is no shared commit that concurrent writers could lose; a view's
+glob is evaluated at query time, so a clip becomes visible the moment its files land, with no
+catalog write at all. A ``catalog.duckdb`` file holding the same views is (re)written by
+``refresh()`` for external tools (the ``duckdb`` CLI, BI tools); it is replaced atomically,
+so two processes refreshing at once cannot corrupt it.
+
+Names:
+
+- ``raw.<table>`` / ``clean.<table>``: every table found in that zone (plus the known tables of
+  ``schemas.tables``, as empty views with the right columns when no file exists yet).
+- ``main.<table>`` (unqualified, the DESIGN names: clips, agents, sensors, calibrated_sensors,
+  ego_poses, lidar_frames, lidar_points, camera_frames, annotations, instances,
+  registrations, alignments): the clean zone's table when it has any file, otherwise the raw
+  zone's (a clip that is only ingested still answers ``SELECT * FROM clips``). Which zone
+  backs each name is in ``catalog_tables`` and ``Catalog.zones``. ``qa_checks`` is raw (QA
+  runs before anonymization), ``manifests`` reads ``manifests/*/*.json``, ``quarantine`` the
+  quarantine reports. Raw-only tables (``ins``) are only reachable as ``raw.<table>``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import uuid
+from dataclasses import dataclass
+from urllib.parse import urlparse
+
+import duckdb
+import pyarrow as pa
+
+from schemas.arrow import arrow_schema
+from schemas.tables import LAKE_TABLES, LidarPointRow
+from storage.lake import Lake
+
+MAIN_NAMES = ("clips", "agents", "sensors", "calibrated_sensors", "ego_poses", "imu", "gnss",
+              "lidar_frames", "lidar_points", "lidar_points_deskewed", "camera_frames",
+              "annotations", "instances", "registrations", "alignments",
+              "anonymization_audit", "qa_checks")
+EXTRA_SCHEMAS = {"lidar_points_deskewed": LidarPointRow}
+MANIFEST_COLUMNS = {
+    "clip_id": "VARCHAR", "stage": "VARCHAR", "status": "VARCHAR", "code_version": "VARCHAR",
+    "params_hash": "VARCHAR", "inputs_hash": "VARCHAR", "outputs": "JSON", "error": "VARCHAR",
+    "recorded_at": "VARCHAR",
+}
+QUARANTINE_COLUMNS = {"clip_id": "VARCHAR", "stage": "VARCHAR", "reason": "VARCHAR",
+                      "quarantined_at": "VARCHAR"}
+
+
+def duck_type(t: pa.DataType) -> str:
+    """DuckDB type name of an Arrow type (for typed empty views)."""
+    if pa.types.is_dictionary(t):
+        return duck_type(t.value_type)
+    if pa.types.is_list(t):
+        return duck_type(t.value_type) + "[]"
+    simple = {
+        pa.string(): "VARCHAR", pa.large_string(): "VARCHAR", pa.bool_(): "BOOLEAN",
+        pa.int8(): "TINYINT", pa.int16(): "SMALLINT", pa.int32(): "INTEGER",
+        pa.int64(): "BIGINT", pa.uint8(): "UTINYINT", pa.uint16(): "USMALLINT",
+        pa.uint32(): "UINTEGER", pa.uint64(): "UBIGINT", pa.float32(): "FLOAT",
+        pa.float64(): "DOUBLE",
+    }
+    if t in simple:
+        return simple[t]
+    raise TypeError(f"no DuckDB type for {t}")
+
+
+def _q(s: str) -> str:
+    return "'" + s.replace("'", "''") + "'"
+
+
+def _struct(cols: dict[str, str]) -> str:
+    return "{" + ", ".join(f"{_q(k)}: {_q(v)}" for k, v in cols.items()) + "}"
+
+
+@dataclass(frozen=True)
+class ViewInfo:
+    schema: str
+    name: str
+    zone: str  # raw | clean | manifests | quarantine | empty
+    files: int
+    sql: str
+
+
+class Catalog:
+    """DuckDB over one lake. ``Catalog(lake).query("SELECT ...")`` -> ``pyarrow.Table``.
+
+    The live connection is in memory (any number of processes can hold one); ``refresh()``
+    re-scans which tables exist and, for local lakes unless ``read_only``, rewrites
+    ``<root>/catalog.duckdb``. Call ``refresh()`` after a table appears for the first time
+    (new files of an existing table are visible without it).
+    """
+
+    def __init__(self, lake: Lake, read_only: bool = False) -> None:
+        self.lake = lake
+        self.read_only = read_only
+        self.con = duckdb.connect()
+        if not lake.is_local:
+            self._setup_s3(self.con)
+        self.views: list[ViewInfo] = []
+        self.refresh()
+
+    # ------------------------------------------------------------------ setup
+    @staticmethod
+    def _s3_settings() -> list[str]:
+        endpoint = os.environ.get("AWS_ENDPOINT_URL") or os.environ.get("V2XLAKE_S3_ENDPOINT")
+        out = [f"SET s3_region={_q(os.environ.get('AWS_REGION', 'us-east-1'))}"]
+        if key := os.environ.get("AWS_ACCESS_KEY_ID"):
+            out.append(f"SET s3_access_key_id={_q(key)}")
+        if secret := os.environ.get("AWS_SECRET_ACCESS_KEY"):
+            out.append(f"SET s3_secret_access_key={_q(secret)}")
+        if endpoint:
+            u = urlparse(endpoint)
+            out += [f"SET s3_endpoint={_q(u.netloc or u.path)}", "SET s3_url_style='path'",
+                    f"SET s3_use_ssl={'true' if u.scheme == 'https' else 'false'}"]
+        return out
+
+    def _setup_s3(self, con: duckdb.DuckDBPyConnection) -> None:
+        import duckdb_ext  # ships httpfs for this exact duckdb version, offline
+
+        duckdb_ext.init(con)
+        con.execute("LOAD httpfs")
+        for stmt in self._s3_settings():
+            con.execute(stmt)
+
+    # ------------------------------------------------------------------ views
+    def _uri(self, path: str) -> str:
+        return path if self.lake.is_local else f"s3://{path}"
+
+    def _table_view(self, zone: str, table: str) -> ViewInfo:
+        files = self.lake.list_files(self.lake.table_dir(zone, table), ".parquet")
+        if files:
+            sql = (f"SELECT * FROM read_parquet({_q(self.lake.table_glob(zone, table))}, "
+                   "hive_partitioning=true, hive_types_autocast=false, union_by_name=true)")
+            return ViewInfo(zone, table, zone, len(files), sql)
+        model = LAKE_TABLES.get(table) or EXTRA_SCHEMAS.get(table)
+        if model is None:
+            sql = "SELECT NULL AS clip_id WHERE false"
+        else:
+            cols = ", ".join(f"CAST(NULL AS {duck_type(f.type)}) AS {f.name}"
+                             for f in arrow_schema(model))
+            sql = f"SELECT {cols} WHERE false"
+        return ViewInfo(zone, table, "empty", 0, sql)
+
+    def _json_view(self, name: str, folder: str, pattern: str, cols: dict[str, str],
+                   select: str) -> ViewInfo:
+        files = self.lake.list_files(self.lake.path(folder), ".json")
+        if files:
+            glob = self._uri(self.lake.path(folder)) + pattern
+            sql = (f"SELECT {select} FROM read_json({_q(glob)}, format='auto', "
+                   f"columns={_struct(cols)})")
+            return ViewInfo("main", name, folder, len(files), sql)
+        empty = ", ".join(f"CAST(NULL AS {'VARCHAR' if t == 'JSON' else t}) AS {k}"
+                          for k, t in cols.items())
+        return ViewInfo("main", name, "empty", 0, f"SELECT {empty} WHERE false")
+
+    def _plan(self) -> list[ViewInfo]:
+        views: list[ViewInfo] = []
+        by_zone: dict[str, dict[str, ViewInfo]] = {}
+        for zone in ("raw", "clean"):
+            names = sorted({*self.lake.tables(zone), *LAKE_TABLES, *EXTRA_SCHEMAS}
+                           - {"manifests"})
+            by_zone[zone] = {t: self._table_view(zone, t) for t in names}
+            views.extend(by_zone[zone].values())
+        for name in MAIN_NAMES:
+            clean, raw = by_zone["clean"].get(name), by_zone["raw"].get(name)
+            src = clean if clean and clean.files else raw if raw and raw.files else clean or raw
+            assert src is not None
+            zone = src.zone if src.files else "empty"
+            views.append(ViewInfo("main", name, zone, src.files,
+                                  f"SELECT * FROM {src.schema}.{name}"))
+        outputs = "CAST(outputs AS VARCHAR) AS outputs"
+        mcols = ", ".join(k if k != "outputs" else outputs for k in MANIFEST_COLUMNS)
+        views.append(self._json_view("manifests", "manifests", "/*/*.json", MANIFEST_COLUMNS,
+                                     mcols))
+        views.append(self._json_view("quarantine", "quarantine", "/*/report.json",
+                                     QUARANTINE_COLUMNS, ", ".join(QUARANTINE_COLUMNS)))
+        rows = ", ".join(f"({_q(v.schema)}, {_q(v.name)}, {_q(v.zone)}, {v.files})"
+                         for v in views)
+        views.append(ViewInfo("main", "catalog_tables", "catalog", 0,
+                              f"SELECT * FROM (VALUES {rows}) t(schema, name, zone, files)"))
+        return views
+
+    def _apply(self, con: duckdb.DuckDBPyConnection, views: list[ViewInfo]) -> None:
+        con.execute("CREATE SCHEMA IF NOT EXISTS raw")
+        con.execute("CREATE SCHEMA IF NOT EXISTS clean")
+        for v in views:
+            con.execute(f'CREATE OR REPLACE VIEW {v.schema}."{v.name}" AS {v.sql}')
+
+    def refresh(self) -> dict[str, str]:
+        """Re-scan the lake and rebuild every view; returns {main view name: backing zone}."""
+        self.views = self._plan()
+        self._apply(self.con, self.views)
+        if self.lake.is_local and not self.read_only:
+            self._persist()
+        return self.zones
+
+    def _persist(self) -> None:
+        """Write the same views into ``catalog.duckdb`` via a temporary file + atomic rename."""
+        final = self.lake.catalog_path
+        tmp = f"{os.path.dirname(final)}/.catalog-{uuid.uuid4().hex}.duckdb"
+        try:
+            con = duckdb.connect(tmp)
+            try:
+                self._apply(con, self.views)
+            finally:
+                con.close()
+            os.replace(tmp, final)
+        finally:
+            for p in (tmp, tmp + ".wal"):
+                with contextlib.suppress(FileNotFoundError):
+                    os.remove(p)
+
+    @property
+    def zones(self) -> dict[str, str]:
+        return {v.name: v.zone for v in self.views if v.schema == "main"}
+
+    def zone_of(self, name: str) -> str:
+        return self.zones[name]
+
+    # ------------------------------------------------------------------ queries
+    def query(self, sql: str, params: list[object] | None = None) -> pa.Table:
+        return self.con.execute(sql, params or []).fetch_arrow_table()
+
+    def close(self) -> None:
+        self.con.close()
+
+    def __enter__(self) -> Catalog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

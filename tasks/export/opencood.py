@@ -1,0 +1,188 @@
+"""OpenCOOD / V2V4Real layout: ``<split>/<scenario>/<agent int>/%06d.yaml`` + ``%06d.pcd``.
+
+What the V2V4Real loader expects, and why each choice here:
+
+* agent folders are integers; the loader makes the first sorted folder the ego, so the clip's
+  reference agent is ``0`` and the others follow (``agents.json`` next to the scenario
+  folders maps the numbers back to agent ids);
+* every agent has the same file names (the loader indexes timestamps on the ego only), so
+  frame ``%06d`` is the reference agent's LiDAR frame index and the other agents contribute
+  their scan nearest in time;
+* ``lidar_pose``: the 4x4 ``T_world_lidar`` at scan start (V2V4Real style) in the clip world
+  frame; for a cooperative agent with an accepted registration (eq. 1b) the pose is
+  ``T_world_lidar_ref @ T_L1_L2`` so that fusing uses the refined relative transform;
+* ``vehicles`` are in the agent's own LiDAR frame at t0 (as V2V4Real annotates): ``location``
+  = box centre, ``center`` = 0, ``angle`` = [roll, yaw, pitch] in degrees in OpenCOOD's
+  ``x_to_world`` convention, ``extent`` = half (l, w, h), ``ass_id`` = one integer per global
+  instance id, shared across agents;
+* PCD: the deskewed points in the LiDAR frame at t0, intensity in the colour channel (the
+  loader reads ``np.asarray(pcd.colors)[:, 0]``; a plain ``x y z intensity`` PCD crashes it).
+  Open3D stores colours as 8-bit RGB, so intensity is quantised to 1/255.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import yaml
+from pydantic import BaseModel, ConfigDict
+
+from schemas.stage import StageReport
+from storage.lake import Lake
+from tasks.export.common import (
+    ClipData,
+    boxes_matrices,
+    file_output,
+    iter_point_frames,
+    lidar_world_poses,
+    load_clip,
+    nearest_index,
+    transform_matrix,
+)
+
+
+class OpenCoodConfig(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    lidar_sensor: str = "LIDAR_TOP"
+    default_split: str = "train"
+    intensity_scale: float | None = None  # None: divide by 255 if intensities exceed 1
+    match_tolerance_ms: float = 50.0
+    use_registrations: bool = True
+
+
+def matrix_to_opencood_angles(R: np.ndarray) -> list[float]:
+    """[roll, yaw, pitch] degrees that OpenCOOD's ``x_to_world`` turns back into ``R``."""
+    pitch = math.asin(float(np.clip(R[2, 0], -1.0, 1.0)))
+    roll = math.atan2(-float(R[2, 1]), float(R[2, 2]))
+    yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
+    return [math.degrees(roll), math.degrees(yaw), math.degrees(pitch)]
+
+
+def opencood_x_to_world(pose: Sequence[float]) -> np.ndarray:
+    """OpenCOOD's ``transformation_utils.x_to_world`` ([x, y, z, roll, yaw, pitch] degrees)."""
+    x, y, z, roll, yaw, pitch = pose
+    c_y, s_y = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+    c_r, s_r = math.cos(math.radians(roll)), math.sin(math.radians(roll))
+    c_p, s_p = math.cos(math.radians(pitch)), math.sin(math.radians(pitch))
+    m = np.eye(4)
+    m[0, 3], m[1, 3], m[2, 3] = x, y, z
+    m[0, 0] = c_p * c_y
+    m[0, 1] = c_y * s_p * s_r - s_y * c_r
+    m[0, 2] = -c_y * s_p * c_r - s_y * s_r
+    m[1, 0] = s_y * c_p
+    m[1, 1] = s_y * s_p * s_r + c_y * c_r
+    m[1, 2] = -s_y * s_p * c_r + c_y * s_r
+    m[2, 0] = s_p
+    m[2, 1] = -c_p * s_r
+    m[2, 2] = c_p * c_r
+    return m
+
+
+def write_pcd(path: Path, xyz: np.ndarray, intensity01: np.ndarray) -> None:
+    pcd = o3d.geometry.PointCloud()
+    pcd.points = o3d.utility.Vector3dVector(np.asarray(xyz, dtype=np.float64))
+    c = np.clip(np.asarray(intensity01, dtype=np.float64), 0.0, 1.0)
+    pcd.colors = o3d.utility.Vector3dVector(np.repeat(c[:, None], 3, axis=1))
+    written = o3d.io.write_point_cloud(str(path), pcd, write_ascii=False,  # type: ignore[arg-type]
+                                       compressed=False)
+    if not written:
+        raise OSError(f"open3d could not write {path}")
+
+
+def _registered(clip: ClipData, other: str, frame_idx: int) -> np.ndarray | None:
+    r = clip.registrations
+    if r.num_rows == 0:
+        return None
+    rows = [x for x in r.to_pylist() if x["agent_other"] == other
+            and x["agent_ref"] == clip.reference_agent and x["frame_idx"] == frame_idx
+            and x["accepted"]]
+    if not rows:
+        return None
+    x = rows[0]
+    return transform_matrix(x["tx"], x["ty"], x["tz"], x["qw"], x["qx"], x["qy"], x["qz"])
+
+
+def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
+                    splits: dict[str, str] | None = None,
+                    config: OpenCoodConfig = OpenCoodConfig()) -> StageReport:  # noqa: B008
+    root = Path(out_dir)
+    report = StageReport(stage="export_opencood", clip_id=",".join(clip_ids))
+    n_frames = n_boxes = 0
+    for cid in clip_ids:
+        clip = load_clip(lake, cid)
+        split = (splits or {}).get(cid, config.default_split)
+        scen = root / split / cid
+        ref = clip.agents[clip.reference_agent]
+        rs = ref.lidar_sensor(config.lidar_sensor)
+        ref_frames = ref.lidar[rs]
+        ref_t = ref_frames.t_start_ns
+        gids = sorted(set(clip.instances["instance_id"].to_pylist())) \
+            if clip.instances.num_rows else []
+        for a in clip.agents.values():
+            if a.annotations.num_rows:
+                gids = sorted(set(gids) | set(a.annotations["instance_id"].to_pylist()))
+        ass = {g: i for i, g in enumerate(gids)}
+        agent_num = {aid: i for i, aid in enumerate(clip.agents)}
+        (scen).mkdir(parents=True, exist_ok=True)
+        meta = {"agents": agent_num, "instances": ass,
+                "reference_agent": clip.reference_agent,
+                "frames": {f"{int(f):06d}": int(t) for f, t in
+                           zip(ref_frames.frame_idx, ref_t, strict=True)}}
+        (root / split / f"{cid}.json").write_text(json.dumps(meta, indent=1))
+        T_wl_ref = lidar_world_poses(ref, rs, ref_t, cid)
+        for aid, agent in clip.agents.items():
+            sensor = agent.lidar_sensor(config.lidar_sensor)
+            lf = agent.lidar[sensor]
+            d = scen / str(agent_num[aid])
+            d.mkdir(parents=True, exist_ok=True)
+            # this agent's scan for each reference frame
+            near = nearest_index(lf.t_start_ns, ref_t)
+            ok = np.abs(lf.t_start_ns[near] - ref_t) <= config.match_tolerance_ms * 1e6
+            ok &= agent.poses.covers(lf.t_start_ns[near]) & ref.poses.covers(ref_t)
+            want = {int(lf.frame_idx[near[k]]): k for k in np.flatnonzero(ok)}
+            T_wl = lidar_world_poses(agent, sensor, lf.t_start_ns[near[ok]], cid)
+            T_by_frame = dict(zip([int(f) for f in lf.frame_idx[near[ok]]], T_wl, strict=True))
+            ann = agent.annotations
+            for fr in iter_point_frames(lake, cid, aid, sensor=sensor, frames=list(want)):
+                k = want[fr.frame_idx]
+                ref_fi = int(ref_frames.frame_idx[k])
+                name = f"{ref_fi:06d}"
+                T = T_by_frame[fr.frame_idx]
+                if aid != clip.reference_agent and config.use_registrations:
+                    reg = _registered(clip, aid, ref_fi)
+                    if reg is not None:
+                        T = T_wl_ref[k] @ reg
+                inten = fr.intensity.astype(np.float64)
+                scale = config.intensity_scale if config.intensity_scale is not None else (
+                    255.0 if inten.size and float(inten.max()) > 1.0 else 1.0)
+                write_pcd(d / f"{name}.pcd", fr.xyz, inten / scale)
+                vehicles: dict[int, dict[str, object]] = {}
+                if ann.num_rows:
+                    a = ann.filter(ann["frame_idx"].to_numpy() == fr.frame_idx)
+                    if a.num_rows:
+                        B = boxes_matrices(a)
+                        for r, row in enumerate(a.to_pylist()):
+                            vehicles[ass[row["instance_id"]]] = {
+                                "angle": matrix_to_opencood_angles(B[r, :3, :3]),
+                                "center": [0.0, 0.0, 0.0],
+                                "extent": [row["l"] / 2, row["w"] / 2, row["h"] / 2],
+                                "location": [float(v) for v in B[r, :3, 3]],
+                                "obj_type": row["category"],
+                                "ass_id": ass[row["instance_id"]],
+                            }
+                        n_boxes += a.num_rows
+                doc = {"lidar_pose": [[float(v) for v in row] for row in T],
+                       "vehicles": vehicles, "agent_id": aid,
+                       "timestamp_ns": int(lf.t_start_ns[lf.frame_idx == fr.frame_idx][0])}
+                yp = d / f"{name}.yaml"
+                yp.write_text(yaml.safe_dump(doc, sort_keys=False))
+                n_frames += 1
+        report.outputs.append(file_output(root / split / f"{cid}.json"))
+    report.metrics = {"frames": float(n_frames), "boxes": float(n_boxes)}
+    return report

@@ -1,0 +1,516 @@
+"""The ingest stage: one clip folder -> landing copy + raw-zone tables (DESIGN.md stage 1).
+
+Driven only by ``clip.yaml``. Each agent's bag is read in a single pass over the configured
+topics; LiDAR frames stream into one Parquet row group each (never the whole clip in memory),
+images go to PNG blobs. Everything is written into a private staging lake first and moved
+into ``raw/`` only when every agent succeeded, so a clip that fails (unknown type, missing
+topic, truncated file...) leaves nothing in the raw zone or the catalog, and concurrent
+ingests of different clips never see each other's partial output.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from schemas.arrow import arrow_schema, columns_to_table
+from schemas.clip import AgentConfig, ClipConfig, Modality, SensorConfig
+from schemas.geometry import Transform
+from schemas.stage import OutputFile, StageReport
+from schemas.tables import (
+    AgentRow,
+    CalibratedSensorRow,
+    CameraFrameRow,
+    ClipRow,
+    GnssRow,
+    ImuRow,
+    InsRow,
+    LidarFrameRow,
+    LidarPointRow,
+    SensorRow,
+)
+from storage.lake import Lake, TableWriter
+from tasks.errors import ClipError
+from tasks.ingest.annotations import annotation_tables, load_annotations
+from tasks.ingest.bagopen import (
+    STAGE,
+    build_typestore,
+    connections_by_topic,
+    header_stamp_ns,
+    knows_type,
+    open_bag,
+    resolve,
+)
+from tasks.ingest.calibration import TfTree, intrinsics_from_camera_info
+from tasks.ingest.images import compressed_to_png, image_to_png
+from tasks.ingest.ins import GnssDecoder, ImuDecoder, InsDecoder, InsFieldError
+from tasks.ingest.pointcloud import DecodedCloud, decode_cloud
+from tasks.ingest.rows import table_of
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+ACCEPTED: dict[Modality, tuple[str, ...]] = {
+    Modality.LIDAR: (POINTCLOUD2,),
+    Modality.CAMERA: ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image"),
+    Modality.IMU: ("sensor_msgs/msg/Imu",),
+    Modality.GNSS: ("sensor_msgs/msg/NavSatFix",),
+}
+
+
+class IngestConfig(BaseModel):
+    """Ingest parameters (hashed into the manifest)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    png_compression: int = Field(default=1, ge=0, le=9,
+                                 description="zlib level for images re-encoded to PNG")
+    recover_empty_storage_id: bool = Field(
+        default=True, description="read a ROS 2 bag whose metadata.yaml has an empty "
+        "storage_identifier as the storage its files are (sqlite3/MCAP by magic bytes)")
+    copy_to_landing: bool = True
+
+
+def load_clip_config(clip_dir: Path) -> ClipConfig:
+    path = clip_dir / "clip.yaml"
+    if not path.is_file():
+        raise ClipError(clip_dir.name, "clip folder has no clip.yaml", path=str(path), stage=STAGE)
+    try:
+        return ClipConfig.load(clip_dir)
+    except (ValidationError, ValueError) as e:
+        raise ClipError(clip_dir.name, f"invalid clip.yaml: {e}", path=str(path),
+                        stage=STAGE) from e
+
+
+def bag_files(bag: Path) -> list[Path]:
+    if bag.is_dir():
+        return sorted(p for p in bag.rglob("*") if p.is_file() and not p.name.startswith("."))
+    return [bag]
+
+
+def clip_inputs(clip_dir: str | Path) -> tuple[str, list[Path]]:
+    """The clip id and every input file of the ingest stage (clip.yaml, bags, message
+    definitions, annotation file) so the flow can hash them for the manifest before running."""
+    d = Path(clip_dir).resolve()
+    cfg = load_clip_config(d)
+    files = [d / "clip.yaml"]
+    for a in cfg.agents:
+        files.extend(bag_files(resolve(d, a.bag)))
+    files.extend(resolve(d, m) for m in cfg.message_definitions)
+    if cfg.annotations:
+        files.append(resolve(d, cfg.annotations))
+    return cfg.clip_id, [f for f in files if f.exists()]
+
+
+# --------------------------------------------------------------------------- landing
+def copy_to_landing(lake: Lake, clip_dir: Path, cfg: ClipConfig) -> int:
+    """Copy the clip as delivered into ``landing/<clip_id>/`` (the simulator's ``truth/`` is
+    not part of the input contract and stays out). Bags that live outside the clip folder go
+    to ``external/<agent>/`` and the landing clip.yaml is rewritten to point at them (the
+    original is kept as ``clip.delivered.yaml``)."""
+    root = lake.path("landing", cfg.clip_id)
+    lake.delete_dir(root)
+    n = 0
+    for f in sorted(clip_dir.rglob("*")):
+        rel = f.relative_to(clip_dir)
+        hidden = any(p.startswith(".") for p in rel.parts)
+        if f.is_file() and rel.parts[0] != "truth" and not hidden:
+            n += lake.copy_in(f, f"{root}/{rel.as_posix()}")
+    rewrite: dict[str, str] = {}
+    for a in cfg.agents:
+        bag = resolve(clip_dir, a.bag)
+        if bag.is_relative_to(clip_dir):
+            continue
+        dest = f"external/{a.agent_id}/{bag.name}"
+        for f in bag_files(bag):
+            n += lake.copy_in(f, f"{root}/{dest}/{f.relative_to(bag).as_posix()}"
+                              if bag.is_dir() else f"{root}/{dest}")
+        rewrite[a.agent_id] = dest
+    if rewrite:
+        data = cfg.model_dump(mode="json", exclude_none=True)
+        for a in data["agents"]:
+            a["bag"] = rewrite.get(a["agent_id"], a["bag"])
+        import yaml
+        lake.write_bytes(f"{root}/clip.delivered.yaml", (clip_dir / "clip.yaml").read_bytes())
+        lake.write_bytes(f"{root}/clip.yaml", yaml.safe_dump(data, sort_keys=False).encode())
+    return n
+
+
+# --------------------------------------------------------------------------- per agent
+@dataclass
+class AgentResult:
+    sensors: list[SensorRow] = field(default_factory=list)
+    calib: list[CalibratedSensorRow] = field(default_factory=list)
+    lidar_frames: dict[str, int] = field(default_factory=dict)
+    n_points: int = 0
+    n_camera_frames: int = 0
+    bytes_read: int = 0
+    t_min: int | None = None
+    t_max: int | None = None
+    has_ins: bool = False
+
+    def stamp(self, t0: int, t1: int | None = None) -> None:
+        t1 = t0 if t1 is None else t1
+        self.t_min = t0 if self.t_min is None else min(self.t_min, t0)
+        self.t_max = t1 if self.t_max is None else max(self.t_max, t1)
+
+
+class _AgentIngest:
+    """State of one agent's single pass over its bag."""
+
+    def __init__(self, staging: Lake, cfg: ClipConfig, agent: AgentConfig,
+                 config: IngestConfig, notes: list[str]) -> None:
+        self.staging, self.cfg, self.agent, self.config, self.notes = (
+            staging, cfg, agent, config, notes)
+        self.cid, self.aid = cfg.clip_id, agent.agent_id
+        self.res = AgentResult()
+        self.counts: dict[str, int] = {s.name: 0 for s in agent.sensors}
+        self.frame_ids: dict[str, str] = {}
+        self.lidar_rows: list[dict[str, Any]] = []
+        self.cam_rows: list[dict[str, Any]] = []
+        self.ins = InsDecoder()
+        self.imu: dict[str, ImuDecoder] = {}
+        self.gnss = GnssDecoder()
+        self.tf = TfTree()
+        self.camera_info: dict[str, Any] = {}
+        self.writers: dict[str, TableWriter] = {}
+        self.point_schema = arrow_schema(LidarPointRow)
+        self.bag: Path | None = None
+
+    def err(self, reason: str, topic: str | None = None, path: str | None = None) -> ClipError:
+        return ClipError(self.cid, reason, agent_id=self.aid, topic=topic,
+                         path=path or str(self.bag), stage=STAGE)
+
+    # -- validation against the bag's connections
+    def plan(self, reader: Any) -> dict[str, Callable[[Any, Any], None]]:
+        conns = connections_by_topic(reader)
+        topics = sorted(conns)
+        handlers: dict[str, Callable[[Any, Any], None]] = {}
+        for s in self.agent.sensors:
+            if s.topic not in conns:
+                raise self.err(f"topic configured for sensor {s.name} ({s.modality.value}) is "
+                               f"not in the bag; the bag has {topics}", topic=s.topic)
+            have = conns[s.topic].msgtype
+            if have != s.msg_type:
+                raise self.err(f"clip.yaml says sensor {s.name} carries {s.msg_type} but the "
+                               f"bag's topic carries {have}", topic=s.topic)
+            accepted = ACCEPTED.get(s.modality)
+            if not knows_type(reader, have):
+                hint = (f"; {s.modality.value} sensors need one of {list(accepted)}"
+                        if accepted else "; add its .msg file to clip.yaml message_definitions")
+                raise self.err(f"message type {have} is unknown: not defined in the bag, not a "
+                               f"standard ROS 2 type and not in clip.yaml message_definitions"
+                               f"{hint}", topic=s.topic)
+            if accepted and have not in accepted:
+                extra = (" (raw packets must be decoded to PointCloud2 before ingest)"
+                         if s.modality is Modality.LIDAR else "")
+                raise self.err(f"{s.modality.value} sensor {s.name} carries {have}, which "
+                               f"ingest cannot read; expected one of {list(accepted)}{extra}",
+                               topic=s.topic)
+            if s.modality is Modality.RADAR:
+                self.notes.append(f"{self.aid}/{s.name}: radar is not ingested (no table)")
+                continue
+            handlers[s.topic] = self._handler(s)
+            if s.modality is Modality.CAMERA and s.intrinsics is None:
+                if not s.camera_info_topic:
+                    raise self.err(f"camera {s.name} has neither intrinsics in clip.yaml nor a "
+                                   "camera_info_topic", topic=s.topic)
+                if s.camera_info_topic not in conns:
+                    raise self.err(f"camera_info_topic of camera {s.name} is not in the bag; "
+                                   f"the bag has {topics}", topic=s.camera_info_topic)
+                handlers[s.camera_info_topic] = self._camera_info(s.name)
+        tf_topic = self.agent.tf_static_topic
+        if tf_topic and tf_topic in conns:
+            handlers[tf_topic] = lambda msg, _c: self.tf.add_message(msg)
+        elif tf_topic and any(s.extrinsic is None for s in self.agent.sensors
+                              if s.modality in (Modality.LIDAR, Modality.CAMERA)):
+            raise self.err(f"tf_static topic is not in the bag and not every LiDAR/camera has "
+                           f"an extrinsic in clip.yaml; the bag has {topics}", topic=tf_topic)
+        return handlers
+
+    def _camera_info(self, name: str) -> Callable[[Any, Any], None]:
+        def h(msg: Any, _c: Any) -> None:
+            self.camera_info.setdefault(name, msg)
+        return h
+
+    def _handler(self, s: SensorConfig) -> Callable[[Any, Any], None]:
+        if s.modality is Modality.LIDAR:
+            return lambda msg, _c: self._lidar(s, msg)
+        if s.modality is Modality.CAMERA:
+            return lambda msg, _c: self._camera(s, msg)
+        if s.modality is Modality.INS:
+            return lambda msg, _c: self._simple(s, msg, self.ins)
+        if s.modality is Modality.IMU:
+            return lambda msg, _c: self._simple(s, msg, self.imu.setdefault(s.name, ImuDecoder()))
+        return lambda msg, _c: self._simple(s, msg, self.gnss)
+
+    def _first(self, s: SensorConfig, msg: Any) -> int:
+        idx = self.counts[s.name]
+        self.counts[s.name] = idx + 1
+        if idx == 0:
+            self.frame_ids[s.name] = s.frame_id or str(msg.header.frame_id)
+        return idx
+
+    def _simple(self, s: SensorConfig, msg: Any, dec: InsDecoder | ImuDecoder | GnssDecoder
+                ) -> None:
+        self._first(s, msg)
+        try:
+            dec.add(msg)
+        except InsFieldError as e:
+            raise self.err(str(e), topic=s.topic) from e
+        self.res.stamp(header_stamp_ns(msg))
+
+    def _lidar(self, s: SensorConfig, msg: Any) -> None:
+        idx = self._first(s, msg)
+        stamp = header_stamp_ns(msg)
+        assert s.fields is not None
+        try:
+            cloud = decode_cloud(msg, s.fields, stamp)
+        except (KeyError, ValueError) as e:
+            raise self.err(f"LiDAR frame {idx}: {e}", topic=s.topic) from e
+        if cloud.n_points == 0:
+            self.notes.append(f"{self.aid}/{s.name} frame {idx}: no finite point "
+                              f"({cloud.n_nan} non-finite)")
+        w = self.writers.get(s.name)
+        if w is None:
+            w = self.staging.open_writer("raw", "lidar_points", self.point_schema,
+                                         clip_id=self.cid, agent_id=self.aid, name=s.name,
+                                         background=True)
+            self.stack.enter_context(w)
+            self.writers[s.name] = w
+        w.write(_points_table(s.name, idx, cloud))
+        self.res.n_points += cloud.n_points
+        self.lidar_rows.append(dict(
+            sensor=s.name, frame_idx=idx, stamp_ns=stamp, t_start_ns=cloud.t_start_ns,
+            t_end_ns=cloud.t_end_ns, n_points=cloud.n_points, n_nan=cloud.n_nan))
+        self.res.stamp(min(stamp, cloud.t_start_ns), max(stamp, cloud.t_end_ns))
+
+    def _camera(self, s: SensorConfig, msg: Any) -> None:
+        idx = self._first(s, msg)
+        stamp = header_stamp_ns(msg)
+        try:
+            if s.msg_type.endswith("CompressedImage"):
+                png, w, h = compressed_to_png(msg, self.config.png_compression)
+            else:
+                png, w, h = image_to_png(msg, self.config.png_compression)
+        except ValueError as e:
+            raise self.err(f"camera {s.name} frame {idx}: {e}", topic=s.topic) from e
+        key = self.staging.blob_key(self.cid, self.aid, s.name, idx)
+        self.staging.write_blob("raw", key, png)
+        import hashlib
+        self.cam_rows.append(dict(sensor=s.name, frame_idx=idx, stamp_ns=stamp, width=w,
+                                  height=h, blob=key, sha256=hashlib.sha256(png).hexdigest()))
+        self.res.n_camera_frames += 1
+        self.res.stamp(stamp)
+
+    # -- the pass
+    def run(self, bag: Path, typestore: Any) -> AgentResult:
+        self.bag = bag
+        with ExitStack() as stack, open_bag(
+            self.cid, self.agent, bag, typestore,
+            recover_empty_storage_id=self.config.recover_empty_storage_id, notes=self.notes,
+        ) as reader:
+            self.stack = stack
+            handlers = self.plan(reader)
+            conns = [c for c in reader.connections if c.topic in handlers]
+            seen: dict[int, int] = {id(c): 0 for c in conns}
+            try:
+                for conn, _t, raw in reader.messages(connections=conns):
+                    self.res.bytes_read += len(raw)
+                    seen[id(conn)] += 1
+                    handlers[conn.topic](reader.deserialize(raw, conn.msgtype), conn)
+            except ClipError:
+                raise
+            except Exception as e:  # rosbags / sqlite / mcap errors on a damaged file
+                raise self.err(f"reading the bag failed after {sum(self.counts.values())} "
+                               f"messages ({type(e).__name__}: {e}); truncated or corrupt?",
+                               path=str(bag)) from e
+            for c in conns:  # a cut file can end cleanly between messages: count them
+                if c.msgcount and seen[id(c)] < c.msgcount:
+                    raise self.err(f"the bag's index promises {c.msgcount} messages on this "
+                                   f"topic but only {seen[id(c)]} could be read; truncated?",
+                                   topic=c.topic, path=str(bag))
+        self._write_tables()
+        return self.res
+
+    def _write_tables(self) -> None:
+        st, cid, aid = self.staging, self.cid, self.aid
+        for s in self.agent.sensors:
+            self.res.sensors.append(SensorRow(
+                clip_id=cid, agent_id=aid, sensor=s.name, modality=s.modality.value,
+                topic=s.topic, msg_type=s.msg_type, n_messages=self.counts[s.name]))
+            if s.modality is Modality.LIDAR:
+                self.res.lidar_frames[s.name] = self.counts[s.name]
+        self.res.has_ins = bool(self.agent.sensors_of(Modality.INS)) and bool(self.ins.cols["t_ns"])
+        self.res.calib = self._calibration()
+        tables: dict[str, pa.Table] = {
+            "sensors": table_of(SensorRow, self.res.sensors),
+            "calibrated_sensors": table_of(CalibratedSensorRow, self.res.calib),
+            "lidar_frames": _frame_table(LidarFrameRow, self.lidar_rows, cid, aid),
+            "camera_frames": _frame_table(CameraFrameRow, self.cam_rows, cid, aid),
+            "ins": _cols_table(InsRow, self.ins.cols, cid, aid),
+            "gnss": _cols_table(GnssRow, self.gnss.cols, cid, aid),
+            "imu": pa.concat_tables([
+                _cols_table(ImuRow, {**d.cols, "sensor": [n] * len(d.cols["t_ns"])}, cid, aid)
+                for n, d in self.imu.items()]) if self.imu else arrow_schema(ImuRow).empty_table(),
+        }
+        for name, t in tables.items():
+            st.write_table("raw", name, t, clip_id=cid, agent_id=aid)
+
+    def _calibration(self) -> list[CalibratedSensorRow]:
+        rows = []
+        for s in self.agent.sensors:
+            frame = s.frame_id or self.frame_ids.get(s.name)
+            source: list[str] = []
+            T: Transform | None = None
+            if s.extrinsic is not None:
+                T, source = s.extrinsic, ["clip.yaml"]
+            elif frame is not None and (
+                    m := self.tf.lookup(self.agent.ego_frame, frame)) is not None:
+                T, source = Transform.from_matrix(m), ["tf_static"]
+            elif s.modality is Modality.INS:
+                T, source = Transform.identity(), ["ego_frame"]
+            if T is None:
+                if s.modality in (Modality.LIDAR, Modality.CAMERA):
+                    raise self.err(
+                        f"no extrinsic for sensor {s.name}: frame {frame!r} is not connected to "
+                        f"ego frame {self.agent.ego_frame!r} in tf_static (frames "
+                        f"{self.tf.frames}) and clip.yaml gives no extrinsic", topic=s.topic)
+                self.notes.append(f"{self.aid}/{s.name}: no extrinsic (frame {frame!r}); "
+                                  "no calibrated_sensors row")
+                continue
+            intr = s.intrinsics
+            if s.modality is Modality.CAMERA and intr is None:
+                info = self.camera_info.get(s.name)
+                if info is None:
+                    raise self.err(f"camera {s.name}: no CameraInfo message on its "
+                                   "camera_info_topic", topic=s.camera_info_topic)
+                try:
+                    intr = intrinsics_from_camera_info(info)
+                except (ValidationError, ValueError) as e:
+                    raise self.err(f"camera {s.name}: bad CameraInfo: {e}",
+                                   topic=s.camera_info_topic) from e
+                source.append("camera_info")
+            elif intr is not None:
+                source.append("clip.yaml")
+            t, q = T.translation, T.rotation
+            rows.append(CalibratedSensorRow(
+                clip_id=self.cid, agent_id=self.aid, sensor=s.name, modality=s.modality.value,
+                tx=t[0], ty=t[1], tz=t[2], qw=q[0], qx=q[1], qy=q[2], qz=q[3],
+                width=intr.width if intr else None, height=intr.height if intr else None,
+                fx=intr.fx if intr else None, fy=intr.fy if intr else None,
+                cx=intr.cx if intr else None, cy=intr.cy if intr else None,
+                distortion_model=intr.distortion_model.value if intr else None,
+                distortion=list(intr.distortion) if intr else None,
+                source="+".join(dict.fromkeys(source))))
+        return rows
+
+
+def _points_table(sensor: str, idx: int, c: DecodedCloud) -> pa.Table:
+    n = c.n_points
+    cols: dict[str, Any] = {
+        "sensor": pa.DictionaryArray.from_arrays(pa.array(np.zeros(n, np.int32)),
+                                                 pa.array([sensor])),
+        "frame_idx": np.full(n, idx, np.int32), "t_ns": c.t_ns, "x": c.x, "y": c.y, "z": c.z,
+        "intensity": c.intensity, "ring": c.ring, "return_id": c.return_id,
+    }
+    return pa.table({k: pa.array(v) if isinstance(v, np.ndarray) else v for k, v in cols.items()})
+
+
+def _frame_table(model: type[BaseModel], rows: list[dict[str, Any]], cid: str, aid: str
+                 ) -> pa.Table:
+    return table_of(model, [{**r, "clip_id": cid, "agent_id": aid} for r in rows])
+
+
+def _cols_table(model: type[BaseModel], cols: dict[str, list[Any]], cid: str, aid: str
+                ) -> pa.Table:
+    n = len(cols["t_ns"])
+    data: dict[str, Any] = {k: np.asarray(v) if k != "sigma_h" else pa.array(v, pa.float64())
+                            for k, v in cols.items()}
+    data["clip_id"], data["agent_id"] = [cid] * n, [aid] * n
+    return columns_to_table(model, data)
+
+
+# --------------------------------------------------------------------------- entry point
+def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = None
+               ) -> StageReport:
+    """Ingest one clip folder into ``lake``'s landing and raw zones; see the module doc."""
+    config = config or IngestConfig()
+    t0 = time.perf_counter()
+    d = Path(clip_dir).resolve()
+    cfg = load_clip_config(d)
+    cid = cfg.clip_id
+    typestore = build_typestore(d, cfg)
+    notes: list[str] = []
+    if config.copy_to_landing:
+        copy_to_landing(lake, d, cfg)
+    if lake.discard_staging(cid):
+        notes.append(f"removed stale staging output of an earlier, interrupted ingest of {cid}")
+    staging = lake.staging(cid)
+    try:
+        results: dict[str, AgentResult] = {}
+        for agent in cfg.agents:
+            results[agent.agent_id] = _AgentIngest(staging, cfg, agent, config, notes).run(
+                resolve(d, agent.bag), typestore)
+            if not results[agent.agent_id].has_ins:
+                notes.append(f"agent {agent.agent_id}: no INS "
+                             + ("topic configured" if not agent.sensors_of(Modality.INS)
+                                else "messages") + ": deskew/registration impossible")
+        if cfg.annotations:
+            path = resolve(d, cfg.annotations)
+            frames = {(a, s): n for a, r in results.items() for s, n in r.lidar_frames.items()}
+            try:
+                for aid, t in annotation_tables(load_annotations(path, cid), frames).items():
+                    staging.write_table("raw", "annotations", t, clip_id=cid, agent_id=aid)
+            except (ValidationError, ValueError, OSError) as e:
+                raise ClipError(cid, f"bad annotation file: {e}", path=str(path),
+                                stage=STAGE) from e
+        for aid, r in results.items():
+            a = cfg.agent(aid)
+            staging.write_table("raw", "agents", table_of(AgentRow, [AgentRow(
+                clip_id=cid, agent_id=aid, kind=a.kind.value, role=a.role.value,
+                has_ins=r.has_ins)]), clip_id=cid, agent_id=aid)
+        tmins = [r.t_min for r in results.values() if r.t_min is not None]
+        tmaxs = [r.t_max for r in results.values() if r.t_max is not None]
+        if not tmins:
+            raise ClipError(cid, "no sensor message in any bag", stage=STAGE)
+        duration = (max(tmaxs) - min(tmins)) / 1e9
+        staging.write_table("raw", "clips", table_of(ClipRow, [ClipRow(
+            clip_id=cid, location=cfg.location, road_type=cfg.road_type.value,
+            weather=cfg.weather.value, lighting=cfg.lighting.value, work_zone=cfg.work_zone,
+            n_agents=len(cfg.agents), reference_agent=cfg.reference_agent.agent_id,
+            duration_s=duration, source="simulated" if (d / "truth").is_dir() else "recorded",
+            status="ok")]), clip_id=cid)
+        outputs = [(f, pq_rows(staging, f)) for f in staging.list_files(staging.path("raw"),
+                                                                         ".parquet")]
+        lake.delete_clip("raw", cid)
+        lake.publish(staging, "raw", cid)
+    finally:
+        staging.discard()
+    elapsed = time.perf_counter() - t0
+    n_bytes = sum(r.bytes_read for r in results.values())
+    return StageReport(
+        stage=STAGE, clip_id=cid,
+        outputs=[OutputFile(path=f[len(staging.base) + 1:], rows=n) for f, n in outputs],
+        metrics={
+            "seconds": elapsed, "bytes_read": float(n_bytes),
+            "mb_per_s": n_bytes / 1e6 / elapsed if elapsed > 0 else 0.0,
+            "lidar_frames": float(sum(sum(r.lidar_frames.values()) for r in results.values())),
+            "lidar_points": float(sum(r.n_points for r in results.values())),
+            "camera_frames": float(sum(r.n_camera_frames for r in results.values())),
+            "duration_s": duration, "agents": float(len(results)),
+        },
+        notes=notes,
+    )
+
+
+def pq_rows(lake: Lake, path: str) -> int:
+    import pyarrow.parquet as pq
+    with lake.fs.open_input_file(path) as f:
+        return int(pq.ParquetFile(f).metadata.num_rows)

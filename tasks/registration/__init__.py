@@ -1,0 +1,36 @@
+"""Cross-agent LiDAR registration (main paper eq. 1a / 1b): numeric core, GICP backends,
+quality control and the Fig. 5 bird's-eye view. The lake stage is :mod:`tasks.register`."""
+
+from tasks.registration.backends import (
+    GicpParams,
+    Open3dBackend,
+    RegistrationBackend,
+    SmallGicpBackend,
+    make_backend,
+)
+from tasks.registration.bev import render_registration_bev
+from tasks.registration.core import (
+    PairResult,
+    QualityLimits,
+    initial_transform,
+    initial_transform_at,
+    refine,
+    transform_delta,
+)
+from tasks.registration.voxel import voxel_downsample
+
+__all__ = [
+    "GicpParams",
+    "Open3dBackend",
+    "PairResult",
+    "QualityLimits",
+    "RegistrationBackend",
+    "SmallGicpBackend",
+    "initial_transform",
+    "initial_transform_at",
+    "make_backend",
+    "refine",
+    "render_registration_bev",
+    "transform_delta",
+    "voxel_downsample",
+]

@@ -1,0 +1,15 @@
+"""Realistic multi-agent recorder simulator: writes a clip folder (COMMON.md) from a seed.
+
+Public API: :class:`SimConfig` (``SimConfig.preset("small"|"cats", **overrides)``),
+:func:`simulate` ``(out_dir, config) -> Path``, :func:`load_truth` ``(clip_dir) -> SimTruth``.
+See the module docstrings for every convention: ``trajectory`` (time, world, body frames),
+``rig`` (sensor frames, calibration errors), ``lidar`` (PPS phase lock, per-column time,
+dual return, intensity), ``camera`` (trigger times, rendering, 2D truth), ``ins`` (INS/IMU/GNSS
+error model), ``bagwrite`` (message layout, log-time latencies), ``truth`` (ground truth files).
+"""
+
+from tasks.simulate.config import SimConfig
+from tasks.simulate.run import simulate
+from tasks.simulate.truth import SimTruth, load_truth
+
+__all__ = ["SimConfig", "SimTruth", "load_truth", "simulate"]

@@ -1,0 +1,148 @@
+"""Configuration of the multi-agent recorder simulator (``SimConfig``) and its two presets.
+
+Presets (``SimConfig.preset(name, **overrides)``):
+
+* ``cats`` follows CATS-V2V main paper Tab. 2: 128-beam LiDAR, 0.2 deg azimuth (1800 columns
+  per 0.1 s scan), vertical FOV -25..15 deg, dual return (strongest + last); seven cameras at
+  30 Hz: CAM_FRONT (wide), CAM_FRONT_NARROW (tele), CAM_BACK at 3840x2160, four side cameras at
+  1920x1536 on ``black`` and 1920x1080 on ``red``.
+* ``small`` is the same rig at test scale: 32 beams, 1 deg azimuth (360 columns), single return,
+  120 m range, all seven cameras scaled to 640 px wide (aspect kept: 640x360 front/back,
+  640x360 / 640x512 sides). Tests should pass ``cameras=("CAM_FRONT", "CAM_BACK")`` and/or a
+  lower ``camera_hz`` (stamps stay on the 30 Hz trigger grid, every n-th trigger is rendered).
+
+Every number that tests relate to (extrinsic errors, INS bias, noise) is a field here, so a
+test can switch an error source off and check the geometry exactly. The whole config is
+written to ``truth/sim_config.json`` so that ``tasks.simulate.truth.load_truth`` can rebuild
+the analytic trajectories and scene of a clip bit-for-bit.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+CAMERA_NAMES: tuple[str, ...] = (
+    "CAM_FRONT", "CAM_FRONT_NARROW", "CAM_BACK", "CAM_FRONT_LEFT", "CAM_BACK_LEFT",
+    "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT",
+)
+AGENT_NAMES: tuple[str, ...] = ("red", "black", "rsu")
+
+
+class LidarSpec(BaseModel):
+    """Mechanical spinning LiDAR, phase-locked to the PPS at 0 deg azimuth.
+
+    ``columns`` azimuth columns per revolution at ``rate_hz``; all ``beams`` lasers of a column
+    fire at the same instant (one timestamp per column).
+    """
+
+    model_config = ConfigDict(frozen=True)
+
+    beams: int = Field(128, ge=2)
+    columns: int = Field(1800, ge=36)
+    rate_hz: float = 10.0
+    elev_min_deg: float = -25.0
+    elev_max_deg: float = 15.0
+    max_range_m: float = 250.0
+    min_range_m: float = 0.5
+    dual_return: bool = True
+    range_noise_m: float = Field(0.0, ge=0.0, description="Gaussian range noise sigma")
+
+
+class SimConfig(BaseModel):
+    """Everything that determines a simulated clip; same config + seed -> same bytes."""
+
+    model_config = ConfigDict(frozen=True)
+
+    preset_name: str = "small"
+    seconds: float = Field(2.0, gt=0.0, le=120.0)
+    storage: Literal["sqlite3", "mcap", "ros1"] = "sqlite3"
+    seed: int = 0
+    agents: tuple[str, ...] = ("red", "black")
+    clip_id: str | None = Field(None, description="default: sim_<preset_name>_s<seed>")
+    start_s: int = Field(1_700_000_000, description="GNSS epoch second of the first PPS")
+    origin_lat: float = 42.2936
+    origin_lon: float = -83.7130
+    ground_alt_m: float = 250.0
+    lidar: LidarSpec = LidarSpec()
+    cameras: tuple[str, ...] = CAMERA_NAMES
+    camera_hz: float = Field(30.0, description="30 / camera_hz must be an integer")
+    image_width: int | None = Field(None, description="scale every camera to this width")
+    png_compression: int = Field(1, ge=0, le=9)
+    workers: int = Field(2, ge=1, description="threads encoding PNGs (output is identical)")
+    # Calibration errors in what /tf_static publishes (truth keeps the real ones).
+    lidar_ext_trans_err_m: float = 0.15
+    lidar_ext_rot_err_deg: float = 0.4
+    cam_ext_trans_err_m: float = 0.0
+    cam_ext_rot_err_deg: float = 0.0
+    # INS / GNSS / IMU errors.
+    ins_bias_m: float = Field(0.15, description="constant position bias magnitude per agent")
+    ins_bias_drift_m: float = Field(0.05, description="amplitude of the slow bias wander")
+    ins_bias_period_s: float = 300.0
+    ins_att_bias_deg: float = Field(0.02, description="constant attitude bias per axis")
+    ins_noise_m: float = Field(0.0, description="white position noise of the INS output")
+    gnss_noise_m: float = 0.02
+    imu_gyro_noise: float = 1e-4
+    imu_accel_noise: float = 0.01
+    write_lidar_truth: bool = True
+    speed_mps: float = Field(18.0, description="nominal speed of the red agent")
+
+    @field_validator("agents")
+    @classmethod
+    def _agents(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        bad = [a for a in v if a not in AGENT_NAMES]
+        if bad or "red" not in v or len(set(v)) != len(v):
+            raise ValueError(
+                f"agents must be distinct names from {AGENT_NAMES} incl. 'red', got {v}")
+        return tuple(a for a in AGENT_NAMES if a in v)
+
+    @field_validator("cameras")
+    @classmethod
+    def _cameras(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        bad = [c for c in v if c not in CAMERA_NAMES]
+        if bad:
+            raise ValueError(f"unknown cameras {bad}; choose from {CAMERA_NAMES}")
+        return tuple(c for c in CAMERA_NAMES if c in v)
+
+    @field_validator("camera_hz")
+    @classmethod
+    def _camera_hz(cls, v: float) -> float:
+        div = 30.0 / v
+        if v <= 0 or abs(div - round(div)) > 1e-9:
+            raise ValueError(f"camera_hz must divide 30 (30, 15, 10, 6, 5, ...), got {v}")
+        return v
+
+    @property
+    def name(self) -> str:
+        return self.clip_id or f"sim_{self.preset_name}_s{self.seed}"
+
+    @property
+    def camera_step(self) -> int:
+        """Render every n-th frame of the 30 Hz trigger grid."""
+        return round(30.0 / self.camera_hz)
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> SimConfig:
+        """``small`` (test scale) or ``cats`` (Tab. 2); ``None`` overrides are ignored."""
+        over = {k: v for k, v in overrides.items() if v is not None}
+        if isinstance(over.get("agents"), str):
+            over["agents"] = tuple(a.strip() for a in over["agents"].split(",") if a.strip())
+        if isinstance(over.get("cameras"), str):
+            over["cameras"] = tuple(c.strip() for c in over["cameras"].split(",") if c.strip())
+        if name == "cats":
+            base: dict[str, Any] = {
+                "preset_name": "cats", "lidar": LidarSpec(), "cameras": CAMERA_NAMES,
+                "image_width": None, "write_lidar_truth": False,
+            }
+        elif name == "small":
+            base = {
+                "preset_name": "small",
+                "lidar": LidarSpec(beams=32, columns=360, dual_return=False, max_range_m=120.0),
+                "cameras": CAMERA_NAMES, "image_width": 640,
+                "write_lidar_truth": True,
+            }
+        else:
+            raise ValueError(f"unknown preset {name!r}; choose 'small' or 'cats'")
+        base.update(over)
+        return cls(**base)

@@ -1,0 +1,120 @@
+"""Sensor rigs: true and published (mis-calibrated) extrinsics, camera intrinsics.
+
+Frames: ``base_link`` = the agent's INS/IMU frame (body x forward, y left, z up, origin at the
+body's geometric centre, 0.40 m above the ground for vehicles, on the ground at the mast for the
+roadside unit). LiDAR frame ``<agent>/lidar``: x forward, y left, z up; azimuth 0 = +x, sweeping
+clockwise seen from above (front -> right -> back -> left), as in CATS-V2V Fig. 6. Camera frames
+``<agent>/cam_front`` ...: optical convention (z forward, x right, y down).
+
+``T_ego_sensor`` maps points from the sensor frame into base_link. The TRUE extrinsic is the
+nominal mount plus a small seeded mounting deviation; ``/tf_static`` publishes the true one
+composed with a calibration error ``T_pub = T_true @ T_err`` whose translation has norm
+``lidar_ext_trans_err_m`` and rotation angle ``lidar_ext_rot_err_deg`` (random directions).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from schemas.calibration import CameraIntrinsics, DistortionModel
+from tasks.simulate.config import SimConfig
+
+# name: (yaw deg, hfov deg, base width, base height red, base height black, x, y, z) with x y z
+# the mount position in base_link
+_CAMS: dict[str, tuple[float, float, int, int, int, float, float, float]] = {
+    "CAM_FRONT": (0.0, 120.0, 3840, 2160, 2160, 1.00, 0.0, 1.25),
+    "CAM_FRONT_NARROW": (0.0, 30.0, 3840, 2160, 2160, 1.00, 0.15, 1.25),
+    "CAM_BACK": (180.0, 70.0, 3840, 2160, 2160, -1.00, 0.0, 1.25),
+    "CAM_FRONT_LEFT": (60.0, 100.0, 1920, 1080, 1536, 0.60, 0.70, 1.25),
+    "CAM_BACK_LEFT": (125.0, 100.0, 1920, 1080, 1536, -0.50, 0.70, 1.25),
+    "CAM_FRONT_RIGHT": (-60.0, 100.0, 1920, 1080, 1536, 0.60, -0.70, 1.25),
+    "CAM_BACK_RIGHT": (-125.0, 100.0, 1920, 1080, 1536, -0.50, -0.70, 1.25),
+}
+_FRONT_DISTORTION = [-0.03, 0.004, 0.0002, -0.0001, 0.0]
+
+
+def frame_name(agent: str, sensor: str) -> str:
+    """tf frame of a sensor: LIDAR_TOP -> red/lidar, CAM_FRONT -> red/cam_front."""
+    if sensor == "LIDAR_TOP":
+        return f"{agent}/lidar"
+    return f"{agent}/{sensor.lower().replace('cam_', 'cam_')}"
+
+
+def _mat(r: np.ndarray, t: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = r, t
+    return m
+
+
+def _cam_rotation(yaw_deg: float, pitch_down_deg: float) -> np.ndarray:
+    y = np.radians(yaw_deg)
+    z = np.array([np.cos(y), np.sin(y), 0.0])
+    x = np.array([np.sin(y), -np.cos(y), 0.0])
+    r0 = np.column_stack([x, np.cross(z, x), z])
+    return r0 @ Rotation.from_euler("x", -np.radians(pitch_down_deg)).as_matrix()
+
+
+def _error(rng: np.random.Generator, trans: float, rot_deg: float) -> np.ndarray:
+    def unit() -> np.ndarray:
+        v = rng.normal(size=3)
+        return v / np.linalg.norm(v)
+    return _mat(Rotation.from_rotvec(unit() * np.radians(rot_deg)).as_matrix(), unit() * trans)
+
+
+@dataclass(frozen=True)
+class CameraRig:
+    name: str
+    intrinsics: CameraIntrinsics
+    T_ego_cam_true: np.ndarray
+    T_ego_cam_pub: np.ndarray
+
+
+@dataclass(frozen=True)
+class AgentRig:
+    agent: str
+    T_ego_lidar_true: np.ndarray
+    T_ego_lidar_pub: np.ndarray
+    cameras: dict[str, CameraRig]
+
+
+def build_rigs(cfg: SimConfig) -> dict[str, AgentRig]:
+    rigs: dict[str, AgentRig] = {}
+    for k, agent in enumerate(cfg.agents):
+        rng = np.random.default_rng([cfg.seed, 777, k])
+        if agent == "rsu":
+            lid_nom = _mat(np.eye(3), np.array([0.0, 0.0, 5.5]))
+            cams_for = [c for c in ("CAM_FRONT",) if c in cfg.cameras]
+        else:
+            lid_nom = _mat(np.eye(3), np.array([0.20, 0.0, 1.55]))
+            cams_for = list(cfg.cameras)
+        mount = _mat(Rotation.from_rotvec(rng.normal(size=3) * np.radians(0.3)).as_matrix(),
+                     rng.normal(size=3) * 0.02)
+        lid_true = lid_nom @ mount
+        lid_pub = lid_true @ _error(rng, cfg.lidar_ext_trans_err_m, cfg.lidar_ext_rot_err_deg)
+        cams: dict[str, CameraRig] = {}
+        for name in cams_for:
+            yaw, hfov, bw, bh_red, bh_black, x, y, z = _CAMS[name]
+            bh = bh_black if agent == "black" else bh_red
+            w = cfg.image_width or bw
+            h = round(bh * w / bw)
+            fx = (w / 2) / np.tan(np.radians(hfov) / 2)
+            dist = _FRONT_DISTORTION if name == "CAM_FRONT" else [0.0] * 5
+            intr = CameraIntrinsics(
+                width=w, height=h, fx=float(fx), fy=float(fx),
+                cx=w / 2 + 0.0013 * w, cy=h / 2 - 0.0011 * h,
+                distortion_model=DistortionModel.PLUMB_BOB, distortion=list(dist),
+            )
+            if agent == "rsu":
+                r, t = _cam_rotation(0.0, 12.0), np.array([0.3, 0.0, 5.3])
+            else:
+                r, t = _cam_rotation(yaw, 2.0), np.array([x, y, z])
+            cmount = _mat(Rotation.from_rotvec(rng.normal(size=3) * np.radians(0.2)).as_matrix(),
+                          rng.normal(size=3) * 0.01)
+            c_true = _mat(r, t) @ cmount
+            c_pub = c_true @ _error(rng, cfg.cam_ext_trans_err_m, cfg.cam_ext_rot_err_deg)
+            cams[name] = CameraRig(name, intr, c_true, c_pub)
+        rigs[agent] = AgentRig(agent, lid_true, lid_pub, cams)
+    return rigs

