@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -30,6 +31,11 @@ def main() -> int:
     p.add_argument("--home", default=str(v2xlake_home() / "server"))
     p.add_argument("--no-worker", action="store_true")
     args = p.parse_args()
+
+    def _stop(signum: int, frame: object) -> None:  # SIGTERM: stop the children too
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _stop)
     home = Path(args.home).expanduser()
     server = start_server(home, port=args.port)
     print(f"prefect server: {server.api_url} (log {server.log_path})", flush=True)

@@ -217,43 +217,47 @@ def cmd_query(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- export / convert / plot / audit
 def cmd_export(args: argparse.Namespace) -> int:
     from flows.bookkeeping import query
-    from flows.release import load_export
+    from flows.release import call_export
     from storage.lake import Lake
 
     lake = Lake(args.lake)
-    fn = load_export(args.format)
     clip_ids = args.clip or [r["clip_id"] for r in query(
         lake, "SELECT clip_id FROM clips WHERE status = 'ok' ORDER BY 1").to_pylist()]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    report = fn(lake, clip_ids, out)
+    metrics = call_export(args.format, lake, clip_ids, out)
     _console().print(f"{args.format}: {len(clip_ids)} clip(s) -> {out} in "
-                     f"{time.perf_counter() - t0:.1f} s {getattr(report, 'metrics', '')}")
+                     f"{time.perf_counter() - t0:.1f} s {metrics}")
     return 0
 
 
 def cmd_convert_bag(args: argparse.Namespace) -> int:
-    """ROS 1 <-> ROS 2 through rosbags' converter (same messages, other container)."""
-    from rosbags.convert import convert
+    """ROS 1 <-> ROS 2 (tasks.export.convert_bag: rosbags' converter + type translation)."""
+    from tasks.export import convert_bag
 
     dst = Path(args.dst)
-    if (dst.suffix == ".bag") != (args.to == "ros1"):
-        raise ValueError("a ROS 1 destination ends in .bag, a ROS 2 one is a directory name")
     if dst.exists():
-        raise ValueError(f"{dst} exists; rosbags refuses to overwrite a bag")
-    convert([Path(args.src)], dst, args.storage, 8, None, "none", None, None, [], [], [], [])
-    _console().print(f"{args.src} -> {dst} ({args.to})")
+        raise ValueError(f"{dst} exists; a bag is never overwritten")
+    out = convert_bag(Path(args.src), dst, args.to, storage=args.storage)
+    _console().print(f"{args.src} -> {out} ({args.to})")
     return 0
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
+    from storage.lake import Lake
     from tasks.register import plot_registration
 
-    from storage.lake import Lake
-
-    out = plot_registration(Lake(args.lake), args.clip, frame_idx=args.frame, out=Path(args.out))
-    _console().print(f"registration plot -> {out or args.out}")
+    lake = Lake(args.lake)
+    frame = args.frame
+    if frame is None:  # the middle registered frame
+        frames = sorted(set(lake.read_table("clean", "registrations", clip_id=args.clip,
+                                            columns=["frame_idx"]).column(0).to_pylist()))
+        if not frames:
+            raise ValueError(f"clip {args.clip} has no registrations in {lake.uri}")
+        frame = frames[len(frames) // 2]
+    out = plot_registration(lake, args.clip, frame, Path(args.out))
+    _console().print(f"registration of clip {args.clip}, frame {frame} -> {out}")
     return 0
 
 
@@ -430,8 +434,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except Exception as exc:
         from flows.release import ReleaseError
+        from tasks.errors import ClipError
 
-        if isinstance(exc, ReleaseError | ValueError | FileNotFoundError):
+        if isinstance(exc, ReleaseError | ClipError | ValueError | FileNotFoundError):
             _console(stderr=True).print(f"[red]error[/]: {exc}")
             return 2
         raise

@@ -137,13 +137,40 @@ def copy_clean_zone(lake: Lake, writer: ReleaseWriter, clip_ids: Sequence[str]) 
     return n
 
 
-def run_export(lake: Lake, writer: ReleaseWriter, fmt: str,
-               clip_ids: Sequence[str]) -> dict[str, Any]:
+def call_export(fmt: str, lake: Lake, clip_ids: Sequence[str], out_dir: Path,
+                splits: dict[str, str] | None = None) -> dict[str, float]:
+    """Run one export format over clips into a local folder; returns merged metrics.
+
+    The export entry points differ in shape (per clip for bev / rosbag; splits for nuScenes
+    and OpenCOOD), so this is the one place that knows how to call each.
+    """
     fn = load_export(fmt)
+    metrics: dict[str, float] = {}
+    reports: list[Any] = []
+    if fmt == "nuscenes":
+        from tasks.export import NuScenesExportConfig
+
+        reports.append(fn(lake, list(clip_ids), out_dir,
+                          NuScenesExportConfig(splits=dict(splits or {}))))
+    elif fmt == "opencood":
+        reports.append(fn(lake, list(clip_ids), out_dir, splits=dict(splits) if splits else None))
+    elif fmt == "bev":
+        reports += [fn(lake, cid, out_dir) for cid in clip_ids]
+    elif fmt == "rosbag":
+        reports += [fn(lake, cid, None, out_dir) for cid in clip_ids]
+    else:
+        reports.append(fn(lake, list(clip_ids), out_dir))
+    for rep in reports:
+        for k, v in (getattr(rep, "metrics", {}) or {}).items():
+            metrics[k] = metrics.get(k, 0.0) + float(v) if len(reports) > 1 else float(v)
+    return metrics
+
+
+def run_export(lake: Lake, writer: ReleaseWriter, fmt: str, clip_ids: Sequence[str],
+               splits: dict[str, str]) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix=f"v2xlake-{fmt}-") as tmp:
-        report = fn(lake, list(clip_ids), Path(tmp))
+        metrics = call_export(fmt, lake, clip_ids, Path(tmp), splits)
         n = writer.copy_tree(Path(tmp), fmt)
-    metrics = dict(getattr(report, "metrics", {}) or {})
     return {"format": fmt, "files": n, "metrics": metrics}
 
 
@@ -299,7 +326,7 @@ def build_release(lake_uri: str, name: str, where: str,
                     "metrics": {}}]
         for f in fmts:
             if f != "lake":
-                exports.append(run_export(lake, writer, f, clip_ids))
+                exports.append(run_export(lake, writer, f, clip_ids, splits))
         stats = _statistics(lake, clip_ids)
         meta = {
             "name": name, "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),

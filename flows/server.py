@@ -131,6 +131,20 @@ def start_worker(api_url: str, pool: str, *, home: Path, cwd: Path,
         env=env, cwd=str(cwd), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
 
+def flush_prefect_logs() -> None:
+    """Send buffered run logs now: once the server is gone they would be retried at exit."""
+    import sys as _sys
+
+    if "prefect.logging.handlers" not in _sys.modules:
+        return
+    from prefect.logging.handlers import APILogHandler
+
+    try:
+        APILogHandler().flush()
+    except Exception:
+        pass
+
+
 @contextmanager
 def running_server(home: Path, **kwargs: float) -> Iterator[PrefectServer]:
     """A server for the duration of the block, with PREFECT_API_URL exported meanwhile."""
@@ -140,6 +154,7 @@ def running_server(home: Path, **kwargs: float) -> Iterator[PrefectServer]:
     try:
         yield server
     finally:
+        flush_prefect_logs()
         if old is None:
             os.environ.pop("PREFECT_API_URL", None)
         else:

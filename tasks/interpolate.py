@@ -37,7 +37,7 @@ class PoseCoverageError(ValueError):
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # arrays: identity, not element-wise ==
 class PoseTrack:
     """Samples of ``T_world_ego``: times (int64 ns, strictly increasing), xyz, quat wxyz.
 

@@ -16,6 +16,7 @@ import os
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -118,7 +119,7 @@ WEED_PORTS = ("master.port", "master.port.grpc", "volume.port", "volume.port.grp
 @pytest.fixture(scope="session")
 def s3_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[S3Info]:
     """SeaweedFS ``weed mini``: master, volume, filer and S3 gateway in one process."""
-    weed = shutil.which("weed") or str(Path(os.sys.executable).with_name("weed"))
+    weed = shutil.which("weed") or str(Path(sys.executable).with_name("weed"))
     data = tmp_path_factory.mktemp("seaweed")
     ports = {name: _free_port() for name in WEED_PORTS}
     info = S3Info(f"http://127.0.0.1:{ports['s3.port']}", "lake", "v2xlake", "v2xlake-secret")

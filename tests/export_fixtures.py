@@ -232,7 +232,9 @@ def _camera_rays() -> np.ndarray:
 def build_clean_clip(lake: Lake, clip_id: str = "clip-a", *, weather: str = "overcast",
                      location: str = "testville", x_offset: float = 0.0, seconds: float = 2.0,
                      n_ground: int = 3000, seed: int = 0, with_deskewed: bool = True,
-                     with_cameras: bool = True) -> None:
+                     with_cameras: bool = True,
+                     skip_deskewed_frames: tuple[int, ...] = (),
+                     skip_deskewed_agent: str | None = None) -> None:
     """Write one clip's clean tables (two agents) into ``lake``."""
     rng = np.random.default_rng(seed)
     agents = {"red": 0.0, "black": -3.5}
@@ -304,6 +306,9 @@ def build_clean_clip(lake: Lake, clip_id: str = "clip-a", *, weather: str = "ove
             ring = np.clip((elev + 25.0) / 40.0 * 31, 0, 31).astype(np.uint16)
             order = np.argsort(ti, kind="stable")
             for cols, pts in ((raw_cols, praw), (desk_cols, p0)):
+                if cols is desk_cols and k in skip_deskewed_frames and \
+                        skip_deskewed_agent in (None, agent):
+                    continue  # what the deskew stage does with a scan the INS does not cover
                 cols["frame_idx"].append(np.full(len(order), k, np.int32))
                 cols["t_ns"].append(ti[order])
                 cols["x"].append(pts[order, 0])

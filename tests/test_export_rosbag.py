@@ -82,7 +82,12 @@ def test_ros1_roundtrip(lake: Lake, tmp_path: Path) -> None:
     assert ros1.exists() and ros1.suffix == ".bag"
     with AnyReader([ros1]) as r:
         types = {c.topic: c.msgtype for c in r.connections}
+        md5 = {c.topic: c.digest for c in r.connections}
     assert types["/black/lidar/points"] == "sensor_msgs/msg/PointCloud2"
+    # ROS 1 subscribers match on md5: these must be the Noetic definitions
+    assert md5["/tf_static"] == "94810edda583a504dfda3829e70d7eec"
+    assert md5["/black/lidar/points"] == "1158d486dd51d683ce2f1be655c3c181"
+    assert md5["/black/imu"] == "6a62c6daae103f4ff57a132d6f95cec2"
     back = convert_bag(ros1, tmp_path / "back", to="ros2", storage="mcap")
     a, b = _read_all(src), _read_all(back)
     assert {k: len(v) for k, v in a.items()} == {k: len(v) for k, v in b.items()}

@@ -124,7 +124,7 @@ def test_artifacts_published(prefect_server: Any, tmp_path: Path) -> None:
         async with get_client() as client:
             arts = await client.read_artifacts(artifact_filter=ArtifactFilter(
                 key=ArtifactFilterKey(like_="clip-art-clip")))
-            return {a.key: a for a in arts}
+            return {str(a.key): a for a in arts}
 
     arts = asyncio.run(keys())
     assert {"clip-art-clip-stages", "clip-art-clip-metrics", "clip-art-clip-qa",
@@ -151,3 +151,21 @@ def test_quarantine_removes_partitions(tmp_path: Path) -> None:
     assert lake.exists(lake.table_dir("clean", "annotations", "keep"))
     assert "q1" in bookkeeping.processed_clip_ids(lake)
     assert os.path.exists(lake.path("landing", "q1", "clip.yaml"))  # delivery kept
+
+
+@pytest.mark.slow
+def test_release_build_flow(prefect_server: Any, tmp_path: Path) -> None:
+    """The release-build deployment's flow: a Prefect run that builds and seals a release."""
+    from flows.release import release_build, verify_release
+
+    lake = Lake(tmp_path / "lake")
+    for i in range(3):
+        rep = fakes.fake_ingest(lake, fakes.make_fake_clip(tmp_path / "in", f"rb{i}"))
+        fakes.fake_annotate(lake, rep.clip_id)
+    state = release_build(lake.uri, "flow-rel", "clip_id <> 'rb1'", return_state=True)
+    assert state.is_completed()
+    out = state.result()
+    assert out["clip_ids"] == ["rb0", "rb2"] and out["formats"] == ["lake"]
+    assert verify_release(lake.uri, "flow-rel").ok
+    again = release_build(lake.uri, "flow-rel", "true", return_state=True)
+    assert again.is_failed() and "immutable" in (again.message or "")

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from pydantic import BaseModel
 
 from schemas.arrow import rows_to_table
 from schemas.stage import OutputFile, StageReport
@@ -62,10 +63,10 @@ def fake_ingest(lake: Lake, clip_dir: Path) -> StageReport:
         lake.write_bytes(lake.path("landing", cid, f.name), f.read_bytes())
     row = ClipRow(clip_id=cid, location=meta["location"], road_type=meta["road_type"],
                   weather=meta["weather"], lighting=meta["lighting"], work_zone=False,
-                  n_agents=2, reference_agent="red",
-                  duration_s=(Path(clip_dir) / "red.bin").stat().st_size / 2000.0, source="simulated",
-                  status="ok")
-    path, rows = lake.write_table("clean", "clips", rows_to_table(ClipRow, [row]), clip_id=cid)
+                  n_agents=2, reference_agent="red", source="simulated", status="ok",
+                  duration_s=(Path(clip_dir) / "red.bin").stat().st_size / 2000.0)
+    rows_in: list[BaseModel] = [row]
+    path, rows = lake.write_table("clean", "clips", rows_to_table(ClipRow, rows_in), clip_id=cid)
     return StageReport(stage="ingest", clip_id=cid, outputs=[OutputFile(path=path, rows=rows)],
                        metrics={"n_files": float(len(list(Path(clip_dir).iterdir())))})
 
@@ -76,7 +77,8 @@ def fake_qa(lake: Lake, clip_id: str) -> StageReport:
     row = QaCheckRow(clip_id=clip_id, agent_id="red", sensor="INS", check="ins_present",
                      passed=not corrupt, severity="error", value=0.0 if corrupt else 1.0,
                      threshold=1.0, detail="INS messages present")
-    path, rows = lake.write_table("raw", "qa_checks", rows_to_table(QaCheckRow, [row]),
+    qa_rows: list[BaseModel] = [row]
+    path, rows = lake.write_table("raw", "qa_checks", rows_to_table(QaCheckRow, qa_rows),
                                   clip_id=clip_id)
     if corrupt:
         raise ClipError(clip_id, "no INS messages", agent_id="red", topic="/red/ins", stage="qa")
@@ -91,7 +93,7 @@ def fake_annotate(lake: Lake, clip_id: str) -> StageReport:
     n = int(meta.get("n_objects", 12))
     rng = np.random.default_rng(abs(hash(clip_id)) % 2**32)
     classes = ["car", "pedestrian", "truck", "bicycle"]
-    rows = []
+    rows: list[BaseModel] = []
     for i in range(n):
         r = float(rng.uniform(3, 60))
         a = float(rng.uniform(0, 2 * np.pi))

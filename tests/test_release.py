@@ -68,7 +68,7 @@ def test_release_build_verify_immutable(tmp_path: Path) -> None:
     assert meta["clip_ids"] == ["clip00", "clip01", "clip02", "clip04", "clip05", "clip06"]
     assert sum(meta["split_counts"].values()) == 6
     splits = json.loads((root / "splits.json").read_text())
-    assert sorted(sum(splits.values(), [])) == meta["clip_ids"]
+    assert sorted(c for ids in splits.values() for c in ids) == meta["clip_ids"]
     for png in ("objects_per_class", "distance_density_per_class", "clips_weather_lighting"):
         assert (root / "plots" / f"{png}.png").read_bytes()[:4] == b"\x89PNG"
     notes = (root / "RELEASE.md").read_text()

@@ -46,7 +46,7 @@ def test_prefect_yaml_entrypoints_resolve() -> None:
 
     for d in spec["deployments"]:
         path, _, fn = d["entrypoint"].partition(":")
-        flow = load_flow_from_entrypoint(f"{REPO / path}:{fn}")
+        flow: Any = load_flow_from_entrypoint(f"{REPO / path}:{fn}")
         params = set(flow.parameters.properties)
         assert set(d.get("parameters", {})) <= params, (d["name"], params)
 

@@ -179,8 +179,12 @@ def _file_sha256(path: str) -> str:
 
 @dataclass(frozen=True)
 class FaceConfig:
-    threshold: float = 0.35
-    scan: ScanConfig = field(default_factory=ScanConfig)
+    threshold: float = 0.3
+    scan: ScanConfig = field(
+        default_factory=lambda: ScanConfig(
+            max_side=1920, fine_scale=2.0, tile=1024, tile_overlap=160
+        )
+    )
     nms_iou: float = 0.3
 
 

@@ -339,6 +339,28 @@ def iter_point_frames(lake: Lake, clip_id: str, agent_id: str, *,
         yield emit(fi_i)
 
 
+def available_frames(lake: Lake, clip_id: str, agent_id: str, *,
+                     table: str = "lidar_points_deskewed", sensor: str = "LIDAR_TOP") -> set[int]:
+    """Frame indices that have points in ``table`` (a stage may skip frames, e.g. deskew
+    when INS does not cover a scan); reads only the frame_idx / sensor columns."""
+    files, need_filter = _point_files(lake, table, clip_id, agent_id)
+    out: set[int] = set()
+    for path in files:
+        pf = pq.ParquetFile(path, filesystem=lake.fs)
+        names = set(pf.schema_arrow.names)
+        cols = ["frame_idx"] + [c for c in ("sensor",) if c in names] + \
+            (["agent_id"] if need_filter and "agent_id" in names else [])
+        t = pf.read(columns=cols)
+        mask = np.ones(t.num_rows, bool)
+        if "sensor" in t.column_names:
+            mask &= np.asarray(t["sensor"].cast(pa.string()).to_numpy(zero_copy_only=False)
+                               == sensor)
+        if "agent_id" in t.column_names:
+            mask &= np.asarray(t["agent_id"].to_numpy(zero_copy_only=False) == agent_id)
+        out |= {int(f) for f in np.unique(t["frame_idx"].to_numpy()[mask])}
+    return out
+
+
 def boxes_matrices(ann: pa.Table) -> np.ndarray:
     """(N, 4, 4) ``T_frame_box`` of annotation rows."""
     c = {k: ann[k].to_numpy() for k in ("cx", "cy", "cz", "qw", "qx", "qy", "qz")}

@@ -42,6 +42,7 @@ from tasks.export.common import (
     ClipData,
     Undistorter,
     apply,
+    available_frames,
     boxes_matrices,
     file_output,
     iter_point_frames,
@@ -290,10 +291,14 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
     if sensor not in agent.sensors:
         raise ClipError(cid, f"no calibration for {sensor}", agent_id=aid, stage="export")
     lf = agent.lidar[sensor]
-    covered = agent.poses.covers(lf.t_start_ns)
+    have = available_frames(lake, cid, aid, sensor=sensor)
+    if not have:
+        raise ClipError(cid, "clean table 'lidar_points_deskewed' has no points for this "
+                        "agent (run the deskew stage first)", agent_id=aid, stage="export")
+    covered = agent.poses.covers(lf.t_start_ns) & np.isin(lf.frame_idx, list(have))
     if not covered.all():
-        notes.append(f"{name}: {int((~covered).sum())} LiDAR frames outside pose coverage "
-                     "dropped")
+        notes.append(f"{name}: {int((~covered).sum())} LiDAR frames without deskewed points "
+                     "or outside pose coverage dropped")
     li = np.flatnonzero(covered)
     if len(li) == 0:
         raise ClipError(cid, "no LiDAR frame inside ego pose coverage", agent_id=aid,

@@ -34,8 +34,10 @@ from pydantic import BaseModel, ConfigDict
 
 from schemas.stage import StageReport
 from storage.lake import Lake
+from tasks.errors import ClipError
 from tasks.export.common import (
     ClipData,
+    available_frames,
     boxes_matrices,
     file_output,
     iter_point_frames,
@@ -134,17 +136,32 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                 "reference_agent": clip.reference_agent,
                 "frames": {f"{int(f):06d}": int(t) for f, t in
                            zip(ref_frames.frame_idx, ref_t, strict=True)}}
+        meta["note"] = "frames: reference LiDAR frame -> scan start (ns, relative time)"
         (root / split / f"{cid}.json").write_text(json.dumps(meta, indent=1))
-        T_wl_ref = lidar_world_poses(ref, rs, ref_t, cid)
+        # the loader reads the same file names for every agent: keep only reference frames
+        # that every agent can fill (a matching scan, pose coverage, deskewed points)
+        nears: dict[str, np.ndarray] = {}
+        common = ref.poses.covers(ref_t)
+        for aid, agent in clip.agents.items():
+            sensor = agent.lidar_sensor(config.lidar_sensor)
+            lf = agent.lidar[sensor]
+            near = nearest_index(lf.t_start_ns, ref_t)
+            have = available_frames(lake, cid, aid, sensor=sensor)
+            common &= np.abs(lf.t_start_ns[near] - ref_t) <= config.match_tolerance_ms * 1e6
+            common &= agent.poses.covers(lf.t_start_ns[near])
+            common &= np.isin(lf.frame_idx[near], list(have))
+            nears[aid] = near
+        if not common.any():
+            raise ClipError(cid, "no LiDAR frame that every agent can provide",
+                            stage="export_opencood")
+        T_wl_ref = np.full((len(ref_t), 4, 4), np.nan)
+        T_wl_ref[common] = lidar_world_poses(ref, rs, ref_t[common], cid)
         for aid, agent in clip.agents.items():
             sensor = agent.lidar_sensor(config.lidar_sensor)
             lf = agent.lidar[sensor]
             d = scen / str(agent_num[aid])
             d.mkdir(parents=True, exist_ok=True)
-            # this agent's scan for each reference frame
-            near = nearest_index(lf.t_start_ns, ref_t)
-            ok = np.abs(lf.t_start_ns[near] - ref_t) <= config.match_tolerance_ms * 1e6
-            ok &= agent.poses.covers(lf.t_start_ns[near]) & ref.poses.covers(ref_t)
+            near, ok = nears[aid], common
             want = {int(lf.frame_idx[near[k]]): k for k in np.flatnonzero(ok)}
             T_wl = lidar_world_poses(agent, sensor, lf.t_start_ns[near[ok]], cid)
             T_by_frame = dict(zip([int(f) for f in lf.frame_idx[near[ok]]], T_wl, strict=True))

@@ -30,7 +30,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from schemas.geometry import matrix_to_quat
 from schemas.stage import StageReport
@@ -269,6 +269,12 @@ def convert_bag(src: Path | str, dst: Path | str, to: Literal["ros1", "ros2"],
         if d.suffix != ".bag":
             d = d.with_suffix(".bag")
         target = get_typestore(Stores.ROS1_NOETIC)
+        if "tf2_msgs/msg/TFMessage" not in target.types:
+            # rosbags' Noetic store lacks tf2_msgs; without it the converter copies the ROS 2
+            # definition (Header without seq) and ROS 1 nodes reject the md5. This is the
+            # Noetic definition (md5 94810edda583a504dfda3829e70d7eec).
+            target.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms",
+                                               "tf2_msgs/msg/TFMessage"))
     else:
         if d.suffix == ".bag":
             raise ValueError(f"a ROS 2 destination is a directory, not a .bag file: {d}")

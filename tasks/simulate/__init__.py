@@ -6,6 +6,11 @@ See the module docstrings for every convention: ``trajectory`` (time, world, bod
 ``rig`` (sensor frames, calibration errors), ``lidar`` (PPS phase lock, per-column time,
 dual return, intensity), ``camera`` (trigger times, rendering, 2D truth), ``ins`` (INS/IMU/GNSS
 error model), ``bagwrite`` (message layout, log-time latencies), ``truth`` (ground truth files).
+
+Precision note: the PointCloud2 ``timestamp`` field is float64 absolute seconds (the contract);
+at ~1.7e9 s its resolution is 2^-22 s = 238 ns, so ``round(timestamp * 1e9)`` may differ from
+the exact column time by up to ~120 ns (2.4 um at 20 m/s). Geometry is cast at the exact
+integer-ns column times.
 """
 
 from tasks.simulate.config import SimConfig

@@ -18,6 +18,10 @@ beam. 3 = single echo (strongest and last coincide, reported once), 1 = stronges
 from last), 2 = last (distinct from strongest). A ray passing a semi-transparent fence panel
 gives a weak fence echo plus the surface behind: two points. When the last echo is also the
 strongest, the sensor reports the second-strongest (the fence) as type 1, so both are kept.
+A beam on the silhouette of a nearer object (a neighbouring beam, or column of the same
+block, hits something >= 0.5 m farther) is a mixed pixel: its footprint also reaches the
+surface behind, which gives a weaker last echo (type 2) at the next opaque hit along the SAME
+ray (so its true position is exact), and the near echo becomes type 1.
 Single-return mode (``dual_return=False``) reports the strongest echo only, as type 1.
 
 Intensity (float32, 0..255): ``255 * rho * |cos(incidence)| / (1 + (r / 80 m)^2)`` clipped to
@@ -36,6 +40,7 @@ from tasks.simulate.config import AGENT_NAMES, LidarSpec
 from tasks.simulate.scene import GROUND_ID, Scene, World
 
 GROUND_RHO = 0.15
+EDGE_GAP_M = 0.5
 
 
 @dataclass
@@ -220,18 +225,32 @@ class LidarCaster:
             i_st = _intensity(COS, RHO, k_st, t_st, 0.4)
             # echoes per ray: A = first slot, B = second slot
             if spec.dual_return:
+                # mixed pixels: a beam on the silhouette of a nearer object (a neighbouring beam
+                # or column hits something >= EDGE_GAP_M farther) also returns from the surface
+                # behind it, found exactly as the next opaque hit along the same ray
+                far = np.zeros(t_op.shape, bool)
+                tn = np.where(has_op, t_op, np.inf)
+                far[:-1] |= tn[1:] > tn[:-1] + EDGE_GAP_M
+                far[1:] |= tn[:-1] > tn[1:] + EDGE_GAP_M
+                far[:, :-1] |= tn[:, 1:] > tn[:, :-1] + EDGE_GAP_M
+                far[:, 1:] |= tn[:, :-1] > tn[:, 1:] + EDGE_GAP_M
+                t_bg_all = np.where(~TR & (T > t_op[..., None] + EDGE_GAP_M), T, np.inf)
+                k_bg = np.argmin(t_bg_all, axis=-1)
+                t_bg = np.take_along_axis(t_bg_all, k_bg[..., None], -1)[..., 0]
+                edge = far & has_op & ~has_st & np.isfinite(t_bg)
+                i_bg = _intensity(COS, RHO, k_bg, t_bg, 0.3)
                 both = has_op & has_st
-                only_op = has_op & ~has_st
-                only_st = has_st & ~has_op
+                two = both | edge
                 slots = [
-                    # strongest-type slot
-                    (both | only_op | only_st,
+                    # strongest-type slot: the fence echo, or the near side of an edge
+                    (has_op | has_st,
                      np.where(has_st, t_st, t_op),
                      np.where(has_st, k_st, k_op),
-                     np.where(has_st, i_st, i_op),
-                     np.where(both, 1, 3)),
-                    # last slot
-                    (both, t_op, k_op, i_op, np.full(t_op.shape, 2)),
+                     np.where(has_st, i_st, np.where(edge, 0.8 * i_op, i_op)),
+                     np.where(two, 1, 3)),
+                    # last slot: the surface behind the fence or behind the edge
+                    (two, np.where(both, t_op, t_bg), np.where(both, k_op, k_bg),
+                     np.where(both, i_op, i_bg), np.full(t_op.shape, 2)),
                 ]
             else:
                 st_wins = has_st & (~has_op | (i_st > i_op))

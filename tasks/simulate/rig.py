@@ -40,7 +40,7 @@ def frame_name(agent: str, sensor: str) -> str:
     """tf frame of a sensor: LIDAR_TOP -> red/lidar, CAM_FRONT -> red/cam_front."""
     if sensor == "LIDAR_TOP":
         return f"{agent}/lidar"
-    return f"{agent}/{sensor.lower().replace('cam_', 'cam_')}"
+    return f"{agent}/{sensor.lower()}"
 
 
 def _mat(r: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -9,6 +9,12 @@ right sidewalk -8.0..-5.2, parking lane -5.2..-1.75 (parked cars at -3.3), red's
 -1.75..1.75 (centre 0), black's lane (same direction) 1.75..5.25, oncoming lanes centred at 7.0
 and 10.5, left sidewalk 14.0..17.0, buildings beyond -10 and +18. Poles at -5.0 / +14.3.
 
+Agents: ``red`` (reference) drives the path at ~18 m/s (``speed_mps``, +-0.5 m/s slow
+sinusoid) with a smooth left-or-right turn (0.15 rad/s, 0.5 s .. 5.5 s, logistic ramps) and
+further gentle turns every 16 s; ``black`` follows the same path in the left lane, starting
+~15 m ahead (profile time shift 0.8 s, rate 1.005, so 15..21 m ahead over a minute); ``rsu``
+is a static mast 5.6 m right of the road ~70 m ahead, looking back along the road.
+
 Objects:
 * ground: the plane z = ``ground_z`` (ellipsoidal height ``ground_alt_m``), object id 1.
 * static boxes (buildings, fence panels): yaw-only oriented boxes; fences are semi-transparent
@@ -32,7 +38,6 @@ from tasks.simulate.trajectory import KinematicProfile, Trajectory, Turn
 GROUND_ID = 1
 EGO_HEIGHT = 0.40  # INS (base_link) above the ground, at the body's geometric centre
 AGENT_SIZE = (4.92, 1.86, 1.48)  # Lincoln MKZ l, w, h
-RSU_HEIGHT = 0.0
 
 
 @dataclass(frozen=True)
@@ -167,7 +172,7 @@ def build_world(cfg: SimConfig) -> World:
         "red": Trajectory(prof, gz, EGO_HEIGHT, 0.0, 1.0, 0.0, roll_gain=rg, pitch_gain=pg),
     }
     if "black" in cfg.agents:
-        agents["black"] = Trajectory(prof, gz, EGO_HEIGHT, 0.8, 1.01, 3.5, roll_gain=rg,
+        agents["black"] = Trajectory(prof, gz, EGO_HEIGHT, 0.8, 1.005, 3.5, roll_gain=rg,
                                      pitch_gain=pg)
 
     # dense samples of the red path: arc length <-> profile time

@@ -1,0 +1,123 @@
+"""The ``v2xlake`` command line: parsing, exit codes, output formats, the process command."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import test_flows_fakestages as fakes
+
+from flows.cli import build_parser, main
+from storage.lake import Lake
+
+
+def _fake_lake(tmp: Path) -> Lake:
+    lake = Lake(tmp / "lake")
+    for i, (w, li) in enumerate([("clear", "day"), ("rain", "night"), ("clear", "night")]):
+        rep = fakes.fake_ingest(lake, fakes.make_fake_clip(tmp / "in", f"c{i}", weather=w,
+                                                             lighting=li))
+        fakes.fake_annotate(lake, rep.clip_id)
+    from flows.bookkeeping import refresh_catalog
+
+    refresh_catalog(lake)
+    return lake
+
+
+def test_help_is_fast_and_lists_commands() -> None:
+    exe = Path(sys.executable).with_name("v2xlake")
+    t0 = time.perf_counter()
+    out = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
+    took = time.perf_counter() - t0
+    assert out.returncode == 0
+    for cmd in ("demo", "simulate", "process", "query", "export", "convert-bag", "plot",
+                "audit", "release"):
+        assert cmd in out.stdout
+    print(f"v2xlake --help: {took:.2f} s")
+    # the stage modules and Prefect are imported lazily, by the command that needs them
+    probe = subprocess.run(
+        [sys.executable, "-c", "import sys, flows.cli; flows.cli.build_parser(); "
+         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('prefect', 'tasks', "
+         "'duckdb', 'open3d')))"], capture_output=True, text=True, timeout=60)
+    assert probe.stdout.strip() == "[]", probe.stdout + probe.stderr
+
+
+def test_parser_shapes() -> None:
+    p = build_parser()
+    a = p.parse_args(["process", "x", "y", "--lake", "s3://b/p", "--runner", "dask=tcp://h:1",
+                      "--stages", "ingest,qa"])
+    assert a.clip_dirs == ["x", "y"] and a.lake == "s3://b/p" and a.runner == "dask=tcp://h:1"
+    a = p.parse_args(["release", "build", "r1", "--where", "weather = 'rain'",
+                      "--formats", "nuscenes,opencood"])
+    assert (a.name, a.where, a.formats) == ("r1", "weather = 'rain'", "nuscenes,opencood")
+    a = p.parse_args(["simulate", "out", "--preset", "cats", "--seconds", "3", "--storage",
+                      "ros1", "--seed", "4", "--agents", "red,black,rsu", "--cameras", "3"])
+    assert (a.preset, a.seconds, a.storage, a.seed, a.agents, a.cameras) == (
+        "cats", 3.0, "ros1", 4, "red,black,rsu", "3")
+    with pytest.raises(SystemExit):
+        p.parse_args(["export", "kitti", "--out", "x"])
+
+
+def test_sim_config_from_cli_options() -> None:
+    from flows.cli import sim_config
+
+    cfg = sim_config("small", 1.5, "mcap", 9, "red,black,rsu", "3")
+    assert cfg.seconds == 1.5 and cfg.storage == "mcap" and cfg.seed == 9
+    assert tuple(cfg.agents) == ("red", "black", "rsu") and len(cfg.cameras) == 3
+    cfg = sim_config("small", None, None, None, None, "CAM_FRONT,CAM_BACK")
+    assert tuple(cfg.cameras) == ("CAM_FRONT", "CAM_BACK")
+
+
+def test_query_formats(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    lake = _fake_lake(tmp_path)
+    sql = "SELECT clip_id, weather FROM clips ORDER BY clip_id"
+    assert main(["query", sql, "--lake", lake.uri, "--format", "json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert rows == [{"clip_id": "c0", "weather": "clear"}, {"clip_id": "c1", "weather": "rain"},
+                    {"clip_id": "c2", "weather": "clear"}]
+    assert main(["query", sql, "--lake", lake.uri, "--format", "csv"]) == 0
+    assert capsys.readouterr().out.splitlines() == ["clip_id,weather", "c0,clear", "c1,rain",
+                                                     "c2,clear"]
+    assert main(["query", "SELECT category, count(*) AS n FROM annotations GROUP BY 1 "
+                 "ORDER BY 1", "--lake", lake.uri]) == 0
+    assert "pedestrian" in capsys.readouterr().out
+
+
+def test_release_commands_exit_codes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    lake = _fake_lake(tmp_path)
+    assert main(["release", "build", "night", "--lake", lake.uri,
+                 "--where", "lighting = 'night'", "--fractions", "0.5,0.5,0"]) == 0
+    assert "2 clip(s)" in capsys.readouterr().out
+    assert main(["release", "verify", "night", "--lake", lake.uri]) == 0
+    assert main(["release", "list", "--lake", lake.uri]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "night"
+    target = Path(lake.path("releases", "night", "RELEASE.md"))
+    target.write_text(target.read_text() + "edited\n")
+    assert main(["release", "verify", "night", "--lake", lake.uri]) == 1
+    assert "RELEASE.md" in capsys.readouterr().out
+    assert main(["release", "build", "night", "--lake", lake.uri, "--where", "true"]) == 2
+    assert main(["release", "verify", "nope", "--lake", lake.uri]) == 1
+
+
+@pytest.mark.slow
+def test_process_command(prefect_server: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                         capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("COLUMNS", "200")
+    good = fakes.make_fake_clip(tmp_path / "in", "cli_good")
+    bad = fakes.make_fake_clip(tmp_path / "in", "cli_bad", corrupt=True)
+    lake = tmp_path / "lake"
+    reg = ",".join(fakes.FAKE_REGISTRY)
+    rc = main(["process", str(good), str(bad), "--lake", str(lake), "--registry", reg])
+    out = capsys.readouterr().out
+    assert rc == 1  # one clip quarantined
+    assert "clip cli_good: ok" in out and "quarantined" in out and "report.json" in out
+    assert "1/2 clip(s) ok" in out
+    rc = main(["process", str(good), "--lake", str(lake), "--registry", reg, "--stages",
+               "ingest,qa"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "cached" in out and "annotate" not in out
+    assert main(["process", str(good), "--lake", str(lake), "--stages", "ingest,qaa"]) == 2
