@@ -2,8 +2,9 @@
 
 ``process_clip`` runs the registry's stages in order as Prefect tasks (retries for transient
 errors, none for bad input), skips a stage whose ``storage.manifest`` key (input files or
-upstream stages' recorded outputs, parameters, code) matches its last successful run, records
-the manifest after each run, quarantines the clip when a stage raises :class:`tasks.errors.ClipError` (the flow run then ends Failed with the reason), and
+upstream stages' recorded outputs, parameters, code) matches its last successful run,
+records the manifest after each run, quarantines the clip when a stage raises
+:class:`tasks.errors.ClipError` (the flow run then ends Failed with the reason), and
 publishes artifacts: a stage table, per-stage metrics, the QA checks and links to pictures.
 
 ``process_clips`` runs one ``process_clip`` flow per clip: one after another with the local

@@ -28,6 +28,7 @@ def clean_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, dict, ob
         lake, CLIP, AnonymizeConfig(workers=2), progress=lambda a, b: seen.append((a, b))
     )
     assert seen[-1] == (4, 4)
+    assert not lake.exists(lake.path("_staging")) or not lake.list_files(lake.path("_staging"))
     return lake, truth, report
 
 
