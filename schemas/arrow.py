@@ -96,7 +96,8 @@ def columns_to_table(model: type[BaseModel], columns: dict[str, Any]) -> pa.Tabl
     for f in schema:
         if f.name in columns:
             v = columns[f.name]
-            arrays.append(pa.array(v, type=f.type) if not isinstance(v, pa.Array) else v.cast(f.type))
+            arr = v.cast(f.type) if isinstance(v, pa.Array) else pa.array(v, type=f.type)
+            arrays.append(arr)
         elif f.nullable:
             arrays.append(pa.nulls(n, type=f.type))
         else:

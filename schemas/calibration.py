@@ -11,7 +11,10 @@ from schemas.geometry import Transform
 
 
 class DistortionModel(StrEnum):
-    """ROS ``CameraInfo.distortion_model`` names (plumb_bob = OpenCV 5-parameter radial-tangential)."""
+    """ROS ``CameraInfo.distortion_model`` names.
+
+    plumb_bob is OpenCV's 5-parameter radial-tangential model.
+    """
 
     NONE = "none"
     PLUMB_BOB = "plumb_bob"
@@ -54,7 +57,8 @@ class CameraIntrinsics(BaseModel):
             raise ValueError("distortion coefficients given but distortion_model is 'none'")
         if self.distortion_model is not DistortionModel.NONE and n not in allowed:
             raise ValueError(
-                f"distortion_model {self.distortion_model.value} needs {allowed} coefficients, got {n}"
+                f"distortion_model {self.distortion_model.value} needs {allowed} "
+                f"coefficients, got {n}"
             )
         return self
 

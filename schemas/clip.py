@@ -123,7 +123,9 @@ class SensorConfig(BaseModel):
     @model_validator(mode="after")
     def _lidar_needs_fields(self) -> Self:
         if self.modality is Modality.LIDAR and self.fields is None:
-            raise ValueError(f"lidar sensor {self.name!r} needs a 'fields' mapping with a time field")
+            raise ValueError(
+                f"lidar sensor {self.name!r} needs a 'fields' mapping with a time field"
+            )
         return self
 
 
@@ -202,5 +204,6 @@ class ClipConfig(BaseModel):
 
     def dump(self, clip_dir: str | Path) -> Path:
         path = Path(clip_dir) / "clip.yaml"
-        path.write_text(yaml.safe_dump(self.model_dump(mode="json", exclude_none=True), sort_keys=False))
+        data = self.model_dump(mode="json", exclude_none=True)
+        path.write_text(yaml.safe_dump(data, sort_keys=False))
         return path

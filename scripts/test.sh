@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# The test command of the README: lint, types, then the whole suite (benchmarks excluded).
+# The test command of the README: install from the lock, lint, type-check, run the suite
+# (benchmarks in tests/bench are not part of it).
 set -euo pipefail
-cd "$(dirname "$0")/.."
-export PREFECT_SERVER_ANALYTICS_ENABLED=false DO_NOT_TRACK=1 MPLBACKEND=Agg
+# shellcheck disable=SC1091
+. "$(dirname "$0")/bootstrap.sh"
 ruff check .
 mypy
 python -m pytest -q "$@"

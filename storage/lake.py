@@ -18,11 +18,15 @@ file is never visible. Partition keys are stripped from the files and restored o
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import hashlib
 import itertools
 import json
 import os
+import queue
 import shutil
+import threading
 import uuid
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -58,18 +62,39 @@ def s3_filesystem() -> pafs.S3FileSystem:
 
 @dataclass(frozen=True)
 class ParquetOptions:
-    """Encoding of every lake table, chosen by ``tests/bench/bench_parquet.py`` on real Ouster
-    points (one row group per frame): zstd level 1, BYTE_STREAM_SPLIT on float columns,
-    DELTA_BINARY_PACKED on int32/int64 columns (times, frame indices), dictionaries only on
-    strings. That writes ~1.2-1.8x faster than pyarrow's defaults (snappy + dictionary
-    everywhere) at 8.2 instead of 14.6 bytes per point; lz4 writes faster again but is
-    ~11-40 % larger (numbers in the bench output and the ingest report)."""
+    """Encoding of the lake's tables, chosen by ``tests/bench/bench_parquet.py`` on real Ouster
+    points (one row group per frame): BYTE_STREAM_SPLIT on float columns, DELTA_BINARY_PACKED
+    on int32/int64 columns (times, frame indices), dictionaries only on strings.
+
+    The default (``ParquetOptions()``, the clean zone and everything downstream) compresses
+    with zstd level 1: ~1.2-1.8x faster than pyarrow's defaults (snappy + dictionary
+    everywhere) at 8.2 instead of 14.6 bytes per point. The raw zone uses ``RAW_OPTIONS``
+    (see ``for_zone``)."""
 
     compression: str = "zstd"
     compression_level: int | None = 1
     byte_stream_split: bool = True  # float columns (they never get a dictionary)
     delta_ints: bool = True  # int32 / int64 columns: DELTA_BINARY_PACKED
+    # with delta_ints: int32 columns too (frame indices; constant within a LiDAR row group,
+    # where PLAIN + lz4 is as small and ~3x cheaper to encode)
+    delta_int32: bool = True
     dictionary_strings: bool = True  # strings / dictionary columns keep their dictionary
+    # min/max of float columns (x, y, z, intensity...): costs ~15-25 % of a LiDAR row group's
+    # encoding and prunes nothing (every scan spans the whole sensor range); statistics of
+    # every other column (frame_idx, t_ns, ring, strings) are always written
+    float_statistics: bool = True
+    # min/max of dictionary columns (``sensor``): string comparisons, ~0.5 ms per LiDAR row
+    # group; the lake's files are per sensor anyway
+    dictionary_statistics: bool = True
+    # values the writer encodes per batch (pyarrow default 1024); large LiDAR row groups
+    # spend less in per-batch bookkeeping with bigger batches (pages may exceed 1 MiB by
+    # up to one batch)
+    write_batch_size: int | None = None
+
+    @staticmethod
+    def for_zone(zone: str) -> ParquetOptions:
+        """The encoding a zone's tables get when the writer does not pass one."""
+        return ZONE_OPTIONS.get(zone, ParquetOptions())
 
     def writer_kwargs(self, schema: pa.Schema) -> dict[str, Any]:
         dict_cols = [
@@ -80,11 +105,105 @@ class ParquetOptions:
         for f in schema:
             if self.byte_stream_split and pa.types.is_floating(f.type):
                 enc[f.name] = "BYTE_STREAM_SPLIT"
-            elif self.delta_ints and (pa.types.is_int32(f.type) or pa.types.is_int64(f.type)):
+            elif self.delta_ints and (pa.types.is_int64(f.type) or (
+                    self.delta_int32 and pa.types.is_int32(f.type))):
                 enc[f.name] = "DELTA_BINARY_PACKED"
-        return dict(compression=self.compression, compression_level=self.compression_level,
-                    use_dictionary=dict_cols or False, column_encoding=enc or None,
-                    write_statistics=True)
+        stats: bool | list[str] = True
+        if not (self.float_statistics and self.dictionary_statistics):
+            stats = [f.name for f in schema
+                     if not (pa.types.is_floating(f.type) and not self.float_statistics)
+                     and not (pa.types.is_dictionary(f.type) and not self.dictionary_statistics)]
+        kw: dict[str, Any] = dict(
+            compression=self.compression, compression_level=self.compression_level,
+            use_dictionary=dict_cols or False, column_encoding=enc or None,
+            write_statistics=stats)
+        if self.write_batch_size is not None:
+            kw["write_batch_size"] = self.write_batch_size
+        return kw
+
+
+# The raw zone is written once by ingest, at bag-reading speed, and read a few times by
+# anonymize (which writes the clean zone with the default zstd); the delivered bags stay in
+# landing/ as the archive. So raw trades a little size for encoding speed: lz4, no float or
+# dictionary statistics, PLAIN int32 (frame_idx), big write batches. Measured on one LiDAR
+# row group per frame (tests/bench/bench_parquet.py, bench_ingest.py, 2-core VM): CATS-like
+# 230k-point scans encode in ~7 instead of ~14 ms at 12.2 instead of 11.6 B/point; real
+# Ouster OS1-128 scans write 1.25x and read 1.5x faster than zstd-1 at 9.1 vs 8.2 B/point.
+RAW_OPTIONS = ParquetOptions(compression="lz4", compression_level=None, delta_int32=False,
+                             float_statistics=False, dictionary_statistics=False,
+                             write_batch_size=65_536)
+ZONE_OPTIONS: dict[str, ParquetOptions] = {"raw": RAW_OPTIONS}
+
+
+class _HashingSink:
+    """A write-only file object that forwards to ``stream`` and sha256-hashes the bytes as
+    they pass, so a written file's checksum (for the manifest) costs no second read.
+
+    ``threaded=True`` (background writers): the hashing runs on its own thread, fed the
+    chunks pyarrow hands to ``write`` (immutable bytes / Arrow buffers, so holding them is
+    safe); hashlib releases the GIL, so on a two-core machine the Parquet encoder, the hasher
+    and the caller's decoding share both cores instead of the encoder thread doing both."""
+
+    def __init__(self, stream: Any, threaded: bool = False) -> None:
+        self._stream, self._sha, self._pos, self.closed = stream, hashlib.sha256(), 0, False
+        self._queue: queue.SimpleQueue[Any] | None = None
+        self._thread: threading.Thread | None = None
+        if threaded:
+            self._queue = queue.SimpleQueue()
+            self._thread = threading.Thread(target=self._hash_loop, name="sha256", daemon=True)
+            self._thread.start()
+
+    def _hash_loop(self) -> None:
+        assert self._queue is not None
+        while (chunk := self._queue.get()) is not None:
+            self._sha.update(chunk)
+
+    def write(self, data: Any) -> int:
+        if self._queue is not None:
+            self._queue.put(data)
+        else:
+            self._sha.update(data)
+        self._stream.write(data)
+        n = memoryview(data).nbytes
+        self._pos += n
+        return n
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        self._stream.flush()
+
+    def writable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return False
+
+    def readable(self) -> bool:
+        return False
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            try:
+                self._stream.close()
+            finally:
+                self._stop()
+
+    def _stop(self) -> None:
+        if self._thread is not None and self._queue is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
+
+    def hexdigest(self) -> str:
+        self._stop()
+        return self._sha.hexdigest()
+
+
+MAX_PENDING = 2  # row groups a background TableWriter may have queued
+SINK_BUFFER = 4 << 20  # bytes buffered before a TableWriter's output reaches Python
 
 
 class TableWriter:
@@ -93,7 +212,9 @@ class TableWriter:
     Local lakes write to a hidden temporary name in the target directory and ``os.replace``
     it on a clean exit; S3 lakes stream a multipart upload that only becomes an object when
     completed (an aborted upload leaves nothing). On an exception the partial file is
-    removed, so no reader ever sees it.
+    removed, so no reader ever sees it. The bytes are sha256-hashed as they are written:
+    after a clean exit ``sha256`` holds the file's checksum and the lake's ``written`` map
+    records ``(rows, sha256)`` under the final path.
     """
 
     def __init__(self, lake: Lake, final: str, schema: pa.Schema, options: ParquetOptions,
@@ -104,14 +225,29 @@ class TableWriter:
         self._target = lake._tmp(final) if lake.is_local else final
         self._writer: pq.ParquetWriter | None = None
         # background=True: encoding/compression of row group i (pyarrow releases the GIL)
-        # overlaps with the caller producing row group i+1; at most one is in flight.
+        # overlaps with the caller producing row groups i+1 and i+2; at most two are queued
+        # (slack for uneven frames; each holds one frame's columns in memory).
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="parquet") if background else None
-        self._pending: Future[None] | None = None
+        self._pending: collections.deque[Future[None]] = collections.deque()
+        self._background = background
+        self._sink: _HashingSink | None = None
+        self.sha256: str | None = None
 
     def __enter__(self) -> TableWriter:
         self.lake._mkdir(self.path.rpartition("/")[0])
-        self._writer = pq.ParquetWriter(self._target, self.schema, filesystem=self.lake.fs,
-                                        **self.options.writer_kwargs(self.schema))
+        self._sink = _HashingSink(self.lake.fs.open_output_stream(self._target),
+                                  threaded=self._background)
+        # pyarrow writes a Parquet file in ~10 KiB pieces; buffer them into big chunks before
+        # they reach Python (one call per SINK_BUFFER bytes instead of ~200 per LiDAR frame)
+        self._out = pa.BufferedOutputStream(pa.PythonFile(self._sink, mode="w"), SINK_BUFFER)
+        try:
+            self._writer = pq.ParquetWriter(self._out, self.schema,
+                                            **self.options.writer_kwargs(self.schema))
+        except BaseException:
+            self._out.close()
+            with contextlib.suppress(Exception):
+                self.lake.fs.delete_file(self._target)
+            raise
         return self
 
     def write(self, data: pa.Table) -> None:
@@ -127,14 +263,14 @@ class TableWriter:
         if self._pool is None:
             self._writer.write_table(data, row_group_size=max(data.num_rows, 1))
             return
-        self._wait()
-        self._pending = self._pool.submit(self._writer.write_table, data,
-                                          row_group_size=max(data.num_rows, 1))
+        self._wait(MAX_PENDING - 1)
+        self._pending.append(self._pool.submit(self._writer.write_table, data,
+                                               row_group_size=max(data.num_rows, 1)))
 
-    def _wait(self) -> None:
-        if self._pending is not None:
-            pending, self._pending = self._pending, None
-            pending.result()
+    def _wait(self, keep: int = 0) -> None:
+        """Wait until at most ``keep`` row groups are queued (raises a background error)."""
+        while len(self._pending) > keep:
+            self._pending.popleft().result()
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         assert self._writer is not None
@@ -144,6 +280,9 @@ class TableWriter:
             self._wait()
         except Exception as e:  # a background row group failed
             failed, error = True, e
+            for f in self._pending:
+                f.cancel()
+            self._pending.clear()
         if self._pool is not None:
             self._pool.shutdown(wait=True)
         try:
@@ -152,6 +291,14 @@ class TableWriter:
             self._writer.close()
         except Exception as e:
             failed, error = True, error or e
+        assert self._sink is not None
+        try:
+            self._out.close()  # flushes the buffer, closes the sink and its stream
+        except Exception as e:
+            failed, error = True, error or e
+        finally:
+            with contextlib.suppress(Exception):
+                self._sink.close()  # idempotent; stops the hashing thread in every case
         if failed:
             with contextlib.suppress(Exception):
                 self.lake.fs.delete_file(self._target)
@@ -159,6 +306,8 @@ class TableWriter:
                 raise error
             return
         self.lake._commit(self._target, self.path)
+        self.sha256 = self._sink.hexdigest()
+        self.lake.written[self.path] = (self.rows, self.sha256)
 
 
 class Lake:
@@ -175,6 +324,8 @@ class Lake:
             self.is_local = True
             Path(self.base).mkdir(parents=True, exist_ok=True)
         self.uri = s if not self.is_local else self.base
+        # final path -> (rows, sha256) of every Parquet file this instance wrote (TableWriter)
+        self.written: dict[str, tuple[int, str]] = {}
 
     # ---------------------------------------------------------------- paths
     def path(self, *parts: str) -> str:
@@ -274,9 +425,10 @@ class Lake:
         agent_id: str | None = None,
         name: str = "part",
         row_group_by: str | None = None,
-        options: ParquetOptions = ParquetOptions(),
+        options: ParquetOptions | None = None,
     ) -> tuple[str, int]:
-        """Write one partition file atomically; returns (path, rows).
+        """Write one partition file atomically; returns (path, rows). ``options`` defaults to
+        the zone's encoding (``ParquetOptions.for_zone``: lz4 in raw, zstd elsewhere).
 
         ``row_group_by`` names a sorted column whose runs become row groups (LiDAR points: one
         row group per frame, so a reader fetching one frame touches one row group).
@@ -308,18 +460,20 @@ class Lake:
         clip_id: str,
         agent_id: str | None = None,
         name: str = "part",
-        options: ParquetOptions = ParquetOptions(),
+        options: ParquetOptions | None = None,
         background: bool = False,
     ) -> TableWriter:
         """A streaming, atomic Parquet writer: each ``write(t)`` becomes exactly one row group
         (LiDAR: one per frame, written as frames are decoded, so a clip never has to fit in
         memory); the file appears under its final name only when the ``with`` block exits
-        without an exception, otherwise the temporary file is removed."""
+        without an exception, otherwise the temporary file is removed. ``options`` defaults
+        to the zone's encoding (``ParquetOptions.for_zone``)."""
         for key, val in (("clip_id", clip_id), ("agent_id", agent_id)):
             if key in schema.names and (val is not None or key == "clip_id"):
                 schema = schema.remove(schema.get_field_index(key))
         final = f"{self.table_dir(zone, table, clip_id, agent_id)}/{name}.parquet"
-        return TableWriter(self, final, schema, options, background=background)
+        return TableWriter(self, final, schema, options or ParquetOptions.for_zone(zone),
+                           background=background)
 
     def read_table(
         self,
@@ -432,15 +586,28 @@ class Lake:
         else:
             self.delete_dir(self.base)
 
-    def copy_in(self, src: str | os.PathLike[str], dest: str) -> int:
+    def copy_in(self, src: str | os.PathLike[str], dest: str, *, link: bool = False) -> int:
         """Copy a local file into the lake at ``dest`` (a lake path); returns bytes copied.
-        Used for the landing zone (bags as delivered)."""
+        Used for the landing zone (bags as delivered).
+
+        ``link=True`` (ingest's landing copy): on a local lake, hard-link the file when it is
+        on the same filesystem (no data written: bags as delivered are immutable, and a link
+        keeps them even if the delivery folder is deleted); otherwise, or where links are not
+        allowed, a real copy (``shutil.copyfile``: in-kernel ``sendfile`` on Linux)."""
         head = dest.rpartition("/")[0]
         self._mkdir(head)
         size = os.path.getsize(src)
         if self.is_local:
             tmp = self._tmp(dest)
-            shutil.copyfile(src, tmp)
+            linked = False
+            if link:
+                try:
+                    os.link(src, tmp)
+                    linked = True
+                except OSError:  # other filesystem (EXDEV), no permission, no link support
+                    pass
+            if not linked:
+                shutil.copyfile(src, tmp)
             os.replace(tmp, dest)
         else:
             pafs.copy_files(str(src), dest, source_filesystem=pafs.LocalFileSystem(),

@@ -81,8 +81,9 @@ def test_clip_folder_contract(clip: Path) -> None:
 def test_message_counts_and_pps_stamps(clip: Path) -> None:
     msgs = _read(clip, "red")
     assert len(msgs["/red/lidar/points"]) == 10
-    assert len(msgs["/red/ins"]) == 125 and len(msgs["/red/imu"]) == 125
-    assert len(msgs["/red/gnss"]) == 10 and len(msgs["/tf_static"]) == 1
+    # INS / IMU / GNSS record past the last sweep's end (1.0 s) by NAV_TAIL_NS = 20 ms
+    assert len(msgs["/red/ins"]) == 128 and len(msgs["/red/imu"]) == 128
+    assert len(msgs["/red/gnss"]) == 11 and len(msgs["/tf_static"]) == 1
     lid = [_stamp(m) for m in msgs["/red/lidar/points"]]
     assert lid == [1_700_000_000 * S + k * 100_000_000 for k in range(10)]
     for cam in ("CAM_FRONT", "CAM_BACK"):
@@ -171,7 +172,7 @@ def test_ins_imu_gnss_match_truth(clip: Path) -> None:
     want = speed * yaw_rate * np.cos(roll) + 9.80665 * np.sin(roll)
     assert np.abs(acc[:, 1] - want).max() < 0.05
     gn = msgs["/black/gnss"]
-    assert [_stamp(m) for m in gn] == [1_700_000_000 * S + k * 100_000_000 for k in range(10)]
+    assert [_stamp(m) for m in gn] == [1_700_000_000 * S + k * 100_000_000 for k in range(11)]
     assert all(m.status.status == 2 for m in gn)
 
 
@@ -204,7 +205,8 @@ def test_truth_files_are_consistent(clip: Path) -> None:
     assert len(rel) == 10
     k = 4
     t_k = int(np.asarray(rel["t_ns"])[k])
-    l1, l2 = truth.T_world_lidar("red", [t_k])[0], truth.T_world_lidar("black", [t_k])[0]
+    tk = np.array([t_k])
+    l1, l2 = truth.T_world_lidar("red", tk)[0], truth.T_world_lidar("black", tk)[0]
     want = np.linalg.inv(l1) @ l2
     got = np.asarray([np.asarray(rel[c])[k] for c in ("x", "y", "z")])
     assert np.abs(got - want[:3, 3]).max() < 1e-9
@@ -232,7 +234,7 @@ def test_annotation_boxes_contain_their_points(clip: Path) -> None:
             cols["obj"] == a.instance_id)
         assert sel.sum() == a.num_lidar_pts
         t0 = truth.start_ns + a.frame_idx * 100_000_000
-        T_l0w = np.linalg.inv(truth.T_world_lidar(a.agent_id, [t0])[0])
+        T_l0w = np.linalg.inv(truth.T_world_lidar(a.agent_id, np.array([t0]))[0])
         w = np.column_stack([cols[c][sel] for c in ("wx", "wy", "wz")])
         pl = w @ T_l0w[:3, :3].T + T_l0w[:3, 3]
         r = quat_to_matrix(np.asarray(a.box.rotation))
@@ -258,6 +260,7 @@ def test_images_and_2d_truth(clip: Path) -> None:
     info = msgs["/red/camera/CAM_FRONT/camera_info"][12]
     assert img_msg.format == "png"
     img = cv2.imdecode(np.frombuffer(img_msg.data, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None
     assert img.shape == (info.height, info.width, 3) == (360, 640, 3)
     assert info.distortion_model == "plumb_bob" and len(info.d) == 5
     b2 = pq.read_table(clip / "truth" / "boxes2d.parquet")
@@ -283,7 +286,7 @@ def test_other_storages_read_back(tmp_path: Path, storage: str) -> None:
     ros1 = storage == "ros1"
     assert (clip / ("red.bag" if ros1 else "red")).exists()
     msgs = _read(clip, "red", ros1=ros1)
-    assert len(msgs["/red/lidar/points"]) == 3 and len(msgs["/red/ins"]) == 38
+    assert len(msgs["/red/lidar/points"]) == 3 and len(msgs["/red/ins"]) == 40
     assert len(msgs["/red/camera/CAM_FRONT/image"]) == 3
     assert msgs["/red/ins"][0].rtk_status == 2
     a = np.frombuffer(msgs["/red/lidar/points"][1].data, POINT_DTYPE)
@@ -299,7 +302,7 @@ def test_other_storages_read_back(tmp_path: Path, storage: str) -> None:
             assert {"sensor_msgs/msg/PointCloud2", "v2xlake_msgs/msg/InsPva",
                     "tf2_msgs/msg/TFMessage"} <= names
             n = sum(1 for _ in reader.iter_messages(topics=["/red/ins"]))
-            assert n == 38
+            assert n == 40
 
 
 def _data_hash(clip: Path) -> str:
@@ -369,3 +372,158 @@ def test_module_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert (out / "red" / "red.mcap").is_file()
     with pytest.raises(FileExistsError):
         simulate(out, SimConfig.preset("small", seconds=0.1))
+
+
+def test_ins_brackets_every_scan(clip: Path) -> None:
+    """The last scan must be bracketed by INS samples (deskew interpolates INS over every
+    point time): INS / IMU / GNSS start at the first scan's PPS edge and run past the last
+    point by more than one INS period."""
+    for agent in ("red", "black"):
+        msgs = _read(clip, agent, {f"/{agent}/lidar/points", f"/{agent}/ins", f"/{agent}/imu",
+                                   f"/{agent}/gnss"})
+        scans = msgs[f"/{agent}/lidar/points"]
+        t_pts = [np.round(np.frombuffer(m.data, POINT_DTYPE)["timestamp"] * 1e9).astype(np.int64)
+                 for m in scans]
+        ins = np.array([_stamp(m) for m in msgs[f"/{agent}/ins"]])
+        imu = np.array([_stamp(m) for m in msgs[f"/{agent}/imu"]])
+        gnss = np.array([_stamp(m) for m in msgs[f"/{agent}/gnss"]])
+        assert ins[0] == imu[0] == gnss[0] == _stamp(scans[0])
+        np.testing.assert_array_equal(ins, imu)
+        for tp in t_pts:
+            assert ins[0] <= tp.min() and tp.max() + 8_000_000 <= ins[-1]
+        assert gnss[-1] >= t_pts[-1].max()
+    # the truth poses cover the INS span too
+    poses = load_truth(clip).table("poses")
+    assert int(np.asarray(poses["t_ns"]).max()) >= int(ins[-1])
+
+
+def _marker_render(monkeypatch: pytest.MonkeyPatch, rend, tau: float, poses=None):
+    """Render again with every face and plate texture replaced by a flat marker colour: the
+    pixels of that colour in the output are exactly where a face / plate is really seen."""
+    import tasks.simulate.camera as camera_mod
+
+    monkeypatch.setattr(camera_mod, "plate_texture",
+                        lambda text, style: np.full((88, 416, 3), PLATE_MARK, np.uint8))
+    monkeypatch.setattr(rend, "faces", tuple(np.full_like(f, FACE_MARK) for f in rend.faces))
+    out = rend.render(tau, poses)
+    monkeypatch.undo()
+    return out
+
+
+FACE_MARK = (255, 0, 255)  # BGR magenta, not used by the scene
+PLATE_MARK = (0, 255, 0)  # pure green (the ground is (70, 110, 95))
+
+
+def _is_mark(img: np.ndarray, mark: tuple[int, int, int]) -> np.ndarray:
+    """Marker pixels (edge pixels blended with their neighbours mostly excluded)."""
+    return np.abs(img.astype(int) - np.array(mark)).max(axis=-1) <= 40
+
+
+def _check_visible_parts_are_drawn(rows, img) -> int:
+    """Every face / plate row not marked occluded shows its marker in its visible box; the
+    number of rows checked is returned."""
+    checked = 0
+    for r in rows:
+        if r["kind"] == "object" or r["occluded"] or r["n_pixels"] < 8:
+            continue
+        mark = FACE_MARK if r["kind"] == "face" else PLATE_MARK
+        box = img[r["y0"]:r["y1"], r["x0"]:r["x1"]]
+        seen = int(_is_mark(box, mark).sum())
+        assert seen >= 0.5 * r["n_pixels"], (r, seen)
+        checked += 1
+    return checked
+
+
+def test_2d_truth_follows_what_is_drawn(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A truck placed between the camera and a pedestrian hides the face: the old renderer
+    kept the face's part ids under the truck and reported it visible."""
+    from tasks.simulate.camera import CameraRenderer
+    from tasks.simulate.rig import build_rigs
+    from tasks.simulate.scene import build_world
+
+    cfg = SimConfig.preset("small", seconds=1.0, seed=3, cameras=("CAM_FRONT",))
+    world = build_world(cfg)
+    rend = CameraRenderer(world, "red", build_rigs(cfg)["red"].cameras["CAM_FRONT"])
+    sc = world.scene
+    tau = 0.3
+    p, r = world.agents["red"].pose(np.array([tau]))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = r[0], p[0]
+    T = T @ rend.rig.T_ego_cam_true
+    cam = T[:3, 3]
+    fwd = T[:3, 2].copy()
+    fwd[2] = 0.0
+    fwd /= np.linalg.norm(fwd)
+    names = [a.instance_id for a in sc.actors]
+    ped, truck = names.index("pedestrian_00"), names.index("truck_oncoming")
+    ac0, ay0 = sc.actor_poses(tau)
+    gz = sc.ground_z
+    # pedestrian 11 m ahead facing the camera; the 8.5 m long, 3.4 m high truck 6 m ahead
+    # (rear at 1.75 m) hides it completely from the 1.66 m high camera
+    D_PED, D_TRUCK = 11.0, 6.0
+
+    def poses(with_truck: bool) -> tuple[np.ndarray, np.ndarray]:
+        ac, ay = ac0.copy(), ay0.copy()
+        keep = [k for k, a in enumerate(sc.actors) if a.agent == "red"]
+        far = np.flatnonzero(~np.isin(np.arange(len(ac)), [*keep, ped, truck]))
+        ac[far] = cam + np.array([5000.0, 5000.0, 0.0])  # everything else out of the way
+        h_p, h_t = sc.actors[ped].size[2], sc.actors[truck].size[2]
+        ac[ped] = np.append(cam[:2] + D_PED * fwd[:2], gz + h_p / 2)
+        ay[ped] = np.arctan2(-fwd[1], -fwd[0])  # facing the camera
+        ac[truck] = (np.append(cam[:2] + D_TRUCK * fwd[:2], gz + h_t / 2) if with_truck
+                     else cam + np.array([-5000.0, 5000.0, 0.0]))
+        ay[truck] = np.arctan2(fwd[1], fwd[0])  # rear towards the camera
+        return ac, ay
+
+    rows_free = {(b["kind"], b["instance_id"]): b for b in rend.render(tau, poses(False)).boxes}
+    face = rows_free[("face", "pedestrian_00")]
+    assert not face["occluded"] and face["visible_fraction"] > 0.95 and face["n_pixels"] > 10
+    assert rows_free[("object", "pedestrian_00")]["visible_fraction"] > 0.95
+    out = rend.render(tau, poses(True))
+    rows = {(b["kind"], b["instance_id"]): b for b in out.boxes}
+    hidden = rows.get(("face", "pedestrian_00"))
+    assert hidden is None or hidden["occluded"]
+    ped_row = rows.get(("object", "pedestrian_00"))
+    assert ped_row is None or ped_row["occluded"]
+    plate = rows[("plate", "truck_oncoming:rear")]
+    assert not plate["occluded"] and plate["visible_fraction"] == 1.0
+    assert not rows[("object", "truck_oncoming")]["occluded"]
+    # and the pixels agree: the plate is drawn where its row says, no face pixel anywhere
+    marked = _marker_render(monkeypatch, rend, tau, poses(True))
+    assert marked.boxes == out.boxes
+    assert _check_visible_parts_are_drawn(marked.boxes, marked.image) == 1
+    assert not _is_mark(marked.image, FACE_MARK).any()
+    free = _marker_render(monkeypatch, rend, tau, poses(False)).image
+    assert _is_mark(free, FACE_MARK).sum() >= 0.5 * face["n_pixels"]
+
+
+def test_visible_faces_and_plates_are_in_the_image(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Over whole frames of a busy scene (both agents, front, side and back cameras) and the
+    reported cats frames (seed 5, black CAM_BACK / CAM_FRONT at the first trigger, where a
+    parked car's plate and two faces hidden by vehicles were reported visible): every face /
+    plate row not marked occluded has its texture in its visible box of the rendered image."""
+    from tasks.simulate.camera import CameraRenderer
+    from tasks.simulate.rig import build_rigs
+    from tasks.simulate.scene import build_world
+
+    checked = n_occ = 0
+    cams = ("CAM_FRONT", "CAM_BACK", "CAM_FRONT_LEFT", "CAM_BACK_RIGHT")
+    for preset, views, taus in (("small", [(a, c) for a in ("red", "black") for c in cams],
+                                 (0.0, 0.5)),
+                                ("cats", [("black", "CAM_BACK"), ("black", "CAM_FRONT")], (0.0,))):
+        cfg = SimConfig.preset(preset, seconds=1.0, seed=5)
+        world = build_world(cfg)
+        rigs = build_rigs(cfg)
+        for agent, cam in views:
+            rend = CameraRenderer(world, agent, rigs[agent].cameras[cam])
+            for tau in taus:
+                normal = rend.render(tau)
+                marked = _marker_render(monkeypatch, rend, tau)
+                assert marked.boxes == normal.boxes  # same geometry, same truth
+                checked += _check_visible_parts_are_drawn(normal.boxes, marked.image)
+                n_occ += sum(1 for b in normal.boxes if b["occluded"])
+                if preset == "cats" and cam == "CAM_BACK":
+                    hidden = [b for b in normal.boxes
+                              if (b["kind"], b["instance_id"]) == ("plate", "parked_car_04:front")]
+                    assert all(b["occluded"] for b in hidden)
+    assert checked >= 20 and n_occ >= 1

@@ -55,19 +55,35 @@ class Detector(Protocol):
 class ScanConfig:
     """How a detector looks at a frame: a coarse pass and an optional fine pass.
 
-    Coarse: the whole frame resized so its longest side is at most ``max_side`` (None: native
-    size); it finds medium and large objects cheaply. Fine (``fine_scale`` not None): the frame
-    at ``fine_scale`` (1.0 = native resolution, 2.0 = upscaled for tiny objects), as one view
-    or, when ``tile`` > 0 and the scaled frame is larger than a tile, as ``tile`` x ``tile``
-    windows overlapping by ``tile_overlap`` px (at least the largest object the fine pass is
-    for). Tiles bound memory and keep one input size (OpenCV's DNN re-plans per size) but cost
-    the overlap; the fine pass is skipped when the coarse pass already ran at >= its scale.
+    Coarse: the whole frame, down-scaled so its longest side is at most ``max_side`` (None:
+    native size) and, when a fine pass runs, to at most ``fine_scale / 4`` (the fine pass sees
+    everything the coarse pass would find up to the tile overlap; the coarse pass is only there
+    for faces too large for a tile, and those are found at a quarter of the fine scale).
+    Fine (``fine_scale`` not None): the frame at ``fine_scale`` (1.0 = native, 2.0 = upscaled
+    for tiny objects). The plan scales with the image: a frame whose longest side is below
+    ``upscale_min_side`` is never upscaled (a 640 x 360 frame is scanned once, natively,
+    instead of as two 1024 px tiles of a x2 copy), and the fine view is split into tiles only
+    when it holds more than ``tile`` x ``tile`` pixels, into as few equal tiles (multiples of
+    32, so no padding) as keep each under ``tile`` px a side while overlapping by
+    ``tile_overlap`` px (at least the largest object the fine pass is for).
     """
 
     max_side: int | None = 1920
     fine_scale: float | None = 1.0
     tile: int = 0
     tile_overlap: int = 128
+    upscale_min_side: int = 1280
+
+
+@dataclass(frozen=True)
+class ScanPass:
+    """One pass of a plan: the frame at ``scale``, cut into ``tiles`` (x0, y0, x1, y1) in
+    scaled pixels (one tile = the whole scaled frame)."""
+
+    scale: float
+    width: int
+    height: int
+    tiles: tuple[tuple[int, int, int, int], ...]
 
 
 def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -111,44 +127,60 @@ def nms(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8) -> li
     return out
 
 
-def tile_origins(length: int, tile: int, overlap: int) -> list[int]:
-    """Start offsets covering [0, length) with windows of ``tile`` overlapping >= ``overlap``."""
-    if length <= tile:
-        return [0]
-    step = max(tile - overlap, 1)
-    starts = list(range(0, length - tile, step))
-    starts.append(length - tile)
-    return starts
+def _split(length: int, tile: int, overlap: int) -> list[tuple[int, int]]:
+    """As few equal windows (multiples of 32) of <= ``tile`` covering [0, length) with overlap."""
+    if tile <= 0 or length <= tile:
+        return [(0, length)]
+    n = 2
+    while True:
+        win = int(np.ceil((length + (n - 1) * overlap) / n / 32.0) * 32)
+        if win <= tile or win <= overlap + 32:
+            break
+        n += 1
+    win = min(win, length)
+    starts = np.linspace(0, length - win, n).round().astype(int)
+    return [(int(a), int(a) + win) for a in starts]
+
+
+def scan_plan(height: int, width: int, scan: ScanConfig) -> list[ScanPass]:
+    """The passes ``scan`` makes over a ``width`` x ``height`` frame (pure; used by tests)."""
+    longest = max(height, width)
+    fs = scan.fine_scale
+    if fs is not None and fs > 1.0 and longest < scan.upscale_min_side:
+        fs = 1.0
+    coarse = 1.0
+    if scan.max_side is not None and longest > scan.max_side:
+        coarse = scan.max_side / longest
+    if fs is not None and fs > coarse:
+        coarse = min(coarse, fs / 4.0)
+    cw, ch = max(1, round(width * coarse)), max(1, round(height * coarse))
+    passes = [ScanPass(coarse, cw, ch, ((0, 0, cw, ch),))]
+    if fs is None or fs <= coarse:
+        return passes
+    fw, fh = max(1, round(width * fs)), max(1, round(height * fs))
+    if scan.tile <= 0 or fw * fh <= scan.tile * scan.tile:
+        tiles: tuple[tuple[int, int, int, int], ...] = ((0, 0, fw, fh),)
+    else:
+        tiles = tuple(
+            (x0, y0, x1, y1)
+            for y0, y1 in _split(fh, scan.tile, scan.tile_overlap)
+            for x0, x1 in _split(fw, scan.tile, scan.tile_overlap)
+        )
+    passes.append(ScanPass(fs, fw, fh, tiles))
+    return passes
 
 
 def iter_views(image: np.ndarray, scan: ScanConfig) -> Iterator[tuple[np.ndarray, float, int, int]]:
     """Yield (view, scale, x_off, y_off): a view's pixel p maps to image pixel (p + off) / scale."""
     h, w = image.shape[:2]
-    coarse = 1.0
-    if scan.max_side is not None and max(h, w) > scan.max_side:
-        coarse = scan.max_side / max(h, w)
-    if coarse != 1.0:
-        view = cv2.resize(
-            image, (round(w * coarse), round(h * coarse)), interpolation=cv2.INTER_AREA
-        )
-    else:
-        view = image
-    yield view, coarse, 0, 0
-    fs = scan.fine_scale
-    if fs is None or coarse >= fs:
-        return
-    if fs != 1.0:
-        interp = cv2.INTER_AREA if fs < 1 else cv2.INTER_LINEAR
-        big = cv2.resize(image, (round(w * fs), round(h * fs)), interpolation=interp)
-    else:
-        big = image
-    bh, bw = big.shape[:2]
-    if scan.tile <= 0 or (bh <= scan.tile and bw <= scan.tile):
-        yield big, fs, 0, 0
-        return
-    for y0 in tile_origins(bh, scan.tile, scan.tile_overlap):
-        for x0 in tile_origins(bw, scan.tile, scan.tile_overlap):
-            yield big[y0 : y0 + scan.tile, x0 : x0 + scan.tile], fs, x0, y0
+    for p in scan_plan(h, w, scan):
+        if p.scale == 1.0:
+            big = image
+        else:
+            interp = cv2.INTER_AREA if p.scale < 1 else cv2.INTER_LINEAR
+            big = cv2.resize(image, (p.width, p.height), interpolation=interp)
+        for x0, y0, x1, y1 in p.tiles:
+            yield big[y0:y1, x0:x1], p.scale, x0, y0
 
 
 def _unmap(box: np.ndarray, scale: float, x0: int, y0: int, w: int, h: int) -> Box:
@@ -182,7 +214,7 @@ class FaceConfig:
     threshold: float = 0.3
     scan: ScanConfig = field(
         default_factory=lambda: ScanConfig(
-            max_side=1920, fine_scale=2.0, tile=1024, tile_overlap=160
+            max_side=1920, fine_scale=2.0, tile=2048, tile_overlap=160
         )
     )
     nms_iou: float = 0.3
@@ -323,6 +355,10 @@ class ClassicPlateConfig:
     min_transitions: float = 5.0  # glyph edges across the plate's middle rows
     min_contrast: float = 15.0
     min_separability: float = 0.55
+    # plates seen obliquely (side cameras, perspective) are slanted parallelograms whose
+    # axis-aligned box is mostly background: proposals are rotated rectangles up to this tilt,
+    # verified on the de-rotated crop (0: axis-aligned only, the version-1 behaviour)
+    max_tilt_deg: float = 40.0
     small_h: float = 10.0
     small_min_contrast: float = 35.0
     small_min_separability: float = 0.6
@@ -353,7 +389,7 @@ class ClassicPlateDetector:
     def __init__(self, config: ClassicPlateConfig | None = None) -> None:
         self.config = config or ClassicPlateConfig()
         c = self.config
-        self.version = f"2:up{c.upscale:g}:tr{c.min_transitions:g}" + (
+        self.version = f"3:up{c.upscale:g}:tr{c.min_transitions:g}:tilt{c.max_tilt_deg:g}" + (
             ":tiny" if c.tiny_plates else ""
         )
 
@@ -365,7 +401,22 @@ class ClassicPlateDetector:
                 dets.append(Detection("plate", _unmap(box, s, x0, y0, w, h), score, self.name))
         return nms(dets, 0.3)
 
+    def _rect(self, rect: tuple, up: float) -> tuple[float, float, float, float, float] | None:
+        """A ``cv2.minAreaRect`` as (cx, cy, long side, short side, tilt deg) in original
+        pixels when it has a plate's shape and tilt, else None."""
+        c = self.config
+        (cx, cy), (a, b), ang = rect
+        if a < b:
+            a, b, ang = b, a, ang + 90.0
+        ang = (ang + 90.0) % 180.0 - 90.0
+        if b <= 0 or abs(ang) > c.max_tilt_deg:
+            return None
+        if not c.min_aspect <= a / b <= c.max_aspect or not c.min_w * up <= a <= c.max_w * up:
+            return None
+        return (cx / up, cy / up, a / up, b / up, ang)
+
     def _proposals(self, gray: np.ndarray) -> np.ndarray:
+        """Candidate plates as rotated rectangles (N, 5): cx, cy, long, short side, tilt deg."""
         c = self.config
         up = c.upscale
         gu = (
@@ -373,7 +424,8 @@ class ClassicPlateDetector:
             if up != 1
             else gray
         )
-        boxes: list[tuple[float, float, float, float]] = []
+        rects: list[tuple[float, float, float, float, float]] = []
+        tilted = c.max_tilt_deg > 0
         mser = cv2.MSER_create(  # type: ignore[attr-defined]
             delta=4,
             min_area=int(max(20, 0.25 * c.min_w * c.min_w / c.max_aspect * up * up)),
@@ -383,26 +435,70 @@ class ClassicPlateDetector:
         for g in (gu, 255 - gu):
             regions, bbs = mser.detectRegions(g)
             for r, (x, y, bw, bh) in zip(regions, bbs, strict=True):
-                if bh <= 0 or not c.min_aspect <= bw / bh <= c.max_aspect:
+                if bh <= 0:
                     continue
-                if not c.min_w * up <= bw <= c.max_w * up:
-                    continue
-                fill = len(r) / float(bw * bh)
-                if 0.4 <= fill <= 0.95:
-                    boxes.append((x, y, x + bw, y + bh))
+                if c.min_aspect <= bw / bh <= c.max_aspect and c.min_w * up <= bw <= c.max_w * up:
+                    fill = len(r) / float(bw * bh)
+                    if 0.4 <= fill <= 0.95:
+                        rects.append(((x + bw / 2) / up, (y + bh / 2) / up, bw / up, bh / up, 0.0))
+                        continue
+                # a plate tilted <= 40 deg still has a box at least as wide as tall, filled
+                # >= ~20 %: cheap tests that spare minAreaRect on most of MSER's regions
+                if tilted and bw >= max(bh, c.min_w * up) and len(r) >= 0.15 * bw * bh:
+                    rr = self._rect(_moment_rect(r), up)
+                    if rr is not None and 0.4 <= len(r) / max(rr[2] * rr[3] * up * up, 1) <= 0.95:
+                        rects.append(rr)
         edges = cv2.Canny(gu, 40, 120)
         contours, _ = cv2.findContours(edges, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
         for cnt in contours:
             x, y, bw, bh = cv2.boundingRect(cnt)
-            if bh < 6 or not c.min_aspect <= bw / bh <= c.max_aspect:
+            if bh < 6 or bw < c.min_w * up:
                 continue
-            if not c.min_w * up <= bw <= c.max_w * up:
-                continue
-            if cv2.contourArea(cnt) >= 0.6 * bw * bh:
-                boxes.append((x, y, x + bw, y + bh))
-        if not boxes:
-            return np.zeros((0, 4))
-        return np.unique(np.asarray(boxes, float), axis=0) / up
+            if c.min_aspect <= bw / bh <= c.max_aspect and bw <= c.max_w * up:
+                if cv2.contourArea(cnt) >= 0.6 * bw * bh:
+                    rects.append(((x + bw / 2) / up, (y + bh / 2) / up, bw / up, bh / up, 0.0))
+                    continue
+            if tilted and bw >= bh:
+                rr = self._rect(cv2.minAreaRect(cnt), up)
+                if rr is not None and cv2.contourArea(cnt) >= 0.6 * rr[2] * rr[3] * up * up:
+                    rects.append(rr)
+        if not rects:
+            return np.zeros((0, 5))
+        return np.unique(np.round(np.asarray(rects, float), 2), axis=0)
+
+    @staticmethod
+    def _rect_box(rect: np.ndarray) -> np.ndarray:
+        """Axis-aligned x0, y0, x1, y1 around a rotated rectangle."""
+        cx, cy, a, b, ang = rect
+        t = np.deg2rad(ang)
+        hw = 0.5 * (a * abs(np.cos(t)) + b * abs(np.sin(t)))
+        hh = 0.5 * (a * abs(np.sin(t)) + b * abs(np.cos(t)))
+        return np.array([cx - hw, cy - hh, cx + hw, cy + hh])
+
+    @staticmethod
+    def _patch(gray: np.ndarray, rect: np.ndarray) -> np.ndarray | None:
+        """The rectangle's content as a 96 x 24 patch (de-rotated when tilted)."""
+        cx, cy, a, b, ang = rect
+        if abs(ang) < 1.0:
+            x0, y0 = round(cx - a / 2), round(cy - b / 2)
+            x1, y1 = round(cx + a / 2), round(cy + b / 2)
+            crop = gray[max(y0, 0) : y1, max(x0, 0) : x1]
+            if crop.shape[0] < 3 or crop.shape[1] < 6:
+                return None
+            interp = cv2.INTER_AREA if crop.shape[1] > 96 else cv2.INTER_LINEAR
+            return cv2.resize(crop, (96, 24), interpolation=interp)
+        if b < 3 or a < 6:
+            return None
+        t = np.deg2rad(ang)
+        u = np.array([np.cos(t), np.sin(t)]) * a / 2
+        v = np.array([-np.sin(t), np.cos(t)]) * b / 2
+        c0 = np.array([cx, cy])
+        src = np.float32([c0 - u - v, c0 + u - v, c0 - u + v])
+        dst = np.float32([[0, 0], [96, 0], [0, 24]])
+        m = cv2.getAffineTransform(src, dst)
+        return cv2.warpAffine(
+            gray, m, (96, 24), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
 
     def _verify_tiny(self, gray: np.ndarray, box: np.ndarray) -> float:
         c = self.config
@@ -420,19 +516,18 @@ class ClassicPlateDetector:
             return 0.0
         return float(np.clip(0.3 * min(1.0, contrast / 60.0) * min(1.0, std / 30.0), 0.05, 0.3))
 
-    def _verify(self, gray: np.ndarray, box: np.ndarray) -> float:
-        """Plate score in (0, 1], 0 when the crop is not a plate with glyphs."""
+    def _verify(self, gray: np.ndarray, rect: np.ndarray) -> float:
+        """Plate score in (0, 1], 0 when the (rotated) crop is not a plate with glyphs."""
         c = self.config
-        x0, y0, x1, y1 = (round(v) for v in box)
-        if c.tiny_plates and (y1 - y0) < c.tiny_h:
+        box = self._rect_box(rect)
+        if c.tiny_plates and abs(rect[4]) < 1.0 and rect[3] < c.tiny_h:
             s = self._verify_tiny(gray, box)
             if s > 0:
                 return s
-        crop = gray[max(y0, 0) : y1, max(x0, 0) : x1]
-        if crop.shape[0] < 3 or crop.shape[1] < 6:
+        patch = self._patch(gray, rect)
+        if patch is None:
             return 0.0
-        interp = cv2.INTER_AREA if crop.shape[1] > 96 else cv2.INTER_LINEAR
-        inner = cv2.resize(crop, (96, 24), interpolation=interp)[3:21, 3:93]
+        inner = patch[3:21, 3:93]
         thr, _ = cv2.threshold(inner, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
         v = inner.astype(np.float32).ravel()
         lo_mask = v <= thr
@@ -444,7 +539,7 @@ class ClassicPlateDetector:
         sep = w0 * (1 - w0) * contrast**2 / max(float(v.var()), 1e-6)
         glyph = (inner <= thr) if w0 < 0.5 else (inner > thr)
         trans = float(np.median(np.abs(np.diff(glyph[4:14].astype(np.int8), axis=1)).sum(1)))
-        small = (y1 - y0) < c.small_h
+        small = rect[3] < c.small_h
         if small:
             ok = contrast >= c.small_min_contrast and sep >= c.small_min_separability and trans >= 2
         else:
@@ -460,11 +555,33 @@ class ClassicPlateDetector:
     def _detect_view(self, view: np.ndarray) -> list[tuple[np.ndarray, float]]:
         gray = cv2.cvtColor(view, cv2.COLOR_BGR2GRAY) if view.ndim == 3 else view
         out = []
-        for box in self._proposals(gray):
-            s = self._verify(gray, box)
+        for rect in self._proposals(gray):
+            s = self._verify(gray, rect)
             if s > 0:
-                out.append((box, s))
+                out.append((self._rect_box(rect), s))
         return out
+
+
+def _moment_rect(pts: np.ndarray) -> tuple[tuple[float, float], tuple[float, float], float]:
+    """The rotated rectangle with a region's second moments, in ``cv2.minAreaRect``'s format.
+
+    A filled a x b rectangle has variance a^2/12 along its long axis; moments cost one pass
+    over the pixels where minAreaRect (a convex hull per region) cost ~1 ms per MSER region.
+    """
+    p = pts.reshape(-1, 2).astype(np.float64)
+    m = p.mean(0)
+    d = p - m
+    sxx, syy, sxy = (
+        float((d[:, 0] ** 2).mean()),
+        float((d[:, 1] ** 2).mean()),
+        float((d[:, 0] * d[:, 1]).mean()),
+    )
+    tr, det = sxx + syy, sxx * syy - sxy * sxy
+    disc = float(np.sqrt(max(tr * tr / 4 - det, 0.0)))
+    l1, l2 = tr / 2 + disc, max(tr / 2 - disc, 0.0)
+    ang = float(np.degrees(0.5 * np.arctan2(2 * sxy, sxx - syy)))
+    a, b = float(np.sqrt(12 * l1)) + 1.0, float(np.sqrt(12 * l2)) + 1.0  # pixel centres -> edges
+    return (float(m[0]), float(m[1])), (a, b), ang
 
 
 # ------------------------------------------------------------------------------- union

@@ -10,6 +10,7 @@ yellow plate, dark border, black alphanumerics drawn with ``cv2.putText``).
 
 from __future__ import annotations
 
+import itertools
 import os
 import string
 from collections.abc import Sequence
@@ -18,6 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from storage.lake import Lake
 from tasks.anonymize.detectors import Box, Detection, iou_matrix
 
 # Face boxes inside the source photos (CenterFace's own box on the full photo, rounded).
@@ -239,3 +241,106 @@ def match(
             found[i] = bool(hit.any())
             used |= hit
     return found, int((~used).sum())
+
+
+# ------------------------------------------------------------------ simulator ground truth
+# Sizes from which the default setting is *reliable* (recall >= 0.95 at IoU >= 0.3), measured
+# on the simulator's visible boxes and on real faces pasted into street frames (README.md).
+# Faces: box height; plates: box width, in pixels of the original frame.
+FACE_MIN_PX_NATIVE = 24  # frames scanned at native resolution (longest side < 1280, "fast")
+FACE_MIN_PX_FINE = 16  # frames scanned with the x2 fine pass (default, longest side >= 1280)
+PLATE_MIN_PX = 40
+SIZE_BINS: dict[str, tuple[float, ...]] = {
+    "face": (0, 8, 12, 16, 24, 32, 48, 1e9),
+    "plate": (0, 16, 25, 30, 40, 60, 90, 1e9),
+}
+
+
+def face_min_px(finest_scale: float) -> float:
+    """The documented reliable face height for a frame whose finest pass ran at this scale."""
+    return float(FACE_MIN_PX_FINE if finest_scale >= 2.0 else FACE_MIN_PX_NATIVE / finest_scale)
+
+
+@dataclass(frozen=True)
+class SimTruthHit:
+    """One visible simulator face / plate and whether a detection of its kind covered it."""
+
+    agent: str
+    camera: str
+    stamp_ns: int
+    kind: str
+    size_px: float  # face: box height; plate: box width
+    found: bool
+
+
+def sim_hits(
+    truth: dict[str, list],
+    detections: dict[tuple[str, str, int], Sequence[Detection]],
+    iou: float = 0.3,
+) -> list[SimTruthHit]:
+    """Match the simulator's ``truth/boxes2d.parquet`` rows (as a column dict) to detections.
+
+    Only images present in ``detections`` (keyed by agent, camera, absolute stamp) count, and
+    only faces / plates the truth marks visible (``occluded`` false: a person could not
+    identify a half-hidden face either). A visible box is end-exclusive pixels, as is ours.
+    """
+    occluded = truth.get("occluded") or [False] * len(truth["kind"])
+    rows: dict[tuple[str, str, int], list[tuple[str, Box]]] = {}
+    for i, kind in enumerate(truth["kind"]):
+        if kind not in ("face", "plate") or occluded[i]:
+            continue
+        key = (str(truth["agent"][i]), str(truth["camera"][i]), int(truth["stamp_ns"][i]))
+        if key not in detections:
+            continue
+        box = (
+            float(truth["x0"][i]),
+            float(truth["y0"][i]),
+            float(truth["x1"][i]),
+            float(truth["y1"][i]),
+        )
+        rows.setdefault(key, []).append((kind, box))
+    out: list[SimTruthHit] = []
+    for key, items in rows.items():
+        found, _ = match(items, detections[key], iou)
+        for (kind, b), f in zip(items, found, strict=True):
+            size = b[3] - b[1] if kind == "face" else b[2] - b[0]
+            out.append(SimTruthHit(key[0], key[1], key[2], kind, size, bool(f)))
+    return out
+
+
+def recall_by_size(hits: Sequence[SimTruthHit], kind: str) -> list[tuple[str, int, float]]:
+    """(size bin label, count, recall) per ``SIZE_BINS[kind]`` bin that holds any box."""
+    edges = SIZE_BINS[kind]
+    out = []
+    for lo, hi in itertools.pairwise(edges):
+        sel = [h.found for h in hits if h.kind == kind and lo <= h.size_px < hi]
+        if sel:
+            label = f"{lo:g}-{hi:g}" if hi < 1e9 else f">={lo:g}"
+            out.append((label, len(sel), float(np.mean(sel))))
+    return out
+
+
+def lake_image_keys(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], tuple[str, int]]:
+    """(agent, sensor, absolute stamp) -> (raw blob key, frame_idx) of every camera image."""
+    cf = lake.read_table("raw", "camera_frames", clip_id=clip_id).to_pydict()
+    return {
+        (str(a), str(s), int(t)): (str(b), int(f))
+        for a, s, f, t, b in zip(
+            cf["agent_id"], cf["sensor"], cf["frame_idx"], cf["stamp_ns"], cf["blob"], strict=True
+        )
+    }
+
+
+def audit_detections(
+    lake: Lake, clip_id: str
+) -> dict[tuple[str, str, int], list[Detection]]:
+    """The clean zone's ``anonymization_audit`` as detections per (agent, sensor, abs stamp)."""
+    keys = lake_image_keys(lake, clip_id)
+    by_frame = {(a, s, f): (a, s, t) for (a, s, t), (_b, f) in keys.items()}
+    out: dict[tuple[str, str, int], list[Detection]] = {k: [] for k in keys}
+    au = lake.read_table("clean", "anonymization_audit", clip_id=clip_id).to_pydict()
+    for i in range(len(au.get("kind", []))):
+        k = by_frame[(str(au["agent_id"][i]), str(au["sensor"][i]), int(au["frame_idx"][i]))]
+        box = (au["x0"][i], au["y0"][i], au["x1"][i], au["y1"][i])
+        out[k].append(Detection(str(au["kind"][i]), box, float(au["score"][i])))
+    return out

@@ -2,8 +2,8 @@
 
 The message's ``data`` is one byte buffer of ``height * row_step`` bytes; a structured dtype
 built from its ``PointField`` list (names, offsets, datatypes, ``point_step``, endianness)
-turns it into a record array without copying, and each column we keep is one strided copy.
-No per-point Python, so decoding runs at memory speed. The time field is converted to int64
+turns it into a record array without copying; columns are taken chunk by chunk (see ``CHUNK``)
+so the records are read from memory once. No per-point Python. The time field is converted to int64
 absolute GNSS ns according to ``clip.yaml`` (unit and reference), because drivers disagree:
 Ouster ``t`` is uint32 ns from the header stamp, Velodyne ``time`` float32 s from the header,
 the simulator ``timestamp`` float64 absolute seconds.
@@ -54,18 +54,27 @@ def cloud_array(msg: Any) -> np.ndarray:
 
 
 def point_times_ns(values: np.ndarray, tf: PointTimeField, stamp_ns: int) -> np.ndarray:
-    """Per-point time as int64 absolute ns."""
+    """Per-point time as int64 absolute ns (float arithmetic in place: one temporary)."""
     scale = UNIT_NS[tf.unit]
     if np.issubdtype(values.dtype, np.integer):
-        t = values.astype(np.int64) * scale
-        return t + stamp_ns if tf.reference is TimeReference.HEADER else t
+        t = values.astype(np.int64)
+        if scale != 1:
+            t *= scale
+        if tf.reference is TimeReference.HEADER:
+            t += stamp_ns
+        return t
     v = values.astype(np.float64)
     if tf.reference is TimeReference.HEADER:
-        return np.rint(v * scale).astype(np.int64) + stamp_ns
-    # absolute float: subtract a whole second first so the product keeps ns resolution
-    base = stamp_ns // 1_000_000_000 * 1_000_000_000
-    base_units = base / scale
-    return np.rint((v - base_units) * scale).astype(np.int64) + base
+        base = stamp_ns
+    else:
+        # absolute float: subtract a whole second first so the product keeps ns resolution
+        base = stamp_ns // 1_000_000_000 * 1_000_000_000
+        v -= base / scale
+    v *= scale
+    np.rint(v, out=v)
+    t = v.astype(np.int64)
+    t += base
+    return t
 
 
 @dataclass
@@ -89,50 +98,75 @@ class DecodedCloud:
         return int(self.x.size)
 
 
-def _column(arr: np.ndarray, name: str | None, dtype: type, n: int, what: str,
-            keep: np.ndarray | None) -> np.ndarray:
-    """One field as a contiguous array of ``dtype``, filtered by ``keep`` in the same pass."""
+# Points per chunk: 32 Ki points of a 32-byte layout are 1 MiB of records, which stay in the
+# core's L2 cache while the finite test and every column are taken from them. Taking each
+# column from the whole message instead streams the full buffer from memory once per column
+# (strided reads touch every cache line), which made decoding ~3x slower than reading the bag.
+CHUNK = 32_768
+
+
+def _source(arr: np.ndarray, name: str | None, what: str) -> str | None:
     if name is None:
-        return np.zeros(n if keep is None else int(np.count_nonzero(keep)), dtype=dtype)
+        return None
     if arr.dtype.names is None or name not in arr.dtype.names:
         raise KeyError(f"{what} field {name!r} not in PointCloud2 fields {arr.dtype.names}")
-    col = arr[name]
-    if col.ndim > 1:
-        col = col[:, 0]
-    if keep is not None:
-        col = col[keep]
-    return np.ascontiguousarray(col, dtype=dtype)
+    return name
+
+
+def _field(chunk: np.ndarray, name: str) -> np.ndarray:
+    col = chunk[name]
+    return col[:, 0] if col.ndim > 1 else col
 
 
 def decode_cloud(msg: Any, fields: LidarFields, stamp_ns: int) -> DecodedCloud:
-    """Decode one PointCloud2 according to the clip.yaml field mapping."""
+    """Decode one PointCloud2 according to the clip.yaml field mapping, in one cache-friendly
+    pass (``CHUNK`` points at a time): non-finite points dropped, columns contiguous."""
     arr = cloud_array(msg)
     n = arr.size
-    for what, name in (("x", fields.x), ("y", fields.y), ("z", fields.z),
-                       ("time", fields.time.field)):
-        if arr.dtype.names is None or name not in arr.dtype.names:
-            raise KeyError(f"{what} field {name!r} not in PointCloud2 fields {arr.dtype.names}")
-    finite = np.isfinite(arr[fields.x])
-    finite &= np.isfinite(arr[fields.y])
-    finite &= np.isfinite(arr[fields.z])
-    n_ok = int(np.count_nonzero(finite))
-    keep = None if n_ok == n else finite
-    t = point_times_ns(arr[fields.time.field] if keep is None else
-                       arr[fields.time.field][keep], fields.time, stamp_ns)
-    if t.size:
+    for what, req in (("x", fields.x), ("y", fields.y), ("z", fields.z),
+                      ("time", fields.time.field)):
+        _source(arr, req, what)
+    cols: dict[str, tuple[str, type]] = {
+        "x": (fields.x, np.float32), "y": (fields.y, np.float32), "z": (fields.z, np.float32)}
+    for attr, opt, dtype in (("intensity", fields.intensity, np.float32),
+                             ("ring", fields.ring, np.uint16),
+                             ("return_id", fields.return_id, np.uint8)):
+        src = _source(arr, opt, attr)
+        if src is not None:
+            cols[attr] = (src, dtype)
+    out: dict[str, np.ndarray] = {attr: np.empty(n, dtype) for attr, (_s, dtype) in cols.items()}
+    t_out = np.empty(n, np.int64)
+    fx, fy, fz, ft = fields.x, fields.y, fields.z, fields.time.field
+    pos = 0
+    for a in range(0, n, CHUNK):
+        chunk = arr[a:a + CHUNK]
+        keep = np.isfinite(_field(chunk, fx))
+        keep &= np.isfinite(_field(chunk, fy))
+        keep &= np.isfinite(_field(chunk, fz))
+        k = int(np.count_nonzero(keep))
+        if k == 0:
+            continue
+        sel: Any = slice(None) if k == chunk.size else keep
+        end = pos + k
+        for attr, (name, _dtype) in cols.items():
+            out[attr][pos:end] = _field(chunk, name)[sel]
+        t_out[pos:end] = point_times_ns(_field(chunk, ft)[sel], fields.time, stamp_ns)
+        pos = end
+    t = t_out[:pos]
+    if pos:
         t0, t1 = int(t.min()), int(t.max())
     elif n:  # only non-finite points: the scan still took place, keep its time span
-        t_all = point_times_ns(arr[fields.time.field], fields.time, stamp_ns)
+        t_all = point_times_ns(_field(arr, ft), fields.time, stamp_ns)
         t0, t1 = int(t_all.min()), int(t_all.max())
     else:
         t0 = t1 = stamp_ns
+
+    def col(attr: str, dtype: type) -> np.ndarray:
+        return out[attr][:pos] if attr in out else np.zeros(pos, dtype)
+
     return DecodedCloud(
-        stamp_ns=stamp_ns, t_ns=t,
-        x=_column(arr, fields.x, np.float32, n, "x", keep),
-        y=_column(arr, fields.y, np.float32, n, "y", keep),
-        z=_column(arr, fields.z, np.float32, n, "z", keep),
-        intensity=_column(arr, fields.intensity, np.float32, n, "intensity", keep),
-        ring=_column(arr, fields.ring, np.uint16, n, "ring", keep),
-        return_id=_column(arr, fields.return_id, np.uint8, n, "return_id", keep),
-        n_nan=n - n_ok, t_start_ns=t0, t_end_ns=t1,
+        stamp_ns=stamp_ns, t_ns=t, x=col("x", np.float32), y=col("y", np.float32),
+        z=col("z", np.float32), intensity=col("intensity", np.float32),
+        ring=col("ring", np.uint16), return_id=col("return_id", np.uint8),
+        n_nan=n - pos, t_start_ns=t0, t_end_ns=t1,
     )

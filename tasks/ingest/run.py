@@ -53,6 +53,7 @@ from tasks.ingest.calibration import TfTree, intrinsics_from_camera_info
 from tasks.ingest.images import compressed_to_png, image_to_png
 from tasks.ingest.ins import GnssDecoder, ImuDecoder, InsDecoder, InsFieldError
 from tasks.ingest.pointcloud import DecodedCloud, decode_cloud
+from tasks.ingest.rawmsg import parser_for
 from tasks.ingest.rows import table_of
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -121,7 +122,7 @@ def copy_to_landing(lake: Lake, clip_dir: Path, cfg: ClipConfig) -> int:
         rel = f.relative_to(clip_dir)
         hidden = any(p.startswith(".") for p in rel.parts)
         if f.is_file() and rel.parts[0] != "truth" and not hidden:
-            n += lake.copy_in(f, f"{root}/{rel.as_posix()}")
+            n += lake.copy_in(f, f"{root}/{rel.as_posix()}", link=True)
     rewrite: dict[str, str] = {}
     for a in cfg.agents:
         bag = resolve(clip_dir, a.bag)
@@ -130,7 +131,7 @@ def copy_to_landing(lake: Lake, clip_dir: Path, cfg: ClipConfig) -> int:
         dest = f"external/{a.agent_id}/{bag.name}"
         for f in bag_files(bag):
             n += lake.copy_in(f, f"{root}/{dest}/{f.relative_to(bag).as_posix()}"
-                              if bag.is_dir() else f"{root}/{dest}")
+                              if bag.is_dir() else f"{root}/{dest}", link=True)
         rewrite[a.agent_id] = dest
     if rewrite:
         data = cfg.model_dump(mode="json", exclude_none=True)
@@ -320,11 +321,19 @@ class _AgentIngest:
             handlers = self.plan(reader)
             conns = [c for c in reader.connections if c.topic in handlers]
             seen: dict[int, int] = {id(c): 0 for c in conns}
+            # PointCloud2 / images: direct parse of the wire format (rawmsg.py) when the bag
+            # defines them as standard ROS does; everything else through rosbags
+            fdefs, ros2 = reader.typestore.fielddefs, bool(reader.is2)
+            fast = {id(c): parser_for(fdefs, c.msgtype, ros2) for c in conns}
             try:
                 for conn, _t, raw in reader.messages(connections=conns):
                     self.res.bytes_read += len(raw)
                     seen[id(conn)] += 1
-                    handlers[conn.topic](reader.deserialize(raw, conn.msgtype), conn)
+                    parse = fast[id(conn)]
+                    msg: Any = parse(raw) if parse is not None else None
+                    if msg is None:
+                        msg = reader.deserialize(raw, conn.msgtype)
+                    handlers[conn.topic](msg, conn)
             except ClipError:
                 raise
             except Exception as e:  # rosbags / sqlite / mcap errors on a damaged file
@@ -412,15 +421,24 @@ class _AgentIngest:
         return rows
 
 
+POINT_FILE_SCHEMA = arrow_schema(LidarPointRow).remove(0).remove(0)  # minus clip_id, agent_id
+_ZEROS = np.zeros(0, np.int32)
+
+
 def _points_table(sensor: str, idx: int, c: DecodedCloud) -> pa.Table:
+    """One frame as a table of exactly the writer's schema (no cast in ``TableWriter.write``);
+    numeric columns wrap the decoded arrays without a copy."""
+    global _ZEROS
     n = c.n_points
-    cols: dict[str, Any] = {
-        "sensor": pa.DictionaryArray.from_arrays(pa.array(np.zeros(n, np.int32)),
-                                                 pa.array([sensor])),
-        "frame_idx": np.full(n, idx, np.int32), "t_ns": c.t_ns, "x": c.x, "y": c.y, "z": c.z,
-        "intensity": c.intensity, "ring": c.ring, "return_id": c.return_id,
-    }
-    return pa.table({k: pa.array(v) if isinstance(v, np.ndarray) else v for k, v in cols.items()})
+    if _ZEROS.size < n:  # shared, never written: the dictionary indices of the sensor column
+        _ZEROS = np.zeros(max(n, 2 * _ZEROS.size), np.int32)
+        _ZEROS.flags.writeable = False
+    arrays = [
+        pa.DictionaryArray.from_arrays(pa.array(_ZEROS[:n]), pa.array([sensor])),
+        pa.array(np.full(n, idx, np.int32)), pa.array(c.t_ns), pa.array(c.x), pa.array(c.y),
+        pa.array(c.z), pa.array(c.intensity), pa.array(c.ring), pa.array(c.return_id),
+    ]
+    return pa.Table.from_arrays(arrays, schema=POINT_FILE_SCHEMA)
 
 
 def _frame_table(model: type[BaseModel], rows: list[dict[str, Any]], cid: str, aid: str
@@ -487,8 +505,11 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
             n_agents=len(cfg.agents), reference_agent=cfg.reference_agent.agent_id,
             duration_s=duration, source="simulated" if (d / "truth").is_dir() else "recorded",
             status="ok")]), clip_id=cid)
-        outputs = [(f, pq_rows(staging, f)) for f in staging.list_files(staging.path("raw"),
-                                                                         ".parquet")]
+        # rows and sha256 were taken while writing (TableWriter hashes the bytes as they
+        # stream out), so the manifest needs no second read of the outputs
+        outputs = [(f, *staging.written[f]) if f in staging.written else (f, pq_rows(staging, f),
+                                                                          None)
+                   for f in staging.list_files(staging.path("raw"), ".parquet")]
         lake.delete_clip("raw", cid)
         lake.publish(staging, "raw", cid)
     finally:
@@ -497,7 +518,8 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
     n_bytes = sum(r.bytes_read for r in results.values())
     return StageReport(
         stage=STAGE, clip_id=cid,
-        outputs=[OutputFile(path=f[len(staging.base) + 1:], rows=n) for f, n in outputs],
+        outputs=[OutputFile(path=f[len(staging.base) + 1:], rows=n, sha256=sha)
+                 for f, n, sha in outputs],
         metrics={
             "seconds": elapsed, "bytes_read": float(n_bytes),
             "mb_per_s": n_bytes / 1e6 / elapsed if elapsed > 0 else 0.0,

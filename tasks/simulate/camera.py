@@ -13,11 +13,19 @@ vehicles' rear/front faces and a camera-facing face sprite on pedestrians / the 
 warped by the true homography (``cv2.warpPerspective``). A distorted camera is rendered on a
 larger pinhole canvas and remapped (map precomputed once on an 8 px grid, upsampled).
 
-Truth: two label images are drawn alongside the colour (object id of whatever is visible,
-and part id of faces / plates); the visible 2D box of every object, face and plate is the
-bounding box of its pixels after occlusion (``x0 <= x < x1``, ``y0 <= y < y1`` in pixels of
-the distorted output image), plus the amodal box (all projected, near-clipped vertices,
-clipped to the image) and the visible pixel count.
+Truth: two label images are drawn alongside the colour with the SAME painter's order and
+the same polygons (object id of whatever is on top, and part id of faces / plates); EVERY fill
+writes both, so an occluder (vehicle body, building, pole) also erases the face / plate ids
+below it (before this fix the part image was only ever written by faces / plates, so a plate or
+face covered by a nearer car kept its ids and was reported visible). The visible 2D box of
+every object, face and plate is the bounding box of its pixels in the final label image
+(``x0 <= x < x1``, ``y0 <= y < y1`` in pixels of the distorted output image) with
+``n_pixels`` its pixel count there, plus the amodal box (all projected, near-clipped vertices,
+clipped to the image). ``visible_fraction`` = pixels still showing the item in the final canvas
+/ pixels it covered right after it was drawn (its unoccluded footprint), both counted on the
+part of the pinhole canvas that lands inside the output image; ``occluded`` is true when
+``n_pixels < MIN_VISIBLE_PX`` or ``visible_fraction`` is below ``OCCLUDED_BELOW[kind]`` (0.5 for
+faces / plates, 0.1 for objects). Items with no visible pixel at all get no row.
 """
 
 from __future__ import annotations
@@ -33,6 +41,8 @@ from tasks.simulate.scene import GROUND_ID, Actor, World
 from tasks.simulate.textures import FACE_M, PLATE_MM, face_textures, plate_texture
 
 NEAR = 0.1
+MIN_VISIBLE_PX = 4
+OCCLUDED_BELOW = {"face": 0.5, "plate": 0.5, "object": 0.1}
 _SHIFT = 4
 _LIGHT = np.array([0.35, 0.45, 0.82]) / np.linalg.norm([0.35, 0.45, 0.82])
 # box faces as corner indices (corners ordered by the bits x: 1, y: 2, z: 4), outward normal
@@ -116,11 +126,21 @@ class CameraRenderer:
                                    my.astype(np.float32), cv2.INTER_LINEAR)
             self.map_v = cv2.remap((cv + self.oy).astype(np.float32), mx.astype(np.float32),
                                    my.astype(np.float32), cv2.INTER_LINEAR)
+        # canvas pixels that land inside the output image (visible-fraction denominators)
+        self.valid = np.ones((self.ch, self.cw), bool)
+        if self.distorted:
+            gx, gy = np.meshgrid((np.arange(self.cw) + 0.5 - self.ox - self.cx) / self.fx,
+                                 (np.arange(self.ch) + 0.5 - self.oy - self.cy) / self.fy)
+            op = self._out_px(np.stack([gx.ravel(), gy.ravel(), np.ones(gx.size)], -1))
+            self.valid = ((op[:, 0] >= 0) & (op[:, 0] < self.W) & (op[:, 1] >= 0)
+                          & (op[:, 1] < self.H)).reshape(self.ch, self.cw)
         rows = np.linspace(0.0, 1.0, self.ch)[:, None]
         top, bot = np.array([200, 150, 110.0]), np.array([235, 220, 205.0])
         sky = (top * (1 - rows) + bot * rows).astype(np.uint8)
         self.sky = np.ascontiguousarray(np.broadcast_to(sky[:, None, :], (self.ch, self.cw, 3)))
         self.faces = face_textures()
+        self.touched: list[int] = [self.cw, self.ch, 0, 0]
+        self.foot: dict[str, tuple[tuple[slice, slice], int]] = {}
 
     # ---- projection helpers
     def _proj(self, pc: np.ndarray) -> np.ndarray:
@@ -138,12 +158,26 @@ class CameraRenderer:
         yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
         return np.column_stack([self.fx * xd + self.cx, self.fy * yd + self.cy])
 
-    def _fill(self, pts: np.ndarray, color: Any, obj: int, part: int = 0) -> None:
+    def _fill(self, pts: np.ndarray, color: Any, obj: int) -> None:
+        """Paint a polygon into the colour AND both label images: whatever it covers (a face,
+        a plate) is no longer visible, so its part id is erased (0)."""
         p32 = np.clip(np.round(pts * (1 << _SHIFT)), -(2.0**30), 2.0**30).astype(np.int32)
         cv2.fillConvexPoly(self.img, p32, color, cv2.LINE_8, _SHIFT)
         cv2.fillConvexPoly(self.lab, p32, int(obj), cv2.LINE_8, _SHIFT)
-        if part:
-            cv2.fillConvexPoly(self.part, p32, int(part), cv2.LINE_8, _SHIFT)
+        cv2.fillConvexPoly(self.part, p32, 0, cv2.LINE_8, _SHIFT)
+        self._touch(pts)
+
+    def _touch(self, pts: np.ndarray) -> None:
+        """Grow the canvas bbox of what the current draw unit painted."""
+        lo, hi = np.floor(pts.min(0)), np.ceil(pts.max(0)) + 2
+        t = self.touched
+        self.touched = [min(t[0], max(int(lo[0]), 0)), min(t[1], max(int(lo[1]), 0)),
+                        max(t[2], min(int(hi[0]), self.cw)), max(t[3], min(int(hi[1]), self.ch))]
+
+    def _footprint(self, key: str, src: np.ndarray, lid: int, roi: tuple[slice, slice]) -> None:
+        """Record the unoccluded canvas footprint of an item right after drawing it."""
+        m = (src[roi] == lid) & self.valid[roi]
+        self.foot[key] = (roi, int(m.sum()))
 
     def _poly(self, pw: np.ndarray, color: Any, obj: int) -> np.ndarray | None:
         pc = _clip_near((pw - self.C) @ self.Rwc_T)
@@ -178,6 +212,8 @@ class CameraRenderer:
         self.img[roi][mask] = warped[mask]
         self.lab[roi][mask] = obj
         self.part[roi][mask] = pid
+        self._touch(np.array([[x0c, y0c], [x1c - 1, y1c - 1]], float))
+        self._footprint(f"{part_name[0]}:{part_name[1]}", self.part, pid, roi)
         op = self._out_px(_densify(pc) if self.distorted else pc)
         return [float(op[:, 0].min()), float(op[:, 1].min()), float(op[:, 0].max()),
                 float(op[:, 1].max())]
@@ -199,6 +235,8 @@ class CameraRenderer:
         self.lab = np.zeros((self.ch, self.cw), np.uint16)
         self.part = np.zeros((self.ch, self.cw), np.uint16)
         self.parts: list[tuple[str, str]] = []
+        self.foot = {}
+        self.touched = [self.cw, self.ch, 0, 0]
         gz = sc.ground_z
         g = np.array([[-3000, -3000], [3000, -3000], [3000, 3000], [-3000, 3000]], float)
         self._poly(np.column_stack([g + self.C[:2], np.full(4, gz)]), sc.ground_color, GROUND_ID)
@@ -301,6 +339,7 @@ class CameraRenderer:
         amodal: dict[str, list[float]] = {}
         for g_ in (int(g) for g in groups):
             mem = members[g_]
+            self.touched = [self.cw, self.ch, 0, 0]
             for i in mem:
                 for f, (idx, _) in enumerate(_FACES):
                     if not facing[i, f]:
@@ -317,6 +356,10 @@ class CameraRenderer:
                 k = actor_group[g_]
                 a = sc.actors[k]
                 self._actor_decals(a, sc.actor_id(k), ac[k], float(ay[k]), amodal)
+                tx0, ty0, tx1, ty1 = self.touched
+                if tx1 > tx0 and ty1 > ty0:
+                    self._footprint(f"object:{a.instance_id}", self.lab, sc.actor_id(k),
+                                    (slice(ty0, ty1), slice(tx0, tx1)))
                 if all(front[i] for i in mem) and not self.distorted:
                     pts = pc[mem].reshape(-1, 3)
                 else:
@@ -383,9 +426,9 @@ class CameraRenderer:
         for key, am in amodal.items():
             kind, inst = key.split(":", 1)
             if kind == "object":
-                src, lid = lab, sc.names.index(inst)
+                src, lid, csrc = lab, sc.names.index(inst), self.lab
             else:
-                src, lid = part, part_id[key]
+                src, lid, csrc = part, part_id[key], self.part
             x0 = max(int(np.floor(am[0] - margin)), 0)
             y0 = max(int(np.floor(am[1] - margin)), 0)
             x1 = min(int(np.ceil(am[2] + margin)) + 1, self.W)
@@ -398,7 +441,16 @@ class CameraRenderer:
                 continue
             sl = (slice(y0 + int(rows[0]), y0 + int(rows[-1]) + 1),
                   slice(x0 + int(cols[0]), x0 + int(cols[-1]) + 1))
-            boxes.append(self._row(kind, inst, sl, int(m.sum()), am))
+            npx = int(m.sum())
+            frac = 0.0
+            if key in self.foot:
+                roi, full = self.foot[key]
+                left = int(((csrc[roi] == lid) & self.valid[roi]).sum())
+                frac = min(left / full, 1.0) if full else 0.0
+            row = self._row(kind, inst, sl, npx, am)
+            row["visible_fraction"] = frac
+            row["occluded"] = bool(npx < MIN_VISIBLE_PX or frac < OCCLUDED_BELOW[kind])
+            boxes.append(row)
         return Rendered(image=img, boxes=boxes)
 
     def _row(self, kind: str, inst: str, sl: tuple[slice, ...], npx: int,

@@ -7,7 +7,15 @@ bags (re-ordered by log time in a small heap). Truth and metadata are written la
 
 Clip extent: ``n = floor(seconds * 10)`` LiDAR scans starting at ``start_s`` (a PPS); cameras at
 every ``30 / camera_hz``-th trigger of ``sec * 1e9 + round(k * 1e9 / 30)`` inside
-[start, start + n * 100 ms); INS/IMU every 8 ms and GNSS every 100 ms over the same span.
+[start, end) with ``end = start + n * 100 ms`` (unchanged). The navigation streams run like a
+real, continuously recording INS: INS/IMU every 8 ms and GNSS every 100 ms over
+[start, end + NAV_TAIL_NS), i.e. the first sample is still at the clip-start PPS edge (= the
+first scan start, so ``clip_t0_abs`` is unchanged) and the last INS sample is at
+``end + 16 ms``, at least two INS periods after the last LiDAR point (< end), so the final scan
+is bracketed by INS samples and can be deskewed like every other (before, INS stopped at the
+last scan's start and deskew had to skip that scan). GNSS gains the fix at ``end``. A 1 s clip
+thus has 128 INS / IMU and 11 GNSS messages per agent (was 125 / 10). ``truth/poses.parquet``
+covers the same extended span.
 """
 
 from __future__ import annotations
@@ -47,6 +55,8 @@ LAT_CAM_NS = 25_000_000
 LAT_INS_NS = 1_000_000
 LAT_GNSS_NS = 40_000_000
 S = 1_000_000_000
+# navigation streams keep recording this long after the last scan's end (> 1 INS period)
+NAV_TAIL_NS = 20_000_000
 
 
 def camera_stamps(start_ns: int, end_ns: int, step: int) -> list[int]:
@@ -125,8 +135,9 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
     period_ns = round(S / cfg.lidar.rate_hz)
     end_ns = start_ns + n_scans * period_ns
     cam_stamps = camera_stamps(start_ns, end_ns, cfg.camera_step)
-    ins_t = np.arange(start_ns, end_ns, INS_PERIOD_NS, dtype=np.int64)
-    gnss_t = np.arange(start_ns, end_ns, GNSS_PERIOD_NS, dtype=np.int64)
+    nav_end_ns = end_ns + NAV_TAIL_NS
+    ins_t = np.arange(start_ns, nav_end_ns, INS_PERIOD_NS, dtype=np.int64)
+    gnss_t = np.arange(start_ns, nav_end_ns, GNSS_PERIOD_NS, dtype=np.int64)
 
     sinks: dict[str, BagSink] = {}
     casters: dict[str, LidarCaster] = {}
@@ -254,7 +265,7 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
     tdir = out / "truth"
     tdir.mkdir()
     (tdir / "sim_config.json").write_text(cfg.model_dump_json(indent=1))
-    _write_truth(tdir, cfg, world, rigs, errs, start_ns, end_ns, n_scans, period_ns)
+    _write_truth(tdir, cfg, world, rigs, errs, start_ns, nav_end_ns, n_scans, period_ns)
     if box_rows:
         cols = {k: [r[k] for r in box_rows] for k in box_rows[0]}
         write_parquet(tdir / "boxes2d.parquet", cols)

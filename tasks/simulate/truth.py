@@ -12,19 +12,25 @@ records the bias of every agent at every sample so tests can relate both.
 Files:
 * ``sim_config.json``: the SimConfig; ``load_truth`` rebuilds the analytic world from it, so
   :meth:`SimTruth.T_world_ego` is exact at ANY time (not interpolated).
-* ``poses.parquet``: agent, t_ns (1 kHz), true ``T_world_ego`` (x y z qw qx qy qz), world
-  velocity vx vy vz, INS position bias bx by bz (reported = true + bias).
+* ``poses.parquet``: agent, t_ns (1 kHz, over the INS span: clip start to the last scan's end
+  + ``run.NAV_TAIL_NS``), true ``T_world_ego`` (x y z qw qx qy qz), world velocity vx vy vz,
+  INS position bias bx by bz (reported = true + bias).
 * ``extrinsics.json``: per agent true and published ``T_ego_lidar`` / ``T_ego_cam`` (Transform
   dicts), camera intrinsics, INS attitude bias (roll, pitch, yaw rad; ``R_ins = R_bias R_true``)
   and position-bias parameters.
 * ``relative.parquet``: per LiDAR frame (scan start t_ns) and agent pair (red <- other): the
   TRUE ``T_L1_L2`` and the eq. 1a estimate from the reported INS poses and published extrinsics
   (``init_*``), with their translation / rotation disagreement.
-* ``boxes2d.parquet``: per image (agent, camera, frame_idx, stamp_ns) every visible object,
-  face and plate: kind, instance_id, visible box x0 y0 x1 y1 (pixels, end exclusive),
-  n_pixels, amodal box ax0..ay1, and for objects the agent's LiDAR frame whose sweep contains
-  the image stamp with the mean point time of the object in it (lidar_frame_idx,
-  lidar_n_pts, lidar_mean_t_ns; -1 when the LiDAR saw none of it).
+* ``boxes2d.parquet``: per image (agent, camera, frame_idx, stamp_ns) every object, face and
+  plate with at least one pixel in the final image: kind, instance_id, visible box x0 y0 x1 y1
+  (pixels, end exclusive) and n_pixels taken from the label images rendered with the colour
+  (an occluder erases what it covers, see ``camera``), amodal box ax0..ay1,
+  ``visible_fraction`` (visible / unoccluded pixels) and ``occluded`` (bool: fewer than
+  ``camera.MIN_VISIBLE_PX`` pixels or a fraction under 0.5 for faces / plates, 0.1 for
+  objects; consumers wanting "what an anonymizer must blur" should keep every row, those
+  wanting "what a detector should find" should drop ``occluded`` ones), and for objects the
+  agent's LiDAR frame whose sweep contains the image stamp with the mean point time of the
+  object in it (lidar_frame_idx, lidar_n_pts, lidar_mean_t_ns; -1 when the LiDAR saw none).
 * ``lidar_truth.parquet`` (when ``write_lidar_truth``): per LiDAR point in message order
   (agent, frame_idx, idx): t_ns, the true world hit point wx wy wz (before range noise),
   the object name hit and ``is_static``.

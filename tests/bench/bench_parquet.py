@@ -5,8 +5,10 @@ with per-point time, ring, intensity) repeated with a per-copy time offset to ``
 frames, one row group per frame, the ``lidar_points`` schema of the lake. Candidates: pyarrow
 defaults (snappy + dictionary on every column), zstd level 1 / 3 with byte-stream-split
 floats and no dictionary (the lake's choice), the same without byte-stream-split, lz4 and
-snappy without dictionary, and the lake's own ``ParquetOptions()`` (zstd 1, BSS floats,
-DELTA_BINARY_PACKED ints). MB/s counts in-memory Arrow bytes; best of ``--repeat``.
+snappy without dictionary, the lake's own ``ParquetOptions()`` (zstd 1, BSS floats,
+DELTA_BINARY_PACKED ints: the clean zone) and ``RAW_OPTIONS`` (the raw zone written by ingest:
+lz4, BSS floats, DELTA int64, PLAIN int32, no float/dictionary statistics, 64 Ki-value write
+batches). MB/s counts in-memory Arrow bytes; best of ``--repeat``.
 
     python tests/bench/bench_parquet.py [--frames 100]
 """
@@ -62,6 +64,7 @@ def frames_table(base: list[pa.Table], n: int) -> list[pa.Table]:
 CANDIDATES: dict[str, dict[str, object]] = {
     "pyarrow default (snappy+dict)": {},
     "lake: ParquetOptions()": {},  # filled in main() from storage.lake.ParquetOptions
+    "lake raw: RAW_OPTIONS": {},  # filled in main() from storage.lake.RAW_OPTIONS
     "zstd1 + BSS, no dict": dict(compression="zstd", compression_level=1,
                                  use_dictionary=["sensor"], use_byte_stream_split=True),
     "zstd3 + BSS, no dict": dict(compression="zstd", compression_level=3,
@@ -78,10 +81,11 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--repeat", type=int, default=3, help="best of N (noisy machines)")
     args = ap.parse_args()
-    from storage.lake import ParquetOptions
+    from storage.lake import RAW_OPTIONS, ParquetOptions
 
     frames = frames_table(real_frames(), args.frames)
     CANDIDATES["lake: ParquetOptions()"] = ParquetOptions().writer_kwargs(frames[0].schema)
+    CANDIDATES["lake raw: RAW_OPTIONS"] = RAW_OPTIONS.writer_kwargs(frames[0].schema)
     nbytes = sum(f.nbytes for f in frames)
     npts = sum(f.num_rows for f in frames)
     print(f"{args.frames} frames, {npts / 1e6:.1f} M points, {nbytes / 1e6:.0f} MB in Arrow "
