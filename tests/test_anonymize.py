@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import struct
 import zlib
 from pathlib import Path
@@ -201,3 +202,27 @@ def test_free_text_times_become_relative() -> None:
     assert relative_number(1_700_000_000_500_000.0, t0) == 600_000.0  # microseconds
     assert relative_number(42.0, t0) == 42.0
     assert relative_text("frame 000123 sha 12ab1700000000000000000cd", t0).endswith("cd")
+
+
+def test_scan_plan_scales_with_the_image() -> None:
+    """Small frames get one native pass; large ones a cheap coarse pass + equal x2 tiles."""
+    from tasks.anonymize.detectors import scan_plan
+    from tasks.anonymize.run import AnonymizeConfig
+
+    scan = AnonymizeConfig().build_detector().detectors[0].config.scan  # type: ignore[attr-defined]
+    small = scan_plan(360, 640, scan)
+    assert [(p.scale, p.tiles) for p in small] == [(1.0, ((0, 0, 640, 360),))]
+    for h, w, n_tiles in ((1080, 1920, 4), (2160, 3840, 12)):
+        coarse, fine = scan_plan(h, w, scan)
+        assert coarse.scale == 0.5 and len(coarse.tiles) == 1
+        assert fine.scale == 2.0 and len(fine.tiles) == n_tiles
+        sizes = {(x1 - x0, y1 - y0) for x0, y0, x1, y1 in fine.tiles}
+        assert len(sizes) == 1  # one input size: one cached net
+        tw, th = sizes.pop()
+        assert tw <= scan.tile and th <= scan.tile and tw % 32 == 0 and th % 32 == 0
+        covered = np.zeros((fine.height, fine.width), bool)
+        for x0, y0, x1, y1 in fine.tiles:
+            covered[y0:y1, x0:x1] = True
+        assert covered.all()
+        xs = sorted({t[0] for t in fine.tiles})
+        assert all(b - a <= tw - scan.tile_overlap for a, b in itertools.pairwise(xs))

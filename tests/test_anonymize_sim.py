@@ -10,8 +10,6 @@ objects are measured and reported (README.md) but not asserted.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pyarrow.parquet as pq
 import pytest

@@ -493,8 +493,8 @@ class ClassicPlateDetector:
         u = np.array([np.cos(t), np.sin(t)]) * a / 2
         v = np.array([-np.sin(t), np.cos(t)]) * b / 2
         c0 = np.array([cx, cy])
-        src = np.float32([c0 - u - v, c0 + u - v, c0 - u + v])
-        dst = np.float32([[0, 0], [96, 0], [0, 24]])
+        src = np.array([c0 - u - v, c0 + u - v, c0 - u + v], np.float32)
+        dst = np.array([[0, 0], [96, 0], [0, 24]], np.float32)
         m = cv2.getAffineTransform(src, dst)
         return cv2.warpAffine(
             gray, m, (96, 24), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
@@ -569,13 +569,10 @@ def _moment_rect(pts: np.ndarray) -> tuple[tuple[float, float], tuple[float, flo
     over the pixels where minAreaRect (a convex hull per region) cost ~1 ms per MSER region.
     """
     p = pts.reshape(-1, 2).astype(np.float64)
-    m = p.mean(0)
-    d = p - m
-    sxx, syy, sxy = (
-        float((d[:, 0] ** 2).mean()),
-        float((d[:, 1] ** 2).mean()),
-        float((d[:, 0] * d[:, 1]).mean()),
-    )
+    n = len(p)
+    m = p.sum(0) / n
+    c = p.T @ p / n - np.outer(m, m)  # two vectorised reductions: this runs per MSER region
+    sxx, syy, sxy = float(c[0, 0]), float(c[1, 1]), float(c[0, 1])
     tr, det = sxx + syy, sxx * syy - sxy * sxy
     disc = float(np.sqrt(max(tr * tr / 4 - det, 0.0)))
     l1, l2 = tr / 2 + disc, max(tr / 2 - disc, 0.0)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import itertools
 import os
 import string
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -275,7 +275,7 @@ class SimTruthHit:
 
 def sim_hits(
     truth: dict[str, list],
-    detections: dict[tuple[str, str, int], Sequence[Detection]],
+    detections: Mapping[tuple[str, str, int], Sequence[Detection]],
     iou: float = 0.3,
 ) -> list[SimTruthHit]:
     """Match the simulator's ``truth/boxes2d.parquet`` rows (as a column dict) to detections.
@@ -331,9 +331,7 @@ def lake_image_keys(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], tupl
     }
 
 
-def audit_detections(
-    lake: Lake, clip_id: str
-) -> dict[tuple[str, str, int], list[Detection]]:
+def audit_detections(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], list[Detection]]:
     """The clean zone's ``anonymization_audit`` as detections per (agent, sensor, abs stamp)."""
     keys = lake_image_keys(lake, clip_id)
     by_frame = {(a, s, f): (a, s, t) for (a, s, t), (_b, f) in keys.items()}

@@ -2,7 +2,12 @@
 
 Driven only by ``clip.yaml``. Each agent's bag is read in a single pass over the configured
 topics; LiDAR frames stream into one Parquet row group each (never the whole clip in memory),
-images go to PNG blobs. Everything is written into a private staging lake first and moved
+images go to PNG blobs. Throughput (``tests/bench/bench_ingest.py``): PointCloud2 and images
+are parsed straight from the wire format (``rawmsg.py``, exact, rosbags as fallback), points
+are decoded in cache-sized chunks on the reading thread while a second thread encodes the
+previous frames (raw zone encoding: ``storage.lake.RAW_OPTIONS``) and a third hashes the
+bytes as they are written, so the report carries every output's sha256 and the manifest
+never re-reads them. Everything is written into a private staging lake first and moved
 into ``raw/`` only when every agent succeeded, so a clip that fails (unknown type, missing
 topic, truncated file...) leaves nothing in the raw zone or the catalog, and concurrent
 ingests of different clips never see each other's partial output.
@@ -114,7 +119,9 @@ def copy_to_landing(lake: Lake, clip_dir: Path, cfg: ClipConfig) -> int:
     """Copy the clip as delivered into ``landing/<clip_id>/`` (the simulator's ``truth/`` is
     not part of the input contract and stays out). Bags that live outside the clip folder go
     to ``external/<agent>/`` and the landing clip.yaml is rewritten to point at them (the
-    original is kept as ``clip.delivered.yaml``)."""
+    original is kept as ``clip.delivered.yaml``). Files are hard-linked when the lake is local
+    and on the same filesystem (bags as delivered are immutable; copying a 10 GB clip would
+    cost more than ingesting it), otherwise copied."""
     root = lake.path("landing", cfg.clip_id)
     lake.delete_dir(root)
     n = 0
