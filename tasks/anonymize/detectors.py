@@ -350,8 +350,21 @@ class ClassicPlateConfig:
     upscale: float = 1.0
     min_w: float = 12.0  # original pixels
     max_w: float = 400.0
-    min_aspect: float = 1.6
-    max_aspect: float = 7.0
+    # aspect of the DE-ROTATED rectangle: US plates 305 x 152 mm = 2.0, EU 520 x 110 mm = 4.7
+    min_aspect: float = 1.8
+    max_aspect: float = 6.0
+    # a plate is a small part of the frame: long side <= this fraction of the image width,
+    # up to ``max_w_frac_strong`` only with very high evidence (score and glyph count)
+    max_w_frac: float = 0.2
+    max_w_frac_strong: float = 0.35
+    strong_score: float = 0.8
+    strong_glyphs: int = 5
+    # the glyph class must form at least this many character-like connected components of
+    # consistent height standing in one row, checked on plates at least ``glyph_min_h`` tall
+    # (below that, neighbouring characters blur into each other: a real 26 x 10 px plate
+    # splits into two blobs)
+    min_glyphs: int = 3
+    glyph_min_h: float = 12.0
     min_transitions: float = 5.0  # glyph edges across the plate's middle rows
     min_contrast: float = 15.0
     min_separability: float = 0.55
@@ -362,6 +375,10 @@ class ClassicPlateConfig:
     small_h: float = 10.0
     small_min_contrast: float = 35.0
     small_min_separability: float = 0.6
+    # below ``glyph_min_h`` no glyph row can be checked, so the rectangle's tilt is the only
+    # shape cue left: slanted thin strips of that size are lane dashes and kerbs, far plates
+    # (the only ones that small) are seen nearly head-on
+    small_max_tilt_deg: float = 10.0
     # plates under ``tiny_h`` px tall hold no legible glyphs; optionally accept any textured
     # rectangle of plate shape standing out from its surround (many more false boxes)
     tiny_plates: bool = False
@@ -389,7 +406,7 @@ class ClassicPlateDetector:
     def __init__(self, config: ClassicPlateConfig | None = None) -> None:
         self.config = config or ClassicPlateConfig()
         c = self.config
-        self.version = f"3:up{c.upscale:g}:tr{c.min_transitions:g}:tilt{c.max_tilt_deg:g}" + (
+        self.version = f"4:up{c.upscale:g}:tr{c.min_transitions:g}:tilt{c.max_tilt_deg:g}" + (
             ":tiny" if c.tiny_plates else ""
         )
 
@@ -439,7 +456,9 @@ class ClassicPlateDetector:
                     continue
                 if c.min_aspect <= bw / bh <= c.max_aspect and c.min_w * up <= bw <= c.max_w * up:
                     fill = len(r) / float(bw * bh)
-                    if 0.4 <= fill <= 0.95:
+                    # a slanted strip also fills ~40 % of its axis-aligned box with a plate's
+                    # box aspect: the box is the plate only when the region is not tilted
+                    if 0.4 <= fill <= 0.95 and (fill >= 0.7 or _is_upright(r)):
                         rects.append(((x + bw / 2) / up, (y + bh / 2) / up, bw / up, bh / up, 0.0))
                         continue
                 # a plate tilted <= 40 deg still has a box at least as wide as tall, filled
@@ -516,50 +535,97 @@ class ClassicPlateDetector:
             return 0.0
         return float(np.clip(0.3 * min(1.0, contrast / 60.0) * min(1.0, std / 30.0), 0.05, 0.3))
 
-    def _verify(self, gray: np.ndarray, rect: np.ndarray) -> float:
-        """Plate score in (0, 1], 0 when the (rotated) crop is not a plate with glyphs."""
+    def _verify(self, gray: np.ndarray, rect: np.ndarray) -> tuple[float, int]:
+        """Plate score in (0, 1] and the number of character-like glyphs; score 0 when the
+        (rotated) crop is not a plate with glyphs."""
         c = self.config
         box = self._rect_box(rect)
         if c.tiny_plates and abs(rect[4]) < 1.0 and rect[3] < c.tiny_h:
             s = self._verify_tiny(gray, box)
             if s > 0:
-                return s
+                return s, 0
+        if rect[3] < c.glyph_min_h and abs(rect[4]) > c.small_max_tilt_deg:
+            return 0.0, 0  # no glyphs to check and slanted: a lane dash or a kerb strip
         patch = self._patch(gray, rect)
         if patch is None:
-            return 0.0
+            return 0.0, 0
         inner = patch[3:21, 3:93]
         thr, _ = cv2.threshold(inner, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
         v = inner.astype(np.float32).ravel()
         lo_mask = v <= thr
         w0 = float(lo_mask.mean())
         if not 0.08 <= min(w0, 1 - w0) <= 0.5:
-            return 0.0
+            return 0.0, 0
         lo, hi = v[lo_mask], v[~lo_mask]
         contrast = float(hi.mean() - lo.mean())
         sep = w0 * (1 - w0) * contrast**2 / max(float(v.var()), 1e-6)
         glyph = (inner <= thr) if w0 < 0.5 else (inner > thr)
         trans = float(np.median(np.abs(np.diff(glyph[4:14].astype(np.int8), axis=1)).sum(1)))
         small = rect[3] < c.small_h
+        glyphs = 0
         if small:
             ok = contrast >= c.small_min_contrast and sep >= c.small_min_separability and trans >= 2
         else:
+            glyphs = _glyph_row(glyph) if rect[3] >= c.glyph_min_h else c.min_glyphs
             ok = (
                 contrast >= c.min_contrast
                 and sep >= c.min_separability
                 and trans >= c.min_transitions
+                and glyphs >= c.min_glyphs
             )
         if not ok:
-            return 0.0
-        return float(np.clip(sep * min(1.0, trans / 10.0) * min(1.0, contrast / 40.0), 0.05, 1.0))
+            return 0.0, glyphs
+        score = sep * min(1.0, trans / 10.0) * min(1.0, contrast / 40.0)
+        return float(np.clip(score, 0.05, 1.0)), glyphs
 
     def _detect_view(self, view: np.ndarray) -> list[tuple[np.ndarray, float]]:
         gray = cv2.cvtColor(view, cv2.COLOR_BGR2GRAY) if view.ndim == 3 else view
         out = []
+        c = self.config
+        width = gray.shape[1]
         for rect in self._proposals(gray):
-            s = self._verify(gray, rect)
-            if s > 0:
-                out.append((self._rect_box(rect), s))
+            if rect[2] > c.max_w_frac_strong * width:
+                continue
+            s, glyphs = self._verify(gray, rect)
+            if s <= 0:
+                continue
+            if rect[2] > c.max_w_frac * width and (s < c.strong_score or glyphs < c.strong_glyphs):
+                continue  # too big for a plate of this frame without overwhelming evidence
+            out.append((self._rect_box(rect), s))
         return out
+
+
+def _is_upright(pts: np.ndarray, max_deg: float = 8.0) -> bool:
+    """Whether an elongated region's principal axis is within ``max_deg`` of horizontal."""
+    (_, _), (a, b), ang = _moment_rect(pts)
+    return a < 1.2 * b or abs((ang + 90.0) % 180.0 - 90.0) <= max_deg
+
+
+def _glyph_row(glyph: np.ndarray) -> int:
+    """Number of character-like blobs in a de-rotated plate patch's glyph mask.
+
+    A character is a connected component 35-100 % of the patch height (tight crops cut
+    characters at both borders), narrower than 1.5x its height (two or three characters
+    that blur together at 80 px still pass as one) and under 30 % of the patch width; the
+    characters of one plate share a height (within 35 % of the median) and a baseline
+    row (centres within 25 % of the height). Pedestrians, windows and lane dashes give one or
+    two blobs of unrelated sizes; a plate gives three or more.
+    """
+    h, w = glyph.shape
+    n, _, stats, cents = cv2.connectedComponentsWithStats(glyph.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return 0
+    bw, bh = stats[1:, cv2.CC_STAT_WIDTH], stats[1:, cv2.CC_STAT_HEIGHT]
+    area = stats[1:, cv2.CC_STAT_AREA]
+    ok = (bh >= 0.35 * h) & (bw <= 1.5 * bh) & (bw >= 1) & (area >= 0.1 * bh * bw)
+    ok &= bw <= 0.3 * w
+    if ok.sum() < 2:
+        return int(ok.sum())
+    hs, cy = bh[ok].astype(float), cents[1:, 1][ok]
+    mh = float(np.median(hs))
+    my = float(np.median(cy))
+    row = (np.abs(hs - mh) <= 0.35 * mh) & (np.abs(cy - my) <= 0.25 * mh + 1.0)
+    return int(row.sum())
 
 
 def _moment_rect(pts: np.ndarray) -> tuple[tuple[float, float], tuple[float, float], float]:
