@@ -37,14 +37,10 @@ def _csv(text: str | None) -> list[str] | None:
 # ---------------------------------------------------------------- simulate
 def sim_config(preset: str, seconds: float | None, storage: str | None, seed: int | None,
                agents: str | None, cameras: str | None, clip_id: str | None = None) -> Any:
-    from tasks.simulate.config import CAMERA_NAMES, SimConfig
+    from tasks.simulate import SimConfig
 
-    cams: Any = cameras
-    if cameras and cameras.isdigit():
-        cams = tuple(CAMERA_NAMES[: max(1, int(cameras))])
-    factory: Any = SimConfig  # mypy confuses the classmethod with the field "preset"
-    return factory.preset(preset, seconds=seconds, storage=storage, seed=seed, agents=agents,
-                          cameras=cams, clip_id=clip_id)
+    return SimConfig.preset(preset, seconds=seconds, storage=storage, seed=seed, agents=agents,
+                            cameras=cameras, clip_id=clip_id)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:

@@ -310,6 +310,17 @@ class TableWriter:
         self.lake.written[self.path] = (self.rows, self.sha256)
 
 
+def _partition_columns(names: Sequence[str], clip_id: str,
+                       agent_id: str | None) -> dict[str, str | None]:
+    """Columns that the path carries instead of the file, with their partition values.
+
+    ``clip_id`` always; ``agent_id`` only when the table is partitioned by agent (a clip-level
+    table such as ``qa_checks`` keeps its nullable ``agent_id`` column in the file).
+    """
+    return {k: v for k, v in (("clip_id", clip_id), ("agent_id", agent_id))
+            if k in names and (v is not None or k == "clip_id")}
+
+
 class Lake:
     def __init__(self, uri: str | os.PathLike[str]) -> None:
         s = str(uri)
@@ -433,12 +444,12 @@ class Lake:
         ``row_group_by`` names a sorted column whose runs become row groups (LiDAR points: one
         row group per frame, so a reader fetching one frame touches one row group).
         """
-        for key, val in (("clip_id", clip_id), ("agent_id", agent_id)):
-            if key in data.column_names and (val is not None or key == "clip_id"):
-                col = data.column(key)
-                if val is not None and len(col) and not pc.all(pc.equal(col, val)).as_py():
-                    raise ValueError(f"{table}: column {key} disagrees with partition {val!r}")
-                data = data.drop_columns([key])
+        keys = _partition_columns(data.column_names, clip_id, agent_id)
+        for key, val in keys.items():
+            col = data.column(key)
+            if val is not None and len(col) and not pc.all(pc.equal(col, val)).as_py():
+                raise ValueError(f"{table}: column {key} disagrees with partition {val!r}")
+        data = data.drop_columns(list(keys))
         with self.open_writer(zone, table, data.schema, clip_id=clip_id, agent_id=agent_id,
                               name=name, options=options) as w:
             if row_group_by and data.num_rows:
@@ -468,9 +479,8 @@ class Lake:
         memory); the file appears under its final name only when the ``with`` block exits
         without an exception, otherwise the temporary file is removed. ``options`` defaults
         to the zone's encoding (``ParquetOptions.for_zone``)."""
-        for key, val in (("clip_id", clip_id), ("agent_id", agent_id)):
-            if key in schema.names and (val is not None or key == "clip_id"):
-                schema = schema.remove(schema.get_field_index(key))
+        for key in _partition_columns(schema.names, clip_id, agent_id):
+            schema = schema.remove(schema.get_field_index(key))
         final = f"{self.table_dir(zone, table, clip_id, agent_id)}/{name}.parquet"
         return TableWriter(self, final, schema, options or ParquetOptions.for_zone(zone),
                            background=background)

@@ -22,7 +22,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--storage", choices=["sqlite3", "mcap", "ros1"])
     ap.add_argument("--seed", type=int)
     ap.add_argument("--agents", help="comma list from red,black,rsu (red required)")
-    ap.add_argument("--cameras", help="comma list of camera names")
+    ap.add_argument("--cameras", help="how many cameras (N) or a comma list of names")
     ap.add_argument("--camera-hz", type=float)
     a = ap.parse_args(argv)
     cfg = SimConfig.preset(a.preset, seconds=a.seconds, storage=a.storage, seed=a.seed,

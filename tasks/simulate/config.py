@@ -129,7 +129,11 @@ class SimConfig(BaseModel):
         if isinstance(over.get("agents"), str):
             over["agents"] = tuple(a.strip() for a in over["agents"].split(",") if a.strip())
         if isinstance(over.get("cameras"), str):
-            over["cameras"] = tuple(c.strip() for c in over["cameras"].split(",") if c.strip())
+            cams = over["cameras"].strip()
+            over["cameras"] = (
+                CAMERA_NAMES[: max(1, int(cams))] if cams.isdigit()
+                else tuple(c.strip() for c in cams.split(",") if c.strip())
+            )
         if name == "cats":
             base: dict[str, Any] = {
                 "preset_name": "cats", "lidar": LidarSpec(), "cameras": CAMERA_NAMES,
