@@ -8,7 +8,7 @@ from pydantic import BaseModel, Field
 class OutputFile(BaseModel):
     path: str
     rows: int | None = None
-    sha256: str | None = None
+    checksum: str | None = None  # storage.checksum: '<algorithm>:<hex>'
 
 
 class StageReport(BaseModel):

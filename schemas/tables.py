@@ -313,7 +313,7 @@ class ManifestRow(_Row):
     code_version: str
     params_hash: str
     inputs_hash: str
-    outputs: str  # JSON list of {path, rows, sha256}
+    outputs: str  # JSON list of {path, rows, checksum}
     error: str | None = None
 
 

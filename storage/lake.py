@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import hashlib
 import itertools
 import json
 import os
@@ -40,6 +39,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.fs as pafs
 import pyarrow.parquet as pq
+
+from storage import checksum
 
 ZONES = ("landing", "raw", "clean", "releases", "quarantine", "manifests")
 PARTITION_KEYS = ("clip_id", "agent_id")
@@ -124,46 +125,65 @@ class ParquetOptions:
 
 # The raw zone is written once by ingest, at bag-reading speed, and read a few times by
 # anonymize (which writes the clean zone with the default zstd); the delivered bags stay in
-# landing/ as the archive. So raw trades a little size for encoding speed: lz4, no float or
-# dictionary statistics, PLAIN int32 (frame_idx), big write batches. Measured on one LiDAR
-# row group per frame (tests/bench/bench_parquet.py, bench_ingest.py, 2-core VM): CATS-like
-# 230k-point scans encode in ~7 instead of ~14 ms at 12.2 instead of 11.6 B/point; real
-# Ouster OS1-128 scans write 1.25x and read 1.5x faster than zstd-1 at 9.1 vs 8.2 B/point.
-RAW_OPTIONS = ParquetOptions(compression="lz4", compression_level=None, delta_int32=False,
-                             float_statistics=False, dictionary_statistics=False,
-                             write_batch_size=65_536)
+# landing/ as the archive. So raw trades size for encoding speed: lz4 over PLAIN columns (no
+# byte-stream-split, no delta), no float or dictionary statistics, big write batches.
+# Measured (tests/bench/bench_parquet.py, 2-core VM, real Ouster OS1-128 scans): 970 MB/s
+# write and 4.0 GB/s read at 11.3 B/point, against 450 MB/s, 1.7 GB/s and 8.2 B/point for the
+# clean zone's zstd-1 + BSS; lz4 + BSS + delta time (the previous raw choice) cost ingest ~2
+# ms more per 230k-point frame to save ~1 MB, which the file write then saves only ~0.5 ms of.
+RAW_OPTIONS = ParquetOptions(compression="lz4", compression_level=None, byte_stream_split=False,
+                             delta_ints=False, float_statistics=False,
+                             dictionary_statistics=False, write_batch_size=65_536)
 ZONE_OPTIONS: dict[str, ParquetOptions] = {"raw": RAW_OPTIONS}
 
 
-class _HashingSink:
-    """A write-only file object that forwards to ``stream`` and sha256-hashes the bytes as
-    they pass, so a written file's checksum (for the manifest) costs no second read.
+class _ChecksumSink:
+    """A write-only file object that forwards to ``stream`` and checksums the bytes as they
+    pass (``storage.checksum``), so a written file's checksum costs no second read.
 
-    ``threaded=True`` (background writers): the hashing runs on its own thread, fed the
-    chunks pyarrow hands to ``write`` (immutable bytes / Arrow buffers, so holding them is
-    safe); hashlib releases the GIL, so on a two-core machine the Parquet encoder, the hasher
-    and the caller's decoding share both cores instead of the encoder thread doing both."""
+    ``threaded=True`` (background writers): hashing *and* writing run on an I/O thread, fed
+    the chunks pyarrow hands to ``write`` (immutable bytes, so holding them is safe); both
+    release the GIL, so the Parquet encoder never waits for the file system or an S3 upload
+    and, on a two-core machine, the caller's decoding, the encoder and the I/O share both
+    cores. At most ``IO_QUEUE`` chunks wait; an I/O error is raised by the next ``write`` or
+    by ``close``."""
 
     def __init__(self, stream: Any, threaded: bool = False) -> None:
-        self._stream, self._sha, self._pos, self.closed = stream, hashlib.sha256(), 0, False
-        self._queue: queue.SimpleQueue[Any] | None = None
+        self._stream, self._hash, self._pos, self.closed = stream, checksum.hasher(), 0, False
+        self._queue: queue.Queue[Any] | None = None
         self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
         if threaded:
-            self._queue = queue.SimpleQueue()
-            self._thread = threading.Thread(target=self._hash_loop, name="sha256", daemon=True)
+            self._queue = queue.Queue(IO_QUEUE)
+            self._thread = threading.Thread(target=self._io_loop, name="lake-io", daemon=True)
             self._thread.start()
 
-    def _hash_loop(self) -> None:
+    def _io_loop(self) -> None:
         assert self._queue is not None
-        while (chunk := self._queue.get()) is not None:
-            self._sha.update(chunk)
+        while True:
+            chunk = self._queue.get()
+            try:
+                if chunk is None:
+                    return
+                if self._error is None:
+                    self._hash.update(chunk)
+                    self._stream.write(chunk)
+            except BaseException as e:  # kept for the writer's thread to raise
+                self._error = e
+            finally:
+                self._queue.task_done()
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            raise self._error
 
     def write(self, data: Any) -> int:
+        self._raise()
         if self._queue is not None:
             self._queue.put(data)
         else:
-            self._sha.update(data)
-        self._stream.write(data)
+            self._hash.update(data)
+            self._stream.write(data)
         n = memoryview(data).nbytes
         self._pos += n
         return n
@@ -172,6 +192,9 @@ class _HashingSink:
         return self._pos
 
     def flush(self) -> None:
+        if self._queue is not None and self._thread is not None:
+            self._queue.join()  # every queued chunk handed to the stream
+        self._raise()
         self._stream.flush()
 
     def writable(self) -> bool:
@@ -187,22 +210,25 @@ class _HashingSink:
         if not self.closed:
             self.closed = True
             try:
-                self._stream.close()
-            finally:
                 self._stop()
+            finally:
+                self._stream.close()
 
     def _stop(self) -> None:
+        """Drain the I/O thread (every queued chunk written) and raise its error, if any."""
         if self._thread is not None and self._queue is not None:
             self._queue.put(None)
             self._thread.join()
             self._thread = None
+        self._raise()
 
     def hexdigest(self) -> str:
         self._stop()
-        return self._sha.hexdigest()
+        return checksum.digest(self._hash)
 
 
 MAX_PENDING = 2  # row groups a background TableWriter may have queued
+IO_QUEUE = 8  # output chunks (SINK_BUFFER each) waiting for a background writer's I/O thread
 SINK_BUFFER = 4 << 20  # bytes buffered before a TableWriter's output reaches Python
 
 
@@ -212,9 +238,9 @@ class TableWriter:
     Local lakes write to a hidden temporary name in the target directory and ``os.replace``
     it on a clean exit; S3 lakes stream a multipart upload that only becomes an object when
     completed (an aborted upload leaves nothing). On an exception the partial file is
-    removed, so no reader ever sees it. The bytes are sha256-hashed as they are written:
-    after a clean exit ``sha256`` holds the file's checksum and the lake's ``written`` map
-    records ``(rows, sha256)`` under the final path.
+    removed, so no reader ever sees it. The bytes are checksummed as they are written:
+    after a clean exit ``checksum`` holds the file's checksum and the lake's ``written`` map
+    records ``(rows, checksum)`` under the final path.
     """
 
     def __init__(self, lake: Lake, final: str, schema: pa.Schema, options: ParquetOptions,
@@ -230,12 +256,12 @@ class TableWriter:
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="parquet") if background else None
         self._pending: collections.deque[Future[None]] = collections.deque()
         self._background = background
-        self._sink: _HashingSink | None = None
-        self.sha256: str | None = None
+        self._sink: _ChecksumSink | None = None
+        self.checksum: str | None = None
 
     def __enter__(self) -> TableWriter:
         self.lake._mkdir(self.path.rpartition("/")[0])
-        self._sink = _HashingSink(self.lake.fs.open_output_stream(self._target),
+        self._sink = _ChecksumSink(self.lake.fs.open_output_stream(self._target),
                                   threaded=self._background)
         # pyarrow writes a Parquet file in ~10 KiB pieces; buffer them into big chunks before
         # they reach Python (one call per SINK_BUFFER bytes instead of ~200 per LiDAR frame)
@@ -306,8 +332,8 @@ class TableWriter:
                 raise error
             return
         self.lake._commit(self._target, self.path)
-        self.sha256 = self._sink.hexdigest()
-        self.lake.written[self.path] = (self.rows, self.sha256)
+        self.checksum = self._sink.hexdigest()
+        self.lake.written[self.path] = (self.rows, self.checksum)
 
 
 def _partition_columns(names: Sequence[str], clip_id: str,
@@ -335,7 +361,7 @@ class Lake:
             self.is_local = True
             Path(self.base).mkdir(parents=True, exist_ok=True)
         self.uri = s if not self.is_local else self.base
-        # final path -> (rows, sha256) of every Parquet file this instance wrote (TableWriter)
+        # final path -> (rows, checksum) of every Parquet file this instance wrote (TableWriter)
         self.written: dict[str, tuple[int, str]] = {}
 
     # ---------------------------------------------------------------- paths

@@ -3,11 +3,11 @@
 One JSON file per clip and stage at ``manifests/<clip_id>/<stage>.json`` (written atomically).
 A stage is *current* when its last run finished, and the three hashes of its key are unchanged:
 
-- ``inputs_hash``: for ingest, sha256 of every input file (bags, clip.yaml, .msg files,
-  annotation file); for later stages, the hash of the upstream stages' recorded outputs
-  (their sha256s). A stage that re-runs and produces different bytes therefore changes the
-  key of every stage after it, and only of those: changing deskew's parameters re-runs
-  deskew, register, align... but not ingest or qa.
+- ``inputs_hash``: for ingest, the checksum (``storage.checksum``) of every input file (bags,
+  clip.yaml, .msg files, annotation file); for later stages, the hash of the upstream
+  stages' recorded outputs (their checksums). A stage that re-runs and produces different
+  bytes therefore changes the key of every stage after it, and only of those: changing
+  deskew's parameters re-runs deskew, register, align... but not ingest or qa.
 - ``code_version``: package version + hash of the stage's own source files (and schemas/).
 - ``params_hash``: sha256 of the stage config's canonical JSON.
 
@@ -30,10 +30,10 @@ from pydantic import BaseModel, Field
 
 from schemas.stage import OutputFile, StageReport
 from schemas.tables import ManifestRow
+from storage import checksum
 from storage.lake import Lake
 
 REPO = Path(__file__).resolve().parents[1]
-CHUNK = 8 << 20
 
 # The module of each stage; its source and every project module it imports (transitively,
 # ``tasks.*`` and ``schemas.*``) make the stage's code version, so editing a helper that a
@@ -59,7 +59,7 @@ class StageKey:
     code_version: str
     params_hash: str
     inputs_hash: str
-    inputs: tuple[tuple[str, str], ...] = ()  # (name, sha256) detail for the manifest
+    inputs: tuple[tuple[str, str], ...] = ()  # (name, checksum) detail for the manifest
 
 
 class Manifest(BaseModel):
@@ -87,33 +87,22 @@ class Manifest(BaseModel):
 
 
 # --------------------------------------------------------------------------- hashing
-_FILE_SHA: dict[tuple[str, int, int], str] = {}
+_FILE_SUM: dict[tuple[str, int, int], str] = {}
 
 
-def sha256_file(path: str | Path) -> str:
-    """sha256 of a local file; remembered per (path, size, mtime) within the process, so a
+def file_checksum(path: str | Path) -> str:
+    """Checksum of a local file; remembered per (path, size, mtime) within the process, so a
     scheduler re-checking the same landing folders does not re-read gigabytes of bags."""
     st = os.stat(path)
     key = (str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
-    if key not in _FILE_SHA:
-        _FILE_SHA[key] = _sha256_uncached(path)
-    return _FILE_SHA[key]
+    if key not in _FILE_SUM:
+        _FILE_SUM[key] = checksum.of_file(path)
+    return _FILE_SUM[key]
 
 
-def _sha256_uncached(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(CHUNK):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def sha256_lake_file(lake: Lake, path: str) -> str:
-    h = hashlib.sha256()
+def lake_file_checksum(lake: Lake, path: str) -> str:
     with lake.fs.open_input_stream(path) as f:
-        while chunk := f.read(CHUNK):
-            h.update(chunk)
-    return h.hexdigest()
+        return checksum.of_stream(f)
 
 
 def params_hash(config: Any) -> str:
@@ -225,7 +214,7 @@ def stage_key(
     """The key a run of ``stage`` on ``clip_id`` would have now.
 
     ``input_files`` (local paths; ingest passes ``tasks.ingest.clip_inputs(dir)[1]``) are
-    hashed by content; ``upstream_stages`` contribute the sha256s of their recorded outputs
+    hashed by content; ``upstream_stages`` contribute the checksums of their recorded outputs
     (a missing or failed upstream manifest makes the key unique, so the stage is not current).
     ``code_paths`` overrides the source files hashed into ``code_version`` (tests, plugins).
     """
@@ -235,7 +224,7 @@ def stage_key(
         common = Path(*_common_parts(paths)) if len(paths) > 1 else paths[0].parent
         for p in sorted(paths):
             name = p.relative_to(common).as_posix() if p.is_relative_to(common) else str(p)
-            inputs.append((f"file:{name}", sha256_file(p)))
+            inputs.append((f"file:{name}", file_checksum(p)))
     for up in upstream_stages:
         m = read(lake, clip_id, up)
         if m is None or m.status != "done":
@@ -243,7 +232,7 @@ def stage_key(
             continue
         h = hashlib.sha256()
         for o in sorted(m.outputs, key=lambda o: o.path):
-            h.update(f"{o.path}\0{o.rows}\0{o.sha256}\n".encode())
+            h.update(f"{o.path}\0{o.rows}\0{o.checksum}\n".encode())
         inputs.append((f"stage:{up}", h.hexdigest()))
     h = hashlib.sha256()
     for name, digest in inputs:
@@ -283,7 +272,7 @@ def _abs(lake: Lake, path: str) -> str:
 
 def record(lake: Lake, report: StageReport, key: StageKey, status: str = "done",
            error: str | BaseException | None = None) -> Manifest:
-    """Write the manifest of one finished (or failed) stage run; fills missing output sha256s
+    """Write the manifest of one finished (or failed) stage run; fills missing output checksums
     and row counts from the files themselves."""
     if status not in ("done", "failed"):
         raise ValueError(f"status must be 'done' or 'failed', got {status!r}")
@@ -291,15 +280,15 @@ def record(lake: Lake, report: StageReport, key: StageKey, status: str = "done",
     for o in report.outputs:
         path = _abs(lake, o.path)
         rel = path[len(lake.base) + 1:] if path.startswith(lake.base + "/") else o.path
-        sha = o.sha256
+        digest = o.checksum
         rows = o.rows
         if lake.exists(path):
-            sha = sha or sha256_lake_file(lake, path)
+            digest = digest or lake_file_checksum(lake, path)
             if rows is None and path.endswith(".parquet"):
                 import pyarrow.parquet as pq
                 with lake.fs.open_input_file(path) as f:
                     rows = int(pq.ParquetFile(f).metadata.num_rows)
-        outputs.append(OutputFile(path=rel, rows=rows, sha256=sha))
+        outputs.append(OutputFile(path=rel, rows=rows, checksum=digest))
     m = Manifest(
         clip_id=report.clip_id, stage=key.stage, status=status,
         code_version=key.code_version, params_hash=key.params_hash,

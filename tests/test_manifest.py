@@ -76,7 +76,7 @@ def test_unchanged_clip_does_no_work(flow: Flow) -> None:
     assert flow.run(cfgs()) == []
     m = mf.read(flow.lake, "c1", "register")
     assert m is not None and m.status == "done" and m.outputs[0].rows == 3
-    assert m.outputs[0].sha256 and len(m.outputs[0].sha256) == 64
+    assert m.outputs[0].checksum and m.outputs[0].checksum.startswith("xxh3_128:")
 
 
 def test_changed_params_rerun_that_stage_and_later_only(flow: Flow) -> None:
@@ -126,7 +126,7 @@ def test_real_ingest_manifest(tmp_path: Path) -> None:
     assert not mf.is_current(lake, cid, "ingest", key)
     m = mf.record(lake, run_ingest(lake, clip), key)
     assert {o.path.split("/")[1] for o in m.outputs} >= {"lidar_points", "clips", "ins"}
-    assert all(o.sha256 and o.rows is not None for o in m.outputs)
+    assert all(o.checksum and o.rows is not None for o in m.outputs)
     assert "file:clip.yaml" in m.inputs and "file:msgs/v2xlake_msgs/msg/InsPva.msg" in m.inputs
     assert sum(k.startswith(("file:red/", "file:black/")) and k.endswith(".db3")
                for k in m.inputs) == 2

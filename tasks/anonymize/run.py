@@ -130,10 +130,6 @@ def _read_file(lake: Lake, path: str) -> pa.Table:
     return pq.read_table(path, filesystem=lake.fs)
 
 
-def _sha256(lake: Lake, path: str) -> str:
-    return hashlib.sha256(lake.read_bytes(path)).hexdigest()
-
-
 def run_anonymize(
     lake: Lake,
     clip_id: str,
@@ -233,10 +229,9 @@ def _write_clean(
             name=name,
             row_group_by=row_group_by,
         )
-        sha = _sha256(stage, path) if checksum else None
-        report.outputs.append(
-            OutputFile(path=final_path(table, agent, name), rows=rows, sha256=sha)
-        )
+        report.outputs.append(OutputFile(
+            path=final_path(table, agent, name), rows=rows,
+            checksum=stage.written[path][1] if checksum else None))
 
     for table in COPY_TABLES:
         for path, agent, name in _partition_files(lake, "raw", table, clip_id):
@@ -245,8 +240,9 @@ def _write_clean(
     for table in SHIFT_TABLES:
         for path, agent, name in _partition_files(lake, "raw", table, clip_id):
             if table == "lidar_points":
-                rows = _stream_points(lake, stage, path, clip_id, agent, name, t0)
-                report.outputs.append(OutputFile(path=final_path(table, agent, name), rows=rows))
+                rows, digest = _stream_points(lake, stage, path, clip_id, agent, name, t0)
+                report.outputs.append(OutputFile(path=final_path(table, agent, name), rows=rows,
+                                                 checksum=digest))
             else:
                 write(table, shift_times(_read_file(lake, path), table, t0), agent, name)
     for path, agent, name in _partition_files(lake, "raw", "ins", clip_id):
@@ -264,7 +260,7 @@ def _write_clean(
 
 def _stream_points(
     lake: Lake, stage: Lake, path: str, clip_id: str, agent: str | None, name: str, t0: int
-) -> int:
+) -> tuple[int, str | None]:
     """lidar_points row group by row group (a clip need not fit in memory), one group per frame."""
     pf = pq.ParquetFile(lake.fs.open_input_file(path))
     with stage.open_writer(
@@ -278,7 +274,7 @@ def _stream_points(
             bounds = [0, *(np.flatnonzero(np.diff(keys)) + 1).tolist(), data.num_rows]
             for a, b in itertools.pairwise(bounds):
                 w.write(data.slice(a, b - a))
-    return w.rows
+    return w.rows, w.checksum
 
 
 def _anonymize_images(

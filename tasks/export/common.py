@@ -11,7 +11,6 @@ byte-identical tables and a token can be recomputed from the names alone.
 
 from __future__ import annotations
 
-import hashlib
 import uuid
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -24,6 +23,7 @@ import pyarrow.parquet as pq
 
 from schemas.geometry import quat_to_matrix
 from schemas.stage import OutputFile
+from storage import checksum
 from storage.lake import Lake
 from tasks.errors import ClipError
 from tasks.interpolate import PoseCoverageError, PoseTrack, invert_rigid, pose_matrices
@@ -49,16 +49,8 @@ def token(*parts: object) -> str:
     return uuid.uuid5(_NAMESPACE, "/".join(str(p) for p in parts)).hex
 
 
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def file_output(path: Path, rows: int | None = None) -> OutputFile:
-    return OutputFile(path=str(path), rows=rows, sha256=sha256_file(path))
+    return OutputFile(path=str(path), rows=rows, checksum=checksum.of_file(path))
 
 
 def transform_matrix(tx: float, ty: float, tz: float, qw: float, qx: float, qy: float,

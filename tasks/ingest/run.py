@@ -4,10 +4,10 @@ Driven only by ``clip.yaml``. Each agent's bag is read in a single pass over the
 topics; LiDAR frames stream into one Parquet row group each (never the whole clip in memory),
 images go to PNG blobs. Throughput (``tests/bench/bench_ingest.py``): PointCloud2 and images
 are parsed straight from the wire format (``rawmsg.py``, exact, rosbags as fallback), points
-are decoded in cache-sized chunks on the reading thread while a second thread encodes the
-previous frames (raw zone encoding: ``storage.lake.RAW_OPTIONS``) and a third hashes the
-bytes as they are written, so the report carries every output's sha256 and the manifest
-never re-reads them. Everything is written into a private staging lake first and moved
+are decoded in one compiled pass on the reading thread while a second thread encodes the
+previous frames (raw zone encoding: ``storage.lake.RAW_OPTIONS``) and a third checksums and
+writes the bytes, so the report carries every output's checksum and the manifest never
+re-reads them. Everything is written into a private staging lake first and moved
 into ``raw/`` only when every agent succeeded, so a clip that fails (unknown type, missing
 topic, truncated file...) leaves nothing in the raw zone or the catalog, and concurrent
 ingests of different clips never see each other's partial output.
@@ -441,7 +441,7 @@ def _points_table(sensor: str, idx: int, c: DecodedCloud) -> pa.Table:
         _ZEROS = np.zeros(max(n, 2 * _ZEROS.size), np.int32)
         _ZEROS.flags.writeable = False
     arrays = [
-        pa.DictionaryArray.from_arrays(pa.array(_ZEROS[:n]), pa.array([sensor])),
+        pa.DictionaryArray.from_arrays(pa.array(_ZEROS[:n]), pa.array([sensor]), safe=False),
         pa.array(np.full(n, idx, np.int32)), pa.array(c.t_ns), pa.array(c.x), pa.array(c.y),
         pa.array(c.z), pa.array(c.intensity), pa.array(c.ring), pa.array(c.return_id),
     ]
@@ -525,7 +525,7 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
     n_bytes = sum(r.bytes_read for r in results.values())
     return StageReport(
         stage=STAGE, clip_id=cid,
-        outputs=[OutputFile(path=f[len(staging.base) + 1:], rows=n, sha256=sha)
+        outputs=[OutputFile(path=f[len(staging.base) + 1:], rows=n, checksum=sha)
                  for f, n, sha in outputs],
         metrics={
             "seconds": elapsed, "bytes_read": float(n_bytes),

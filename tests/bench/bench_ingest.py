@@ -5,23 +5,30 @@ fields x y z intensity ring return_type timestamp(f64 absolute s), 32 bytes per 
 NumPy and rosbags' writer, for ROS 2 sqlite3 and MCAP, then times:
 
 - floor: ``AnyReader`` iterating every message and ``deserialize``-ing it (nothing else);
-- ingest: ``run_ingest`` (parse the PointCloud2 wire format, decode to columns, drop NaN,
-  time to int64 ns, one Parquet row group per frame with the raw zone's encoding, sha256 of
-  every output as it is written, raw-zone tables, staging + publish), without and with the
-  landing copy of the bag (a hard link when the lake is on the bag's filesystem);
+- ingest: ``run_ingest`` (parse the PointCloud2 wire format, decode to columns in one
+  compiled pass, drop NaN, time to int64 ns, one Parquet row group per frame with the raw
+  zone's encoding on a second thread, checksum + write of every output on a third, raw-zone
+  tables, staging + publish), without and with the landing copy of the bag (a hard link
+  when the lake is on the bag's filesystem);
+- stage key: checksums of the clip's input files, which the flow takes before deciding
+  whether ingest must run at all (first call; later calls are remembered per size + mtime);
 - manifest: ``storage.manifest.record`` (the checksums come from the ingest report).
 
-Prints bag MB/s and the ratio ingest / floor (target: <= 2x) in wall time and in CPU time
-(user + system, all threads of the process): on a shared, busy machine wall time mostly
-says how much CPU the neighbours left us, the CPU ratio says what ingest costs.
+Each figure is the median of ``--repeat`` runs, floor and ingest interleaved so both see the
+same neighbours. Prints bag MB/s and the ratio ingest / floor (target: <= 2x) in wall time and
+in CPU time (user + system, all threads of the process): on a shared, busy machine wall time
+mostly says how much CPU the neighbours left us, the CPU ratio says what ingest costs. Two
+clip lengths, because the floor's fixed cost (opening the bag, ~25 ms) flatters short bags.
 
-    python tests/bench/bench_ingest.py [--frames 30] [--storage sqlite3 mcap]
+    python tests/bench/bench_ingest.py [--frames 30 100] [--storage sqlite3 mcap]
 """
 
 from __future__ import annotations
 
 import argparse
 import resource
+import shutil
+import statistics
 import sys
 import tempfile
 import time
@@ -41,7 +48,7 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from schemas.stage import StageReport  # noqa: E402
 from storage import manifest as mf  # noqa: E402
 from storage.lake import Lake  # noqa: E402
-from tasks.ingest import IngestConfig, run_ingest  # noqa: E402
+from tasks.ingest import IngestConfig, clip_inputs, run_ingest  # noqa: E402
 
 BEAMS, COLS = 128, 1800
 T0 = 1_700_000_000 * 1_000_000_000
@@ -140,64 +147,77 @@ def decode_only(bag: Path) -> tuple[float, float]:
     return time.perf_counter() - t0, cpu_s() - c0
 
 
-def best(fn: object, n: int = 3) -> tuple[float, float]:
-    """Best wall time and best CPU time of ``n`` runs (each minimum on its own)."""
-    runs = [fn() for _ in range(n)]  # type: ignore[operator]
-    return min(r[0] for r in runs), min(r[1] for r in runs)
+def median(runs: list[tuple[float, float]]) -> tuple[float, float]:
+    """Median wall time and median CPU time (each on its own)."""
+    return statistics.median(r[0] for r in runs), statistics.median(r[1] for r in runs)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--frames", type=int, nargs="+", default=[30, 100])
     ap.add_argument("--storage", nargs="+", default=["sqlite3", "mcap"])
-    ap.add_argument("--repeat", type=int, default=3, help="best of N (noisy machines)")
+    ap.add_argument("--repeat", type=int, default=5, help="median of N (noisy machines)")
     args = ap.parse_args()
-    for storage in args.storage:
-        with tempfile.TemporaryDirectory() as tmp:
-            d = Path(tmp) / "clip"
-            d.mkdir()
-            size = make_bag(d / "red", args.frames, storage)
-            clip_yaml(d, "red")
-            mb = size / 1e6
-            f, f_cpu = best(lambda b=d / "red": floor(b), args.repeat)
-            dec, dec_cpu = best(lambda b=d / "red": decode_only(b), args.repeat)
-            reports: list[StageReport] = []
-            manifest_s: list[float] = []
+    for frames in args.frames:
+        for storage in args.storage:
+            with tempfile.TemporaryDirectory() as tmp:
+                run_case(Path(tmp), frames, storage, args.repeat)
 
-            def ingest(landing: bool, d: Path = d, tmp: str = tmp,
-                       reports: list[StageReport] = reports,
-                       manifest_s: list[float] = manifest_s) -> tuple[float, float]:
-                lake = Lake(Path(tmp) / f"lake-{time.time_ns()}")
-                t0, c0 = time.perf_counter(), cpu_s()
-                rep = run_ingest(lake, d, IngestConfig(copy_to_landing=landing))
-                out = time.perf_counter() - t0, cpu_s() - c0
-                t1 = time.perf_counter()
-                key = mf.stage_key(lake, "bench", "ingest", IngestConfig())
-                mf.record(lake, rep, key)
-                manifest_s.append(time.perf_counter() - t1)
-                reports.append(rep)
-                return out
 
-            ing, ing_cpu = best(lambda: ingest(False), args.repeat)
-            land, land_cpu = best(lambda: ingest(True), args.repeat)
-            rep = reports[0]
-            pts = rep.metrics["lidar_points"]
-            out = next(Path(tmp).glob("lake-*/raw/lidar_points/**/*.parquet"))
-            out_mb = out.stat().st_size / 1e6
-            print(f"[{storage}] {args.frames} scans x {BEAMS * COLS} points = {pts / 1e6:.1f} M "
-                  f"finite points, bag {mb:.0f} MB -> lidar_points {out_mb:.0f} MB "
-                  f"({out_mb * 1e6 / pts:.1f} B/point)")
-            print(f"  {'':34s} {'wall s':>7s} {'MB/s':>6s} {'ratio':>6s} {'CPU s':>6s} "
-                  f"{'ratio':>6s}")
-            for name, w, c in (
-                    ("floor (rosbags read+deserialize)", f, f_cpu),
-                    ("read + parse + decode to columns", dec, dec_cpu),
-                    ("run_ingest (no landing copy)", ing, ing_cpu),
-                    ("run_ingest (with landing copy)", land, land_cpu)):
-                print(f"  {name:34s} {w:7.2f} {mb / w:6.0f} {w / f:5.2f}x {c:6.2f} "
-                      f"{c / f_cpu:5.2f}x")
-            print(f"  + manifest record (checksums from the report) {min(manifest_s):.3f} s; "
-                  f"{pts / ing / 1e6:.1f} M points/s")
+def run_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
+    d = tmp / "clip"
+    d.mkdir()
+    size = make_bag(d / "red", frames, storage)
+    clip_yaml(d, "red")
+    mb = size / 1e6
+    runs: dict[str, list[tuple[float, float]]] = {k: [] for k in ("floor", "dec", "ing", "land")}
+    reports: list[StageReport] = []
+    manifest_s: list[float] = []
+
+    def ingest(landing: bool) -> tuple[float, float]:
+        lake = Lake(tmp / f"lake-{time.time_ns()}")
+        t0, c0 = time.perf_counter(), cpu_s()
+        rep = run_ingest(lake, d, IngestConfig(copy_to_landing=landing))
+        out = time.perf_counter() - t0, cpu_s() - c0
+        t1 = time.perf_counter()
+        mf.record(lake, rep, mf.stage_key(lake, "bench", "ingest", IngestConfig()))
+        manifest_s.append(time.perf_counter() - t1)
+        reports.append(rep)
+        shutil.rmtree(lake.base, ignore_errors=True)
+        return out
+
+    t_key = time.perf_counter()
+    mf.stage_key(Lake(tmp / "keys"), "bench", "ingest", IngestConfig(),
+                 input_files=clip_inputs(d)[1])
+    key_s = time.perf_counter() - t_key
+    decode_only(d / "red")  # warm-up: load (or compile) the numba kernel, fill the page cache
+    ingest(False)
+    reports.clear()
+    manifest_s.clear()
+    for _ in range(repeat):
+        runs["floor"].append(floor(d / "red"))
+        runs["dec"].append(decode_only(d / "red"))
+        runs["ing"].append(ingest(False))
+        runs["land"].append(ingest(True))
+    f, f_cpu = median(runs["floor"])
+    lake = Lake(tmp / "last")
+    run_ingest(lake, d, IngestConfig(copy_to_landing=False))
+    pts = reports[0].metrics["lidar_points"]
+    out = next(Path(lake.base).glob("raw/lidar_points/**/*.parquet"))
+    out_mb = out.stat().st_size / 1e6
+    print(f"[{storage}, {frames} frames] {frames} scans x {BEAMS * COLS} points = "
+          f"{pts / 1e6:.1f} M finite points, bag {mb:.0f} MB -> lidar_points {out_mb:.0f} MB "
+          f"({out_mb * 1e6 / pts:.1f} B/point)")
+    print(f"  {'':34s} {'wall s':>7s} {'MB/s':>6s} {'ratio':>6s} {'CPU s':>6s} {'ratio':>6s}")
+    for name, key in (("floor (rosbags read+deserialize)", "floor"),
+                      ("read + parse + decode to columns", "dec"),
+                      ("run_ingest (no landing copy)", "ing"),
+                      ("run_ingest (with landing copy)", "land")):
+        w, c = median(runs[key])
+        print(f"  {name:34s} {w:7.2f} {mb / w:6.0f} {w / f:5.2f}x {c:6.2f} {c / f_cpu:5.2f}x")
+    ing = median(runs["ing"])[0]
+    print(f"  + stage key (input checksums, first call) {key_s:.3f} s; manifest record "
+          f"{statistics.median(manifest_s):.3f} s; {pts / ing / 1e6:.1f} M points/s")
 
 
 if __name__ == "__main__":

@@ -6,9 +6,9 @@ frames, one row group per frame, the ``lidar_points`` schema of the lake. Candid
 defaults (snappy + dictionary on every column), zstd level 1 / 3 with byte-stream-split
 floats and no dictionary (the lake's choice), the same without byte-stream-split, lz4 and
 snappy without dictionary, the lake's own ``ParquetOptions()`` (zstd 1, BSS floats,
-DELTA_BINARY_PACKED ints: the clean zone) and ``RAW_OPTIONS`` (the raw zone written by ingest:
-lz4, BSS floats, DELTA int64, PLAIN int32, no float/dictionary statistics, 64 Ki-value write
-batches). MB/s counts in-memory Arrow bytes; best of ``--repeat``.
+DELTA_BINARY_PACKED ints: the clean zone) and ``RAW_OPTIONS`` (the raw zone written by
+ingest: lz4, PLAIN everything, no float/dictionary statistics, 64 Ki-value write batches).
+MB/s counts in-memory Arrow bytes; best of ``--repeat``.
 
     python tests/bench/bench_parquet.py [--frames 100]
 """
