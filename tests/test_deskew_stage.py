@@ -8,14 +8,14 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from pydantic import BaseModel
 from scipy.spatial.transform import Rotation
 
-from schemas.arrow import arrow_schema, columns_to_table, rows_to_table
+from schemas.arrow import arrow_schema, columns_to_table
 from schemas.tables import AgentRow, CalibratedSensorRow, EgoPoseRow, LidarFrameRow, LidarPointRow
 from storage.lake import Lake
 from tasks.deskew_stage import OUT_TABLE, DeskewConfig, run_deskew
 from tasks.errors import ClipError
+from tasks.ingest.rows import table_of
 from tests.test_deskew import (
     INS_PERIOD_NS,
     Motion,
@@ -25,11 +25,6 @@ from tests.test_deskew import (
     true_pose,
 )
 
-
-def table_of(model: type[BaseModel], *rows: BaseModel) -> pa.Table:
-    items: list[BaseModel] = list(rows)
-    return rows_to_table(model, items)
-
 CLIP = "clipA"
 FRAMES = (200_000_000, 300_000_000, 400_000_000)  # clean axis: clip starts at 0.1 s
 
@@ -38,11 +33,11 @@ def write_agent(lake: Lake, agent: str, motion: Motion, ins_span: tuple[int, int
                 gap: tuple[int, int] | None = None, has_ins: bool = True) -> list[Sweep]:
     """Clean tables of one agent: agents, calibrated_sensors, ego_poses, lidar_frames/points."""
     e = lidar_extrinsic()
-    lake.write_table("clean", "agents", table_of(AgentRow, *[AgentRow(
+    lake.write_table("clean", "agents", table_of(AgentRow, [AgentRow(
         clip_id=CLIP, agent_id=agent, kind="vehicle", role="reference" if agent == "red" else
         "cooperative", has_ins=has_ins)]), clip_id=CLIP, agent_id=agent)
     q = Rotation.from_matrix(e[:3, :3]).as_quat(scalar_first=True)
-    lake.write_table("clean", "calibrated_sensors", table_of(CalibratedSensorRow, *[
+    lake.write_table("clean", "calibrated_sensors", table_of(CalibratedSensorRow, [
         CalibratedSensorRow(clip_id=CLIP, agent_id=agent, sensor="LIDAR_TOP", modality="lidar",
                             tx=e[0, 3], ty=e[1, 3], tz=e[2, 3], qw=q[0], qx=q[1], qy=q[2],
                             qz=q[3], source="tf_static")]), clip_id=CLIP, agent_id=agent)
@@ -77,7 +72,7 @@ def write_agent(lake: Lake, agent: str, motion: Motion, ins_span: tuple[int, int
     pts["clip_id"], pts["agent_id"] = np.full(n_all, CLIP), np.full(n_all, agent)
     lake.write_table("clean", "lidar_points", columns_to_table(LidarPointRow, pts),
                      clip_id=CLIP, agent_id=agent, row_group_by="frame_idx")
-    lake.write_table("clean", "lidar_frames", table_of(LidarFrameRow, *frames),
+    lake.write_table("clean", "lidar_frames", table_of(LidarFrameRow, frames),
                      clip_id=CLIP, agent_id=agent)
     return sweeps
 

@@ -14,10 +14,9 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pytest
-from pydantic import BaseModel
 from scipy.spatial.transform import Rotation
 
-from schemas.arrow import columns_to_table, rows_to_table
+from schemas.arrow import columns_to_table
 from schemas.tables import (
     AgentRow,
     CalibratedSensorRow,
@@ -29,14 +28,10 @@ from schemas.tables import (
 from storage.lake import Lake
 from tasks.deskew_stage import run_deskew
 from tasks.errors import ClipError
+from tasks.ingest.rows import table_of
 from tasks.register import RegisterConfig, plot_registration, run_register
 from tasks.registration.core import transform_delta
 from tests.test_register import cast_scan, lidar_pose, make_street
-
-
-def table_of(model: type[BaseModel], *rows: BaseModel) -> pa.Table:
-    items: list[BaseModel] = list(rows)
-    return rows_to_table(model, items)
 
 CLIP = "street1"
 FRAMES = (200_000_000, 300_000_000, 400_000_000)
@@ -60,18 +55,18 @@ BIAS = {"red": np.eye(4), "black": lidar_pose(0.12, -0.1, 0.4, height=0.05)}  # 
 
 def write_clip(lake: Lake, agents: tuple[str, ...] = ("red", "black")) -> None:
     street = make_street(3)
-    lake.write_table("clean", "clips", table_of(ClipRow, *[ClipRow(
+    lake.write_table("clean", "clips", table_of(ClipRow, [ClipRow(
         clip_id=CLIP, location="synthetic", road_type="urban", weather="clear", lighting="day",
         work_zone=False, n_agents=len(agents), reference_agent="red", duration_s=0.5,
         source="simulated", status="ok")]), clip_id=CLIP)
     for agent in agents:
         motion, e = ego_motion(agent), EXTR[agent]
-        lake.write_table("clean", "agents", table_of(AgentRow, *[AgentRow(
+        lake.write_table("clean", "agents", table_of(AgentRow, [AgentRow(
             clip_id=CLIP, agent_id=agent, kind="vehicle",
             role="reference" if agent == "red" else "cooperative", has_ins=True)]),
             clip_id=CLIP, agent_id=agent)
         q = Rotation.from_matrix(e[:3, :3]).as_quat(scalar_first=True)
-        lake.write_table("clean", "calibrated_sensors", table_of(CalibratedSensorRow, *[
+        lake.write_table("clean", "calibrated_sensors", table_of(CalibratedSensorRow, [
             CalibratedSensorRow(clip_id=CLIP, agent_id=agent, sensor="LIDAR_TOP",
                                 modality="lidar", tx=e[0, 3], ty=e[1, 3], tz=e[2, 3], qw=q[0],
                                 qx=q[1], qy=q[2], qz=q[3], source="tf_static")]),
@@ -109,7 +104,7 @@ def write_clip(lake: Lake, agents: tuple[str, ...] = ("red", "black")) -> None:
             "y": p[:, 1], "z": p[:, 2], "intensity": np.ones(n, np.float32),
             "ring": np.zeros(n, np.uint16), "return_id": np.zeros(n, np.uint8)}),
             clip_id=CLIP, agent_id=agent, row_group_by="frame_idx")
-        lake.write_table("clean", "lidar_frames", table_of(LidarFrameRow, *frames),
+        lake.write_table("clean", "lidar_frames", table_of(LidarFrameRow, frames),
                          clip_id=CLIP, agent_id=agent)
 
 
