@@ -54,23 +54,31 @@ def cloud_array(msg: Any) -> np.ndarray:
     return np.frombuffer(data, dtype=dt, count=h * int(msg.width))
 
 
+def time_origin(tf: PointTimeField, stamp_ns: int, is_float: bool) -> tuple[float, int]:
+    """``(off, base)`` with ``t_ns = (v - off) * scale + base`` for a raw time value ``v``:
+    relative times add the header stamp; absolute float times first subtract a whole second
+    (``off``, in the field's unit) so the product keeps ns resolution in float64."""
+    if tf.reference is TimeReference.HEADER:
+        return 0.0, stamp_ns
+    if not is_float:
+        return 0.0, 0
+    base = stamp_ns // 1_000_000_000 * 1_000_000_000
+    return base / UNIT_NS[tf.unit], base
+
+
 def point_times_ns(values: np.ndarray, tf: PointTimeField, stamp_ns: int) -> np.ndarray:
     """Per-point time as int64 absolute ns (float arithmetic in place: one temporary)."""
     scale = UNIT_NS[tf.unit]
-    if np.issubdtype(values.dtype, np.integer):
+    is_float = not np.issubdtype(values.dtype, np.integer)
+    off, base = time_origin(tf, stamp_ns, is_float)
+    if not is_float:
         t = values.astype(np.int64)
         if scale != 1:
             t *= scale
-        if tf.reference is TimeReference.HEADER:
-            t += stamp_ns
+        t += base
         return t
     v = values.astype(np.float64)
-    if tf.reference is TimeReference.HEADER:
-        base = stamp_ns
-    else:
-        # absolute float: subtract a whole second first so the product keeps ns resolution
-        base = stamp_ns // 1_000_000_000 * 1_000_000_000
-        v -= base / scale
+    v -= off
     v *= scale
     np.rint(v, out=v)
     t = v.astype(np.int64)
@@ -116,7 +124,7 @@ def _compact(x: np.ndarray, y: np.ndarray, z: np.ndarray, t: np.ndarray, inten: 
              ot: np.ndarray, oi: np.ndarray, oring: np.ndarray, oret: np.ndarray
              ) -> tuple[int, int, int]:
     """One pass over the records: keep points with finite x, y, z, convert each field to its
-    column type and the time to int64 ns exactly as ``point_times_ns`` does; returns the
+    column type and the time to int64 ns as ``point_times_ns`` does (``time_origin``); returns the
     number kept and their time span. ``has`` flags intensity, ring, return (absent: zeros).
     One pass matters: the record buffer is read from memory once, where column-by-column
     NumPy reads it once per column (strided reads touch every cache line)."""
@@ -162,17 +170,10 @@ def decode_cloud(msg: Any, fields: LidarFields, stamp_ns: int) -> DecodedCloud:
     ox, oy, oz, oi = (np.empty(n, np.float32) for _ in range(4))
     ot, oring, oret = np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint8)
     tf = fields.time
-    scale = UNIT_NS[tf.unit]
     t_float = not np.issubdtype(t.dtype, np.integer)
-    if tf.reference is TimeReference.HEADER:
-        off, base = 0.0, stamp_ns
-    elif t_float:  # absolute float: subtract a whole second first (see point_times_ns)
-        base = stamp_ns // 1_000_000_000 * 1_000_000_000
-        off = base / scale
-    else:
-        off, base = 0.0, 0
-    k, t0, t1 = _compact(x, y, z, t, inten, ring, ret, has, t_float, scale, off, base,
-                         ox, oy, oz, ot, oi, oring, oret)
+    off, base = time_origin(tf, stamp_ns, t_float)
+    k, t0, t1 = _compact(x, y, z, t, inten, ring, ret, has, t_float, UNIT_NS[tf.unit], off,
+                         base, ox, oy, oz, ot, oi, oring, oret)
     if k == 0 and n:  # only non-finite points: the scan still took place, keep its time span
         t_all = point_times_ns(t, tf, stamp_ns)
         t0, t1 = int(t_all.min()), int(t_all.max())
