@@ -512,7 +512,7 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
             n_agents=len(cfg.agents), reference_agent=cfg.reference_agent.agent_id,
             duration_s=duration, source="simulated" if (d / "truth").is_dir() else "recorded",
             status="ok")]), clip_id=cid)
-        # rows and sha256 were taken while writing (TableWriter hashes the bytes as they
+        # rows and checksums were taken while writing (TableWriter hashes the bytes as they
         # stream out), so the manifest needs no second read of the outputs
         outputs = [(f, *staging.written[f]) if f in staging.written else (f, pq_rows(staging, f),
                                                                           None)
