@@ -185,7 +185,7 @@ def _standard_defs(ros2: bool) -> dict[str, Any]:
 
 
 def parser_for(fielddefs: dict[str, Any], msgtype: str, ros2: bool
-               ) -> Callable[[bytes], RawMessage | None] | None:
+               ) -> Callable[[bytes | memoryview], RawMessage | None] | None:
     """A fast parser for ``msgtype`` when the bag defines it (and its nested types) exactly as
     standard ROS does, else ``None``. ``fielddefs`` is the reader's ``typestore.fielddefs``."""
     if msgtype not in LAYOUTS:

@@ -2,8 +2,9 @@
 
 Driven only by ``clip.yaml``. Each agent's bag is read in a single pass over the configured
 topics; LiDAR frames stream into one Parquet row group each (never the whole clip in memory),
-images go to PNG blobs. Throughput (``tests/bench/bench_ingest.py``): PointCloud2 and images
-are parsed straight from the wire format (``rawmsg.py``, exact, rosbags as fallback), points
+images go to PNG blobs. Throughput (``tests/bench/bench_ingest.py``): payloads of ROS 2 bags
+are read in place (``payloads.py``), PointCloud2 and images are parsed straight
+from the wire format (``rawmsg.py``, exact, rosbags as fallback), points
 are decoded in one compiled pass on the reading thread while a second thread encodes the
 previous frames (raw zone encoding: ``storage.lake.RAW_OPTIONS``) and a third checksums and
 writes the bytes, so the report carries every output's checksum and the manifest never
@@ -57,6 +58,7 @@ from tasks.ingest.bagopen import (
 from tasks.ingest.calibration import TfTree, intrinsics_from_camera_info
 from tasks.ingest.images import compressed_to_png, image_to_png
 from tasks.ingest.ins import GnssDecoder, ImuDecoder, InsDecoder, InsFieldError
+from tasks.ingest.payloads import messages as in_place_messages
 from tasks.ingest.pointcloud import DecodedCloud, decode_cloud
 from tasks.ingest.rawmsg import parser_for
 from tasks.ingest.rows import table_of
@@ -329,17 +331,18 @@ class _AgentIngest:
             conns = [c for c in reader.connections if c.topic in handlers]
             seen: dict[int, int] = {id(c): 0 for c in conns}
             # PointCloud2 / images: direct parse of the wire format (rawmsg.py) when the bag
-            # defines them as standard ROS does; everything else through rosbags
+            # defines them as standard ROS does, from payloads read in place (payloads.py);
+            # everything else through rosbags
             fdefs, ros2 = reader.typestore.fielddefs, bool(reader.is2)
             fast = {id(c): parser_for(fdefs, c.msgtype, ros2) for c in conns}
             try:
-                for conn, _t, raw in reader.messages(connections=conns):
+                for conn, _t, raw in in_place_messages(reader, conns):
                     self.res.bytes_read += len(raw)
                     seen[id(conn)] += 1
                     parse = fast[id(conn)]
                     msg: Any = parse(raw) if parse is not None else None
-                    if msg is None:
-                        msg = reader.deserialize(raw, conn.msgtype)
+                    if msg is None:  # rosbags' messages may keep views of what they read
+                        msg = reader.deserialize(bytes(raw), conn.msgtype)
                     handlers[conn.topic](msg, conn)
             except ClipError:
                 raise

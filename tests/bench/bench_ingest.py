@@ -5,6 +5,8 @@ fields x y z intensity ring return_type timestamp(f64 absolute s), 32 bytes per 
 NumPy and rosbags' writer, for ROS 2 sqlite3 and MCAP, then times:
 
 - floor: ``AnyReader`` iterating every message and ``deserialize``-ing it (nothing else);
+- read + parse + decode: what ingest's reading thread does (payloads read in place from the
+  bag, the PointCloud2 wire format parsed, points decoded to columns), nothing else;
 - ingest: ``run_ingest`` (parse the PointCloud2 wire format, decode to columns in one
   compiled pass, drop NaN, time to int64 ns, one Parquet row group per frame with the raw
   zone's encoding on a second thread, checksum + write of every output on a third, raw-zone
@@ -131,6 +133,7 @@ def decode_only(bag: Path) -> tuple[float, float]:
     Parquet, no I/O."""
     from schemas.clip import LidarFields, PointTimeField, TimeReference, TimeUnit
     from tasks.ingest.bagopen import header_stamp_ns
+    from tasks.ingest.payloads import messages
     from tasks.ingest.pointcloud import decode_cloud
     from tasks.ingest.rawmsg import parser_for
 
@@ -139,10 +142,10 @@ def decode_only(bag: Path) -> tuple[float, float]:
     ts = get_typestore(Stores.ROS2_HUMBLE)
     t0, c0 = time.perf_counter(), cpu_s()
     with AnyReader([bag], default_typestore=ts) as r:
-        for c, _t, raw in r.messages():
+        for c, _t, raw in messages(r, r.connections):
             fast = parser_for(r.typestore.fielddefs, c.msgtype, True)
             m: Any = fast(raw) if fast else None
-            m = m or r.deserialize(raw, c.msgtype)
+            m = m or r.deserialize(bytes(raw), c.msgtype)
             decode_cloud(m, lf, header_stamp_ns(m))
     return time.perf_counter() - t0, cpu_s() - c0
 
