@@ -3,15 +3,15 @@
 Driven only by ``clip.yaml``. Each agent's bag is read in a single pass over the configured
 topics; LiDAR frames stream into one Parquet row group each (never the whole clip in memory),
 images go to PNG blobs. Throughput (``tests/bench/bench_ingest.py``): payloads of ROS 2 bags
-are read in place (``payloads.py``), PointCloud2 and images are parsed straight
-from the wire format (``rawmsg.py``, exact, rosbags as fallback), points
-are decoded in one compiled pass on the reading thread while a second thread encodes the
-previous frames (raw zone encoding: ``storage.lake.RAW_OPTIONS``) and a third checksums and
-writes the bytes, so the report carries every output's checksum and the manifest never
-re-reads them. Everything is written into a private staging lake first and moved
-into ``raw/`` only when every agent succeeded, so a clip that fails (unknown type, missing
-topic, truncated file...) leaves nothing in the raw zone or the catalog, and concurrent
-ingests of different clips never see each other's partial output.
+are read in place (``payloads.py``), PointCloud2 and images are parsed straight from the wire
+format (``rawmsg.py``, exact, rosbags as fallback), points are decoded in one compiled pass
+on the reading thread while a second thread encodes the previous frames (raw zone encoding:
+``storage.lake.RAW_OPTIONS``) and a third checksums and writes the bytes, so the report
+carries every output's checksum and the manifest never re-reads them. Everything is written
+into a private staging lake first and moved into ``raw/`` only when every agent succeeded,
+so a clip that fails (unknown type, missing topic, truncated file...) leaves nothing in the
+raw zone or the catalog, and concurrent ingests of different clips never see each other's
+partial output.
 """
 
 from __future__ import annotations
@@ -341,7 +341,7 @@ class _AgentIngest:
                     seen[id(conn)] += 1
                     parse = fast[id(conn)]
                     msg: Any = parse(raw) if parse is not None else None
-                    if msg is None:  # rosbags' messages may keep views of what they read
+                    if msg is None:  # rosbags expects bytes (its messages may keep views)
                         msg = reader.deserialize(bytes(raw), conn.msgtype)
                     handlers[conn.topic](msg, conn)
             except ClipError:
