@@ -31,6 +31,7 @@ import mmap
 import struct
 from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager
+from functools import partial
 from typing import Any, cast
 
 import numpy as np
@@ -52,10 +53,12 @@ _MESSAGE_OP = 0x05
 SQLITE_MMAP_BYTES = 1 << 40  # whole files; SQLite caps it at its compile-time maximum
 
 
-def messages(reader: AnyReader, connections: Collection[Connection]) -> Messages:
-    """``reader.messages(connections=...)``, with payloads read in place (see module doc)."""
+def messages(reader: AnyReader, connections: Collection[Connection],
+             start: int | None = None, stop: int | None = None) -> Messages:
+    """``reader.messages(connections, start, stop)``, with payloads read in place (see module
+    doc)."""
     with _in_place(_storages(reader)):
-        yield from reader.messages(connections=connections)
+        yield from reader.messages(connections=connections, start=start, stop=stop)
 
 
 def _storages(reader: AnyReader) -> list[Any]:
@@ -75,7 +78,7 @@ def _in_place(storages: list[Any]) -> Iterator[None]:
             _mcap_messages if isinstance(s, McapReader) and s.chunks
             else _sqlite_messages if isinstance(s, Sqlite3Reader) else None)
         if impl is not None:
-            setattr(s, "messages", _bind(impl, s))  # noqa: B010 (this instance only)
+            setattr(s, "messages", partial(impl, s))  # noqa: B010 (this instance only)
             patched.append(s)
     try:
         yield
@@ -84,16 +87,9 @@ def _in_place(storages: list[Any]) -> Iterator[None]:
             s.__dict__.pop("messages", None)
 
 
-def _bind(impl: Callable[..., Messages], storage: Any) -> Callable[..., Messages]:
-    def bound(connections: Collection[Connection], start: int | None = None,
-              stop: int | None = None) -> Messages:
-        return impl(storage, connections, start, stop)
-    return bound
-
-
 # --------------------------------------------------------------------------- sqlite3
 def _sqlite_messages(storage: Sqlite3Reader, connections: Collection[Connection],
-                     start: int | None, stop: int | None) -> Messages:
+                     start: int | None = None, stop: int | None = None) -> Messages:
     db = storage.dbconn
     assert db is not None
     db.execute(f"PRAGMA mmap_size={SQLITE_MMAP_BYTES}")
@@ -111,20 +107,24 @@ def _sqlite_messages(storage: Sqlite3Reader, connections: Collection[Connection]
              f"WHERE {' AND '.join(where)} ORDER BY messages.timestamp, messages.rowid")
     connmap = {c.id: c for c in storage.connections}
     blob = None
-    for rowid, cid, timestamp, size in db.execute(query, args):
-        if blob is None:
-            blob = db.blob_open("main", "messages", "data", rowid, False)
-        else:
-            blob.reopen(rowid)
-        buf = np.empty(size, np.uint8)
-        blob.read_into(buf.data)
-        buf.flags.writeable = False
-        yield connmap[cid], timestamp, buf.data
+    try:
+        for rowid, cid, timestamp, size in db.execute(query, args):
+            if blob is None:
+                blob = db.blob_open("main", "messages", "data", rowid, False)
+            else:
+                blob.reopen(rowid)
+            buf = np.empty(size, np.uint8)
+            blob.read_into(buf.data)
+            buf.flags.writeable = False
+            yield connmap[cid], timestamp, buf.data
+    finally:
+        if blob is not None:
+            blob.close()
 
 
 # --------------------------------------------------------------------------- MCAP
 def _mcap_messages(storage: McapReader, connections: Collection[Connection],
-                   start: int | None, stop: int | None) -> Messages:
+                   start: int | None = None, stop: int | None = None) -> Messages:
     channel_map = {c.id: c for c in connections}
     with storage.path.open("rb") as f:
         mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
