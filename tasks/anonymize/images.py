@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from tasks import pngcodec
 from tasks.anonymize.blur import BlurConfig, blur_boxes
 from tasks.anonymize.detectors import Detection, Detector
 
@@ -56,11 +57,8 @@ def strip_png_metadata(data: bytes) -> bytes:
 
 
 def encode_png(img: np.ndarray, compression: int = 1) -> bytes:
-    """PNG bytes with no metadata chunks. Level 1: PNG is lossless, level only trades size/time."""
-    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, compression])
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return strip_png_metadata(buf.tobytes())
+    """PNG bytes (``tasks.pngcodec``) with no metadata chunks."""
+    return strip_png_metadata(pngcodec.encode_png(img, compression))
 
 
 def decode_image(data: bytes) -> np.ndarray:

@@ -27,6 +27,7 @@ from storage import checksum
 from storage.lake import Lake
 from tasks.errors import ClipError
 from tasks.interpolate import PoseCoverageError, PoseTrack, invert_rigid, pose_matrices
+from tasks.pngcodec import encode_png
 
 __all__ = [
     "AgentData",
@@ -450,7 +451,4 @@ class Undistorter:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise ValueError("cannot decode image")
-        ok, buf = cv2.imencode(".png", self(img), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-        if not ok:
-            raise ValueError("PNG encoding failed")
-        return bytes(buf.tobytes())
+        return encode_png(self(img))

@@ -15,6 +15,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from tasks.pngcodec import encode_png
+
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 _BAYER = {
@@ -36,13 +38,6 @@ def png_size(data: bytes) -> tuple[int, int]:
         raise ValueError("not a PNG stream")
     w, h = struct.unpack(">II", data[16:24])
     return int(w), int(h)
-
-
-def encode_png(img: np.ndarray, level: int) -> bytes:
-    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, int(level)])
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return bytes(buf.tobytes())
 
 
 def compressed_to_png(msg: Any, level: int = 1) -> tuple[bytes, int, int]:

@@ -16,8 +16,12 @@ partial output.
 
 from __future__ import annotations
 
+import hashlib
+import os
 import time
+from collections import deque
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -184,6 +188,10 @@ class _AgentIngest:
         self.frame_ids: dict[str, str] = {}
         self.lidar_rows: list[dict[str, Any]] = []
         self.cam_rows: list[dict[str, Any]] = []
+        self.png_pool: ThreadPoolExecutor | None = None
+        # camera frames being encoded: (sensor, frame index, stamp, blob key, (w, h, sha256))
+        self.png_pending: deque[tuple[SensorConfig, int, int, str,
+                                      Future[tuple[int, int, str]]]] = deque()
         self.ins = InsDecoder()
         self.imu: dict[str, ImuDecoder] = {}
         self.gnss = GnssDecoder()
@@ -302,22 +310,33 @@ class _AgentIngest:
         self.res.stamp(min(stamp, cloud.t_start_ns), max(stamp, cloud.t_end_ns))
 
     def _camera(self, s: SensorConfig, msg: Any) -> None:
+        """Hand the frame to the PNG pool: encoding is most of a camera's ingest time
+        (``bench_ingest.py``, camera case) and OpenCV releases the GIL, so frames are encoded
+        on every core while the bag is read; rows are still recorded in frame order."""
         idx = self._first(s, msg)
         stamp = header_stamp_ns(msg)
-        try:
-            if s.msg_type.endswith("CompressedImage"):
-                png, w, h = compressed_to_png(msg, self.config.png_compression)
-            else:
-                png, w, h = image_to_png(msg, self.config.png_compression)
-        except ValueError as e:
-            raise self.err(f"camera {s.name} frame {idx}: {e}", topic=s.topic) from e
         key = self.staging.blob_key(self.cid, self.aid, s.name, idx)
-        self.staging.write_blob("raw", key, png)
-        import hashlib
-        self.cam_rows.append(dict(sensor=s.name, frame_idx=idx, stamp_ns=stamp, width=w,
-                                  height=h, blob=key, sha256=hashlib.sha256(png).hexdigest()))
+        if self.png_pool is None:
+            self.png_pool = self.stack.enter_context(
+                ThreadPoolExecutor(PNG_WORKERS, thread_name_prefix="png"))
+        job = self.png_pool.submit(_store_png, self.staging, key, msg,
+                                   s.msg_type.endswith("CompressedImage"),
+                                   self.config.png_compression)
+        self.png_pending.append((s, idx, stamp, key, job))
         self.res.n_camera_frames += 1
         self.res.stamp(stamp)
+        self._collect_pngs(keep=2 * PNG_WORKERS)
+
+    def _collect_pngs(self, keep: int = 0) -> None:
+        """Record finished frames, oldest first, until at most ``keep`` are in flight."""
+        while len(self.png_pending) > keep:
+            s, idx, stamp, key, job = self.png_pending.popleft()
+            try:
+                w, h, digest = job.result()
+            except ValueError as e:
+                raise self.err(f"camera {s.name} frame {idx}: {e}", topic=s.topic) from e
+            self.cam_rows.append(dict(sensor=s.name, frame_idx=idx, stamp_ns=stamp, width=w,
+                                      height=h, blob=key, sha256=digest))
 
     # -- the pass
     def run(self, bag: Path, typestore: Any) -> AgentResult:
@@ -350,6 +369,7 @@ class _AgentIngest:
                 raise self.err(f"reading the bag failed after {sum(self.counts.values())} "
                                f"messages ({type(e).__name__}: {e}); truncated or corrupt?",
                                path=str(bag)) from e
+            self._collect_pngs()
             for c in conns:  # a cut file can end cleanly between messages: count them
                 if c.msgcount and seen[id(c)] < c.msgcount:
                     raise self.err(f"the bag's index promises {c.msgcount} messages on this "
@@ -429,6 +449,17 @@ class _AgentIngest:
                 distortion=list(intr.distortion) if intr else None,
                 source="+".join(dict.fromkeys(source))))
         return rows
+
+
+PNG_WORKERS = min(8, os.cpu_count() or 1)
+
+
+def _store_png(lake: Lake, key: str, msg: Any, compressed: bool, level: int
+               ) -> tuple[int, int, str]:
+    """One camera frame as a lossless PNG blob: (width, height, SHA-256 of the PNG)."""
+    png, w, h = (compressed_to_png if compressed else image_to_png)(msg, level)
+    lake.write_blob("raw", key, png)
+    return w, h, hashlib.sha256(png).hexdigest()
 
 
 POINT_FILE_SCHEMA = arrow_schema(LidarPointRow).remove(0).remove(0)  # minus clip_id, agent_id

@@ -26,12 +26,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from schemas.annotation import AnnotationFile, Box3D, BoxAnnotation
 from schemas.geometry import matrix_to_quat
 from tasks.geodesy import LocalFrame
+from tasks.pngcodec import encode_png
 from tasks.simulate.bagwrite import INS_MSG_TYPE, POINT_DTYPE, BagSink
 from tasks.simulate.camera import CameraRenderer
 from tasks.simulate.clipmeta import (
@@ -110,13 +110,6 @@ def _annotations(world: World, agent: str, caster: LidarCaster, scan: Scan,
     return out
 
 
-def _encode_png(img: np.ndarray, params: list[int]) -> bytes:
-    ok, buf = cv2.imencode(".png", img, params)
-    if not ok:
-        raise RuntimeError("PNG encoding failed")
-    return buf.tobytes()
-
-
 def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
     """Write a clip folder to ``out_dir`` (must not exist or be empty); returns its path."""
     cfg = config or SimConfig.preset("small")
@@ -189,8 +182,6 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
                                         "obj", "is_static")}
     cam_frame_idx: dict[tuple[str, str], int] = {}
     n_points = 0
-    png_params = [cv2.IMWRITE_PNG_COMPRESSION, cfg.png_compression,
-                  cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
     pool = ThreadPoolExecutor(max_workers=cfg.workers)
     for k in range(n_scans):
         ts = start_ns + k * period_ns
@@ -229,7 +220,7 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
             jobs = [(agent, cam, rend.render(tau, apose))
                     for agent in cfg.agents for cam, rend in renderers[agent].items()]
             # OpenCV releases the GIL: PNG encoding (the floor of the camera cost) runs in parallel
-            pngs = list(pool.map(lambda job: _encode_png(job[2].image, png_params), jobs))
+            pngs = list(pool.map(lambda job: encode_png(job[2].image, cfg.png_compression), jobs))
             for (agent, cam, r), png in zip(jobs, pngs, strict=True):
                 sink, rend = sinks[agent], renderers[agent][cam]
                 fid = frame_name(agent, cam)

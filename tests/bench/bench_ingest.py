@@ -101,12 +101,56 @@ def make_bag(path: Path, frames: int, storage: str) -> int:
     return total
 
 
-def clip_yaml(d: Path, bag: str) -> None:
+STREET = REPO.parent / "shared" / "data" / "real" / "images" / "street_plate_small_pjlab_0.png"
+CAM_W, CAM_H = 1920, 1080
+
+
+def street_frame(i: int) -> np.ndarray:
+    """Camera frame ``i``: the real street photo at 1080p, shifted by 3 px per frame so that
+    no two frames are equal."""
+    import cv2
+
+    img = cv2.imread(str(STREET), cv2.IMREAD_COLOR)
+    assert img is not None, STREET
+    return np.roll(cv2.resize(img, (CAM_W, CAM_H)), 3 * i, axis=1)
+
+
+def make_camera_bag(path: Path, frames: int, storage: str) -> int:
+    """A 30 Hz camera of raw 1080p ``bgr8`` Image messages (``street_frame``)."""
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    total = 0
+    with Writer(path, version=8, storage_plugin=plugin) as w:
+        conn = w.add_connection("/cam/image", "sensor_msgs/msg/Image", typestore=ts)
+        for i in range(frames):
+            t = T0 + i * 33_333_333
+            img = street_frame(i)
+            msg = T["sensor_msgs/msg/Image"](
+                header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+                    sec=t // 10**9, nanosec=t % 10**9), frame_id="cam"),
+                height=CAM_H, width=CAM_W, encoding="bgr8", is_bigendian=0, step=3 * CAM_W,
+                data=np.ascontiguousarray(img).reshape(-1))
+            raw = ts.serialize_cdr(msg, "sensor_msgs/msg/Image")
+            total += len(raw)
+            w.write(conn, t, raw)
+    return total
+
+
+CAMERA_SENSOR = {
+    "name": "CAM_FRONT", "modality": "camera", "topic": "/cam/image",
+    "msg_type": "sensor_msgs/msg/Image", "rate_hz": 30,
+    "extrinsic": {"translation": [1.5, 0, 1.5], "rotation": [0.5, -0.5, 0.5, -0.5]},
+    "intrinsics": {"width": CAM_W, "height": CAM_H, "fx": 1000.0, "fy": 1000.0,
+                   "cx": CAM_W / 2, "cy": CAM_H / 2}}
+
+
+def clip_yaml(d: Path, bag: str, camera: bool = False) -> None:
     (d / "clip.yaml").write_text(yaml.safe_dump({
         "clip_id": "bench", "location": "bench", "road_type": "local", "weather": "clear",
         "lighting": "day", "agents": [{
             "agent_id": "red", "kind": "vehicle", "role": "reference", "bag": bag,
-            "tf_static_topic": None, "sensors": [{
+            "tf_static_topic": None, "sensors": [CAMERA_SENSOR] if camera else [{
                 "name": "LIDAR_TOP", "modality": "lidar", "topic": "/lidar/points",
                 "msg_type": "sensor_msgs/msg/PointCloud2", "rate_hz": 10,
                 "extrinsic": {"translation": [0, 0, 1.8], "rotation": [1, 0, 0, 0]},
@@ -166,14 +210,73 @@ def median(runs: list[tuple[float, float]]) -> tuple[float, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--frames", type=int, nargs="+", default=[30, 100])
+    ap.add_argument("--frames", type=int, nargs="*", default=[30, 100],
+                    help="LiDAR bags of N scans (none: cameras only)")
     ap.add_argument("--storage", nargs="+", default=["sqlite3", "mcap"])
+    ap.add_argument("--camera-frames", type=int, nargs="*", default=[60],
+                    help="raw 1080p camera bags of N frames (none: LiDAR only)")
     ap.add_argument("--repeat", type=int, default=5, help="median of N (noisy machines)")
     args = ap.parse_args()
     for frames in args.frames:
         for storage in args.storage:
             with tempfile.TemporaryDirectory() as tmp:
                 run_case(Path(tmp), frames, storage, args.repeat)
+    for frames in args.camera_frames:
+        for storage in args.storage:
+            with tempfile.TemporaryDirectory() as tmp:
+                run_camera_case(Path(tmp), frames, storage, args.repeat)
+
+
+def run_camera_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
+    """Camera ingest is PNG encoding (lossless blobs are the contract): floor against ingest,
+    and PNG encoding of the same frames on one thread, with libpng's defaults (what ingest
+    did before ``tasks.pngcodec``) and with ``tasks.pngcodec`` (the cost one thread could not
+    go below; ingest encodes on every core)."""
+    import cv2
+
+    from tasks.pngcodec import encode_png
+
+    d = tmp / "clip"
+    d.mkdir()
+    mb = make_camera_bag(d / "red", frames, storage) / 1e6
+    clip_yaml(d, "red", camera=True)
+    imgs = [street_frame(i) for i in range(frames)]
+
+    def ingest() -> tuple[float, float]:
+        lake = Lake(tmp / f"lake-{time.time_ns()}")
+        t0, c0 = settled(), cpu_s()
+        run_ingest(lake, d, IngestConfig(copy_to_landing=False))
+        out = time.perf_counter() - t0, cpu_s() - c0
+        shutil.rmtree(lake.base, ignore_errors=True)
+        return out
+
+    level = IngestConfig().png_compression
+
+    def png_serial(ours: bool) -> tuple[float, float]:
+        t0, c0 = settled(), cpu_s()
+        for img in imgs:
+            if ours:
+                encode_png(img, level)
+            else:
+                cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, level])
+        return time.perf_counter() - t0, cpu_s() - c0
+
+    ingest()  # warm-up
+    runs: dict[str, list[tuple[float, float]]] = {"floor": [], "libpng": [], "png": [], "ing": []}
+    for _ in range(repeat):
+        runs["floor"].append(floor(d / "red"))
+        runs["libpng"].append(png_serial(False))
+        runs["png"].append(png_serial(True))
+        runs["ing"].append(ingest())
+    f, f_cpu = median(runs["floor"])
+    print(f"[{storage}, camera] {frames} raw {CAM_W}x{CAM_H} bgr8 frames, bag {mb:.0f} MB")
+    print(f"  {'':34s} {'wall s':>7s} {'fps':>6s} {'ratio':>6s} {'CPU s':>6s} {'ratio':>6s}")
+    for name, key in (("floor (rosbags read+deserialize)", "floor"),
+                      ("PNG, libpng defaults, one thread", "libpng"),
+                      ("PNG, tasks.pngcodec, one thread", "png"),
+                      ("run_ingest (no landing copy)", "ing")):
+        w, c = median(runs[key])
+        print(f"  {name:34s} {w:7.2f} {frames / w:6.0f} {w / f:5.2f}x {c:6.2f} {c / f_cpu:5.2f}x")
 
 
 def run_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
