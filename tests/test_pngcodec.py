@@ -1,0 +1,36 @@
+"""tasks.pngcodec: lossless for every layout the stages write, and on a real street photo no
+larger than libpng's defaults (the claim its docstring makes; its speed is benchmarked in
+tests/bench/bench_ingest.py, not asserted here)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tasks.pngcodec import encode_png
+
+STREET = (Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "images"
+          / "street_plate_small_pjlab_0.png")
+
+
+@pytest.mark.parametrize(("shape", "dtype"), [
+    ((31, 17, 3), np.uint8), ((31, 17, 4), np.uint8), ((31, 17), np.uint8),
+    ((31, 17), np.uint16), ((31, 17, 3), np.uint16),
+])
+def test_lossless(shape: tuple[int, ...], dtype: type) -> None:
+    img = np.random.default_rng(3).integers(0, np.iinfo(dtype).max, shape, dtype=dtype)
+    back = cv2.imdecode(np.frombuffer(encode_png(img), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert back is not None and back.dtype == img.dtype and np.array_equal(back, img)
+
+
+def test_real_photo_lossless_and_not_larger_than_libpng_defaults() -> None:
+    img = cv2.imread(str(STREET), cv2.IMREAD_COLOR)
+    assert img is not None
+    png = encode_png(img)
+    back = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert back is not None and np.array_equal(back, img)
+    default = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])[1]
+    assert len(png) <= default.size
