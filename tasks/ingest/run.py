@@ -82,7 +82,9 @@ class IngestConfig(BaseModel):
     model_config = ConfigDict(frozen=True)
 
     png_compression: int = Field(default=1, ge=0, le=9,
-                                 description="zlib level for images re-encoded to PNG")
+                                 description="zlib level for images re-encoded to PNG "
+                                 "(tasks.pngcodec: with its RLE strategy the level "
+                                 "hardly changes size or time)")
     recover_empty_storage_id: bool = Field(
         default=True, description="read a ROS 2 bag whose metadata.yaml has an empty "
         "storage_identifier as the storage its files are (sqlite3/MCAP by magic bytes)")
