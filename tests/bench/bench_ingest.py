@@ -2,7 +2,7 @@
 
 Builds a CATS-scale LiDAR bag (128 beams x 1,800 columns = 230,400 points per scan, 10 Hz,
 fields x y z intensity ring return_type timestamp(f64 absolute s), 32 bytes per point) with
-NumPy and rosbags' writer, for ROS 2 sqlite3 and MCAP, then times:
+NumPy and rosbags' writers, for ROS 2 sqlite3 and MCAP and for ROS 1, then times:
 
 - floor: ``AnyReader`` iterating every message and ``deserialize``-ing it (nothing else);
 - read + parse + decode: what ingest's reading thread does (payloads read in place from the
@@ -22,7 +22,11 @@ in CPU time (user + system, all threads of the process): on a shared, busy machi
 mostly says how much CPU the neighbours left us, the CPU ratio says what ingest costs. Two
 clip lengths, because the floor's fixed cost (opening the bag, ~25 ms) flatters short bags.
 
-    python tests/bench/bench_ingest.py [--frames 30 100] [--storage sqlite3 mcap]
+The camera case (``run_camera_case``, ROS 2 only) times raw 1080p frames of the real street
+photo, where lossless PNG encoding, not reading, sets the pace.
+
+    python tests/bench/bench_ingest.py [--frames 30 100] [--storage sqlite3 mcap ros1]
+                                       [--camera-frames 60] [--repeat 5]
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from rosbags.highlevel import AnyReader  # noqa: E402
+from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
 from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
@@ -57,9 +62,20 @@ BEAMS, COLS = 128, 1800
 T0 = 1_700_000_000 * 1_000_000_000
 
 
+def store(storage: str) -> Any:
+    """The standard types of a storage's ROS generation."""
+    return get_typestore(Stores.ROS1_NOETIC if storage == "ros1" else Stores.ROS2_HUMBLE)
+
+
+def bag_name(storage: str) -> str:
+    return "red.bag" if storage == "ros1" else "red"
+
+
 def make_bag(path: Path, frames: int, storage: str) -> int:
-    ts = get_typestore(Stores.ROS2_HUMBLE)
+    """The LiDAR bag at ``path`` (a ROS 2 folder, or a ROS 1 ``.bag`` file)."""
+    ts = store(storage)
     T = ts.types
+    ros1 = storage == "ros1"
     dt = np.dtype({"names": ["x", "y", "z", "intensity", "ring", "return_type", "timestamp"],
                    "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "u1", "<f8"],
                    "offsets": [0, 4, 8, 12, 16, 18, 24], "itemsize": 32})
@@ -72,7 +88,7 @@ def make_bag(path: Path, frames: int, storage: str) -> int:
     col = np.repeat(np.arange(COLS), BEAMS)
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     total = 0
-    with Writer(path, version=8, storage_plugin=plugin) as w:
+    with Writer1(path) if ros1 else Writer(path, version=8, storage_plugin=plugin) as w:
         conn = w.add_connection("/lidar/points", "sensor_msgs/msg/PointCloud2", typestore=ts)
         for i in range(frames):
             start = T0 + i * 100_000_000
@@ -90,12 +106,14 @@ def make_bag(path: Path, frames: int, storage: str) -> int:
             a["ring"] = np.tile(np.arange(BEAMS), COLS)
             a["return_type"] = 1
             a["timestamp"] = (start + col * (100_000_000 // COLS)) / 1e9
+            stamp = T["builtin_interfaces/msg/Time"](sec=start // 10**9, nanosec=start % 10**9)
+            header = (T["std_msgs/msg/Header"](seq=i, stamp=stamp, frame_id="lidar") if ros1
+                      else T["std_msgs/msg/Header"](stamp=stamp, frame_id="lidar"))
             msg = T["sensor_msgs/msg/PointCloud2"](
-                header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
-                    sec=start // 10**9, nanosec=start % 10**9), frame_id="lidar"),
-                height=1, width=az.size, fields=fields, is_bigendian=False, point_step=32,
-                row_step=32 * az.size, data=a.view(np.uint8), is_dense=False)
-            raw = ts.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2")
+                header=header, height=1, width=az.size, fields=fields, is_bigendian=False,
+                point_step=32, row_step=32 * az.size, data=a.view(np.uint8), is_dense=False)
+            raw = (ts.serialize_ros1 if ros1 else ts.serialize_cdr)(
+                msg, "sensor_msgs/msg/PointCloud2")
             total += len(raw)
             w.write(conn, start + 99_000_000, raw)
     return total
@@ -172,8 +190,8 @@ def settled() -> float:
     return time.perf_counter()
 
 
-def floor(bag: Path) -> tuple[float, float]:
-    ts = get_typestore(Stores.ROS2_HUMBLE)
+def floor(bag: Path, storage: str) -> tuple[float, float]:
+    ts = store(storage)
     t0, c0 = settled(), cpu_s()
     with AnyReader([bag], default_typestore=ts) as r:
         for c, _t, raw in r.messages():
@@ -181,7 +199,7 @@ def floor(bag: Path) -> tuple[float, float]:
     return time.perf_counter() - t0, cpu_s() - c0
 
 
-def decode_only(bag: Path) -> tuple[float, float]:
+def decode_only(bag: Path, storage: str) -> tuple[float, float]:
     """Reading plus ingest's parse + decode_cloud (columns, NaN drop, int64 ns time): no
     Parquet, no I/O."""
     from schemas.clip import LidarFields, PointTimeField, TimeReference, TimeUnit
@@ -192,11 +210,10 @@ def decode_only(bag: Path) -> tuple[float, float]:
 
     lf = LidarFields(return_id="return_type", time=PointTimeField(
         field="timestamp", unit=TimeUnit.S, reference=TimeReference.ABSOLUTE))
-    ts = get_typestore(Stores.ROS2_HUMBLE)
     t0, c0 = settled(), cpu_s()
-    with AnyReader([bag], default_typestore=ts) as r:
+    with AnyReader([bag], default_typestore=store(storage)) as r:
         for c, _t, raw in messages(r, r.connections):
-            fast = parser_for(r.typestore.fielddefs, c.msgtype, True)
+            fast = parser_for(r.typestore.fielddefs, c.msgtype, bool(r.is2))
             m: Any = fast(raw) if fast else None
             m = m or r.deserialize(bytes(raw), c.msgtype)
             decode_cloud(m, lf, header_stamp_ns(m))
@@ -212,7 +229,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, nargs="*", default=[30, 100],
                     help="LiDAR bags of N scans (none: cameras only)")
-    ap.add_argument("--storage", nargs="+", default=["sqlite3", "mcap"])
+    ap.add_argument("--storage", nargs="+", default=["sqlite3", "mcap", "ros1"])
     ap.add_argument("--camera-frames", type=int, nargs="*", default=[60],
                     help="raw 1080p camera bags of N frames (none: LiDAR only)")
     ap.add_argument("--repeat", type=int, default=5, help="median of N (noisy machines)")
@@ -222,7 +239,7 @@ def main() -> None:
             with tempfile.TemporaryDirectory() as tmp:
                 run_case(Path(tmp), frames, storage, args.repeat)
     for frames in args.camera_frames:
-        for storage in args.storage:
+        for storage in (s for s in args.storage if s != "ros1"):
             with tempfile.TemporaryDirectory() as tmp:
                 run_camera_case(Path(tmp), frames, storage, args.repeat)
 
@@ -264,7 +281,7 @@ def run_camera_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
     ingest()  # warm-up
     runs: dict[str, list[tuple[float, float]]] = {"floor": [], "libpng": [], "png": [], "ing": []}
     for _ in range(repeat):
-        runs["floor"].append(floor(d / "red"))
+        runs["floor"].append(floor(d / "red", storage))
         runs["libpng"].append(png_serial(False))
         runs["png"].append(png_serial(True))
         runs["ing"].append(ingest())
@@ -282,8 +299,9 @@ def run_camera_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
 def run_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
     d = tmp / "clip"
     d.mkdir()
-    size = make_bag(d / "red", frames, storage)
-    clip_yaml(d, "red")
+    bag = d / bag_name(storage)
+    size = make_bag(bag, frames, storage)
+    clip_yaml(d, bag.name)
     mb = size / 1e6
     runs: dict[str, list[tuple[float, float]]] = {k: [] for k in ("floor", "dec", "ing", "land")}
     reports: list[StageReport] = []
@@ -305,13 +323,13 @@ def run_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
     mf.stage_key(Lake(tmp / "keys"), "bench", "ingest", IngestConfig(),
                  input_files=clip_inputs(d)[1])
     key_s = time.perf_counter() - t_key
-    decode_only(d / "red")  # warm-up: load (or compile) the numba kernel, fill the page cache
+    decode_only(bag, storage)  # warm-up: load (or compile) the numba kernel, fill the page cache
     ingest(False)
     reports.clear()
     manifest_s.clear()
     for _ in range(repeat):
-        runs["floor"].append(floor(d / "red"))
-        runs["dec"].append(decode_only(d / "red"))
+        runs["floor"].append(floor(bag, storage))
+        runs["dec"].append(decode_only(bag, storage))
         runs["ing"].append(ingest(False))
         runs["land"].append(ingest(True))
     f, f_cpu = median(runs["floor"])
