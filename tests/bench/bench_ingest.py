@@ -220,6 +220,17 @@ def decode_only(bag: Path, storage: str) -> tuple[float, float]:
     return time.perf_counter() - t0, cpu_s() - c0
 
 
+def print_ratios(runs: dict[str, list[tuple[float, float]]], rows: list[tuple[str, str]],
+                 rate: str, amount: float) -> None:
+    """One line per ``(label, key)`` of ``runs``: median wall and CPU time, ``amount`` per
+    second (column ``rate``) and both ratios to the floor (``runs["floor"]``)."""
+    f, f_cpu = median(runs["floor"])
+    print(f"  {'':34s} {'wall s':>7s} {rate:>6s} {'ratio':>6s} {'CPU s':>6s} {'ratio':>6s}")
+    for name, key in rows:
+        w, c = median(runs[key])
+        print(f"  {name:34s} {w:7.2f} {amount / w:6.0f} {w / f:5.2f}x {c:6.2f} {c / f_cpu:5.2f}x")
+
+
 def median(runs: list[tuple[float, float]]) -> tuple[float, float]:
     """Median wall time and median CPU time (each on its own)."""
     return statistics.median(r[0] for r in runs), statistics.median(r[1] for r in runs)
@@ -285,15 +296,11 @@ def run_camera_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
         runs["libpng"].append(png_serial(False))
         runs["png"].append(png_serial(True))
         runs["ing"].append(ingest())
-    f, f_cpu = median(runs["floor"])
     print(f"[{storage}, camera] {frames} raw {CAM_W}x{CAM_H} bgr8 frames, bag {mb:.0f} MB")
-    print(f"  {'':34s} {'wall s':>7s} {'fps':>6s} {'ratio':>6s} {'CPU s':>6s} {'ratio':>6s}")
-    for name, key in (("floor (rosbags read+deserialize)", "floor"),
-                      ("PNG, libpng defaults, one thread", "libpng"),
-                      ("PNG, tasks.pngcodec, one thread", "png"),
-                      ("run_ingest (no landing copy)", "ing")):
-        w, c = median(runs[key])
-        print(f"  {name:34s} {w:7.2f} {frames / w:6.0f} {w / f:5.2f}x {c:6.2f} {c / f_cpu:5.2f}x")
+    print_ratios(runs, [("floor (rosbags read+deserialize)", "floor"),
+                        ("PNG, libpng defaults, one thread", "libpng"),
+                        ("PNG, tasks.pngcodec, one thread", "png"),
+                        ("run_ingest (no landing copy)", "ing")], "fps", frames)
 
 
 def run_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
@@ -332,7 +339,6 @@ def run_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
         runs["dec"].append(decode_only(bag, storage))
         runs["ing"].append(ingest(False))
         runs["land"].append(ingest(True))
-    f, f_cpu = median(runs["floor"])
     lake = Lake(tmp / "last")
     run_ingest(lake, d, IngestConfig(copy_to_landing=False))
     pts = reports[0].metrics["lidar_points"]
@@ -341,13 +347,10 @@ def run_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
     print(f"[{storage}, {frames} frames] {frames} scans x {BEAMS * COLS} points = "
           f"{pts / 1e6:.1f} M finite points, bag {mb:.0f} MB -> lidar_points {out_mb:.0f} MB "
           f"({out_mb * 1e6 / pts:.1f} B/point)")
-    print(f"  {'':34s} {'wall s':>7s} {'MB/s':>6s} {'ratio':>6s} {'CPU s':>6s} {'ratio':>6s}")
-    for name, key in (("floor (rosbags read+deserialize)", "floor"),
-                      ("read + parse + decode to columns", "dec"),
-                      ("run_ingest (no landing copy)", "ing"),
-                      ("run_ingest (with landing copy)", "land")):
-        w, c = median(runs[key])
-        print(f"  {name:34s} {w:7.2f} {mb / w:6.0f} {w / f:5.2f}x {c:6.2f} {c / f_cpu:5.2f}x")
+    print_ratios(runs, [("floor (rosbags read+deserialize)", "floor"),
+                        ("read + parse + decode to columns", "dec"),
+                        ("run_ingest (no landing copy)", "ing"),
+                        ("run_ingest (with landing copy)", "land")], "MB/s", mb)
     ing = median(runs["ing"])[0]
     print(f"  + stage key (input checksums, first call) {key_s:.3f} s; manifest record "
           f"{statistics.median(manifest_s):.3f} s; {pts / ing / 1e6:.1f} M points/s")
