@@ -20,8 +20,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from flows.server import start_server, start_worker, stop_process  # noqa: E402
-from flows.settings import v2xlake_home  # noqa: E402
+from v2xlake.flows.server import start_server, start_worker, stop_process  # noqa: E402
+from v2xlake.flows.settings import v2xlake_home  # noqa: E402
 
 
 def main() -> int:

@@ -1,9 +1,9 @@
 """The flow's side of the bookkeeping: manifest keys, quarantine, catalog access.
 
 Stages only compute and write tables; the flow decides whether a stage must run
-(``storage.manifest``: inputs -> parameters -> code, with upstream stages' recorded outputs
+(``v2xlake.storage.manifest``: inputs -> parameters -> code, with upstream stages' recorded outputs
 as inputs), records the manifest afterwards, quarantines a clip on ``ClipError``
-(``storage.quarantine`` + forgetting its manifests so a fixed clip reprocesses from scratch)
+(``v2xlake.storage.quarantine`` + forgetting its manifests so a fixed clip reprocesses from scratch)
 and refreshes / queries the DuckDB catalog.
 """
 
@@ -19,10 +19,10 @@ from typing import Any
 import pyarrow as pa
 from pydantic import BaseModel
 
-from flows.stages import DEFAULT_STAGES, StageSpec
-from schemas.stage import StageReport
-from storage import manifest
-from storage.lake import Lake
+from v2xlake.flows.stages import DEFAULT_STAGES, StageSpec
+from v2xlake.schemas.stage import StageReport
+from v2xlake.storage import manifest
+from v2xlake.storage.lake import Lake
 
 log = logging.getLogger("v2xlake.flows")
 
@@ -58,7 +58,7 @@ def stage_config(fn: Callable[..., Any]) -> Any:
 
 def stage_key(lake: Lake, clip_id: str, spec: StageSpec, fn: Callable[..., Any],
               upstream: Sequence[str], clip_dir: Path | None) -> manifest.StageKey:
-    """storage.manifest's key: inputs (files or upstream outputs), parameters, code."""
+    """v2xlake.storage.manifest's key: inputs (files or upstream outputs), parameters, code."""
     default = next((s for s in DEFAULT_STAGES if s.name == spec.name), None)
     code_paths: list[str] | None = None
     if default is None or default.target != spec.target:  # not a registry stage: hash its file
@@ -67,7 +67,7 @@ def stage_key(lake: Lake, clip_id: str, spec: StageSpec, fn: Callable[..., Any],
     input_files: list[Path] | None = None
     if spec.input == "clip_dir" and clip_dir is not None:
         if default is not None and default.target == spec.target and spec.name == "ingest":
-            from tasks.ingest import clip_inputs
+            from v2xlake.tasks.ingest import clip_inputs
 
             input_files = list(clip_inputs(clip_dir)[1])
         else:
@@ -106,9 +106,9 @@ def processed_clip_ids(lake: Lake) -> set[str]:
 
 # ---------------------------------------------------------------- quarantine
 def quarantine(lake: Lake, clip_id: str, error: Exception, *, stage: str) -> str:
-    """storage.quarantine (report, raw/clean removed) + forget the clip's manifests."""
-    from storage.quarantine import quarantine as storage_quarantine
-    from storage.quarantine import report_path
+    """v2xlake.storage.quarantine (report, raw/clean removed) + forget the clip's manifests."""
+    from v2xlake.storage.quarantine import quarantine as storage_quarantine
+    from v2xlake.storage.quarantine import report_path
 
     storage_quarantine(lake, clip_id, error, stage=stage)
     manifest.clear(lake, clip_id)
@@ -118,7 +118,7 @@ def quarantine(lake: Lake, clip_id: str, error: Exception, *, stage: str) -> str
 # ---------------------------------------------------------------- catalog
 def refresh_catalog(lake: Lake) -> None:
     """Re-scan the lake's tables (new tables become views; rewrites catalog.duckdb)."""
-    from storage.catalog import Catalog
+    from v2xlake.storage.catalog import Catalog
 
     with Catalog(lake):  # __init__ refreshes
         pass
@@ -126,7 +126,7 @@ def refresh_catalog(lake: Lake) -> None:
 
 def query(lake: Lake, sql: str) -> pa.Table:
     """Run SQL over the lake's catalog (views over the Parquet files, always current)."""
-    from storage.catalog import Catalog
+    from v2xlake.storage.catalog import Catalog
 
     with Catalog(lake, read_only=True) as cat:
         return cat.query(sql)

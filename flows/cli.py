@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from flows.settings import configure_prefect, default_lake, prefect_session, v2xlake_home
+from v2xlake.flows.settings import configure_prefect, default_lake, prefect_session, v2xlake_home
 
 STAGES_HELP = "ingest,qa,anonymize,deskew,register,annotate,align"
 
@@ -37,14 +37,14 @@ def _csv(text: str | None) -> list[str] | None:
 # ---------------------------------------------------------------- simulate
 def sim_config(preset: str, seconds: float | None, storage: str | None, seed: int | None,
                agents: str | None, cameras: str | None, clip_id: str | None = None) -> Any:
-    from tasks.simulate import SimConfig
+    from v2xlake.tasks.simulate import SimConfig
 
     return SimConfig.preset(preset, seconds=seconds, storage=storage, seed=seed, agents=agents,
                             cameras=cameras, clip_id=clip_id)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from tasks.simulate import simulate
+    from v2xlake.tasks.simulate import simulate
 
     cfg = sim_config(args.preset, args.seconds, args.storage, args.seed, args.agents,
                      args.cameras, args.clip_id)
@@ -118,9 +118,9 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
                 stages: list[str] | None = None, registry: list[str] | None = None,
                 console: Any = None, show_progress: bool = True) -> list[dict[str, Any]]:
     """Process clips through Prefect with a progress display; returns the per-clip summaries."""
-    from flows import process as process_mod
-    from flows.runners import needs_api_server, parse_runner
-    from flows.stages import check_available, resolve_registry, select
+    from v2xlake.flows import process as process_mod
+    from v2xlake.flows.runners import needs_api_server, parse_runner
+    from v2xlake.flows.stages import check_available, resolve_registry, select
 
     console = console or _console()
     specs = select(resolve_registry(registry), stages)
@@ -138,7 +138,7 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
 
     server_cm: Any = None
     if needs_api_server(runner):
-        from flows.server import running_server
+        from v2xlake.flows.server import running_server
 
         console.print("starting a Prefect server for the Dask workers ...")
         server_cm = running_server(v2xlake_home() / "server")
@@ -203,8 +203,8 @@ def print_arrow(table: Any, fmt: str, console: Any, title: str | None = None,
 
 
 def cmd_query(args: argparse.Namespace) -> int:
-    from flows.bookkeeping import query
-    from storage.lake import Lake
+    from v2xlake.flows.bookkeeping import query
+    from v2xlake.storage.lake import Lake
 
     print_arrow(query(Lake(args.lake), args.sql), args.format, _console())
     return 0
@@ -212,9 +212,9 @@ def cmd_query(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------- export / convert / plot / audit
 def cmd_export(args: argparse.Namespace) -> int:
-    from flows.bookkeeping import query
-    from flows.release import call_export
-    from storage.lake import Lake
+    from v2xlake.flows.bookkeeping import query
+    from v2xlake.flows.release import call_export
+    from v2xlake.storage.lake import Lake
 
     lake = Lake(args.lake)
     clip_ids = args.clip or [r["clip_id"] for r in query(
@@ -230,7 +230,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_convert_bag(args: argparse.Namespace) -> int:
     """ROS 1 <-> ROS 2 (tasks.export.convert_bag: rosbags' converter + type translation)."""
-    from tasks.export import convert_bag
+    from v2xlake.tasks.export import convert_bag
 
     dst = Path(args.dst)
     if dst.exists():
@@ -241,8 +241,8 @@ def cmd_convert_bag(args: argparse.Namespace) -> int:
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
-    from storage.lake import Lake
-    from tasks.register import plot_registration
+    from v2xlake.storage.lake import Lake
+    from v2xlake.tasks.register.stage import plot_registration
 
     lake = Lake(args.lake)
     frame = args.frame
@@ -258,8 +258,8 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 
 def cmd_audit(args: argparse.Namespace) -> int:
-    from storage.lake import Lake
-    from tasks.audit import audit
+    from v2xlake.storage.lake import Lake
+    from v2xlake.tasks.anonymize.audit import audit
 
     lake = Lake(args.lake)
     report = audit(lake, args.release or "clean")
@@ -272,7 +272,7 @@ def cmd_audit(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------- release
 def cmd_release_build(args: argparse.Namespace) -> int:
-    from flows.release import build_release
+    from v2xlake.flows.release import build_release
 
     t0 = time.perf_counter()
     fractions = tuple(float(x) for x in args.fractions.split(","))
@@ -284,14 +284,14 @@ def cmd_release_build(args: argparse.Namespace) -> int:
     console.print(f"release [bold]{args.name}[/]: {len(meta['clip_ids'])} clip(s), splits "
                   f"{meta['split_counts']}, formats {meta['formats']} in "
                   f"{time.perf_counter() - t0:.1f} s")
-    from storage.lake import Lake
+    from v2xlake.storage.lake import Lake
 
     console.print(f"notes: {Lake(args.lake).path('releases', args.name, 'RELEASE.md')}")
     return 0
 
 
 def cmd_release_verify(args: argparse.Namespace) -> int:
-    from flows.release import verify_release
+    from v2xlake.flows.release import verify_release
 
     res = verify_release(args.lake, args.name)
     console = _console()
@@ -305,7 +305,7 @@ def cmd_release_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_release_list(args: argparse.Namespace) -> int:
-    from flows.release import list_releases
+    from v2xlake.flows.release import list_releases
 
     for name in list_releases(args.lake):
         print(name)
@@ -313,7 +313,7 @@ def cmd_release_list(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from flows.demo import run_demo
+    from v2xlake.flows.demo import run_demo
 
     return run_demo(Path(args.out), seconds=args.seconds, cameras=args.cameras,
                     seed=args.seed, storage=args.storage)
@@ -429,8 +429,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     except Exception as exc:
-        from flows.release import ReleaseError
-        from tasks.errors import ClipError
+        from v2xlake.flows.release import ReleaseError
+        from v2xlake.schemas.errors import ClipError
 
         if isinstance(exc, ReleaseError | ClipError | ValueError | FileNotFoundError):
             _console(stderr=True).print(f"[red]error[/]: {exc}")

@@ -31,9 +31,9 @@ def run_demo(out: Path, *, seconds: float = 2.0, cameras: int = 2, seed: int = 7
     from rich.console import Console
     from rich.panel import Panel
 
-    from flows.bookkeeping import query
-    from flows.cli import print_arrow, run_process, sim_config, stage_table
-    from storage.lake import Lake
+    from v2xlake.flows.bookkeeping import query
+    from v2xlake.flows.cli import print_arrow, run_process, sim_config, stage_table
+    from v2xlake.storage.lake import Lake
 
     console = Console(highlight=False)
     out = Path(out).resolve()
@@ -51,7 +51,7 @@ def run_demo(out: Path, *, seconds: float = 2.0, cameras: int = 2, seed: int = 7
     if (clip_dir / "clip.yaml").exists():
         console.print(f"[1/3] clip already simulated: {clip_dir}")
     else:
-        from tasks.simulate import simulate
+        from v2xlake.tasks.simulate import simulate
 
         with console.status(f"[1/3] simulating {seconds:g} s, agents red+black, "
                             f"{cameras} camera(s) each ..."):

@@ -1,10 +1,10 @@
 """Per-clip processing flows: ``process_clip`` chains the stages, ``process_clips`` maps it.
 
 ``process_clip`` runs the registry's stages in order as Prefect tasks (retries for transient
-errors, none for bad input), skips a stage whose ``storage.manifest`` key (input files or
+errors, none for bad input), skips a stage whose ``v2xlake.storage.manifest`` key (input files or
 upstream stages' recorded outputs, parameters, code) matches its last successful run,
 records the manifest after each run, quarantines the clip when a stage raises
-:class:`tasks.errors.ClipError` (the flow run then ends Failed with the reason), and
+:class:`v2xlake.tasks.errors.ClipError` (the flow run then ends Failed with the reason), and
 publishes artifacts: a stage table, per-stage metrics, the QA checks and links to pictures.
 
 ``process_clips`` runs one ``process_clip`` flow per clip: one after another with the local
@@ -30,11 +30,11 @@ from prefect.artifacts import (
     update_progress_artifact,
 )
 
-from flows import bookkeeping
-from flows.stages import StageSpec, check_available, resolve_registry, select
-from schemas.stage import StageReport
-from storage.lake import Lake
-from tasks.errors import ClipError
+from v2xlake.flows import bookkeeping
+from v2xlake.flows.stages import StageSpec, check_available, resolve_registry, select
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.stage import StageReport
+from v2xlake.storage.lake import Lake
 
 # The CLI sets this to drive its progress display (only for in-process runs).
 ProgressHook = Callable[[dict[str, Any]], None]
@@ -280,7 +280,7 @@ def _process_clips_on_runner(clip_dirs: list[str], lake: str, stages: list[str] 
 def process_clips(clip_dirs: list[str], lake: str, stages: list[str] | None = None,
                   registry: list[str] | None = None, runner: str = "local") -> list[dict[str, Any]]:
     """Process several clip folders; returns one summary per clip (never raises for a clip)."""
-    from flows.runners import make_task_runner, parse_runner
+    from v2xlake.flows.runners import make_task_runner, parse_runner
 
     logger = get_run_logger()
     dirs = [str(Path(d).resolve()) for d in clip_dirs]

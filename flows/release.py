@@ -1,9 +1,9 @@
 """Release builds: an immutable, versioned, checksummed selection of clips.
 
 ``build_release`` selects clips with a SQL predicate on the catalog's ``clips`` view,
-assigns scene-level splits (:mod:`tasks.release_split`), copies the clips' clean-zone
+assigns scene-level splits (:mod:`v2xlake.tasks.release_split`), copies the clips' clean-zone
 Parquet files and blobs (format ``lake``, always the baseline) and runs the requested
-exports (``tasks.export``), then writes release notes with statistics and plots, and
+exports (``v2xlake.tasks.export``), then writes release notes with statistics and plots, and
 seals the release with ``checksums.json`` + ``SHA256SUMS``. Files are copied, never
 linked, so later changes to the lake cannot reach into a release; an existing name is
 refused. A local release is assembled under a hidden temporary directory and renamed into
@@ -30,17 +30,17 @@ from typing import Any
 
 from prefect import flow, get_run_logger
 
-from flows import bookkeeping
-from storage.lake import Lake
-from tasks.release_split import SPLITS, SceneKey, SplitConfig, assign_splits, split_counts
+from v2xlake.flows import bookkeeping
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.release_split import SPLITS, SceneKey, SplitConfig, assign_splits, split_counts
 
 EXPORTS = {
-    "nuscenes": "tasks.export.nuscenes:export_nuscenes",
-    "eth3d": "tasks.export.eth3d:export_eth3d",
-    "rosbag": "tasks.export.rosbag:export_rosbag",
-    "opencood": "tasks.export.opencood:export_opencood",
-    "bev": "tasks.export.bev:export_bev",
-    "scene-transfer": "tasks.export.scene_transfer:export_scene_transfer",
+    "nuscenes": "v2xlake.tasks.export.nuscenes:export_nuscenes",
+    "eth3d": "v2xlake.tasks.export.eth3d:export_eth3d",
+    "rosbag": "v2xlake.tasks.export.rosbag:export_rosbag",
+    "opencood": "v2xlake.tasks.export.opencood:export_opencood",
+    "bev": "v2xlake.tasks.export.bev:export_bev",
+    "scene-transfer": "v2xlake.tasks.export.scene_transfer:export_scene_transfer",
 }
 SEAL_FILES = ("checksums.json", "SHA256SUMS")
 
@@ -56,7 +56,7 @@ def load_export(fmt: str) -> Any:
     if fmt not in EXPORTS:
         raise ReleaseError(f"unknown export format {fmt!r}; known: lake, {', '.join(EXPORTS)}")
     mod_name, _, attr = EXPORTS[fmt].partition(":")
-    for candidate in (mod_name, "tasks.export"):
+    for candidate in (mod_name, "v2xlake.tasks.export"):
         try:
             mod = importlib.import_module(candidate)
         except ImportError:
@@ -148,7 +148,7 @@ def call_export(fmt: str, lake: Lake, clip_ids: Sequence[str], out_dir: Path,
     metrics: dict[str, float] = {}
     reports: list[Any] = []
     if fmt == "nuscenes":
-        from tasks.export import NuScenesExportConfig
+        from v2xlake.tasks.export import NuScenesExportConfig
 
         reports.append(fn(lake, list(clip_ids), out_dir,
                           NuScenesExportConfig(splits=dict(splits or {}))))

@@ -15,9 +15,9 @@ from typing import Any
 
 from prefect import flow, get_run_logger
 
-from flows import bookkeeping
-from flows.process import peek_clip_id, process_clips
-from storage.lake import Lake
+from v2xlake.flows import bookkeeping
+from v2xlake.flows.process import peek_clip_id, process_clips
+from v2xlake.storage.lake import Lake
 
 
 def default_inbox(lake: Lake) -> Path:

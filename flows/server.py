@@ -20,7 +20,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from flows.settings import configure_prefect
+from v2xlake.flows.settings import configure_prefect
 
 
 def free_port() -> int:

@@ -8,7 +8,7 @@ import path, Dask workers and deployment processes resolve them the same way.
 
 A stage function is called as ``fn(lake, target)`` where ``target`` is the clip folder for
 stages whose ``input`` is ``"clip_dir"`` (ingest) and the clip id for all others; it returns
-a :class:`schemas.stage.StageReport`. Its parameters are the default of its ``config``
+a :class:`v2xlake.schemas.stage.StageReport`. Its parameters are the default of its ``config``
 argument (a pydantic model), whose JSON enters the cache key.
 """
 
@@ -57,13 +57,13 @@ class StageSpec:
 
 
 DEFAULT_STAGES: tuple[StageSpec, ...] = (
-    StageSpec("ingest", "tasks.ingest:run_ingest", "clip_dir"),
-    StageSpec("qa", "tasks.qa:run_qa"),
-    StageSpec("anonymize", "tasks.anonymize:run_anonymize"),
-    StageSpec("deskew", "tasks.deskew_stage:run_deskew"),
-    StageSpec("register", "tasks.register:run_register"),
-    StageSpec("annotate", "tasks.annotate:run_annotate"),
-    StageSpec("align", "tasks.align:run_align"),
+    StageSpec("ingest", "v2xlake.tasks.ingest:run_ingest", "clip_dir"),
+    StageSpec("qa", "v2xlake.tasks.qa.core:run_qa"),
+    StageSpec("anonymize", "v2xlake.tasks.anonymize:run_anonymize"),
+    StageSpec("deskew", "v2xlake.tasks.deskew.stage:run_deskew"),
+    StageSpec("register", "v2xlake.tasks.register.stage:run_register"),
+    StageSpec("annotate", "v2xlake.tasks.annotate.core:run_annotate"),
+    StageSpec("align", "v2xlake.tasks.align.stage:run_align"),
 )
 STAGE_NAMES = tuple(s.name for s in DEFAULT_STAGES)
 

@@ -16,7 +16,7 @@ from typing import Annotated, Self
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from schemas.geometry import Quat, Vec3
+from v2xlake.schemas.geometry import Quat, Vec3
 
 Size3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 

@@ -7,7 +7,7 @@ from typing import Self
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from schemas.geometry import Transform
+from v2xlake.schemas.geometry import Transform
 
 
 class DistortionModel(StrEnum):

@@ -16,8 +16,8 @@ from typing import Self
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from schemas.calibration import CameraIntrinsics
-from schemas.geometry import Transform
+from v2xlake.schemas.calibration import CameraIntrinsics
+from v2xlake.schemas.geometry import Transform
 
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_\-]*$"
 

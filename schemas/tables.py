@@ -1,4 +1,4 @@
-"""Row models of every lake table; Arrow schemas come from ``schemas.arrow.arrow_schema``.
+"""Row models of every lake table; Arrow schemas come from ``v2xlake.schemas.arrow.arrow_schema``.
 
 Time columns ending in ``_ns`` are int64 nanoseconds: GNSS epoch time in the raw zone, the
 clip's relative axis (starting at 0.1 s) in the clean zone. Positions in the clean zone are
@@ -14,7 +14,7 @@ from typing import Annotated
 import pyarrow as pa
 from pydantic import BaseModel, ConfigDict
 
-from schemas.arrow import F32, F64, I32, I64, U8, U16, ArrowType
+from v2xlake.schemas.arrow import F32, F64, I32, I64, U8, U16, ArrowType
 
 DictStr = Annotated[str, ArrowType(pa.dictionary(pa.int32(), pa.string()))]
 

@@ -11,7 +11,7 @@ so two processes refreshing at once cannot corrupt it.
 Names:
 
 - ``raw.<table>`` / ``clean.<table>``: every table found in that zone (plus the known tables of
-  ``schemas.tables``, as empty views with the right columns when no file exists yet).
+  ``v2xlake.schemas.tables``, as empty views with the right columns when no file exists yet).
 - ``main.<table>`` (unqualified, the DESIGN names: clips, agents, sensors, calibrated_sensors,
   ego_poses, lidar_frames, lidar_points, camera_frames, annotations, instances,
   registrations, alignments): the clean zone's table when it has any file, otherwise the raw
@@ -32,9 +32,9 @@ from urllib.parse import urlparse
 import duckdb
 import pyarrow as pa
 
-from schemas.arrow import arrow_schema
-from schemas.tables import LAKE_TABLES, LidarPointRow
-from storage.lake import Lake
+from v2xlake.schemas.arrow import arrow_schema
+from v2xlake.schemas.tables import LAKE_TABLES, LidarPointRow
+from v2xlake.storage.lake import Lake
 
 MAIN_NAMES = ("clips", "agents", "sensors", "calibrated_sensors", "ego_poses", "imu", "gnss",
               "lidar_frames", "lidar_points", "lidar_points_deskewed", "camera_frames",

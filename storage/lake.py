@@ -40,7 +40,7 @@ import pyarrow.compute as pc
 import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 
-from storage import checksum
+from v2xlake.storage import checksum
 
 ZONES = ("landing", "raw", "clean", "releases", "quarantine", "manifests")
 PARTITION_KEYS = ("clip_id", "agent_id")
@@ -139,7 +139,7 @@ ZONE_OPTIONS: dict[str, ParquetOptions] = {"raw": RAW_OPTIONS}
 
 class _ChecksumSink:
     """A write-only file object that forwards to ``stream`` and checksums the bytes as they
-    pass (``storage.checksum``), so a written file's checksum costs no second read.
+    pass (``v2xlake.storage.checksum``), so a written file's checksum costs no second read.
 
     ``threaded=True`` (background writers): hashing *and* writing run on an I/O thread, fed
     the chunks pyarrow hands to ``write`` (immutable bytes, so holding them is safe); both

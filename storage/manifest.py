@@ -28,10 +28,10 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from schemas.stage import OutputFile, StageReport
-from schemas.tables import ManifestRow
-from storage import checksum
-from storage.lake import Lake
+from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.tables import ManifestRow
+from v2xlake.storage import checksum
+from v2xlake.storage.lake import Lake
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -39,16 +39,16 @@ REPO = Path(__file__).resolve().parents[1]
 # ``tasks.*`` and ``schemas.*``) make the stage's code version, so editing a helper that a
 # stage uses re-runs that stage, and editing another stage's code does not.
 STAGE_MODULES: dict[str, str] = {
-    "ingest": "tasks.ingest",
-    "qa": "tasks.qa",
-    "anonymize": "tasks.anonymize",
-    "deskew": "tasks.deskew_stage",
-    "register": "tasks.register",
-    "annotate": "tasks.annotate",
-    "align": "tasks.align",
-    "export": "tasks.export",
+    "ingest": "v2xlake.tasks.ingest",
+    "qa": "v2xlake.tasks.qa.core",
+    "anonymize": "v2xlake.tasks.anonymize",
+    "deskew": "v2xlake.tasks.deskew.stage",
+    "register": "v2xlake.tasks.register.stage",
+    "annotate": "v2xlake.tasks.annotate.core",
+    "align": "v2xlake.tasks.align.stage",
+    "export": "v2xlake.tasks.export",
 }
-CODE_PACKAGES = ("tasks", "schemas")
+CODE_PACKAGES = ("v2xlake.tasks", "v2xlake.schemas")
 
 
 @dataclass(frozen=True)
@@ -173,7 +173,7 @@ def module_closure(module: str) -> list[Path]:
                 names = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
                 names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
-            todo.extend(n for n in names if n.split(".")[0] in CODE_PACKAGES)
+            todo.extend(n for n in names if n.startswith(CODE_PACKAGES))
     return sorted(set(seen.values()))
 
 
@@ -213,7 +213,7 @@ def stage_key(
 ) -> StageKey:
     """The key a run of ``stage`` on ``clip_id`` would have now.
 
-    ``input_files`` (local paths; ingest passes ``tasks.ingest.clip_inputs(dir)[1]``) are
+    ``input_files`` (local paths; ingest passes ``v2xlake.tasks.ingest.clip_inputs(dir)[1]``) are
     hashed by content; ``upstream_stages`` contribute the checksums of their recorded outputs
     (a missing or failed upstream manifest makes the key unique, so the stage is not current).
     ``code_paths`` overrides the source files hashed into ``code_version`` (tests, plugins).

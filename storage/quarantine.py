@@ -15,7 +15,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from storage.lake import Lake
+from v2xlake.storage.lake import Lake
 
 REPORT = "report.json"
 

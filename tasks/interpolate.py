@@ -212,7 +212,7 @@ def interpolate_poses(
 
 def pose_matrices(xyz: np.ndarray, quat_wxyz: np.ndarray) -> np.ndarray:
     """(N, 3) + (N, 4) -> (N, 4, 4) homogeneous matrices (eq. 2d-2e)."""
-    from schemas.geometry import quat_to_matrix
+    from v2xlake.schemas.geometry import quat_to_matrix
 
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     m = np.zeros((len(xyz), 4, 4))

@@ -13,9 +13,9 @@ import numpy as np
 import pyarrow as pa
 from pydantic import BaseModel
 
-from schemas.arrow import columns_to_table
-from schemas.arrow import rows_to_table as _rows_to_table
-from schemas.tables import (
+from v2xlake.schemas.arrow import columns_to_table
+from v2xlake.schemas.arrow import rows_to_table as _rows_to_table
+from v2xlake.schemas.tables import (
     AgentRow,
     AnnotationRow,
     CalibratedSensorRow,
@@ -29,9 +29,9 @@ from schemas.tables import (
     QaCheckRow,
     SensorRow,
 )
-from storage.lake import Lake
-from tasks.anonymize.evaluate import TrueBox, synth_scene
-from tasks.geodesy import LocalFrame, matrix_to_attitude
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.evaluate import TrueBox, synth_scene
+from v2xlake.tasks.geodesy import LocalFrame, matrix_to_attitude
 
 CLIP = "clip_test_0001"
 T_PPS = 1_735_000_000 * 10**9  # a GNSS second in Dec 2024, as ns

@@ -49,7 +49,7 @@ def v2x_home(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     old = {k: os.environ.get(k) for k in ("V2XLAKE_HOME", "PYTHONPATH")}
     os.environ["V2XLAKE_HOME"] = str(home)
     os.environ["PYTHONPATH"] = _pythonpath()
-    from flows.settings import configure_prefect
+    from v2xlake.flows.settings import configure_prefect
 
     configure_prefect()
     yield home
@@ -69,7 +69,7 @@ class PrefectServerInfo:
 
 @pytest.fixture(scope="session")
 def prefect_server(v2x_home: Path) -> Iterator[PrefectServerInfo]:
-    from flows.server import start_server
+    from v2xlake.flows.server import start_server
 
     server = start_server(v2x_home / "server", scheduler_loop_seconds=2, timeout=150)
     old = os.environ.get("PREFECT_API_URL")

@@ -21,11 +21,11 @@ import cv2
 import numpy as np
 import pyarrow as pa
 
-from schemas.arrow import columns_to_table, rows_to_table
-from schemas.geometry import matrix_to_quat, quat_to_matrix
-from schemas.tables import LAKE_TABLES
-from storage.lake import Lake
-from tasks.interpolate import PoseTrack, invert_rigid, pose_matrices
+from v2xlake.schemas.arrow import columns_to_table, rows_to_table
+from v2xlake.schemas.geometry import matrix_to_quat, quat_to_matrix
+from v2xlake.schemas.tables import LAKE_TABLES
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.interpolate import PoseTrack, invert_rigid, pose_matrices
 
 T0_NS = 100_000_000
 LIDAR_PERIOD_NS = 100_000_000

@@ -8,19 +8,6 @@ import cv2
 import numpy as np
 import pytest
 
-from schemas.calibration import CameraIntrinsics
-from tasks.align import AlignConfig, load_truth_boxes, run_align
-from tasks.alignment.boxes import box_corners, count_points_in_boxes, points_in_boxes
-from tasks.alignment.methods import (
-    AlignParams,
-    CameraStream,
-    LidarScan,
-    align_all,
-    compensate_points,
-    scan_time,
-)
-from tasks.alignment.metrics import center_offset_px, iou_xyxy, summarize
-from tasks.alignment.projection import project_boxes_2d, project_points
 from tests.test_align_scene import (
     CAM_STAMPS,
     CLIP,
@@ -35,6 +22,19 @@ from tests.test_align_scene import (
     true_boxes2d,
     write_lake,
 )
+from v2xlake.schemas.calibration import CameraIntrinsics
+from v2xlake.tasks.align.boxes import box_corners, count_points_in_boxes, points_in_boxes
+from v2xlake.tasks.align.methods import (
+    AlignParams,
+    CameraStream,
+    LidarScan,
+    align_all,
+    compensate_points,
+    scan_time,
+)
+from v2xlake.tasks.align.metrics import center_offset_px, iou_xyxy, summarize
+from v2xlake.tasks.align.projection import project_boxes_2d, project_points
+from v2xlake.tasks.align.stage import AlignConfig, load_truth_boxes, run_align
 
 
 def _yawq(yaw: float) -> np.ndarray:
@@ -120,7 +120,7 @@ def test_scan_time_unwraps_the_seam() -> None:
 
 
 def test_vote_follows_the_majority_of_a_seam_split_view() -> None:
-    from tasks.alignment.methods import associate
+    from v2xlake.tasks.align.methods import associate
 
     t0 = T0S[0]
     stream = CameraStream(camera(), np.arange(len(CAM_STAMPS)), CAM_STAMPS)

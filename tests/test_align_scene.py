@@ -22,10 +22,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from schemas.arrow import columns_to_table, rows_to_table
-from schemas.calibration import CameraIntrinsics
-from schemas.geometry import matrix_to_quat
-from schemas.tables import (
+from v2xlake.schemas.arrow import columns_to_table, rows_to_table
+from v2xlake.schemas.calibration import CameraIntrinsics
+from v2xlake.schemas.geometry import matrix_to_quat
+from v2xlake.schemas.tables import (
     AgentRow,
     AnnotationRow,
     CalibratedSensorRow,
@@ -35,10 +35,10 @@ from schemas.tables import (
     LidarFrameRow,
     LidarPointRow,
 )
-from storage.lake import Lake
-from tasks.alignment.boxes import BoxArray
-from tasks.alignment.projection import Camera, project_boxes_2d
-from tasks.interpolate import PoseTrack
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.align.boxes import BoxArray
+from v2xlake.tasks.align.projection import Camera, project_boxes_2d
+from v2xlake.tasks.interpolate import PoseTrack
 
 V_EGO = 20.0
 YAW_RATE = 0.15  # rad/s

@@ -16,21 +16,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from schemas.annotation import AnnotationFile
-from storage.lake import Lake
-from tasks.align import AlignConfig, run_align
-from tasks.annotate import run_annotate
+from v2xlake.schemas.annotation import AnnotationFile
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.align.stage import AlignConfig, run_align
+from v2xlake.tasks.annotate.core import run_annotate
 
 CAMERAS = ("CAM_FRONT", "CAM_BACK", "CAM_FRONT_LEFT")
 
 
 @pytest.fixture(scope="module")
 def sim_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, str, Path]:
-    from tasks.anonymize.run import AnonymizeConfig, run_anonymize
-    from tasks.deskew_stage import run_deskew
-    from tasks.ingest.run import run_ingest
-    from tasks.simulate.config import SimConfig
-    from tasks.simulate.run import simulate
+    from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
+    from v2xlake.tasks.deskew.stage import run_deskew
+    from v2xlake.tasks.ingest.run import run_ingest
+    from v2xlake.tasks.simulate.config import SimConfig
+    from v2xlake.tasks.simulate.run import simulate
 
     root = tmp_path_factory.mktemp("align_sim")
     cfg = SimConfig.preset(
@@ -47,7 +47,7 @@ def sim_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, str, Path]
 
 
 def test_annotate_on_simulated_clip(sim_lake: tuple[Lake, str, Path]) -> None:
-    from tasks.simulate.truth import load_truth
+    from v2xlake.tasks.simulate.truth import load_truth
 
     lake, cid, clip = sim_lake
     rep = run_annotate(lake, cid)

@@ -9,13 +9,13 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pytest
 
-from schemas.arrow import columns_to_table, rows_to_table
-from schemas.geometry import matrix_to_quat
-from schemas.tables import AgentRow, CalibratedSensorRow, EgoPoseRow
-from storage.lake import Lake
-from tasks.annotate import AnnotateConfig, cross_agent_distances, run_annotate
-from tasks.errors import ClipError
 from tests.test_align_scene import CLIP, OBJECTS, T_EGO_LIDAR, pose_track, write_lake
+from v2xlake.schemas.arrow import columns_to_table, rows_to_table
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.geometry import matrix_to_quat
+from v2xlake.schemas.tables import AgentRow, CalibratedSensorRow, EgoPoseRow
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.annotate.core import AnnotateConfig, cross_agent_distances, run_annotate
 
 # black rides rigidly next to red: 3.5 m to the left, 0.5 m behind, yawed 10 degrees
 D = np.eye(4)
@@ -28,7 +28,7 @@ def _add_black(lake: Lake, box_shift_m: float = 0.0) -> None:
     """A second agent seeing the same world: red's data re-expressed in black's frames."""
     tr = pose_track()
     T_w_red = np.tile(np.eye(4), (len(tr), 1, 1))
-    from schemas.geometry import quat_to_matrix
+    from v2xlake.schemas.geometry import quat_to_matrix
 
     T_w_red[:, :3, :3] = quat_to_matrix(tr.quat_wxyz)
     T_w_red[:, :3, 3] = tr.xyz
@@ -168,7 +168,7 @@ def test_bad_links_and_categories_are_clip_errors(tmp_path: Path) -> None:
 
 
 def test_cross_agent_after_refined_registration(tmp_path: Path) -> None:
-    from schemas.tables import RegistrationRow
+    from v2xlake.schemas.tables import RegistrationRow
 
     lake, _, _ = write_lake(tmp_path)
     _add_black(lake)

@@ -12,17 +12,27 @@ import numpy as np
 import pyarrow.compute as pc
 import pytest
 
-from tasks.anonymize.blur import BlurConfig, grow_box
-from tasks.anonymize.detectors import (
+from v2xlake.tasks.anonymize.blur import BlurConfig, grow_box
+from v2xlake.tasks.anonymize.detectors import (
     CenterFaceDetector,
     ClassicPlateDetector,
     FaceConfig,
     ScanConfig,
     UnionDetector,
 )
-from tasks.anonymize.evaluate import match, real_faces, synth_scene
-from tasks.anonymize.images import anonymize_array, encode_png, png_chunks, strip_png_metadata
-from tasks.anonymize.timespace import T0_OFFSET_NS, clip_t0_abs, ins_to_ego_poses, shift_times
+from v2xlake.tasks.anonymize.evaluate import match, real_faces, synth_scene
+from v2xlake.tasks.anonymize.images import (
+    anonymize_array,
+    encode_png,
+    png_chunks,
+    strip_png_metadata,
+)
+from v2xlake.tasks.anonymize.timespace import (
+    T0_OFFSET_NS,
+    clip_t0_abs,
+    ins_to_ego_poses,
+    shift_times,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 STREET = REPO.parent / "shared" / "data" / "real" / "images" / "street_plate_small_pjlab_0.png"
@@ -146,7 +156,7 @@ def test_png_output_has_no_metadata_chunks() -> None:
 def test_relative_time_and_local_enu() -> None:
     import pyarrow as pa
 
-    from tasks.geodesy import LocalFrame
+    from v2xlake.tasks.geodesy import LocalFrame
 
     t0 = 1_735_000_000_000_000_000
     tables = {
@@ -193,7 +203,7 @@ def test_relative_time_and_local_enu() -> None:
 
 
 def test_free_text_times_become_relative() -> None:
-    from tasks.anonymize.timespace import relative_number, relative_text
+    from v2xlake.tasks.anonymize.timespace import relative_number, relative_text
 
     t0 = 1_700_000_000_000_000_000
     text = "late [+0.100 s] (abs 1700000000000000000..1700000000900000000 ns) at 1700000000.25 s"
@@ -206,8 +216,8 @@ def test_free_text_times_become_relative() -> None:
 
 def test_scan_plan_scales_with_the_image() -> None:
     """Small frames get one native pass; large ones a cheap coarse pass + equal x2 tiles."""
-    from tasks.anonymize.detectors import scan_plan
-    from tasks.anonymize.run import AnonymizeConfig
+    from v2xlake.tasks.anonymize.detectors import scan_plan
+    from v2xlake.tasks.anonymize.run import AnonymizeConfig
 
     scan = AnonymizeConfig().build_detector().detectors[0].config.scan  # type: ignore[attr-defined]
     small = scan_plan(360, 640, scan)

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from storage.lake import Lake
-from tasks.anonymize.run import run_anonymize
-from tasks.ingest import run_ingest
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.run import run_anonymize
+from v2xlake.tasks.ingest import run_ingest
 
 REPO = Path(__file__).resolve().parents[1]
 OUSTER = REPO / "tests" / "fixtures" / "ouster"

@@ -15,9 +15,9 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from storage.lake import Lake
-from tasks.anonymize.detectors import ClassicPlateDetector, Detection, iou_matrix
-from tasks.ingest import run_ingest
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.detectors import ClassicPlateDetector, Detection, iou_matrix
+from v2xlake.tasks.ingest import run_ingest
 
 # a detection may exceed twice the largest true plate of its frame by this much (a plate box
 # grown by its border, or a far plate's whole rear panel) but not by a pedestrian group
@@ -29,7 +29,7 @@ def frames(
     tmp_path_factory: pytest.TempPathFactory,
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """(image, true plate boxes incl. occluded, true face + plate boxes) per frame."""
-    from tasks.simulate import SimConfig, simulate
+    from v2xlake.tasks.simulate import SimConfig, simulate
 
     root = tmp_path_factory.mktemp("plate_fp")
     cfg = SimConfig.preset(

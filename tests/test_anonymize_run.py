@@ -10,13 +10,13 @@ import pyarrow.compute as pc
 import pytest
 from anonymize_fixtures import CLIP, LAT0, LON0, build_raw_clip
 
-from storage.lake import Lake
-from tasks.anonymize.evaluate import match
-from tasks.anonymize.images import png_chunks
-from tasks.anonymize.run import AnonymizeConfig, run_anonymize
-from tasks.anonymize.timespace import T0_OFFSET_NS
-from tasks.errors import ClipError
-from tasks.geodesy import LocalFrame
+from v2xlake.schemas.errors import ClipError
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.evaluate import match
+from v2xlake.tasks.anonymize.images import png_chunks
+from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
+from v2xlake.tasks.anonymize.timespace import T0_OFFSET_NS
+from v2xlake.tasks.geodesy import LocalFrame
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +111,7 @@ def test_images_blurred_recorded_and_metadata_free(clean_lake: tuple, tmp_path: 
             )
         )
         assert mine.num_rows == row["n_blurred"]
-        from tasks.anonymize.detectors import Detection
+        from v2xlake.tasks.anonymize.detectors import Detection
 
         dets = [
             Detection(r["kind"], (r["x0"], r["y0"], r["x1"], r["y1"]), r["score"])

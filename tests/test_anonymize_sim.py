@@ -14,9 +14,9 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from storage.lake import Lake
-from tasks.anonymize.detectors import scan_plan
-from tasks.anonymize.evaluate import (
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.detectors import scan_plan
+from v2xlake.tasks.anonymize.evaluate import (
     PLATE_MIN_PX,
     SimTruthHit,
     audit_detections,
@@ -24,15 +24,15 @@ from tasks.anonymize.evaluate import (
     recall_by_size,
     sim_hits,
 )
-from tasks.anonymize.run import AnonymizeConfig, run_anonymize
-from tasks.ingest import run_ingest
+from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
+from v2xlake.tasks.ingest import run_ingest
 
 WIDTH, HEIGHT = 1280, 720
 
 
 @pytest.fixture(scope="module")
 def hits(tmp_path_factory: pytest.TempPathFactory) -> list[SimTruthHit]:
-    from tasks.simulate import SimConfig, simulate
+    from v2xlake.tasks.simulate import SimConfig, simulate
 
     root = tmp_path_factory.mktemp("anon_sim")
     cfg = SimConfig.preset(

@@ -14,12 +14,12 @@ import duckdb
 import pyarrow as pa
 import pytest
 
-from schemas.arrow import arrow_schema
-from schemas.tables import LAKE_TABLES, LidarPointRow
-from storage.catalog import Catalog
-from storage.lake import Lake
-from tasks.ingest import run_ingest
 from tests.fixtures.minibag import MiniClip, write_clip
+from v2xlake.schemas.arrow import arrow_schema
+from v2xlake.schemas.tables import LAKE_TABLES, LidarPointRow
+from v2xlake.storage.catalog import Catalog
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.ingest import run_ingest
 
 DESIGN_NAMES = ("clips", "agents", "sensors", "calibrated_sensors", "ego_poses", "lidar_frames",
                 "lidar_points", "camera_frames", "annotations", "instances", "registrations",

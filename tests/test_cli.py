@@ -12,8 +12,8 @@ from typing import Any
 import pytest
 import test_flows_fakestages as fakes
 
-from flows.cli import build_parser, main
-from storage.lake import Lake
+from v2xlake.flows.cli import build_parser, main
+from v2xlake.storage.lake import Lake
 
 
 def _fake_lake(tmp: Path) -> Lake:
@@ -22,7 +22,7 @@ def _fake_lake(tmp: Path) -> Lake:
         rep = fakes.fake_ingest(lake, fakes.make_fake_clip(tmp / "in", f"c{i}", weather=w,
                                                              lighting=li))
         fakes.fake_annotate(lake, rep.clip_id)
-    from flows.bookkeeping import refresh_catalog
+    from v2xlake.flows.bookkeeping import refresh_catalog
 
     refresh_catalog(lake)
     return lake
@@ -63,7 +63,7 @@ def test_parser_shapes() -> None:
 
 
 def test_sim_config_from_cli_options() -> None:
-    from flows.cli import sim_config
+    from v2xlake.flows.cli import sim_config
 
     cfg = sim_config("small", 1.5, "mcap", 9, "red,black,rsu", "3")
     assert cfg.seconds == 1.5 and cfg.storage == "mcap" and cfg.seed == 9

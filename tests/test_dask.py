@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 import test_flows_fakestages as fakes
 
-from flows.runners import RunnerSpec, needs_api_server, parse_runner
-from storage.lake import Lake
+from v2xlake.flows.runners import RunnerSpec, needs_api_server, parse_runner
+from v2xlake.storage.lake import Lake
 
 
 def test_parse_runner() -> None:
@@ -29,7 +29,7 @@ def test_parse_runner() -> None:
 def test_two_clips_on_two_dask_workers(prefect_server: Any, tmp_path: Path) -> None:
     from distributed import Client, LocalCluster
 
-    from flows.process import process_clips
+    from v2xlake.flows.process import process_clips
 
     lake_dir = tmp_path / "lake"
     clips = [fakes.make_fake_clip(tmp_path / "in", f"dask{i}") for i in range(2)]
@@ -49,7 +49,7 @@ def test_two_clips_on_two_dask_workers(prefect_server: Any, tmp_path: Path) -> N
                 ["pid"]) for c in ("dask0", "dask1")}
     assert pids <= worker_pids and os.getpid() not in pids  # ran on the workers
     lake = Lake(lake_dir)
-    from flows.bookkeeping import query
+    from v2xlake.flows.bookkeeping import query
 
     got = query(lake, "SELECT clip_id FROM clips ORDER BY 1").column(0).to_pylist()
     assert got == ["dask0", "dask1"]

@@ -10,12 +10,6 @@ import pyarrow.parquet as pq
 import pytest
 from scipy.spatial.transform import Rotation
 
-from schemas.arrow import arrow_schema, columns_to_table
-from schemas.tables import AgentRow, CalibratedSensorRow, EgoPoseRow, LidarFrameRow, LidarPointRow
-from storage.lake import Lake
-from tasks.deskew_stage import OUT_TABLE, DeskewConfig, run_deskew
-from tasks.errors import ClipError
-from tasks.ingest.rows import table_of
 from tests.test_deskew import (
     INS_PERIOD_NS,
     Motion,
@@ -24,6 +18,18 @@ from tests.test_deskew import (
     make_sweep,
     true_pose,
 )
+from v2xlake.schemas.arrow import arrow_schema, columns_to_table
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.tables import (
+    AgentRow,
+    CalibratedSensorRow,
+    EgoPoseRow,
+    LidarFrameRow,
+    LidarPointRow,
+)
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.deskew.stage import OUT_TABLE, DeskewConfig, run_deskew
+from v2xlake.tasks.ingest.rows import table_of
 
 CLIP = "clipA"
 FRAMES = (200_000_000, 300_000_000, 400_000_000)  # clean axis: clip starts at 0.1 s
@@ -141,7 +147,7 @@ def test_real_ouster_clip_without_ins_is_a_clear_error(tmp_path: Path) -> None:
     """The real OS-1-128 bag (shared data) has per-point times but no INS: deskew must stop
     with a ClipError that says why. The clean zone is made from the real ingest output by
     copying the tables deskew reads (what anonymize copies), to test this stage alone."""
-    from tasks.ingest import run_ingest
+    from v2xlake.tasks.ingest import run_ingest
 
     fixture = Path(__file__).resolve().parent / "fixtures" / "ouster"
     if not (fixture / "clip.yaml").exists():

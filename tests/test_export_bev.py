@@ -8,9 +8,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from storage.lake import Lake
-from tasks.export.bev import BevConfig, BevGrid, export_bev
 from tests.export_fixtures import build_clean_clip
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.bev import BevConfig, BevGrid, export_bev
 
 
 def test_grid_accumulates_max_mean_count() -> None:

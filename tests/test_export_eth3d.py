@@ -11,9 +11,9 @@ import open3d as o3d
 import pycolmap
 import pytest
 
-from storage.lake import Lake
-from tasks.export.eth3d import Eth3dConfig, export_eth3d
 from tests.export_fixtures import CAM_D, build_clean_clip, render_pinhole
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.eth3d import Eth3dConfig, export_eth3d
 
 
 @pytest.fixture(scope="module")

@@ -11,15 +11,15 @@ import matplotlib
 import numpy as np
 import pytest
 
-from storage.lake import Lake
-from tasks.errors import ClipError
-from tasks.export.nuscenes import (
+from tests.export_fixtures import build_clean_clip, world_box_at
+from v2xlake.schemas.errors import ClipError
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.nuscenes import (
     NuScenesExportConfig,
     detection_eval,
     export_nuscenes,
     results_from_ground_truth,
 )
-from tests.export_fixtures import build_clean_clip, world_box_at
 
 matplotlib.use("Agg")
 VERSION = "v1.0-trainval"

@@ -9,14 +9,14 @@ import open3d as o3d
 import pytest
 import yaml
 
-from storage.lake import Lake
-from tasks.export.common import iter_point_frames
-from tasks.export.opencood import (
+from tests.export_fixtures import build_clean_clip, world_box_at
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.common import iter_point_frames
+from v2xlake.tasks.export.opencood import (
     export_opencood,
     matrix_to_opencood_angles,
     opencood_x_to_world,
 )
-from tests.export_fixtures import build_clean_clip, world_box_at
 
 
 @pytest.fixture(scope="module")

@@ -11,10 +11,10 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from storage.lake import Lake
-from tasks.export.common import iter_point_frames
-from tasks.export.rosbag import convert_bag, export_rosbag
 from tests.export_fixtures import build_clean_clip
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.common import iter_point_frames
+from v2xlake.tasks.export.rosbag import convert_bag, export_rosbag
 
 TOPICS = {"/red/lidar/points": 10, "/red/camera/CAM_FRONT/image/compressed": 30,
           "/red/camera/CAM_FRONT/camera_info": 30, "/red/imu": -1, "/red/ins/odometry": -1,

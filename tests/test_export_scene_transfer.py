@@ -9,14 +9,14 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from storage.lake import Lake
-from tasks.export.scene_transfer import (
+from tests.export_fixtures import SPEED, T0_NS, build_clean_clip
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.scene_transfer import (
     SceneTransferConfig,
     edge_map,
     export_scene_transfer,
     similarity,
 )
-from tests.export_fixtures import SPEED, T0_NS, build_clean_clip
 
 
 def test_similarity_is_cosine() -> None:

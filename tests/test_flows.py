@@ -14,8 +14,8 @@ from typing import Any
 import pytest
 import test_flows_fakestages as fakes
 
-from flows import bookkeeping
-from flows.stages import (
+from v2xlake.flows import bookkeeping
+from v2xlake.flows.stages import (
     DEFAULT_STAGES,
     STAGE_NAMES,
     StageSpec,
@@ -23,7 +23,7 @@ from flows.stages import (
     resolve_registry,
     select,
 )
-from storage.lake import Lake
+from v2xlake.storage.lake import Lake
 
 
 def test_registry_order_and_parsing() -> None:
@@ -58,7 +58,7 @@ def _flow_runs(api_flow_name: str) -> list[Any]:
 
 @pytest.mark.slow
 def test_process_clips_quarantine_cache_retry(prefect_server: Any, tmp_path: Path) -> None:
-    from flows.process import process_clips
+    from v2xlake.flows.process import process_clips
 
     lake_dir = tmp_path / "lake"
     good = fakes.make_fake_clip(tmp_path / "in", "good_clip")
@@ -114,7 +114,7 @@ def test_artifacts_published(prefect_server: Any, tmp_path: Path) -> None:
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 
-    from flows.process import process_clip
+    from v2xlake.flows.process import process_clip
 
     clip = fakes.make_fake_clip(tmp_path / "in", "Art_Clip")
     summary = process_clip(str(clip), str(tmp_path / "lake"), registry=fakes.FAKE_REGISTRY)
@@ -134,7 +134,7 @@ def test_artifacts_published(prefect_server: Any, tmp_path: Path) -> None:
 
 
 def test_quarantine_removes_partitions(tmp_path: Path) -> None:
-    from tasks.errors import ClipError
+    from v2xlake.schemas.errors import ClipError
 
     lake = Lake(tmp_path / "lake")
     clip = fakes.make_fake_clip(tmp_path / "in", "q1")
@@ -156,7 +156,7 @@ def test_quarantine_removes_partitions(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_release_build_flow(prefect_server: Any, tmp_path: Path) -> None:
     """The release-build deployment's flow: a Prefect run that builds and seals a release."""
-    from flows.release import release_build, verify_release
+    from v2xlake.flows.release import release_build, verify_release
 
     lake = Lake(tmp_path / "lake")
     for i in range(3):

@@ -19,11 +19,11 @@ import numpy as np
 import yaml
 from pydantic import BaseModel
 
-from schemas.arrow import rows_to_table
-from schemas.stage import OutputFile, StageReport
-from schemas.tables import AnnotationRow, ClipRow, QaCheckRow
-from storage.lake import Lake
-from tasks.errors import ClipError
+from v2xlake.schemas.arrow import rows_to_table
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.tables import AnnotationRow, ClipRow, QaCheckRow
+from v2xlake.storage.lake import Lake
 
 FAKE_REGISTRY = [
     "ingest=test_flows_fakestages:fake_ingest@clip_dir",

@@ -13,12 +13,12 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from schemas.clip import PointTimeField, TimeReference, TimeUnit
-from storage.catalog import Catalog
-from storage.lake import Lake
-from tasks.errors import ClipError
-from tasks.ingest import IngestConfig, clip_inputs, run_ingest
 from tests.fixtures.minibag import T0, MiniClip, write_clip
+from v2xlake.schemas.clip import PointTimeField, TimeReference, TimeUnit
+from v2xlake.schemas.errors import ClipError
+from v2xlake.storage.catalog import Catalog
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.ingest import IngestConfig, clip_inputs, run_ingest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -251,8 +251,8 @@ def _cloud_msg(arr: np.ndarray, fields: list[tuple[str, int, int, int]], big: bo
 
 
 def test_pointcloud_layouts() -> None:
-    from schemas.clip import LidarFields
-    from tasks.ingest.pointcloud import decode_cloud, point_times_ns
+    from v2xlake.schemas.clip import LidarFields
+    from v2xlake.tasks.ingest.pointcloud import decode_cloud, point_times_ns
 
     n = 12
     dt = np.dtype({"names": ["x", "y", "z", "t", "ring"], "formats": [">f4", ">f4", ">f4",
@@ -291,7 +291,7 @@ def test_pointcloud_layouts() -> None:
 def test_images_to_png() -> None:
     from types import SimpleNamespace as NS
 
-    from tasks.ingest.images import compressed_to_png, image_to_png, png_size
+    from v2xlake.tasks.ingest.images import compressed_to_png, image_to_png, png_size
 
     rng = np.random.default_rng(1)
     rgb = rng.integers(0, 255, (5, 7, 3), dtype=np.uint8)
@@ -317,8 +317,8 @@ def test_images_to_png() -> None:
 
 
 def test_tf_chain_lookup() -> None:
-    from schemas.geometry import Transform
-    from tasks.ingest.calibration import TfTree
+    from v2xlake.schemas.geometry import Transform
+    from v2xlake.tasks.ingest.calibration import TfTree
 
     tree = TfTree()
     T_base_mount = Transform(translation=[1, 0, 2], rotation=[0.7071067811865476, 0, 0,

@@ -13,11 +13,11 @@ import yaml
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from storage.lake import Lake
-from tasks.errors import ClipError
-from tasks.ingest import run_ingest
-from tasks.ingest.run import PNG_WORKERS
 from tests.fixtures.minibag import T0
+from v2xlake.schemas.errors import ClipError
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.ingest import run_ingest
+from v2xlake.tasks.ingest.run import PNG_WORKERS
 
 W, H = 32, 24
 PERIOD = 33_333_333

@@ -15,11 +15,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from schemas.clip import LidarFields, PointTimeField, TimeReference, TimeUnit
-from storage import checksum
-from storage.lake import RAW_OPTIONS, Lake, ParquetOptions
-from tasks.ingest import IngestConfig, pointcloud, run_ingest
 from tests.fixtures.minibag import MiniClip, write_clip
+from v2xlake.schemas.clip import LidarFields, PointTimeField, TimeReference, TimeUnit
+from v2xlake.storage import checksum
+from v2xlake.storage.lake import RAW_OPTIONS, Lake, ParquetOptions
+from v2xlake.tasks.ingest import IngestConfig, pointcloud, run_ingest
 
 
 def _msg(a: np.ndarray, fields: list[tuple[str, int, int, int]]) -> NS:
@@ -173,7 +173,7 @@ class _FailingStream:
 
 
 def test_io_thread_error_reaches_the_writer() -> None:
-    from storage.lake import _ChecksumSink
+    from v2xlake.storage.lake import _ChecksumSink
 
     good = _ChecksumSink(_FailingStream(ok=10**6), threaded=True)
     for i in range(50):

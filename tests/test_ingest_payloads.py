@@ -15,8 +15,8 @@ from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import Stores, get_typestore
 
-from tasks.ingest.payloads import messages
 from tests.fixtures.minibag import MiniClip, write_clip
+from v2xlake.tasks.ingest.payloads import messages
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "bags"
 STORE = get_typestore(Stores.ROS2_HUMBLE)

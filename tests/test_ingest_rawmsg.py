@@ -16,7 +16,7 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from tasks.ingest.rawmsg import LAYOUTS, parse, parser_for
+from v2xlake.tasks.ingest.rawmsg import LAYOUTS, parse, parser_for
 
 REPO = Path(__file__).resolve().parents[1]
 OUSTER = REPO.parent / "shared" / "data" / "real" / "bags" / "ouster_os1_128_3frames_ros2"

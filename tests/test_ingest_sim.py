@@ -8,13 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from storage import manifest as mf
-from storage.catalog import Catalog
-from storage.lake import Lake
-from tasks.ingest import IngestConfig, clip_inputs, run_ingest
-from tasks.qa import QaConfig, run_qa
+from v2xlake.storage import manifest as mf
+from v2xlake.storage.catalog import Catalog
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.ingest import IngestConfig, clip_inputs, run_ingest
+from v2xlake.tasks.qa.core import QaConfig, run_qa
 
-simulate_mod = pytest.importorskip("tasks.simulate")
+simulate_mod = pytest.importorskip("v2xlake.tasks.simulate")
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from tasks.interpolate import PoseCoverageError, PoseTrack, interpolate_poses, invert_rigid
+from v2xlake.tasks.interpolate import PoseCoverageError, PoseTrack, interpolate_poses, invert_rigid
 
 
 def _track(n: int = 40, seed: int = 0, flip_signs: bool = True) -> tuple[np.ndarray, ...]:

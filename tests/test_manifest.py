@@ -9,12 +9,12 @@ import pyarrow as pa
 import pytest
 from pydantic import BaseModel
 
-from schemas.stage import OutputFile, StageReport
-from storage import manifest as mf
-from storage.catalog import Catalog
-from storage.lake import Lake
-from tasks.ingest import IngestConfig, clip_inputs, run_ingest
 from tests.fixtures.minibag import MiniClip, write_clip
+from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.storage import manifest as mf
+from v2xlake.storage.catalog import Catalog
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.ingest import IngestConfig, clip_inputs, run_ingest
 
 CHAIN = ("ingest", "qa", "deskew", "register")
 UPSTREAM = {"ingest": (), "qa": ("ingest",), "deskew": ("qa",), "register": ("deskew",)}

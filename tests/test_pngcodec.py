@@ -1,4 +1,4 @@
-"""tasks.pngcodec: lossless for every layout the stages write, and on a real street photo no
+"""v2xlake.tasks.pngcodec: lossless for every layout the stages write, and on a real street photo no
 larger than libpng's defaults (the claim its docstring makes; its speed is benchmarked in
 tests/bench/bench_ingest.py, not asserted here)."""
 
@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tasks.pngcodec import encode_png
+from v2xlake.tasks.pngcodec import encode_png
 
 STREET = (Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "images"
           / "street_plate_small_pjlab_0.png")

@@ -7,12 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from storage.catalog import Catalog
-from storage.lake import Lake
-from storage.quarantine import is_quarantined, quarantine, read_report
-from tasks.errors import ClipError
-from tasks.ingest import run_ingest
-from tasks.qa import (
+from tests.fixtures.minibag import MiniClip, write_clip
+from v2xlake.schemas.errors import ClipError
+from v2xlake.storage.catalog import Catalog
+from v2xlake.storage.lake import Lake
+from v2xlake.storage.quarantine import is_quarantined, quarantine, read_report
+from v2xlake.tasks.ingest import run_ingest
+from v2xlake.tasks.qa.core import (
     QaConfig,
     camera_offsets_ns,
     dropped_frames,
@@ -20,7 +21,6 @@ from tasks.qa import (
     ins_uncovered,
     run_qa,
 )
-from tests.fixtures.minibag import MiniClip, write_clip
 
 REPO = Path(__file__).resolve().parents[1]
 NS = 1_000_000_000

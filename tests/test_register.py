@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tasks.interpolate import PoseTrack
-from tasks.registration.backends import GicpParams, make_backend
-from tasks.registration.core import (
+from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.register.backends import GicpParams, make_backend
+from v2xlake.tasks.register.core import (
     QualityLimits,
     initial_transform,
     initial_transform_at,

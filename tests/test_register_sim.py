@@ -18,20 +18,20 @@ import pyarrow.parquet as pq
 import pytest
 from scipy.spatial.transform import Rotation
 
-from storage.lake import Lake
-from tasks.deskew_stage import load_extrinsics, load_pose_track, run_deskew
-from tasks.register import run_register
-from tasks.registration.core import transform_delta
 from tests.test_deskew import scipy_reference
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.deskew.stage import load_extrinsics, load_pose_track, run_deskew
+from v2xlake.tasks.register.core import transform_delta
+from v2xlake.tasks.register.stage import run_register
 
-sim = pytest.importorskip("tasks.simulate")
+sim = pytest.importorskip("v2xlake.tasks.simulate")
 CID = "sim_deskew_register"
 
 
 @pytest.fixture(scope="module")
 def processed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, Path]:
-    from tasks.anonymize import run_anonymize
-    from tasks.ingest import run_ingest
+    from v2xlake.tasks.anonymize import run_anonymize
+    from v2xlake.tasks.ingest import run_ingest
 
     root = tmp_path_factory.mktemp("simreg")
     cfg = sim.SimConfig.preset("small", seconds=0.4, seed=5, cameras=(), clip_id=CID)
@@ -53,7 +53,7 @@ def _m(r: dict, p: str, t: tuple[str, str, str]) -> np.ndarray:
 
 
 def test_deskew_on_simulated_clip(processed: tuple[Lake, Path]) -> None:
-    from tasks.simulate.truth import load_truth
+    from v2xlake.tasks.simulate.truth import load_truth
 
     lake, clip = processed
     truth = load_truth(clip)

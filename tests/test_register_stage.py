@@ -16,8 +16,10 @@ import pyarrow as pa
 import pytest
 from scipy.spatial.transform import Rotation
 
-from schemas.arrow import columns_to_table
-from schemas.tables import (
+from tests.test_register import cast_scan, lidar_pose, make_street
+from v2xlake.schemas.arrow import columns_to_table
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.tables import (
     AgentRow,
     CalibratedSensorRow,
     ClipRow,
@@ -25,13 +27,11 @@ from schemas.tables import (
     LidarFrameRow,
     LidarPointRow,
 )
-from storage.lake import Lake
-from tasks.deskew_stage import run_deskew
-from tasks.errors import ClipError
-from tasks.ingest.rows import table_of
-from tasks.register import RegisterConfig, plot_registration, run_register
-from tasks.registration.core import transform_delta
-from tests.test_register import cast_scan, lidar_pose, make_street
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.deskew.stage import run_deskew
+from v2xlake.tasks.ingest.rows import table_of
+from v2xlake.tasks.register.core import transform_delta
+from v2xlake.tasks.register.stage import RegisterConfig, plot_registration, run_register
 
 CLIP = "street1"
 FRAMES = (200_000_000, 300_000_000, 400_000_000)

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 import test_flows_fakestages as fakes
 
-from flows.release import ReleaseError, build_release, list_releases, verify_release
-from storage.lake import Lake
-from tasks.release_split import SceneKey, SplitConfig, assign_splits, split_counts
+from v2xlake.flows.release import ReleaseError, build_release, list_releases, verify_release
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.release_split import SceneKey, SplitConfig, assign_splits, split_counts
 
 
 def _scenes(n_per: dict[tuple[str, str, str], int]) -> list[SceneKey]:

@@ -9,9 +9,9 @@ import boto3
 import pytest
 import test_flows_fakestages as fakes
 
-from flows.bookkeeping import query
-from flows.release import build_release, verify_release
-from storage.lake import Lake
+from v2xlake.flows.bookkeeping import query
+from v2xlake.flows.release import build_release, verify_release
+from v2xlake.storage.lake import Lake
 
 
 def _client(s3: Any) -> Any:
@@ -21,7 +21,7 @@ def _client(s3: Any) -> Any:
 
 @pytest.mark.slow
 def test_s3_lake_flow_catalog_release(prefect_server: Any, s3_env: Any, tmp_path: Path) -> None:
-    from flows.process import process_clips
+    from v2xlake.flows.process import process_clips
 
     uri = f"s3://{s3_env.bucket}/machinery"
     clips = [fakes.make_fake_clip(tmp_path / "in", f"s3clip{i}", weather=w)
@@ -56,10 +56,10 @@ def test_s3_lake_flow_catalog_release(prefect_server: Any, s3_env: Any, tmp_path
 @pytest.mark.slow
 def test_s3_real_clip_end_to_end(prefect_server: Any, s3_env: Any, tmp_path: Path) -> None:
     """A simulated clip through every real stage into an S3 lake, answered by SQL."""
-    from flows.cli import sim_config
-    from flows.process import process_clip
-    from flows.stages import STAGE_NAMES
-    from tasks.simulate import simulate
+    from v2xlake.flows.cli import sim_config
+    from v2xlake.flows.process import process_clip
+    from v2xlake.flows.stages import STAGE_NAMES
+    from v2xlake.tasks.simulate import simulate
 
     clip = simulate(tmp_path / "clip", sim_config("small", 1.0, "mcap", 11, "red,black", "1"))
     uri = f"s3://{s3_env.bucket}/real"

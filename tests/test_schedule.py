@@ -21,10 +21,10 @@ import pytest
 import test_flows_fakestages as fakes
 import yaml
 
-from flows.bookkeeping import query
-from flows.scan import find_new_clips
-from flows.server import start_worker, stop_process
-from storage.lake import Lake
+from v2xlake.flows.bookkeeping import query
+from v2xlake.flows.scan import find_new_clips
+from v2xlake.flows.server import start_worker, stop_process
+from v2xlake.storage.lake import Lake
 
 REPO = Path(__file__).resolve().parents[1]
 

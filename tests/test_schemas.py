@@ -8,13 +8,13 @@ import pytest
 from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
 
-from schemas.annotation import AnnotationFile, Box3D, BoxAnnotation, ObjectClass
-from schemas.arrow import arrow_schema, columns_to_table, rows_to_table
-from schemas.calibration import CameraIntrinsics, DistortionModel
-from schemas.clip import ClipConfig
-from schemas.geometry import Transform, matrix_to_quat, quat_to_matrix
-from schemas.nuscenes import NUSCENES_TABLES, Sample
-from schemas.tables import LAKE_TABLES, LidarPointRow, QaCheckRow
+from v2xlake.schemas.annotation import AnnotationFile, Box3D, BoxAnnotation, ObjectClass
+from v2xlake.schemas.arrow import arrow_schema, columns_to_table, rows_to_table
+from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
+from v2xlake.schemas.clip import ClipConfig
+from v2xlake.schemas.geometry import Transform, matrix_to_quat, quat_to_matrix
+from v2xlake.schemas.nuscenes import NUSCENES_TABLES, Sample
+from v2xlake.schemas.tables import LAKE_TABLES, LidarPointRow, QaCheckRow
 
 
 def _clip_dict() -> dict:

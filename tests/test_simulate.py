@@ -15,12 +15,12 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation, Slerp
 
-from schemas.annotation import AnnotationFile
-from schemas.clip import ClipConfig
-from schemas.geometry import quat_to_matrix
-from tasks.geodesy import LocalFrame, attitude_to_matrix
-from tasks.simulate import SimConfig, load_truth, simulate
-from tasks.simulate.bagwrite import POINT_DTYPE
+from v2xlake.schemas.annotation import AnnotationFile
+from v2xlake.schemas.clip import ClipConfig
+from v2xlake.schemas.geometry import quat_to_matrix
+from v2xlake.tasks.geodesy import LocalFrame, attitude_to_matrix
+from v2xlake.tasks.simulate import SimConfig, load_truth, simulate
+from v2xlake.tasks.simulate.bagwrite import POINT_DTYPE
 
 S = 1_000_000_000
 
@@ -363,7 +363,7 @@ def test_dual_return_and_roadside_unit(tmp_path: Path) -> None:
 
 
 def test_module_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from tasks.simulate.__main__ import main
+    from v2xlake.tasks.simulate.__main__ import main
 
     out = tmp_path / "cli"
     assert main([str(out), "--seconds", "0.1", "--seed", "2", "--cameras", "CAM_BACK",
@@ -400,7 +400,7 @@ def test_ins_brackets_every_scan(clip: Path) -> None:
 def _marker_render(monkeypatch: pytest.MonkeyPatch, rend, tau: float, poses=None):
     """Render again with every face and plate texture replaced by a flat marker colour: the
     pixels of that colour in the output are exactly where a face / plate is really seen."""
-    import tasks.simulate.camera as camera_mod
+    import v2xlake.tasks.simulate.camera as camera_mod
 
     monkeypatch.setattr(camera_mod, "plate_texture",
                         lambda text, style: np.full((88, 416, 3), PLATE_MARK, np.uint8))
@@ -437,9 +437,9 @@ def _check_visible_parts_are_drawn(rows, img) -> int:
 def test_2d_truth_follows_what_is_drawn(monkeypatch: pytest.MonkeyPatch) -> None:
     """A truck placed between the camera and a pedestrian hides the face: the old renderer
     kept the face's part ids under the truck and reported it visible."""
-    from tasks.simulate.camera import CameraRenderer
-    from tasks.simulate.rig import build_rigs
-    from tasks.simulate.scene import build_world
+    from v2xlake.tasks.simulate.camera import CameraRenderer
+    from v2xlake.tasks.simulate.rig import build_rigs
+    from v2xlake.tasks.simulate.scene import build_world
 
     cfg = SimConfig.preset("small", seconds=1.0, seed=3, cameras=("CAM_FRONT",))
     world = build_world(cfg)
@@ -502,9 +502,9 @@ def test_visible_faces_and_plates_are_in_the_image(monkeypatch: pytest.MonkeyPat
     reported cats frames (seed 5, black CAM_BACK / CAM_FRONT at the first trigger, where a
     parked car's plate and two faces hidden by vehicles were reported visible): every face /
     plate row not marked occluded has its texture in its visible box of the rendered image."""
-    from tasks.simulate.camera import CameraRenderer
-    from tasks.simulate.rig import build_rigs
-    from tasks.simulate.scene import build_world
+    from v2xlake.tasks.simulate.camera import CameraRenderer
+    from v2xlake.tasks.simulate.rig import build_rigs
+    from v2xlake.tasks.simulate.scene import build_world
 
     checked = n_occ = 0
     cams = ("CAM_FRONT", "CAM_BACK", "CAM_FRONT_LEFT", "CAM_BACK_RIGHT")

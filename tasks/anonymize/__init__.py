@@ -1,7 +1,7 @@
 """Anonymization stage: faces and plates blurred, time made relative, positions made local."""
 
-from tasks.anonymize.blur import BlurConfig, blur_boxes
-from tasks.anonymize.detectors import (
+from v2xlake.tasks.anonymize.blur import BlurConfig, blur_boxes
+from v2xlake.tasks.anonymize.detectors import (
     CenterFaceDetector,
     ClassicPlateConfig,
     ClassicPlateDetector,
@@ -13,8 +13,8 @@ from tasks.anonymize.detectors import (
     ScanConfig,
     UnionDetector,
 )
-from tasks.anonymize.images import anonymize_png, encode_png, png_chunks, strip_png_metadata
-from tasks.anonymize.run import AnonymizeConfig, run_anonymize
+from v2xlake.tasks.anonymize.images import anonymize_png, encode_png, png_chunks, strip_png_metadata
+from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
 
 __all__ = [
     "AnonymizeConfig",

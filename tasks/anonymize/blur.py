@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from tasks.anonymize.detectors import Box
+from v2xlake.tasks.anonymize.detectors import Box
 
 
 @dataclass(frozen=True)

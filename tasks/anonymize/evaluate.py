@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from storage.lake import Lake
-from tasks.anonymize.detectors import Box, Detection, iou_matrix
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.detectors import Box, Detection, iou_matrix
 
 # Face boxes inside the source photos (CenterFace's own box on the full photo, rounded).
 ASTRONAUT_FACE: Box = (181.0, 58.0, 270.0, 178.0)

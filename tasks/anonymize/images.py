@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from tasks import pngcodec
-from tasks.anonymize.blur import BlurConfig, blur_boxes
-from tasks.anonymize.detectors import Detection, Detector
+from v2xlake.tasks import pngcodec
+from v2xlake.tasks.anonymize.blur import BlurConfig, blur_boxes
+from v2xlake.tasks.anonymize.detectors import Detection, Detector
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 CRITICAL_CHUNKS = frozenset({b"IHDR", b"PLTE", b"tRNS", b"IDAT", b"IEND"})
@@ -57,7 +57,7 @@ def strip_png_metadata(data: bytes) -> bytes:
 
 
 def encode_png(img: np.ndarray, compression: int = 1) -> bytes:
-    """PNG bytes (``tasks.pngcodec``) with no metadata chunks."""
+    """PNG bytes (``v2xlake.tasks.pngcodec``) with no metadata chunks."""
     return strip_png_metadata(pngcodec.encode_png(img, compression))
 
 

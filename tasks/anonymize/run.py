@@ -24,12 +24,13 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict
 
-from schemas.arrow import rows_to_table
-from schemas.stage import OutputFile, StageReport
-from schemas.tables import AnonymizationAuditRow
-from storage.lake import Lake
-from tasks.anonymize.blur import BlurConfig
-from tasks.anonymize.detectors import (
+from v2xlake.schemas.arrow import rows_to_table
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.tables import AnonymizationAuditRow
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.blur import BlurConfig
+from v2xlake.tasks.anonymize.detectors import (
     CenterFaceDetector,
     ClassicPlateConfig,
     ClassicPlateDetector,
@@ -39,8 +40,8 @@ from tasks.anonymize.detectors import (
     ScanConfig,
     UnionDetector,
 )
-from tasks.anonymize.images import anonymize_png
-from tasks.anonymize.timespace import (
+from v2xlake.tasks.anonymize.images import anonymize_png
+from v2xlake.tasks.anonymize.timespace import (
     clip_t0_abs,
     gnss_to_local,
     ins_to_ego_poses,
@@ -48,8 +49,7 @@ from tasks.anonymize.timespace import (
     scrub_table,
     shift_times,
 )
-from tasks.errors import ClipError
-from tasks.geodesy import LocalFrame
+from v2xlake.tasks.geodesy import LocalFrame
 
 log = logging.getLogger(__name__)
 STAGE = "anonymize"

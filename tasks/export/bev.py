@@ -16,10 +16,16 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.stage import StageReport
-from storage.lake import Lake
-from tasks.errors import ClipError
-from tasks.export.common import apply, file_output, iter_point_frames, lidar_world_poses, load_clip
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.stage import StageReport
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.common import (
+    apply,
+    file_output,
+    iter_point_frames,
+    lidar_world_poses,
+    load_clip,
+)
 
 
 class BevConfig(BaseModel):

@@ -21,13 +21,13 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from schemas.geometry import quat_to_matrix
-from schemas.stage import OutputFile
-from storage import checksum
-from storage.lake import Lake
-from tasks.errors import ClipError
-from tasks.interpolate import PoseCoverageError, PoseTrack, invert_rigid, pose_matrices
-from tasks.pngcodec import encode_png
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.geometry import quat_to_matrix
+from v2xlake.schemas.stage import OutputFile
+from v2xlake.storage import checksum
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.interpolate import PoseCoverageError, PoseTrack, invert_rigid, pose_matrices
+from v2xlake.tasks.pngcodec import encode_png
 
 __all__ = [
     "AgentData",

@@ -33,11 +33,11 @@ import numpy as np
 import open3d as o3d
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.geometry import matrix_to_quat
-from schemas.stage import StageReport
-from storage.lake import Lake
-from tasks.errors import ClipError
-from tasks.export.common import (
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.geometry import matrix_to_quat
+from v2xlake.schemas.stage import StageReport
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.common import (
     AgentData,
     CameraCalib,
     ClipData,
@@ -49,7 +49,7 @@ from tasks.export.common import (
     lidar_world_poses,
     load_clip,
 )
-from tasks.interpolate import invert_rigid
+from v2xlake.tasks.interpolate import invert_rigid
 
 
 class Eth3dConfig(BaseModel):

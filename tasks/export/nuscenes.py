@@ -28,15 +28,15 @@ import numpy as np
 import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.annotation import NUSCENES_CATEGORY, ObjectClass
-from schemas.arrow import rows_to_table
-from schemas.geometry import matrix_to_quat
-from schemas.nuscenes import NUSCENES_TABLES
-from schemas.stage import StageReport
-from storage.lake import Lake
-from tasks.errors import ClipError
-from tasks.export.bev import BevGrid
-from tasks.export.common import (
+from v2xlake.schemas.annotation import NUSCENES_CATEGORY, ObjectClass
+from v2xlake.schemas.arrow import rows_to_table
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.geometry import matrix_to_quat
+from v2xlake.schemas.nuscenes import NUSCENES_TABLES
+from v2xlake.schemas.stage import StageReport
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.bev import BevGrid
+from v2xlake.tasks.export.common import (
     AgentData,
     CameraCalib,
     ClipData,

@@ -32,10 +32,10 @@ import open3d as o3d
 import yaml
 from pydantic import BaseModel, ConfigDict
 
-from schemas.stage import StageReport
-from storage.lake import Lake
-from tasks.errors import ClipError
-from tasks.export.common import (
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.stage import StageReport
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.common import (
     ClipData,
     available_frames,
     boxes_matrices,

@@ -32,11 +32,11 @@ from pydantic import BaseModel, ConfigDict
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from schemas.geometry import matrix_to_quat
-from schemas.stage import StageReport
-from storage.lake import Lake
-from tasks.errors import ClipError
-from tasks.export.common import (
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.geometry import matrix_to_quat
+from v2xlake.schemas.stage import StageReport
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.common import (
     AgentData,
     CameraCalib,
     ClipData,
@@ -177,7 +177,7 @@ def _streams(lake: Lake, clip: ClipData, agent: AgentData, ts: Any, cfg: RosbagE
 
     def odom() -> Iterator[tuple[int, Any]]:
         p = agent.poses
-        from schemas.geometry import quat_to_matrix
+        from v2xlake.schemas.geometry import quat_to_matrix
 
         R = quat_to_matrix(p.quat_wxyz)
         for k in range(len(p)):

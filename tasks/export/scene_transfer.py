@@ -26,10 +26,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.stage import StageReport
-from storage.lake import Lake
-from tasks.errors import ClipError
-from tasks.export.common import file_output, load_clip
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.stage import StageReport
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.common import file_output, load_clip
 
 
 class SceneTransferConfig(BaseModel):

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pyarrow as pa
 
-from schemas.annotation import AnnotationFile
-from schemas.tables import AnnotationRow
-from tasks.ingest.rows import table_of
+from v2xlake.schemas.annotation import AnnotationFile
+from v2xlake.schemas.tables import AnnotationRow
+from v2xlake.tasks.ingest.rows import table_of
 
 
 def load_annotations(path: Path, clip_id: str) -> AnnotationFile:

@@ -29,8 +29,8 @@ from rosbags.interfaces import Connection, Nodetype
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from schemas.clip import AgentConfig, ClipConfig
-from tasks.errors import ClipError
+from v2xlake.schemas.clip import AgentConfig, ClipConfig
+from v2xlake.schemas.errors import ClipError
 
 SQLITE_MAGIC = b"SQLite format 3\x00"
 MCAP_MAGIC = b"\x89MCAP0\r\n"

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from schemas.calibration import CameraIntrinsics, DistortionModel
-from schemas.geometry import Transform
+from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
+from v2xlake.schemas.geometry import Transform
 
 
 class TfTree:

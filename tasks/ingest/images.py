@@ -15,7 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from tasks.pngcodec import encode_png
+from v2xlake.tasks.pngcodec import encode_png
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from tasks.ingest.bagopen import header_stamp_ns
+from v2xlake.tasks.ingest.bagopen import header_stamp_ns
 
 # table column -> accepted message field names, first match wins
 INS_ALIASES: dict[str, tuple[str, ...]] = {

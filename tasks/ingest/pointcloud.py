@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from schemas.clip import LidarFields, PointTimeField, TimeReference, TimeUnit
+from v2xlake.schemas.clip import LidarFields, PointTimeField, TimeReference, TimeUnit
 
 # sensor_msgs/PointField datatype constants
 POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}

@@ -8,7 +8,7 @@ from typing import Any, cast
 import pyarrow as pa
 from pydantic import BaseModel
 
-from schemas.arrow import rows_to_table
+from v2xlake.schemas.arrow import rows_to_table
 
 
 def table_of(model: type[BaseModel], rows: Sequence[BaseModel] | Sequence[dict[str, Any]]

@@ -6,7 +6,7 @@ images go to PNG blobs. Throughput (``tests/bench/bench_ingest.py``): payloads o
 are read in place (``payloads.py``), PointCloud2 and images are parsed straight from the wire
 format (``rawmsg.py``, exact, rosbags as fallback), points are decoded in one compiled pass
 on the reading thread while a second thread encodes the previous frames (raw zone encoding:
-``storage.lake.RAW_OPTIONS``) and a third checksums and writes the bytes, so the report
+``v2xlake.storage.lake.RAW_OPTIONS``) and a third checksums and writes the bytes, so the report
 carries every output's checksum and the manifest never re-reads them. Everything is written
 into a private staging lake first and moved into ``raw/`` only when every agent succeeded,
 so a clip that fails (unknown type, missing topic, truncated file...) leaves nothing in the
@@ -31,11 +31,12 @@ import numpy as np
 import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from schemas.arrow import arrow_schema, columns_to_table
-from schemas.clip import AgentConfig, ClipConfig, Modality, SensorConfig
-from schemas.geometry import Transform
-from schemas.stage import OutputFile, StageReport
-from schemas.tables import (
+from v2xlake.schemas.arrow import arrow_schema, columns_to_table
+from v2xlake.schemas.clip import AgentConfig, ClipConfig, Modality, SensorConfig
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.geometry import Transform
+from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.tables import (
     AgentRow,
     CalibratedSensorRow,
     CameraFrameRow,
@@ -47,10 +48,9 @@ from schemas.tables import (
     LidarPointRow,
     SensorRow,
 )
-from storage.lake import Lake, TableWriter
-from tasks.errors import ClipError
-from tasks.ingest.annotations import annotation_tables, load_annotations
-from tasks.ingest.bagopen import (
+from v2xlake.storage.lake import Lake, TableWriter
+from v2xlake.tasks.ingest.annotations import annotation_tables, load_annotations
+from v2xlake.tasks.ingest.bagopen import (
     STAGE,
     build_typestore,
     connections_by_topic,
@@ -59,13 +59,13 @@ from tasks.ingest.bagopen import (
     open_bag,
     resolve,
 )
-from tasks.ingest.calibration import TfTree, intrinsics_from_camera_info
-from tasks.ingest.images import compressed_to_png, image_to_png
-from tasks.ingest.ins import GnssDecoder, ImuDecoder, InsDecoder, InsFieldError
-from tasks.ingest.payloads import messages as in_place_messages
-from tasks.ingest.pointcloud import DecodedCloud, decode_cloud
-from tasks.ingest.rawmsg import parser_for
-from tasks.ingest.rows import table_of
+from v2xlake.tasks.ingest.calibration import TfTree, intrinsics_from_camera_info
+from v2xlake.tasks.ingest.images import compressed_to_png, image_to_png
+from v2xlake.tasks.ingest.ins import GnssDecoder, ImuDecoder, InsDecoder, InsFieldError
+from v2xlake.tasks.ingest.payloads import messages as in_place_messages
+from v2xlake.tasks.ingest.pointcloud import DecodedCloud, decode_cloud
+from v2xlake.tasks.ingest.rawmsg import parser_for
+from v2xlake.tasks.ingest.rows import table_of
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 ACCEPTED: dict[Modality, tuple[str, ...]] = {

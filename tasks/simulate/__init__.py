@@ -18,8 +18,8 @@ the exact column time by up to ~120 ns (2.4 um at 20 m/s). Geometry is cast at t
 integer-ns column times.
 """
 
-from tasks.simulate.config import SimConfig
-from tasks.simulate.run import simulate
-from tasks.simulate.truth import SimTruth, load_truth
+from v2xlake.tasks.simulate.config import SimConfig
+from v2xlake.tasks.simulate.run import simulate
+from v2xlake.tasks.simulate.truth import SimTruth, load_truth
 
 __all__ = ["SimConfig", "SimTruth", "load_truth", "simulate"]

@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from tasks.simulate import SimConfig, simulate
+from v2xlake.tasks.simulate import SimConfig, simulate
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -36,9 +36,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from tasks.simulate.rig import CameraRig
-from tasks.simulate.scene import GROUND_ID, Actor, World
-from tasks.simulate.textures import FACE_M, PLATE_MM, face_textures, plate_texture
+from v2xlake.tasks.simulate.rig import CameraRig
+from v2xlake.tasks.simulate.scene import GROUND_ID, Actor, World
+from v2xlake.tasks.simulate.textures import FACE_M, PLATE_MM, face_textures, plate_texture
 
 NEAR = 0.1
 MIN_VISIBLE_PX = 4

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from schemas.clip import (
+from v2xlake.schemas.clip import (
     AgentConfig,
     AgentKind,
     AgentRole,
@@ -23,9 +23,9 @@ from schemas.clip import (
     TimeUnit,
     Weather,
 )
-from tasks.simulate.bagwrite import INS_MSG_TEXT, INS_MSG_TYPE
-from tasks.simulate.config import SimConfig
-from tasks.simulate.rig import AgentRig, frame_name
+from v2xlake.tasks.simulate.bagwrite import INS_MSG_TEXT, INS_MSG_TYPE
+from v2xlake.tasks.simulate.config import SimConfig
+from v2xlake.tasks.simulate.rig import AgentRig, frame_name
 
 MSG_REL = "msgs/v2xlake_msgs/msg/InsPva.msg"
 EGO_FRAME = "base_link"

@@ -13,7 +13,7 @@ Presets (``SimConfig.preset(name, **overrides)``):
 
 Every number that tests relate to (extrinsic errors, INS bias, noise) is a field here, so a
 test can switch an error source off and check the geometry exactly. The whole config is
-written to ``truth/sim_config.json`` so that ``tasks.simulate.truth.load_truth`` can rebuild
+written to ``truth/sim_config.json`` so that ``v2xlake.tasks.simulate.truth.load_truth`` can rebuild
 the analytic trajectories and scene of a clip bit-for-bit.
 """
 

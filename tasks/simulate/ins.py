@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from tasks.geodesy import LocalFrame, matrix_to_attitude
-from tasks.simulate.config import AGENT_NAMES, SimConfig
-from tasks.simulate.trajectory import Trajectory
+from v2xlake.tasks.geodesy import LocalFrame, matrix_to_attitude
+from v2xlake.tasks.simulate.config import AGENT_NAMES, SimConfig
+from v2xlake.tasks.simulate.trajectory import Trajectory
 
 INS_PERIOD_NS = 8_000_000
 GNSS_PERIOD_NS = 100_000_000

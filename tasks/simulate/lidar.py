@@ -36,8 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tasks.simulate.config import AGENT_NAMES, LidarSpec
-from tasks.simulate.scene import GROUND_ID, Scene, World
+from v2xlake.tasks.simulate.config import AGENT_NAMES, LidarSpec
+from v2xlake.tasks.simulate.scene import GROUND_ID, Scene, World
 
 GROUND_RHO = 0.15
 EDGE_GAP_M = 0.5

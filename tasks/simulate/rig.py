@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from schemas.calibration import CameraIntrinsics, DistortionModel
-from tasks.simulate.config import SimConfig
+from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
+from v2xlake.tasks.simulate.config import SimConfig
 
 # name: (yaw deg, hfov deg, base width, base height red, base height black, x, y, z) with x y z
 # the mount position in base_link

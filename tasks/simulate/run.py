@@ -28,13 +28,13 @@ from typing import Any
 
 import numpy as np
 
-from schemas.annotation import AnnotationFile, Box3D, BoxAnnotation
-from schemas.geometry import matrix_to_quat
-from tasks.geodesy import LocalFrame
-from tasks.pngcodec import encode_png
-from tasks.simulate.bagwrite import INS_MSG_TYPE, POINT_DTYPE, BagSink
-from tasks.simulate.camera import CameraRenderer
-from tasks.simulate.clipmeta import (
+from v2xlake.schemas.annotation import AnnotationFile, Box3D, BoxAnnotation
+from v2xlake.schemas.geometry import matrix_to_quat
+from v2xlake.tasks.geodesy import LocalFrame
+from v2xlake.tasks.pngcodec import encode_png
+from v2xlake.tasks.simulate.bagwrite import INS_MSG_TYPE, POINT_DTYPE, BagSink
+from v2xlake.tasks.simulate.camera import CameraRenderer
+from v2xlake.tasks.simulate.clipmeta import (
     EGO_FRAME,
     bag_name,
     build_clip_config,
@@ -43,12 +43,18 @@ from tasks.simulate.clipmeta import (
     lidar_topic,
     write_msg_definition,
 )
-from tasks.simulate.config import AGENT_NAMES, SimConfig
-from tasks.simulate.ins import GNSS_PERIOD_NS, INS_PERIOD_NS, gnss_fixes, ins_error, ins_samples
-from tasks.simulate.lidar import LidarCaster, Scan
-from tasks.simulate.rig import build_rigs, frame_name
-from tasks.simulate.scene import World, build_world
-from tasks.simulate.truth import ins_matrix, pose_columns, transform_dict, write_parquet
+from v2xlake.tasks.simulate.config import AGENT_NAMES, SimConfig
+from v2xlake.tasks.simulate.ins import (
+    GNSS_PERIOD_NS,
+    INS_PERIOD_NS,
+    gnss_fixes,
+    ins_error,
+    ins_samples,
+)
+from v2xlake.tasks.simulate.lidar import LidarCaster, Scan
+from v2xlake.tasks.simulate.rig import build_rigs, frame_name
+from v2xlake.tasks.simulate.scene import World, build_world
+from v2xlake.tasks.simulate.truth import ins_matrix, pose_columns, transform_dict, write_parquet
 
 LAT_LIDAR_NS = 105_000_000
 LAT_CAM_NS = 25_000_000

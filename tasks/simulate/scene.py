@@ -31,9 +31,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.annotation import ObjectClass
-from tasks.simulate.config import SimConfig
-from tasks.simulate.trajectory import KinematicProfile, Trajectory, Turn
+from v2xlake.schemas.annotation import ObjectClass
+from v2xlake.tasks.simulate.config import SimConfig
+from v2xlake.tasks.simulate.trajectory import KinematicProfile, Trajectory, Turn
 
 GROUND_ID = 1
 EGO_HEIGHT = 0.40  # INS (base_link) above the ground, at the body's geometric centre

@@ -4,7 +4,7 @@ Conventions (all internal geometry of the simulator):
 
 * time ``tau``: float64 seconds since the clip's first PPS (``start_s``); GNSS epoch ns is
   ``start_ns + round(tau * 1e9)``.
-* world: the clip's local ENU frame = ``tasks.geodesy.LocalFrame(origin_lat, origin_lon)``,
+* world: the clip's local ENU frame = ``v2xlake.tasks.geodesy.LocalFrame(origin_lat, origin_lon)``,
   z = ellipsoidal height. The red agent's TRUE INS position at tau = 0 is (0, 0, z0) in it,
   i.e. exactly the frame the anonymizer builds from the first (bias-free) INS fix.
 * body: x forward, y left, z up; ``R_world_body = Rz(yaw) Ry(-pitch) Rx(roll)`` (pitch positive

@@ -47,11 +47,11 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from schemas.geometry import Transform, matrix_to_quat
-from tasks.simulate.config import SimConfig
-from tasks.simulate.ins import InsError, ins_error
-from tasks.simulate.rig import AgentRig, build_rigs
-from tasks.simulate.scene import World, build_world
+from v2xlake.schemas.geometry import Transform, matrix_to_quat
+from v2xlake.tasks.simulate.config import SimConfig
+from v2xlake.tasks.simulate.ins import InsError, ins_error
+from v2xlake.tasks.simulate.rig import AgentRig, build_rigs
+from v2xlake.tasks.simulate.scene import World, build_world
 
 
 def transform_dict(m: np.ndarray) -> dict[str, Any]:

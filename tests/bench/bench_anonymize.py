@@ -32,7 +32,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from tasks.anonymize.detectors import (  # noqa: E402
+from v2xlake.tasks.anonymize.detectors import (  # noqa: E402
     CenterFaceDetector,
     ClassicPlateConfig,
     ClassicPlateDetector,
@@ -42,9 +42,9 @@ from tasks.anonymize.detectors import (  # noqa: E402
     HaarPlateDetector,
     ScanConfig,
 )
-from tasks.anonymize.evaluate import match, real_faces, synth_scene  # noqa: E402
-from tasks.anonymize.images import anonymize_png  # noqa: E402
-from tasks.anonymize.run import AnonymizeConfig  # noqa: E402
+from v2xlake.tasks.anonymize.evaluate import match, real_faces, synth_scene  # noqa: E402
+from v2xlake.tasks.anonymize.images import anonymize_png  # noqa: E402
+from v2xlake.tasks.anonymize.run import AnonymizeConfig  # noqa: E402
 
 STREET = REPO.parent / "shared" / "data" / "real" / "images" / "street_plate_small_pjlab_0.png"
 STREET_PLATE = (980.0, 629.0, 1006.0, 640.0)
@@ -105,7 +105,7 @@ def real_images(detectors: dict) -> None:
 
 
 def _iou(a, b) -> float:
-    from tasks.anonymize.detectors import iou_matrix
+    from v2xlake.tasks.anonymize.detectors import iou_matrix
 
     return float(iou_matrix(np.array(a), np.array(b))[0, 0])
 
@@ -293,17 +293,17 @@ def sim_recall(clip_dir: Path, every: int = 1, workers: int = 2) -> None:
 
     import pyarrow.parquet as pq
 
-    from storage.lake import Lake
-    from tasks.anonymize.detectors import scan_plan
-    from tasks.anonymize.evaluate import (
+    from v2xlake.storage.lake import Lake
+    from v2xlake.tasks.anonymize.detectors import scan_plan
+    from v2xlake.tasks.anonymize.evaluate import (
         PLATE_MIN_PX,
         face_min_px,
         lake_image_keys,
         recall_by_size,
         sim_hits,
     )
-    from tasks.anonymize.images import decode_image, to_bgr8
-    from tasks.ingest import run_ingest
+    from v2xlake.tasks.anonymize.images import decode_image, to_bgr8
+    from v2xlake.tasks.ingest import run_ingest
 
     truth = pq.read_table(clip_dir / "truth" / "boxes2d.parquet").to_pydict()
     cfg = AnonymizeConfig()

@@ -29,8 +29,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np
 
-from tasks.deskew import deskew_points
-from tasks.interpolate import PoseTrack, interpolate_poses, pose_matrices
 from tests.test_deskew import (
     Motion,
     ins_track,
@@ -39,6 +37,8 @@ from tests.test_deskew import (
     scipy_reference,
     true_lidar_matrices,
 )
+from v2xlake.tasks.deskew.core import deskew_points
+from v2xlake.tasks.interpolate import PoseTrack, interpolate_poses, pose_matrices
 
 
 def numpy_gather(xyz: np.ndarray, t_ns: np.ndarray, track: PoseTrack, e: np.ndarray,

@@ -25,14 +25,14 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from storage.lake import Lake  # noqa: E402
-from tasks.export.common import iter_point_frames  # noqa: E402
-from tasks.export.nuscenes import (  # noqa: E402
+from tests.export_fixtures import build_clean_clip  # noqa: E402
+from v2xlake.storage.lake import Lake  # noqa: E402
+from v2xlake.tasks.export.common import iter_point_frames  # noqa: E402
+from v2xlake.tasks.export.nuscenes import (  # noqa: E402
     NuScenesExportConfig,
     export_nuscenes,
     write_pcd_bin,
 )
-from tests.export_fixtures import build_clean_clip  # noqa: E402
 
 
 def main() -> None:

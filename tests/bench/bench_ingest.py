@@ -14,7 +14,7 @@ NumPy and rosbags' writers, for ROS 2 sqlite3 and MCAP and for ROS 1, then times
   when the lake is on the bag's filesystem);
 - stage key: checksums of the clip's input files, which the flow takes before deciding
   whether ingest must run at all (first call; later calls are remembered per size + mtime);
-- manifest: ``storage.manifest.record`` (the checksums come from the ingest report).
+- manifest: ``v2xlake.storage.manifest.record`` (the checksums come from the ingest report).
 
 Each figure is the median of ``--repeat`` runs, floor and ingest interleaved so both see the
 same neighbours. Prints bag MB/s and the ratio ingest / floor (target: <= 2x) in wall time and
@@ -53,10 +53,10 @@ from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
 from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
-from schemas.stage import StageReport  # noqa: E402
-from storage import manifest as mf  # noqa: E402
-from storage.lake import Lake  # noqa: E402
-from tasks.ingest import IngestConfig, clip_inputs, run_ingest  # noqa: E402
+from v2xlake.schemas.stage import StageReport  # noqa: E402
+from v2xlake.storage import manifest as mf  # noqa: E402
+from v2xlake.storage.lake import Lake  # noqa: E402
+from v2xlake.tasks.ingest import IngestConfig, clip_inputs, run_ingest  # noqa: E402
 
 BEAMS, COLS = 128, 1800
 T0 = 1_700_000_000 * 1_000_000_000
@@ -202,11 +202,11 @@ def floor(bag: Path, storage: str) -> tuple[float, float]:
 def decode_only(bag: Path, storage: str) -> tuple[float, float]:
     """Reading plus ingest's parse + decode_cloud (columns, NaN drop, int64 ns time): no
     Parquet, no I/O."""
-    from schemas.clip import LidarFields, PointTimeField, TimeReference, TimeUnit
-    from tasks.ingest.bagopen import header_stamp_ns
-    from tasks.ingest.payloads import messages
-    from tasks.ingest.pointcloud import decode_cloud
-    from tasks.ingest.rawmsg import parser_for
+    from v2xlake.schemas.clip import LidarFields, PointTimeField, TimeReference, TimeUnit
+    from v2xlake.tasks.ingest.bagopen import header_stamp_ns
+    from v2xlake.tasks.ingest.payloads import messages
+    from v2xlake.tasks.ingest.pointcloud import decode_cloud
+    from v2xlake.tasks.ingest.rawmsg import parser_for
 
     lf = LidarFields(return_id="return_type", time=PointTimeField(
         field="timestamp", unit=TimeUnit.S, reference=TimeReference.ABSOLUTE))
@@ -262,7 +262,7 @@ def run_camera_case(tmp: Path, frames: int, storage: str, repeat: int) -> None:
     go below; ingest encodes on every core)."""
     import cv2
 
-    from tasks.pngcodec import encode_png
+    from v2xlake.tasks.pngcodec import encode_png
 
     d = tmp / "clip"
     d.mkdir()

@@ -29,15 +29,15 @@ import pyarrow.parquet as pq
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from schemas.arrow import arrow_schema  # noqa: E402
-from schemas.tables import LidarPointRow  # noqa: E402
+from v2xlake.schemas.arrow import arrow_schema  # noqa: E402
+from v2xlake.schemas.tables import LidarPointRow  # noqa: E402
 
 OUSTER = REPO.parent / "shared" / "data" / "real" / "bags" / "ouster_os1_128_3frames_ros2"
 
 
 def real_frames() -> list[pa.Table]:
-    from storage.lake import Lake
-    from tasks.ingest import IngestConfig, run_ingest
+    from v2xlake.storage.lake import Lake
+    from v2xlake.tasks.ingest import IngestConfig, run_ingest
 
     with tempfile.TemporaryDirectory() as d:
         lake = Lake(d)
@@ -81,7 +81,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--repeat", type=int, default=3, help="best of N (noisy machines)")
     args = ap.parse_args()
-    from storage.lake import RAW_OPTIONS, ParquetOptions
+    from v2xlake.storage.lake import RAW_OPTIONS, ParquetOptions
 
     frames = frames_table(real_frames(), args.frames)
     CANDIDATES["lake: ParquetOptions()"] = ParquetOptions().writer_kwargs(frames[0].schema)

@@ -24,9 +24,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np
 
-from tasks.registration.backends import GicpParams, make_backend
-from tasks.registration.core import QualityLimits, refine, transform_delta
 from tests.test_register import drive
+from v2xlake.tasks.register.backends import GicpParams, make_backend
+from v2xlake.tasks.register.core import QualityLimits, refine, transform_delta
 
 
 def main() -> None:

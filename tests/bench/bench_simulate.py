@@ -20,8 +20,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from tasks.simulate import SimConfig, simulate
-from tasks.simulate.bagwrite import POINT_DTYPE, BagSink
+from v2xlake.tasks.simulate import SimConfig, simulate
+from v2xlake.tasks.simulate.bagwrite import POINT_DTYPE, BagSink
 
 
 def _size(p: Path) -> int:
@@ -73,7 +73,7 @@ def geometry(tmp: Path) -> None:
     """Interpolation error of 8 ms INS samples + linear/SLERP, and the raw sweep gap, at 20 m/s."""
     from scipy.spatial.transform import Rotation, Slerp
 
-    from tasks.simulate import load_truth
+    from v2xlake.tasks.simulate import load_truth
 
     cfg = SimConfig.preset("small", seconds=1, speed_mps=20.0, cameras=("CAM_FRONT",),
                            camera_hz=5, write_lidar_truth=False)

@@ -1,15 +1,15 @@
 """Cross-agent LiDAR registration (main paper eq. 1a / 1b): numeric core, GICP backends,
-quality control and the Fig. 5 bird's-eye view. The lake stage is :mod:`tasks.register`."""
+quality control and the Fig. 5 bird's-eye view. The lake stage is :mod:`tasks.register.stage`."""
 
-from tasks.registration.backends import (
+from v2xlake.tasks.register.backends import (
     GicpParams,
     Open3dBackend,
     RegistrationBackend,
     SmallGicpBackend,
     make_backend,
 )
-from tasks.registration.bev import render_registration_bev
-from tasks.registration.core import (
+from v2xlake.tasks.register.bev import render_registration_bev
+from v2xlake.tasks.register.core import (
     PairResult,
     QualityLimits,
     initial_transform,
@@ -17,7 +17,7 @@ from tasks.registration.core import (
     refine,
     transform_delta,
 )
-from tasks.registration.voxel import voxel_downsample
+from v2xlake.tasks.register.voxel import voxel_downsample
 
 __all__ = [
     "GicpParams",

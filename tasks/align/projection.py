@@ -18,8 +18,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from schemas.calibration import CameraIntrinsics, DistortionModel
-from tasks.alignment.boxes import EDGES, box_corners
+from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
+from v2xlake.tasks.align.boxes import EDGES, box_corners
 
 
 @dataclass(frozen=True)

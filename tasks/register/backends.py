@@ -17,7 +17,7 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 
-from tasks.registration.voxel import voxel_downsample
+from v2xlake.tasks.register.voxel import voxel_downsample
 
 BackendName = Literal["small_gicp", "open3d"]
 

@@ -1,6 +1,6 @@
 """Oriented 3D boxes as arrays: corners, rigid transforms, point membership.
 
-Boxes follow ``schemas.annotation.Box3D``: ``size`` is (width, length, height) and the box's
+Boxes follow ``v2xlake.schemas.annotation.Box3D``: ``size`` is (width, length, height) and the box's
 x-axis is its length (heading). Everything here is vectorised over boxes (and points),
 because a 128-beam scan has ~225k points and a busy frame dozens of boxes: a Python loop
 over points would dominate the stage.
@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from schemas.geometry import matrix_to_quat, quat_to_matrix
+from v2xlake.schemas.geometry import matrix_to_quat, quat_to_matrix
 
 # unit-cube corner signs, ordered so that 0-3 is the bottom face and 4-7 the top face
 _SIGNS = np.array(

@@ -6,7 +6,7 @@ deskewed scan's reference time and the LiDAR extrinsics (eq. 1a); GICP on the de
 scans refines it, warm-started from the previous frame's accepted correction. Quality and
 the accept / reject decision are recorded per frame in clean ``registrations``; a
 before/after bird's-eye view (Fig. 5) goes to ``clean/images/<clip>/registration_bev.png``.
-The numeric work lives in :mod:`tasks.registration`; this module is lake I/O.
+The numeric work lives in :mod:`v2xlake.tasks.register`; this module is lake I/O.
 """
 
 from __future__ import annotations
@@ -22,18 +22,18 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.arrow import rows_to_table
-from schemas.geometry import matrix_to_quat
-from schemas.stage import OutputFile, StageReport
-from schemas.tables import RegistrationRow
-from storage.lake import Lake
-from tasks.deskew_stage import OUT_TABLE as DESKEWED
-from tasks.deskew_stage import load_extrinsics, load_pose_track
-from tasks.errors import ClipError
-from tasks.interpolate import PoseTrack
-from tasks.registration.backends import GicpParams, Prepared, RegistrationBackend, make_backend
-from tasks.registration.bev import render_registration_bev
-from tasks.registration.core import PairResult, QualityLimits, initial_transform_at, refine
+from v2xlake.schemas.arrow import rows_to_table
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.geometry import matrix_to_quat
+from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.tables import RegistrationRow
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.deskew.stage import OUT_TABLE as DESKEWED
+from v2xlake.tasks.deskew.stage import load_extrinsics, load_pose_track
+from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.register.backends import GicpParams, Prepared, RegistrationBackend, make_backend
+from v2xlake.tasks.register.bev import render_registration_bev
+from v2xlake.tasks.register.core import PairResult, QualityLimits, initial_transform_at, refine
 
 log = logging.getLogger(__name__)
 
@@ -267,7 +267,7 @@ def plot_registration(lake: Lake, clip_id: str, frame_idx: int, out_png: str | P
                       agent_other: str | None = None, config: RegisterConfig | None = None
                       ) -> Path:
     """Fig. 5 for one frame from the stored ``registrations`` row and deskewed scans."""
-    from schemas.geometry import Transform
+    from v2xlake.schemas.geometry import Transform
 
     cfg = config or RegisterConfig()
     regs = lake.read_table("clean", "registrations", clip_id=clip_id)

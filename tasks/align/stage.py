@@ -10,7 +10,7 @@ static / moving objects). One overlay PNG per agent (the frame and camera with t
 boxes) shows the three methods' boxes, the true boxes and the LiDAR points on the images the
 methods chose (two panels when the stamp method chose another image than the frame method).
 
-The numeric core is in :mod:`tasks.alignment`; this module only reads and writes the lake.
+The numeric core is in :mod:`v2xlake.tasks.align`; this module only reads and writes the lake.
 """
 
 from __future__ import annotations
@@ -24,13 +24,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.arrow import rows_to_table
-from schemas.calibration import CameraIntrinsics, DistortionModel
-from schemas.stage import OutputFile, StageReport
-from schemas.tables import AlignmentRow
-from storage.lake import Lake
-from tasks.alignment.boxes import BoxArray
-from tasks.alignment.methods import (
+from v2xlake.schemas.arrow import rows_to_table
+from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.tables import AlignmentRow
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.align.boxes import BoxArray
+from v2xlake.tasks.align.methods import (
     METHODS,
     AlignParams,
     Association,
@@ -43,12 +44,11 @@ from tasks.alignment.methods import (
     estimate_velocities,
     object_points,
 )
-from tasks.alignment.metrics import center_offset_px, iou_xyxy, summarize
-from tasks.alignment.overlay import OverlayBoxes, Panel, render_overlay
-from tasks.alignment.projection import Camera, points_in_fov, project_points, transform_points
-from tasks.errors import ClipError
-from tasks.export.common import AgentData, CameraCalib, iter_point_frames, load_clip
-from tasks.interpolate import PoseCoverageError
+from v2xlake.tasks.align.metrics import center_offset_px, iou_xyxy, summarize
+from v2xlake.tasks.align.overlay import OverlayBoxes, Panel, render_overlay
+from v2xlake.tasks.align.projection import Camera, points_in_fov, project_points, transform_points
+from v2xlake.tasks.export.common import AgentData, CameraCalib, iter_point_frames, load_clip
+from v2xlake.tasks.interpolate import PoseCoverageError
 
 STAGE = "align"
 

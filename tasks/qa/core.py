@@ -7,7 +7,7 @@ time not bracketed by INS samples each break a later stage (deskew, registration
 alignment) in a way that is hard to see there, so they are caught here, on the raw zone, with
 the value, the threshold and the place (agent, sensor, topic, time span) in every row.
 
-Severity: "error" quarantines the clip (``storage.quarantine``) and raises ``ClipError``;
+Severity: "error" quarantines the clip (``v2xlake.storage.quarantine``) and raises ``ClipError``;
 "warning" is recorded only. PPS-grid checks are errors for an agent that has an INS (its GNSS
 receiver supplies the PPS the sensors claim to follow) and warnings for an agent without one
 (a free-running clock, e.g. the real Ouster test capture). An agent with no INS topic
@@ -25,13 +25,13 @@ import numpy as np
 import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.arrow import rows_to_table
-from schemas.clip import AgentConfig, ClipConfig, Modality, SensorConfig
-from schemas.stage import OutputFile, StageReport
-from schemas.tables import QaCheckRow
-from storage.lake import Lake
-from storage.quarantine import quarantine
-from tasks.errors import ClipError
+from v2xlake.schemas.arrow import rows_to_table
+from v2xlake.schemas.clip import AgentConfig, ClipConfig, Modality, SensorConfig
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.tables import QaCheckRow
+from v2xlake.storage.lake import Lake
+from v2xlake.storage.quarantine import quarantine
 
 STAGE = "qa"
 NS = 1_000_000_000

@@ -29,14 +29,14 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.arrow import rows_to_table
-from schemas.geometry import matrix_to_quat, quat_to_matrix
-from schemas.stage import OutputFile, StageReport
-from schemas.tables import AnnotationWorldRow, InstanceRow
-from storage.lake import Lake
-from tasks.alignment.boxes import count_points_in_boxes
-from tasks.errors import ClipError
-from tasks.export.common import AgentData, iter_point_frames, load_clip
+from v2xlake.schemas.arrow import rows_to_table
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.geometry import matrix_to_quat, quat_to_matrix
+from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.tables import AnnotationWorldRow, InstanceRow
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.align.boxes import count_points_in_boxes
+from v2xlake.tasks.export.common import AgentData, iter_point_frames, load_clip
 
 STAGE = "annotate"
 

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tasks.interpolate import PoseTrack, invert_rigid
-from tasks.registration.backends import Prepared, RegistrationBackend
+from v2xlake.tasks.interpolate import PoseTrack, invert_rigid
+from v2xlake.tasks.register.backends import Prepared, RegistrationBackend
 
 
 def initial_transform(T_W_I1: np.ndarray, T_W_I2: np.ndarray, T_I1_L1: np.ndarray,

@@ -29,11 +29,11 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.stage import OutputFile, StageReport
-from storage.lake import Lake
-from tasks.deskew import DeskewResult, deskew_points
-from tasks.errors import ClipError
-from tasks.interpolate import PoseTrack
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.deskew.core import DeskewResult, deskew_points
+from v2xlake.tasks.interpolate import PoseTrack
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +116,7 @@ def load_pose_track(lake: Lake, clip_id: str, agent_id: str) -> PoseTrack:
 
 def load_extrinsics(lake: Lake, clip_id: str, agent_id: str) -> dict[str, np.ndarray]:
     """``T_ego_sensor`` 4x4 of every LiDAR of the agent, from clean ``calibrated_sensors``."""
-    from schemas.geometry import quat_to_matrix
+    from v2xlake.schemas.geometry import quat_to_matrix
 
     cal = lake.read_table("clean", "calibrated_sensors", clip_id=clip_id, agent_id=agent_id)
     out: dict[str, np.ndarray] = {}

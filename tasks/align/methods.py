@@ -31,10 +31,10 @@ from typing import Literal
 
 import numpy as np
 
-from tasks.alignment.boxes import BoxArray, points_in_boxes
-from tasks.alignment.projection import Camera, points_in_fov, project_boxes_2d
-from tasks.deskew import deskew_points
-from tasks.interpolate import PoseTrack
+from v2xlake.tasks.align.boxes import BoxArray, points_in_boxes
+from v2xlake.tasks.align.projection import Camera, points_in_fov, project_boxes_2d
+from v2xlake.tasks.deskew.core import deskew_points
+from v2xlake.tasks.interpolate import PoseTrack
 
 Method = Literal["stamp", "frame", "target"]
 METHODS: tuple[Method, ...] = ("stamp", "frame", "target")

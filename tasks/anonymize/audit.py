@@ -39,7 +39,7 @@ import pyarrow.compute as pc
 import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 
-from storage.lake import Lake
+from v2xlake.storage.lake import Lake
 
 EPOCH_LO_S = 631_152_000  # 1990-01-01
 EPOCH_HI_S = 4_102_444_800  # 2100-01-01
@@ -468,10 +468,10 @@ def _recheck_images(
 ) -> list[Finding]:
     import cv2
 
-    from tasks.anonymize.images import to_bgr8
+    from v2xlake.tasks.anonymize.images import to_bgr8
 
     if detector is None:
-        from tasks.anonymize.run import AnonymizeConfig
+        from v2xlake.tasks.anonymize.run import AnonymizeConfig
 
         detector = AnonymizeConfig().build_detector()
     idx = np.unique(np.linspace(0, len(images) - 1, min(n, len(images))).round().astype(int))

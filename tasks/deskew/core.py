@@ -2,7 +2,7 @@
 
 Every point is moved with its own INS-interpolated pose, ``p(t_r) = T^-1(t_r) T(t_i) p(t_i)``
 where ``T(t) = T_world_ego(t) @ T_ego_lidar`` is the LiDAR pose, interpolated with the one
-definition in :mod:`tasks.interpolate`. No constant-velocity shortcut: a wobbling sensor at
+definition in :mod:`v2xlake.tasks.interpolate`. No constant-velocity shortcut: a wobbling sensor at
 20 m/s leaves centimetres of error with one (kiss-icp's deskew, see bench_deskew.py).
 
 Why it is fast while staying exact: a spinning LiDAR fires all lasers of one azimuth column
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from tasks.interpolate import PoseTrack, pose_at
+from v2xlake.tasks.interpolate import PoseTrack, pose_at
 
 __all__ = ["DeskewResult", "PoseTrack", "deskew_points"]
 

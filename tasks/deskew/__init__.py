@@ -1,0 +1,1 @@
+"""The deskew stage: numeric core in core.py, the lake stage in stage.py."""
