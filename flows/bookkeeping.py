@@ -11,16 +11,13 @@ from __future__ import annotations
 
 import inspect
 import logging
-import typing
-from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
 from pydantic import BaseModel
 
-from v2xlake.flows.stages import DEFAULT_STAGES, StageSpec
-from v2xlake.schemas.stage import StageReport
+from v2xlake.schemas.stage import Stage, StageReport
 from v2xlake.storage import manifest
 from v2xlake.storage.lake import Lake
 
@@ -29,51 +26,27 @@ log = logging.getLogger("v2xlake.flows")
 
 
 # ---------------------------------------------------------------- cache (storage.manifest)
-def stage_config(fn: Callable[..., Any]) -> Any:
-    """The stage's default config object (what its manifest's params_hash is taken of).
+def stage_key(lake: Lake, clip_id: str, stage: Stage[Any], config: BaseModel,
+              clip_dir: Path | None) -> manifest.StageKey:
+    """storage.manifest's key: what the stage reads (files or tables), parameters, code."""
+    from v2xlake.flows.pipeline import STAGES
 
-    Entry points declare ``config: XConfig | None = None`` or ``config: XConfig = XConfig()``;
-    either way the default parameters are an ``XConfig()``.
-    """
-    try:
-        param = inspect.signature(fn).parameters.get("config")
-    except (TypeError, ValueError):
-        return None
-    if param is None:
-        return None
-    if isinstance(param.default, BaseModel):
-        return param.default
-    try:
-        hint = typing.get_type_hints(fn).get("config")
-    except Exception:
-        return None
-    for cand in (hint, *typing.get_args(hint)):
-        if isinstance(cand, type) and issubclass(cand, BaseModel):
-            try:
-                return cand()
-            except Exception:
-                return None
-    return None
-
-
-def stage_key(lake: Lake, clip_id: str, spec: StageSpec, fn: Callable[..., Any],
-              upstream: Sequence[str], clip_dir: Path | None) -> manifest.StageKey:
-    """v2xlake.storage.manifest's key: inputs (files or upstream outputs), parameters, code."""
-    default = next((s for s in DEFAULT_STAGES if s.name == spec.name), None)
     code_paths: list[str] | None = None
-    if default is None or default.target != spec.target:  # not a registry stage: hash its file
-        src = inspect.getsourcefile(fn)
+    if stage not in STAGES:  # a plugin or test double: hash its own source file
+        src = inspect.getsourcefile(stage.run)
         code_paths = [src] if src else []
     input_files: list[Path] | None = None
-    if spec.input == "clip_dir" and clip_dir is not None:
-        if default is not None and default.target == spec.target and spec.name == "ingest":
+    if stage.input == "clip_dir" and clip_dir is not None:
+        if stage in STAGES:
             from v2xlake.tasks.ingest import clip_inputs
 
             input_files = list(clip_inputs(clip_dir)[1])
         else:
             input_files = sorted(p for p in Path(clip_dir).rglob("*") if p.is_file())
-    return manifest.stage_key(lake, clip_id, spec.name, stage_config(fn), list(upstream),
-                              input_files=input_files, code_paths=code_paths)
+    return manifest.stage_key(lake, clip_id, stage.name, config,
+                              input_files=input_files,
+                              read_tables=[(t.zone, t.name) for t in stage.reads],
+                              code_paths=code_paths)
 
 
 def cached_report(lake: Lake, clip_id: str, stage: str,
@@ -85,12 +58,13 @@ def cached_report(lake: Lake, clip_id: str, stage: str,
     assert m is not None
     images = [lake.path(o.path) if not o.path.startswith(lake.base) else o.path
               for o in m.outputs if o.path.endswith(".png")]
-    return StageReport(stage=stage, clip_id=clip_id, outputs=m.outputs, metrics=m.metrics,
-                       notes=m.notes, images=images)
+    status = "not_applicable" if m.status == "not_applicable" else "done"
+    return StageReport(stage=stage, clip_id=clip_id, status=status, reason=m.reason,
+                       outputs=m.outputs, metrics=m.metrics, notes=m.notes, images=images)
 
 
 def record(lake: Lake, report: StageReport, key: manifest.StageKey) -> None:
-    manifest.record(lake, report, key, "done")
+    manifest.record(lake, report, key, report.status)
 
 
 def processed_clip_ids(lake: Lake) -> set[str]:

@@ -99,14 +99,14 @@ def stage_table(summary: dict[str, Any]) -> Any:
     table = Table(title=f"clip {summary['clip_id']}: {summary['status']}")
     for col in ("stage", "status", "time [s]", "key metrics"):
         table.add_column(col)
-    colors = {"done": "green", "cached": "cyan", "unavailable": "yellow", "failed": "red"}
+    colors = {"done": "green", "cached": "cyan", "not_applicable": "yellow", "failed": "red"}
     for o in summary["stages"]:
         metrics = (o.get("report") or {}).get("metrics") or {}
         shown = ", ".join(f"{k}={_num(v)}" for k, v in list(metrics.items())[:5])
         status = o["status"]
+        reason = (o.get("report") or {}).get("reason") or o.get("error") or ""
         table.add_row(o["stage"], f"[{colors.get(status, 'white')}]{status}[/]",
-                      f"{float(o.get('seconds', 0.0)):.1f}",
-                      shown or (o.get("error") or "")[:80])
+                      f"{float(o.get('seconds', 0.0)):.1f}", shown or reason[:80])
     return table
 
 
@@ -115,26 +115,24 @@ def _num(v: Any) -> str:
 
 
 def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
-                stages: list[str] | None = None, registry: list[str] | None = None,
-                console: Any = None, show_progress: bool = True) -> list[dict[str, Any]]:
+                stages: list[str] | None = None, params: Any = None,
+                pipeline: str | None = None, console: Any = None,
+                show_progress: bool = True) -> list[dict[str, Any]]:
     """Process clips through Prefect with a progress display; returns the per-clip summaries."""
-    from v2xlake.flows import process as process_mod
+    from v2xlake.flows import pipeline as pipeline_mod
+    from v2xlake.flows.params import parse_params
     from v2xlake.flows.runners import needs_api_server, parse_runner
-    from v2xlake.flows.stages import check_available, resolve_registry, select
 
     console = console or _console()
-    specs = select(resolve_registry(registry), stages)
-    avail = check_available(specs)
-    for a in avail:
-        if not a.ok:
-            console.print(f"[yellow]stage {a.spec.name} unavailable[/]: {a.error}")
-    n_run = sum(a.ok for a in avail)
+    run_params = parse_params(params)  # bad parameters: an error before any clip is touched
+    chosen = pipeline_mod.select(pipeline_mod.resolve_pipeline(pipeline), stages)
     parse_runner(runner)
 
     def go() -> list[dict[str, Any]]:
         with prefect_session():
-            return list(process_mod.process_clips(list(clip_dirs), lake, stages, registry,
-                                                  runner))
+            return list(pipeline_mod.process_clips(
+                list(clip_dirs), lake, stages, run_params.model_dump(mode="json"), pipeline,
+                runner))
 
     server_cm: Any = None
     if needs_api_server(runner):
@@ -146,12 +144,12 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
         if server_cm is not None:
             server_cm.__enter__()
         if show_progress and parse_runner(runner).kind == "local":
-            with StageProgress(n_run * len(clip_dirs), console) as prog:
-                process_mod.PROGRESS_HOOK = prog
+            with StageProgress(len(chosen) * len(clip_dirs), console) as prog:
+                pipeline_mod.PROGRESS_HOOK = prog
                 try:
                     return go()
                 finally:
-                    process_mod.PROGRESS_HOOK = None
+                    pipeline_mod.PROGRESS_HOOK = None
         with console.status(f"processing {len(clip_dirs)} clip(s) on {runner} ..."):
             return go()
     finally:
@@ -160,10 +158,12 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
 
 
 def cmd_process(args: argparse.Namespace) -> int:
+    from v2xlake.flows.params import load_params
+
     console = _console()
     t0 = time.perf_counter()
     results = run_process(args.clip_dirs, args.lake, args.runner, _csv(args.stages),
-                          _csv(args.registry), console)
+                          load_params(args.params), args.pipeline, console)
     for r in results:
         console.print(stage_table(r))
         if r["status"] != "ok":
@@ -174,6 +174,27 @@ def cmd_process(args: argparse.Namespace) -> int:
     console.print(f"{ok}/{len(results)} clip(s) ok in {time.perf_counter() - t0:.1f} s; "
                   f"lake: {args.lake}")
     return 0 if ok == len(results) else 1
+
+
+def cmd_params_show(args: argparse.Namespace) -> int:
+    """The effective parameters: defaults, then ``--params``, then a clip's own block."""
+    import yaml
+
+    from v2xlake.flows.params import clip_params, load_params
+    from v2xlake.flows.pipeline import STAGES
+
+    run = load_params(args.params)
+    data = run.model_dump(mode="json")
+    if args.clip:
+        own = clip_params(args.clip)
+        for stage in STAGES:
+            data[stage.name] = run.for_stage(stage, own).model_dump(mode="json")
+    if args.stage:
+        if args.stage not in data:
+            raise ValueError(f"unknown section {args.stage!r}; known: {sorted(data)}")
+        data = {args.stage: data[args.stage]}
+    sys.stdout.write(yaml.safe_dump(data, sort_keys=False))
+    return 0
 
 
 # ---------------------------------------------------------------- query
@@ -213,16 +234,19 @@ def cmd_query(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- export / convert / plot / audit
 def cmd_export(args: argparse.Namespace) -> int:
     from v2xlake.flows.bookkeeping import query
+    from v2xlake.flows.params import load_params
     from v2xlake.flows.release import call_export
     from v2xlake.storage.lake import Lake
 
     lake = Lake(args.lake)
+    params = load_params(args.params)
     clip_ids = args.clip or [r["clip_id"] for r in query(
         lake, "SELECT clip_id FROM clips WHERE status = 'ok' ORDER BY 1").to_pylist()]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    metrics = call_export(args.format, lake, clip_ids, out)
+    metrics = call_export(args.format, lake, clip_ids, out,
+                          config=params.export.section(args.format))
     _console().print(f"{args.format}: {len(clip_ids)} clip(s) -> {out} in "
                      f"{time.perf_counter() - t0:.1f} s {metrics}")
     return 0
@@ -358,8 +382,18 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--runner", default="local",
                     help="local | dask (LocalCluster, 2 workers) | dask=ADDRESS | dask=N")
     pr.add_argument("--stages", help=f"comma subset of {STAGES_HELP}")
-    pr.add_argument("--registry", help=argparse.SUPPRESS)  # name=module:fn,... (tests)
+    pr.add_argument("--params", metavar="FILE.yaml",
+                    help="pipeline parameters, one section per stage (see `params show`)")
+    pr.add_argument("--pipeline", help=argparse.SUPPRESS)  # module:STAGES (test doubles)
     pr.set_defaults(func=cmd_process)
+
+    pa_ = sub.add_parser("params", help="pipeline parameters")
+    ps = pa_.add_subparsers(dest="params_command", required=True, metavar="ACTION")
+    psh = ps.add_parser("show", help="print the effective parameters as YAML")
+    psh.add_argument("--params", metavar="FILE.yaml", help="a run's parameters file")
+    psh.add_argument("--clip", metavar="CLIP_DIR", help="apply this clip's params: block")
+    psh.add_argument("--stage", help="only this section")
+    psh.set_defaults(func=cmd_params_show)
 
     q = sub.add_parser("query", help="SQL over the catalog")
     q.add_argument("sql")
@@ -373,6 +407,7 @@ def build_parser() -> argparse.ArgumentParser:
     lake_arg(e)
     e.add_argument("--clip", action="append", help="clip id (repeatable; default all)")
     e.add_argument("--out", required=True)
+    e.add_argument("--params", metavar="FILE.yaml", help="parameters; its export: section")
     e.set_defaults(func=cmd_export)
 
     c = sub.add_parser("convert-bag", help="convert a bag between ROS 1 and ROS 2")
@@ -433,6 +468,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from v2xlake.schemas.errors import ClipError
 
         if isinstance(exc, ReleaseError | ClipError | ValueError | FileNotFoundError):
+            # ParamsError is a ValueError: bad parameters are a usage error
             _console(stderr=True).print(f"[red]error[/]: {exc}")
             return 2
         raise

@@ -29,19 +29,13 @@ from pathlib import Path
 from typing import Any
 
 from prefect import flow, get_run_logger
+from pydantic import BaseModel
 
 from v2xlake.flows import bookkeeping
 from v2xlake.storage.lake import Lake
+from v2xlake.tasks.export.exporters import EXPORTERS, FormatExporter
 from v2xlake.tasks.release_split import SPLITS, SceneKey, SplitConfig, assign_splits, split_counts
 
-EXPORTS = {
-    "nuscenes": "v2xlake.tasks.export.nuscenes:export_nuscenes",
-    "eth3d": "v2xlake.tasks.export.eth3d:export_eth3d",
-    "rosbag": "v2xlake.tasks.export.rosbag:export_rosbag",
-    "opencood": "v2xlake.tasks.export.opencood:export_opencood",
-    "bev": "v2xlake.tasks.export.bev:export_bev",
-    "scene-transfer": "v2xlake.tasks.export.scene_transfer:export_scene_transfer",
-}
 SEAL_FILES = ("checksums.json", "SHA256SUMS")
 
 
@@ -49,21 +43,11 @@ class ReleaseError(RuntimeError):
     pass
 
 
-def load_export(fmt: str) -> Any:
-    """E's export function for a format name (tries ``tasks.export.<fmt>`` then the package)."""
-    import importlib
-
-    if fmt not in EXPORTS:
-        raise ReleaseError(f"unknown export format {fmt!r}; known: lake, {', '.join(EXPORTS)}")
-    mod_name, _, attr = EXPORTS[fmt].partition(":")
-    for candidate in (mod_name, "v2xlake.tasks.export"):
-        try:
-            mod = importlib.import_module(candidate)
-        except ImportError:
-            continue
-        if hasattr(mod, attr):
-            return getattr(mod, attr)
-    raise ReleaseError(f"export {fmt!r} is not available on this checkout ({EXPORTS[fmt]})")
+def load_export(fmt: str) -> FormatExporter:
+    """The exporter of a format name (``tasks.export.exporters.EXPORTERS``)."""
+    if fmt not in EXPORTERS:
+        raise ReleaseError(f"unknown export format {fmt!r}; known: lake, {', '.join(EXPORTERS)}")
+    return EXPORTERS[fmt]
 
 
 # ---------------------------------------------------------------- writing into a release
@@ -138,30 +122,15 @@ def copy_clean_zone(lake: Lake, writer: ReleaseWriter, clip_ids: Sequence[str]) 
 
 
 def call_export(fmt: str, lake: Lake, clip_ids: Sequence[str], out_dir: Path,
-                splits: dict[str, str] | None = None) -> dict[str, float]:
-    """Run one export format over clips into a local folder; returns merged metrics.
-
-    The export entry points differ in shape (per clip for bev / rosbag; splits for nuScenes
-    and OpenCOOD), so this is the one place that knows how to call each.
-    """
-    fn = load_export(fmt)
+                splits: dict[str, str] | None = None,
+                config: BaseModel | None = None) -> dict[str, float]:
+    """Run one export format over clips into a local folder; returns merged metrics."""
+    exporter = load_export(fmt)
+    reports = exporter.export(lake, list(clip_ids), out_dir,
+                              config if config is not None else exporter.config_model(), splits)
     metrics: dict[str, float] = {}
-    reports: list[Any] = []
-    if fmt == "nuscenes":
-        from v2xlake.tasks.export import NuScenesExportConfig
-
-        reports.append(fn(lake, list(clip_ids), out_dir,
-                          NuScenesExportConfig(splits=dict(splits or {}))))
-    elif fmt == "opencood":
-        reports.append(fn(lake, list(clip_ids), out_dir, splits=dict(splits) if splits else None))
-    elif fmt == "bev":
-        reports += [fn(lake, cid, out_dir) for cid in clip_ids]
-    elif fmt == "rosbag":
-        reports += [fn(lake, cid, None, out_dir) for cid in clip_ids]
-    else:
-        reports.append(fn(lake, list(clip_ids), out_dir))
     for rep in reports:
-        for k, v in (getattr(rep, "metrics", {}) or {}).items():
+        for k, v in (rep.metrics or {}).items():
             metrics[k] = metrics.get(k, 0.0) + float(v) if len(reports) > 1 else float(v)
     return metrics
 

@@ -16,7 +16,7 @@ from typing import Any
 from prefect import flow, get_run_logger
 
 from v2xlake.flows import bookkeeping
-from v2xlake.flows.process import peek_clip_id, process_clips
+from v2xlake.flows.pipeline import peek_clip_id, process_clips
 from v2xlake.storage.lake import Lake
 
 
@@ -44,7 +44,8 @@ def find_new_clips(lake: Lake, inbox: Path, settle_seconds: float = 2.0) -> list
 
 @flow(name="scan-landing", log_prints=True)
 def scan_landing(lake: str, inbox: str | None = None, stages: list[str] | None = None,
-                 registry: list[str] | None = None, runner: str = "local",
+                 params: dict[str, Any] | None = None, pipeline: str | None = None,
+                 runner: str = "local",
                  settle_seconds: float = 2.0) -> list[dict[str, Any]]:
     """Process every newly arrived clip folder in the inbox; returns their summaries."""
     logger = get_run_logger()
@@ -56,4 +57,4 @@ def scan_landing(lake: str, inbox: str | None = None, stages: list[str] | None =
         logger.info("no new clips in %s", box)
         return []
     logger.info("%d new clip(s) in %s: %s", len(new), box, [p.name for p in new])
-    return process_clips([str(p) for p in new], lake, stages, registry, runner)
+    return process_clips([str(p) for p in new], lake, stages, params, pipeline, runner)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
 from typing import Annotated, Any
@@ -74,7 +75,8 @@ def arrow_schema(model: type[BaseModel]) -> pa.Schema:
     return pa.schema(fields, metadata={"v2xlake.model": model.__name__})
 
 
-def rows_to_table(model: type[BaseModel], rows: list[BaseModel] | list[dict[str, Any]]) -> pa.Table:
+def rows_to_table(model: type[BaseModel],
+                  rows: Sequence[BaseModel] | Sequence[dict[str, Any]]) -> pa.Table:
     """Validate rows through the model, then build a table with the derived schema."""
     dicts = [
         (r if isinstance(r, model) else model.model_validate(r)).model_dump(mode="json")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from enum import StrEnum
 from pathlib import Path
-from typing import Self
+from typing import Any, Self
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -175,6 +175,10 @@ class ClipConfig(BaseModel):
         description=".msg files (relative to the clip folder) for custom types, e.g. a vendor INS",
     )
     annotations: str | None = Field(default=None, description="annotation file, relative path")
+    params: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="pipeline parameters that belong to this recording, one section per stage "
+                    "(e.g. qa tolerances of its rig); they override the run's parameters")
 
     @model_validator(mode="after")
     def _one_reference(self) -> Self:

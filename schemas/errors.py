@@ -6,6 +6,9 @@ is looking at a quarantine report for one of hundreds of clips and must know whe
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 
 class ClipError(Exception):
     """Bad input in one clip: quarantine the clip, keep going with the others."""
@@ -19,8 +22,10 @@ class ClipError(Exception):
         topic: str | None = None,
         path: str | None = None,
         stage: str | None = None,
+        checks: Sequence[Any] = (),
     ) -> None:
         self.clip_id, self.reason = clip_id, reason
+        self.checks = list(checks)  # QA findings behind the error, for the quarantine report
         self.agent_id, self.topic, self.path, self.stage = agent_id, topic, path, stage
         where = [f"clip {clip_id}"]
         if agent_id:

@@ -154,7 +154,17 @@ class LidarFrameRow(_Row):
     t_end_ns: I64
     n_points: I64
     n_nan: I64
-    n_uncovered: I64 | None = None
+
+
+class DeskewFrameRow(_Row):
+    """Deskew's per-frame figures (its own table: ``lidar_frames`` belongs to ingest and
+    anonymize; the catalog's ``lidar_frames`` view joins these columns in)."""
+
+    clip_id: str
+    agent_id: str
+    sensor: str
+    frame_idx: I32
+    n_uncovered: I64
     deskew_ref_ns: I64 | None = None
     deskew_max_shift_m: F32 | None = None
     deskew_rms_shift_m: F32 | None = None
@@ -327,6 +337,7 @@ LAKE_TABLES: dict[str, type[_Row]] = {
     "imu": ImuRow,
     "gnss": GnssRow,
     "lidar_frames": LidarFrameRow,
+    "deskew_frames": DeskewFrameRow,
     "lidar_points": LidarPointRow,
     "camera_frames": CameraFrameRow,
     "annotations": AnnotationRow,
@@ -338,3 +349,35 @@ LAKE_TABLES: dict[str, type[_Row]] = {
     "anonymization_audit": AnonymizationAuditRow,
     "manifests": ManifestRow,
 }
+
+
+# Raw-zone tables that ingest writes; anonymize writes each of them again into the clean
+# zone (relative time, local ENU, blurred images), except those that never leave raw.
+INGEST_TABLES = ("clips", "agents", "sensors", "calibrated_sensors", "ins", "ego_poses", "imu",
+                 "gnss", "lidar_frames", "lidar_points", "camera_frames", "annotations",
+                 "radar_frames", "radar_points")
+RAW_ONLY_TABLES = ("ins",)
+
+# The single writer of every (zone, table): storage refuses a write by any other stage.
+TABLE_OWNERS: dict[tuple[str, str], str] = {
+    **{("raw", t): "ingest" for t in INGEST_TABLES},
+    ("raw", "qa_checks"): "qa",
+    **{("clean", t): "anonymize" for t in INGEST_TABLES if t not in RAW_ONLY_TABLES},
+    ("clean", "anonymization_audit"): "anonymize",
+    ("clean", "qa_checks"): "anonymize",  # raw QA findings with relative time
+    ("clean", "lidar_points_deskewed"): "deskew",
+    ("clean", "deskew_frames"): "deskew",
+    ("clean", "registrations"): "register",
+    ("clean", "calibration_refined"): "register",
+    ("clean", "annotations_world"): "annotate",
+    ("clean", "instances"): "annotate",
+    ("clean", "alignments"): "align",
+    **{("clean", f"nuscenes_{t}"): "export" for t in (
+        "scene", "sample", "sample_data", "sample_annotation", "instance", "category",
+        "attribute", "visibility", "sensor", "calibrated_sensor", "ego_pose", "log", "map")},
+}
+
+
+def table_owner(zone: str, table: str) -> str | None:
+    """The stage that owns ``zone.table`` (None: not a known table)."""
+    return TABLE_OWNERS.get((zone, table))

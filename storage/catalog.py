@@ -39,7 +39,10 @@ from v2xlake.storage.lake import Lake
 MAIN_NAMES = ("clips", "agents", "sensors", "calibrated_sensors", "ego_poses", "imu", "gnss",
               "lidar_frames", "lidar_points", "lidar_points_deskewed", "camera_frames",
               "annotations", "instances", "registrations", "alignments",
-              "anonymization_audit", "qa_checks")
+              "anonymization_audit", "qa_checks", "deskew_frames")
+# ``lidar_frames`` has one writer (ingest, then anonymize); deskew's per-frame figures live in
+# deskew's own ``deskew_frames`` and the main view joins them in.
+JOINED = {"lidar_frames": ("deskew_frames", ("clip_id", "agent_id", "sensor", "frame_idx"))}
 EXTRA_SCHEMAS = {"lidar_points_deskewed": LidarPointRow}
 MANIFEST_COLUMNS = {
     "clip_id": "VARCHAR", "stage": "VARCHAR", "status": "VARCHAR", "code_version": "VARCHAR",
@@ -170,8 +173,13 @@ class Catalog:
             src = clean if clean and clean.files else raw if raw and raw.files else clean or raw
             assert src is not None
             zone = src.zone if src.files else "empty"
-            views.append(ViewInfo("main", name, zone, src.files,
-                                  f"SELECT * FROM {src.schema}.{name}"))
+            sql = f"SELECT * FROM {src.schema}.{name}"
+            if name in JOINED and src.zone == "clean":
+                other, keys = JOINED[name]
+                extra = [f.name for f in arrow_schema(LAKE_TABLES[other]) if f.name not in keys]
+                sql = (f"SELECT t.*, {', '.join('j.' + c for c in extra)} FROM clean.{name} t "
+                       f"LEFT JOIN clean.{other} j USING ({', '.join(keys)})")
+            views.append(ViewInfo("main", name, zone, src.files, sql))
         outputs = "CAST(outputs AS VARCHAR) AS outputs"
         mcols = ", ".join(k if k != "outputs" else outputs for k in MANIFEST_COLUMNS)
         views.append(self._json_view("manifests", "manifests", "/*/*.json", MANIFEST_COLUMNS,

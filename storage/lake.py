@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import copy
 import itertools
 import json
 import os
@@ -27,7 +28,7 @@ import queue
 import shutil
 import threading
 import uuid
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,7 @@ import pyarrow.compute as pc
 import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 
+from v2xlake.schemas.tables import table_owner
 from v2xlake.storage import checksum
 
 ZONES = ("landing", "raw", "clean", "releases", "quarantine", "manifests")
@@ -363,6 +365,32 @@ class Lake:
         self.uri = s if not self.is_local else self.base
         # final path -> (rows, checksum) of every Parquet file this instance wrote (TableWriter)
         self.written: dict[str, tuple[int, str]] = {}
+        # the stage this handle writes for and its tables (None: unrestricted, e.g. tests and
+        # tools); see ``for_stage``
+        self.writer: str | None = None
+        self.owns: frozenset[tuple[str, str]] = frozenset()
+
+    def for_stage(self, stage: str, owns: Iterable[tuple[str, str]]) -> Lake:
+        """A handle on the same lake that writes only the ``(zone, table)`` pairs ``owns``.
+
+        The single-writer rule (each table has one owning stage, ``schemas.tables``) is
+        enforced here, where every Parquet write goes through, so a stage that writes
+        another stage's table fails at once instead of silently dropping that stage's
+        columns on a re-run.
+        """
+        other = copy.copy(self)
+        other.written = {}
+        other.writer = stage
+        other.owns = frozenset(owns)
+        return other
+
+    def _check_owner(self, zone: str, table: str) -> None:
+        if self.writer is None or (zone, table) in self.owns:
+            return
+        owner = table_owner(zone, table)
+        raise PermissionError(
+            f"stage {self.writer!r} may not write {zone}.{table}: "
+            + (f"it belongs to stage {owner!r}" if owner else "no stage declares it"))
 
     # ---------------------------------------------------------------- paths
     def path(self, *parts: str) -> str:
@@ -505,6 +533,7 @@ class Lake:
         memory); the file appears under its final name only when the ``with`` block exits
         without an exception, otherwise the temporary file is removed. ``options`` defaults
         to the zone's encoding (``ParquetOptions.for_zone``)."""
+        self._check_owner(zone, table)
         for key in _partition_columns(schema.names, clip_id, agent_id):
             schema = schema.remove(schema.get_field_index(key))
         final = f"{self.table_dir(zone, table, clip_id, agent_id)}/{name}.parquet"
@@ -541,6 +570,7 @@ class Lake:
         return pa.concat_tables(parts, promote_options="default")
 
     def delete_partition(self, zone: str, table: str, clip_id: str) -> None:
+        self._check_owner(zone, table)
         self.delete_dir(self.table_dir(zone, table, clip_id))
 
     # ---------------------------------------------------------------- clip-level operations
@@ -558,8 +588,8 @@ class Lake:
 
     def delete_clip(self, zone: str, clip_id: str) -> None:
         """Remove every partition and blob of one clip from one zone."""
-        for table in self.tables(zone):
-            self.delete_partition(zone, table, clip_id)
+        for table in self.tables(zone):  # clip-level: every owner's partition goes
+            self.delete_dir(self.table_dir(zone, table, clip_id))
         self.delete_dir(self.path(zone, "blobs", clip_id))
 
     def staging(self, clip_id: str) -> Lake:
@@ -568,7 +598,9 @@ class Lake:
         half-way leaves nothing in the real zones and concurrent clips never see each other's
         partial output. ``_staging`` is never globbed by the catalog."""
         sub = self.path("_staging", f"{clip_id}-{uuid.uuid4().hex[:12]}")
-        return Lake(sub if self.is_local else f"s3://{sub}")
+        staged = Lake(sub if self.is_local else f"s3://{sub}")
+        staged.writer, staged.owns = self.writer, self.owns
+        return staged
 
     def discard_staging(self, clip_id: str) -> int:
         """Remove staging folders left by killed runs of ``clip_id`` (one clip is processed by

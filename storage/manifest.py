@@ -39,14 +39,9 @@ REPO = Path(__file__).resolve().parents[1]
 # ``tasks.*`` and ``schemas.*``) make the stage's code version, so editing a helper that a
 # stage uses re-runs that stage, and editing another stage's code does not.
 STAGE_MODULES: dict[str, str] = {
-    "ingest": "v2xlake.tasks.ingest",
-    "qa": "v2xlake.tasks.qa.core",
-    "anonymize": "v2xlake.tasks.anonymize",
-    "deskew": "v2xlake.tasks.deskew.stage",
-    "register": "v2xlake.tasks.register.stage",
-    "annotate": "v2xlake.tasks.annotate.core",
-    "align": "v2xlake.tasks.align.stage",
-    "export": "v2xlake.tasks.export",
+    name: f"v2xlake.tasks.{name}"  # the stage's package: every module in it, and imports
+    for name in ("ingest", "qa", "anonymize", "deskew", "register", "annotate", "align",
+                 "export")
 }
 CODE_PACKAGES = ("v2xlake.tasks", "v2xlake.schemas")
 
@@ -60,6 +55,7 @@ class StageKey:
     params_hash: str
     inputs_hash: str
     inputs: tuple[tuple[str, str], ...] = ()  # (name, checksum) detail for the manifest
+    params: dict[str, Any] | None = None  # the effective parameters, recorded for people
 
 
 class Manifest(BaseModel):
@@ -67,9 +63,11 @@ class Manifest(BaseModel):
 
     clip_id: str
     stage: str
-    status: str  # done | failed
+    status: str  # done | not_applicable | failed
+    reason: str | None = None  # why a stage was not applicable
     code_version: str
     params_hash: str
+    params: dict[str, Any] = Field(default_factory=dict)  # effective values of this run
     inputs_hash: str
     inputs: dict[str, str] = Field(default_factory=dict)
     outputs: list[OutputFile] = Field(default_factory=list)
@@ -105,14 +103,15 @@ def lake_file_checksum(lake: Lake, path: str) -> str:
         return checksum.of_stream(f)
 
 
+def _params_data(config: Any) -> Any:
+    if isinstance(config, BaseModel):
+        return config.model_dump(mode="json")
+    return {} if config is None else config
+
+
 def params_hash(config: Any) -> str:
     """sha256 of the config's canonical JSON (pydantic model, dataclass-like or plain data)."""
-    if isinstance(config, BaseModel):
-        data: Any = config.model_dump(mode="json")
-    elif config is None:
-        data = {}
-    else:
-        data = config
+    data = _params_data(config)
     text = json.dumps(data, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(text.encode()).hexdigest()
 
@@ -209,13 +208,23 @@ def stage_key(
     upstream_stages: Sequence[str] = (),
     *,
     input_files: Sequence[str | Path] | None = None,
+    read_tables: Sequence[tuple[str, str]] = (),
     code_paths: Sequence[str | Path] | None = None,
 ) -> StageKey:
     """The key a run of ``stage`` on ``clip_id`` would have now.
 
-    ``input_files`` (local paths; ingest passes ``v2xlake.tasks.ingest.clip_inputs(dir)[1]``) are
-    hashed by content; ``upstream_stages`` contribute the checksums of their recorded outputs
-    (a missing or failed upstream manifest makes the key unique, so the stage is not current).
+    Inputs are what the stage actually reads:
+
+    - ``input_files`` (local paths; ingest passes ``tasks.ingest.clip_inputs(dir)[1]``) are
+      hashed by content;
+    - ``read_tables`` (``(zone, table)`` pairs, the stage's declared reads) contribute every
+      file of those tables in this clip's partitions, with the checksum its writer recorded
+      in its manifest (read from the file only when no manifest names it). So an upstream
+      re-run that rewrites a table re-runs everything that reads it, and one that rewrites
+      it byte for byte re-runs nothing;
+    - ``upstream_stages`` (plugins that declare no tables) contribute the checksums of those
+      stages' recorded outputs; a missing or failed upstream manifest makes the key unique.
+
     ``code_paths`` overrides the source files hashed into ``code_version`` (tests, plugins).
     """
     inputs: list[tuple[str, str]] = []
@@ -225,6 +234,14 @@ def stage_key(
         for p in sorted(paths):
             name = p.relative_to(common).as_posix() if p.is_relative_to(common) else str(p)
             inputs.append((f"file:{name}", file_checksum(p)))
+    if read_tables:
+        known = recorded_checksums(lake, clip_id)
+        for zone, table in read_tables:
+            root = lake.table_dir(zone, table, clip_id)
+            for f in lake.list_files(root, ".parquet"):
+                rel = f[len(lake.base) + 1:]
+                digest = known.get(rel) or lake_file_checksum(lake, f)
+                inputs.append((f"table:{rel}", digest))
     for up in upstream_stages:
         m = read(lake, clip_id, up)
         if m is None or m.status != "done":
@@ -239,7 +256,17 @@ def stage_key(
         h.update(f"{name}\0{digest}\n".encode())
     return StageKey(stage=stage, code_version=code_version(stage, code_paths),
                     params_hash=params_hash(config), inputs_hash=h.hexdigest(),
-                    inputs=tuple(inputs))
+                    inputs=tuple(inputs), params=_params_data(config))
+
+
+def recorded_checksums(lake: Lake, clip_id: str) -> dict[str, str]:
+    """Lake-relative path -> checksum of every output the clip's manifests record."""
+    out: dict[str, str] = {}
+    for m in load(lake, clip_id):
+        for o in m.outputs:
+            if o.checksum:
+                out[o.path] = o.checksum
+    return out
 
 
 def _common_parts(paths: list[Path]) -> list[str]:
@@ -255,7 +282,7 @@ def _common_parts(paths: list[Path]) -> list[str]:
 def is_current(lake: Lake, clip_id: str, stage: str, key: StageKey) -> bool:
     """True when the recorded run of ``stage`` is done, has the same key and its outputs exist."""
     m = read(lake, clip_id, stage)
-    if m is None or m.status != "done":
+    if m is None or m.status not in ("done", "not_applicable"):
         return False
     if (m.code_version, m.params_hash, m.inputs_hash) != (
             key.code_version, key.params_hash, key.inputs_hash):
@@ -274,8 +301,8 @@ def record(lake: Lake, report: StageReport, key: StageKey, status: str = "done",
            error: str | BaseException | None = None) -> Manifest:
     """Write the manifest of one finished (or failed) stage run; fills missing output checksums
     and row counts from the files themselves."""
-    if status not in ("done", "failed"):
-        raise ValueError(f"status must be 'done' or 'failed', got {status!r}")
+    if status not in ("done", "not_applicable", "failed"):
+        raise ValueError(f"status must be done, not_applicable or failed, got {status!r}")
     outputs = []
     for o in report.outputs:
         path = _abs(lake, o.path)
@@ -290,8 +317,9 @@ def record(lake: Lake, report: StageReport, key: StageKey, status: str = "done",
                     rows = int(pq.ParquetFile(f).metadata.num_rows)
         outputs.append(OutputFile(path=rel, rows=rows, checksum=digest))
     m = Manifest(
-        clip_id=report.clip_id, stage=key.stage, status=status,
+        clip_id=report.clip_id, stage=key.stage, status=status, reason=report.reason,
         code_version=key.code_version, params_hash=key.params_hash,
+        params=key.params if isinstance(key.params, dict) else {},
         inputs_hash=key.inputs_hash, inputs=dict(key.inputs), outputs=outputs,
         metrics=dict(report.metrics), notes=list(report.notes),
         error=None if error is None else str(error),

@@ -32,7 +32,7 @@ def quarantine(lake: Lake, clip_id: str, error: BaseException | str | None = Non
                checks: Sequence[Any] = (), *, stage: str | None = None,
                zones: Sequence[str] = ("raw", "clean")) -> dict[str, Any]:
     """Write the report, remove the clip's partitions from ``zones``; returns the report."""
-    failed = [_check_dict(c) for c in checks]
+    failed = [_check_dict(c) for c in (checks or getattr(error, "checks", None) or ())]
     if isinstance(error, BaseException) and hasattr(error, "to_dict"):  # tasks.errors.ClipError
         err: dict[str, Any] | None = error.to_dict()
         reason = str(error)

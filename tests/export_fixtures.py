@@ -318,8 +318,7 @@ def build_clean_clip(lake: Lake, clip_id: str = "clip-a", *, weather: str = "ove
                 cols["ring"].append(ring[order])
             frames.append(dict(clip_id=clip_id, agent_id=agent, sensor="LIDAR_TOP",
                                frame_idx=k, stamp_ns=t0, t_start_ns=t0,
-                               t_end_ns=int(ti.max()), n_points=len(p0), n_nan=0,
-                               n_uncovered=0, deskew_ref_ns=t0))
+                               t_end_ns=int(ti.max()), n_points=len(p0), n_nan=0))
             # annotations: world boxes at t0 in the LiDAR frame at t0
             for obj in OBJECTS:
                 tso = (t0 - T0_NS) / 1e9
@@ -347,6 +346,15 @@ def build_clean_clip(lake: Lake, clip_id: str = "clip-a", *, weather: str = "ove
         lake.write_table("clean", "lidar_frames", rows_to_table(LAKE_TABLES["lidar_frames"],
                                                                 frames),
                          clip_id=clip_id, agent_id=agent)
+        if with_deskewed:  # what the deskew stage records per frame, in its own table
+            deskewed = {int(f) for f in np.concatenate(desk_cols["frame_idx"])} \
+                if desk_cols["frame_idx"] else set()
+            lake.write_table("clean", "deskew_frames", rows_to_table(
+                LAKE_TABLES["deskew_frames"],
+                [dict(clip_id=clip_id, agent_id=agent, sensor="LIDAR_TOP",
+                      frame_idx=f["frame_idx"], n_uncovered=0,
+                      deskew_ref_ns=f["t_start_ns"] if f["frame_idx"] in deskewed else None)
+                 for f in frames]), clip_id=clip_id, agent_id=agent)
         tables = [("lidar_points", raw_cols)] + ([("lidar_points_deskewed", desk_cols)]
                                                   if with_deskewed else [])
         for name, cols in tables:

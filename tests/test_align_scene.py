@@ -31,6 +31,7 @@ from v2xlake.schemas.tables import (
     CalibratedSensorRow,
     CameraFrameRow,
     ClipRow,
+    DeskewFrameRow,
     EgoPoseRow,
     LidarFrameRow,
     LidarPointRow,
@@ -218,7 +219,11 @@ def write_lake(root: Path, seed: int = 0) -> tuple[Lake, Path, list[Scan]]:
     lake.write_table("clean", "lidar_frames", rows_to_table(LidarFrameRow, [
         LidarFrameRow(clip_id=CLIP, agent_id=aid, sensor="LIDAR_TOP", frame_idx=k,
                       stamp_ns=s.t0, t_start_ns=s.t0, t_end_ns=s.t0 + PERIOD_NS - 1,
-                      n_points=len(s.t_ns), n_nan=0, deskew_ref_ns=s.t0)
+                      n_points=len(s.t_ns), n_nan=0)
+        for k, s in enumerate(scans)]), clip_id=CLIP, agent_id=aid)
+    lake.write_table("clean", "deskew_frames", rows_to_table(DeskewFrameRow, [
+        DeskewFrameRow(clip_id=CLIP, agent_id=aid, sensor="LIDAR_TOP", frame_idx=k,
+                       n_uncovered=0, deskew_ref_ns=s.t0)
         for k, s in enumerate(scans)]), clip_id=CLIP, agent_id=aid)
     ok, png = cv2.imencode(".png", np.full((INTR.height, INTR.width, 3), 70, np.uint8))
     assert ok

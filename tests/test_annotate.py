@@ -50,11 +50,11 @@ def _add_black(lake: Lake, box_shift_m: float = 0.0) -> None:
                             qz=0.0, source="clip.yaml")]), clip_id=CLIP, agent_id="black")
     # L0 of black = (red L0) mapped by M = T_lidar_ego D^-1 T_ego_lidar
     M = np.linalg.inv(T_EGO_LIDAR) @ np.linalg.inv(D) @ T_EGO_LIDAR
-    for table in ("lidar_frames", "lidar_points_deskewed", "annotations"):
+    for table in ("lidar_frames", "deskew_frames", "lidar_points_deskewed", "annotations"):
         t = lake.read_table("clean", table, clip_id=CLIP, agent_id="red")
         t = t.set_column(t.schema.get_field_index("agent_id"), "agent_id",
                          pa.array(["black"] * t.num_rows))
-        if table != "lidar_frames":
+        if table not in ("lidar_frames", "deskew_frames"):
             p = np.stack([t[c].to_numpy() for c in ("x", "y", "z")] if table != "annotations"
                          else [t[c].to_numpy() for c in ("cx", "cy", "cz")], 1)
             p = p @ M[:3, :3].T + M[:3, 3]
@@ -78,9 +78,11 @@ def _add_black(lake: Lake, box_shift_m: float = 0.0) -> None:
 def test_point_counts_instances_world_boxes(tmp_path: Path) -> None:
     lake, _, _scans = write_lake(tmp_path)
     rep = run_annotate(lake, CLIP, AnnotateConfig())
-    ann = lake.read_table("clean", "annotations", clip_id=CLIP)
-    assert ann.num_rows == 15 and len(lake.list_files(
-        lake.table_dir("clean", "annotations", CLIP), ".parquet")) == 1
+    before = lake.list_files(lake.table_dir("clean", "annotations", CLIP), ".parquet")
+    # num_lidar_pts lives in annotate's own table; anonymize's annotations stay as written
+    ann = lake.read_table("clean", "annotations_world", clip_id=CLIP)
+    assert ann.num_rows == 15
+    assert lake.list_files(lake.table_dir("clean", "annotations", CLIP), ".parquet") == before
     counts = ann["num_lidar_pts"].to_numpy()
     # 400 points were sampled inside each object; moving ones smear by a few cm
     assert np.all(counts >= 370) and np.all(counts <= 400), counts
@@ -147,10 +149,11 @@ def test_bad_links_and_categories_are_clip_errors(tmp_path: Path) -> None:
     lake, _, _ = write_lake(tmp_path / "far")
     _edit_annotations(lake, lambda t: _set_links(t, "trailer-parked", ["car-oncoming"]))
     with pytest.raises(ClipError, match="too far apart"):
-        run_annotate(lake, CLIP)
-    # the same as a warning: reported, not raised
-    rep = run_annotate(lake, CLIP, AnnotateConfig(link_policy="warn"))
-    assert rep.metrics["links.n_far"] == 3
+        run_annotate(lake, CLIP, AnnotateConfig(link_policy="error"))
+    # by default a plausibility finding is reported, never a reason to quarantine (#15)
+    rep = run_annotate(lake, CLIP)
+    assert rep.status == "done" and rep.metrics["links.n_far"] == 3
+    assert any("too far" in n or "apart" in n for n in rep.notes), rep.notes
     lake, _, _ = write_lake(tmp_path / "unknown")
     _edit_annotations(lake, lambda t: _set_links(t, "trailer-parked", ["no-such-car"]))
     with pytest.raises(ClipError, match="unknown instance no-such-car"):

@@ -110,13 +110,13 @@ def test_process_command(prefect_server: Any, tmp_path: Path, monkeypatch: pytes
     good = fakes.make_fake_clip(tmp_path / "in", "cli_good")
     bad = fakes.make_fake_clip(tmp_path / "in", "cli_bad", corrupt=True)
     lake = tmp_path / "lake"
-    reg = ",".join(fakes.FAKE_REGISTRY)
-    rc = main(["process", str(good), str(bad), "--lake", str(lake), "--registry", reg])
+    reg = fakes.FAKES
+    rc = main(["process", str(good), str(bad), "--lake", str(lake), "--pipeline", reg])
     out = capsys.readouterr().out
     assert rc == 1  # one clip quarantined
     assert "clip cli_good: ok" in out and "quarantined" in out and "report.json" in out
     assert "1/2 clip(s) ok" in out
-    rc = main(["process", str(good), "--lake", str(lake), "--registry", reg, "--stages",
+    rc = main(["process", str(good), "--lake", str(lake), "--pipeline", reg, "--stages",
                "ingest,qa"])
     out = capsys.readouterr().out
     assert rc == 0 and "cached" in out and "annotate" not in out

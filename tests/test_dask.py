@@ -29,7 +29,7 @@ def test_parse_runner() -> None:
 def test_two_clips_on_two_dask_workers(prefect_server: Any, tmp_path: Path) -> None:
     from distributed import Client, LocalCluster
 
-    from v2xlake.flows.process import process_clips
+    from v2xlake.flows.pipeline import process_clips
 
     lake_dir = tmp_path / "lake"
     clips = [fakes.make_fake_clip(tmp_path / "in", f"dask{i}") for i in range(2)]
@@ -39,7 +39,7 @@ def test_two_clips_on_two_dask_workers(prefect_server: Any, tmp_path: Path) -> N
         worker_pids = set(client.run(os.getpid).values())
         assert len(worker_pids) == 2
         results = process_clips([str(c) for c in [*clips, bad]], str(lake_dir),
-                                registry=fakes.FAKE_REGISTRY,
+                                pipeline=fakes.FAKES,
                                 runner=f"dask={cluster.scheduler_address}")
     by_id = {r["clip_id"]: r for r in results}
     assert by_id["dask0"]["status"] == by_id["dask1"]["status"] == "ok"
@@ -56,7 +56,7 @@ def test_two_clips_on_two_dask_workers(prefect_server: Any, tmp_path: Path) -> N
 
     # --runner dask: the flow starts (and stops) its own LocalCluster
     more = fakes.make_fake_clip(tmp_path / "in", "dask2")
-    res2 = process_clips([str(more)], str(lake_dir), registry=fakes.FAKE_REGISTRY,
+    res2 = process_clips([str(more)], str(lake_dir), pipeline=fakes.FAKES,
                          runner="dask")
     assert res2[0]["status"] == "ok"
     qa_pid = int(next(o for o in res2[0]["stages"] if o["stage"] == "qa")["report"]["metrics"]

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from v2xlake.flows.stages import STAGE_NAMES
+from v2xlake.flows.pipeline import STAGE_NAMES
 
 
 def _run(args: list[str], env: dict[str, str], cwd: Path,

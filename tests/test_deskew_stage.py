@@ -101,7 +101,7 @@ def test_stage_writes_deskewed_points_and_frame_stats(tmp_path: Path) -> None:
         for k, sw in enumerate(sweeps):
             err = np.linalg.norm(xyz[fi == k] - sw.truth, axis=1)
             assert np.sqrt(np.mean(err**2)) < 1e-3
-        frames = lake.read_table("clean", "lidar_frames", clip_id=CLIP, agent_id=agent)
+        frames = lake.read_table("clean", "deskew_frames", clip_id=CLIP, agent_id=agent)
         assert frames.column("deskew_ref_ns").to_pylist() == list(FRAMES)
         assert frames.column("n_uncovered").to_pylist() == [0, 0, 0]
         shift = np.array(frames.column("deskew_max_shift_m").to_pylist())
@@ -117,7 +117,7 @@ def test_frame_past_the_ins_end_is_skipped_at_the_edge_or_an_error(tmp_path: Pat
     rep = run_deskew(lake, CLIP)
     assert rep.metrics["n_frames_skipped"] == 1
     assert "red LIDAR_TOP frame 2 skipped" in rep.notes[0]
-    frames = lake.read_table("clean", "lidar_frames", clip_id=CLIP)
+    frames = lake.read_table("clean", "deskew_frames", clip_id=CLIP)
     assert frames.column("deskew_ref_ns").to_pylist() == [*FRAMES[:2], None]
     assert frames.column("n_uncovered").to_pylist()[2] > 0
     out = lake.read_table("clean", OUT_TABLE, clip_id=CLIP)
@@ -137,10 +137,18 @@ def test_ins_gap_in_the_middle_is_an_error(tmp_path: Path) -> None:
 
 
 def test_agent_without_ins_says_so(tmp_path: Path) -> None:
+    """No pose is a fact about the recording: not applicable with the reason, no error."""
     lake = Lake(tmp_path / "lake")
     write_agent(lake, "red", Motion(), None, has_ins=False)
-    with pytest.raises(ClipError, match=r"agent red has no INS .*per-point motion compensation"):
-        run_deskew(lake, CLIP)
+    rep = run_deskew(lake, CLIP)
+    assert rep.status == "not_applicable" and not rep.outputs
+    assert "red: agents.has_ins is false" in (rep.reason or "")
+    assert "motion compensation needs poses" in (rep.reason or "")
+    # with a second agent that has poses, that one is deskewed and the first is named
+    write_agent(lake, "black", Motion(), (100_000_000, 600_000_000))
+    rep = run_deskew(lake, CLIP)
+    assert rep.status == "done" and rep.metrics["n_frames"] == 3
+    assert rep.notes[0].startswith("red not deskewed: agents.has_ins is false")
 
 
 def test_real_ouster_clip_without_ins_is_a_clear_error(tmp_path: Path) -> None:
@@ -161,8 +169,7 @@ def test_real_ouster_clip_without_ins_is_a_clear_error(tmp_path: Path) -> None:
             lake.write_bytes(dest, lake.read_bytes(path))
     assert lake.read_table("clean", "lidar_points", clip_id=cid).num_rows > 100_000
     assert lake.read_table("clean", "agents", clip_id=cid).column("has_ins").to_pylist() == [False]
-    with pytest.raises(ClipError) as ei:
-        run_deskew(lake, cid)
-    assert ei.value.agent_id == "ouster" and ei.value.stage == "deskew"
-    assert "agent ouster has no INS" in str(ei.value)
-    assert "per-point motion compensation" in str(ei.value)
+    rep = run_deskew(lake, cid)
+    assert rep.status == "not_applicable" and not rep.outputs
+    assert "ouster: agents.has_ins is false" in (rep.reason or "")
+    assert "per-point motion compensation" in (rep.reason or "")

@@ -1,4 +1,4 @@
-"""Flow machinery: registry, per-clip flow states, quarantine, caching, retries, artifacts.
+"""Flow machinery: pipeline, per-clip flow states, quarantine, caching, retries, artifacts.
 
 Runs real Prefect flows against the session's real Prefect server, with the stand-in
 stages of ``test_flows_fakestages`` (the real stages get their own end-to-end tests).
@@ -15,33 +15,20 @@ import pytest
 import test_flows_fakestages as fakes
 
 from v2xlake.flows import bookkeeping
-from v2xlake.flows.stages import (
-    DEFAULT_STAGES,
-    STAGE_NAMES,
-    StageSpec,
-    check_available,
-    resolve_registry,
-    select,
-)
+from v2xlake.flows.pipeline import STAGE_NAMES, STAGES, resolve_pipeline, select
 from v2xlake.storage.lake import Lake
 
 
-def test_registry_order_and_parsing() -> None:
+def test_pipeline_order_and_selection() -> None:
     assert STAGE_NAMES == ("ingest", "qa", "anonymize", "deskew", "register", "annotate",
                            "align")
-    assert DEFAULT_STAGES[0].input == "clip_dir"
-    spec = StageSpec.parse("ingest=pkg.mod:fn@clip_dir")
-    assert (spec.name, spec.target, spec.input) == ("ingest", "pkg.mod:fn", "clip_dir")
-    assert StageSpec.parse(spec.format()) == spec
-    with pytest.raises(ValueError):
-        StageSpec.parse("no-colon")
-    specs = resolve_registry(fakes.BROKEN_REGISTRY)
-    assert [s.name for s in select(specs, ["annotate", "ingest"])] == ["ingest", "annotate"]
+    assert STAGES[0].input == "clip_dir"
+    fake = resolve_pipeline(fakes.FAKES)
+    assert [s.name for s in select(fake, ["annotate", "ingest"])] == ["ingest", "annotate"]
     with pytest.raises(ValueError, match="unknown stage"):
-        select(specs, ["ingest", "deskw"])
-    avail = {a.spec.name: a for a in check_available(specs)}
-    assert avail["ingest"].ok and not avail["align"].ok
-    assert "no_such_module" in (avail["align"].error or "")
+        select(fake, ["ingest", "deskw"])
+    with pytest.raises(ImportError):  # a pipeline that cannot be imported is never skipped
+        resolve_pipeline("no_such_module:STAGES")
 
 
 def _flow_runs(api_flow_name: str) -> list[Any]:
@@ -58,22 +45,21 @@ def _flow_runs(api_flow_name: str) -> list[Any]:
 
 @pytest.mark.slow
 def test_process_clips_quarantine_cache_retry(prefect_server: Any, tmp_path: Path) -> None:
-    from v2xlake.flows.process import process_clips
+    from v2xlake.flows.pipeline import process_clips
 
     lake_dir = tmp_path / "lake"
     good = fakes.make_fake_clip(tmp_path / "in", "good_clip")
     bad = fakes.make_fake_clip(tmp_path / "in", "bad_clip", corrupt=True)
-    registry = [*fakes.BROKEN_REGISTRY, "flaky=test_flows_fakestages:fake_flaky"]
-    results = process_clips([str(good), str(bad)], str(lake_dir), registry=registry)
+    pipeline = "test_flows_fakestages:FLAKY_PIPELINE"
+    results = process_clips([str(good), str(bad)], str(lake_dir), pipeline=pipeline)
     by_id = {r["clip_id"]: r for r in results}
     lake = Lake(lake_dir)
 
     ok = by_id["good_clip"]
     assert ok["status"] == "ok"
     statuses = {o["stage"]: o["status"] for o in ok["stages"]}
-    assert statuses == {"ingest": "done", "qa": "done", "annotate": "done",
-                        "align": "unavailable", "flaky": "done"}
-    assert [o["stage"] for o in ok["stages"]] == ["ingest", "qa", "annotate", "align", "flaky"]
+    assert statuses == {"ingest": "done", "qa": "done", "annotate": "done", "flaky": "done"}
+    assert [o["stage"] for o in ok["stages"]] == ["ingest", "qa", "annotate", "flaky"]
     assert fakes.call_count(lake, "flaky", "good_clip") == 2  # failed once, retried
 
     q = by_id["bad_clip"]
@@ -98,12 +84,12 @@ def test_process_clips_quarantine_cache_retry(prefect_server: Any, tmp_path: Pat
     assert "quarantined at stage qa" in (runs["clip-bad_clip"].state.message or "")
 
     # unchanged inputs and code: nothing runs again
-    again = process_clips([str(good)], str(lake_dir), registry=registry)[0]
-    assert {o["status"] for o in again["stages"] if o["stage"] != "align"} == {"cached"}
+    again = process_clips([str(good)], str(lake_dir), pipeline=pipeline)[0]
+    assert {o["status"] for o in again["stages"]} == {"cached"}
     assert fakes.call_count(lake, "ingest", "good_clip") == 1
     # a changed input file reruns ingest; its output changed, so the stages after it rerun
     (good / "red.bin").write_bytes(b"\0" * 16)
-    third = process_clips([str(good)], str(lake_dir), registry=registry)[0]
+    third = process_clips([str(good)], str(lake_dir), pipeline=pipeline)[0]
     assert {o["stage"]: o["status"] for o in third["stages"]}["annotate"] == "done"
     assert fakes.call_count(lake, "ingest", "good_clip") == 2
     assert fakes.call_count(lake, "annotate", "good_clip") == 2
@@ -114,10 +100,10 @@ def test_artifacts_published(prefect_server: Any, tmp_path: Path) -> None:
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
 
-    from v2xlake.flows.process import process_clip
+    from v2xlake.flows.pipeline import process_clip
 
     clip = fakes.make_fake_clip(tmp_path / "in", "Art_Clip")
-    summary = process_clip(str(clip), str(tmp_path / "lake"), registry=fakes.FAKE_REGISTRY)
+    summary = process_clip(str(clip), str(tmp_path / "lake"), pipeline=fakes.FAKES)
     assert summary["status"] == "ok"
 
     async def keys() -> dict[str, Any]:

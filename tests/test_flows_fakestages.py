@@ -1,10 +1,10 @@
 """Small but real stand-in stages for testing the flow machinery (no tests in this module).
 
-They obey the stage contract (``fn(lake, clip_dir_or_id) -> StageReport``, ClipError on bad
-input) and write real lake tables, so catalog queries, quarantine and releases can be
-checked before (and independently of) the real stages. Referenced from flow parameters as
-``name=test_flows_fakestages:fn``, which Dask workers and worker processes import by name
-(tests put ``tests/`` on ``PYTHONPATH``).
+They obey the stage contract (``Stage`` objects whose ``run(lake, clip_dir_or_id, config)``
+returns a StageReport, ClipError on bad input, writes only their own tables) and write real
+lake tables, so catalog queries, quarantine and releases can be checked independently of the
+real stages. Flows name them as ``pipeline="test_flows_fakestages:FAKE_PIPELINE"``, which
+Dask workers and worker processes import by name (tests put ``tests/`` on ``PYTHONPATH``).
 """
 
 from __future__ import annotations
@@ -17,20 +17,21 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict
 
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.errors import ClipError
-from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import AnnotationRow, ClipRow, QaCheckRow
 from v2xlake.storage.lake import Lake
 
-FAKE_REGISTRY = [
-    "ingest=test_flows_fakestages:fake_ingest@clip_dir",
-    "qa=test_flows_fakestages:fake_qa",
-    "annotate=test_flows_fakestages:fake_annotate",
-]
-BROKEN_REGISTRY = [*FAKE_REGISTRY, "align=tasks.no_such_module:run_align"]
+
+class FakeConfig(BaseModel):
+    """A parameter so that tests can see parameters reach a stage and its manifest."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    n_objects: int | None = None
 
 
 def make_fake_clip(root: Path, clip_id: str, *, location: str = "town", weather: str = "clear",
@@ -55,7 +56,7 @@ def call_count(lake: Lake, stage: str, clip_id: str) -> int:
     return len(lake.list_files(lake.path("fake_calls", stage, clip_id), ".json"))
 
 
-def fake_ingest(lake: Lake, clip_dir: Path) -> StageReport:
+def fake_ingest(lake: Lake, clip_dir: str | Path, config: FakeConfig | None = None) -> StageReport:
     meta = yaml.safe_load((Path(clip_dir) / "clip.yaml").read_text())
     cid = meta["clip_id"]
     _count_call(lake, "ingest", cid)
@@ -71,7 +72,7 @@ def fake_ingest(lake: Lake, clip_dir: Path) -> StageReport:
                        metrics={"n_files": float(len(list(Path(clip_dir).iterdir())))})
 
 
-def fake_qa(lake: Lake, clip_id: str) -> StageReport:
+def fake_qa(lake: Lake, clip_id: str, config: FakeConfig | None = None) -> StageReport:
     _count_call(lake, "qa", clip_id)
     corrupt = lake.exists(lake.path("landing", clip_id, "CORRUPT"))
     row = QaCheckRow(clip_id=clip_id, agent_id="red", sensor="INS", check="ins_present",
@@ -86,11 +87,12 @@ def fake_qa(lake: Lake, clip_id: str) -> StageReport:
                        metrics={"checks_failed": 0.0, "pid": float(os.getpid())})
 
 
-def fake_annotate(lake: Lake, clip_id: str) -> StageReport:
+def fake_annotate(lake: Lake, clip_id: str, config: FakeConfig | None = None) -> StageReport:
     """Boxes on a ring around the ego vehicle, classes cycling (release statistics need them)."""
     _count_call(lake, "annotate", clip_id)
     meta = yaml.safe_load(lake.read_bytes(lake.path("landing", clip_id, "clip.yaml")))
-    n = int(meta.get("n_objects", 12))
+    n = config.n_objects if config and config.n_objects is not None else \
+        int(meta.get("n_objects", 12))
     rng = np.random.default_rng(abs(hash(clip_id)) % 2**32)
     classes = ["car", "pedestrian", "truck", "bicycle"]
     rows: list[BaseModel] = []
@@ -114,9 +116,22 @@ def fake_annotate(lake: Lake, clip_id: str) -> StageReport:
 
 
 
-def fake_flaky(lake: Lake, clip_id: str) -> StageReport:
+def fake_flaky(lake: Lake, clip_id: str, config: FakeConfig | None = None) -> StageReport:
     """Fails with a transient error on its first call per clip (the task's retry must help)."""
     _count_call(lake, "flaky", clip_id)
     if call_count(lake, "flaky", clip_id) == 1:
         raise OSError("transient: object store timed out")
     return StageReport(stage="flaky", clip_id=clip_id, metrics={"pid": float(os.getpid())})
+
+
+FAKE_INGEST = Stage(name="ingest", config_model=FakeConfig, input="clip_dir", reads=(),
+                    owns=tables("clean", "clips"), run=fake_ingest)
+FAKE_QA = Stage(name="qa", config_model=FakeConfig, reads=tables("clean", "clips"),
+                owns=tables("raw", "qa_checks"), run=fake_qa)
+FAKE_ANNOTATE = Stage(name="annotate", config_model=FakeConfig,
+                      reads=tables("clean", "clips"), owns=tables("clean", "annotations"),
+                      run=fake_annotate)
+FAKE_FLAKY = Stage(name="flaky", config_model=FakeConfig, reads=(), owns=(), run=fake_flaky)
+FAKE_PIPELINE = (FAKE_INGEST, FAKE_QA, FAKE_ANNOTATE)
+FLAKY_PIPELINE = (*FAKE_PIPELINE, FAKE_FLAKY)
+FAKES = "test_flows_fakestages:FAKE_PIPELINE"

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from tests.fixtures.minibag import MiniClip, write_clip
+from v2xlake.flows import bookkeeping
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.catalog import Catalog
 from v2xlake.storage.lake import Lake
@@ -76,6 +77,9 @@ def test_ins_gap_quarantines_and_names_the_span(tmp_path: Path) -> None:
     # INS missing in [0.152, 0.296] s: scans 1-3 (0.1-0.399 s; scan 3 starts at 0.300 and
     # its previous sample is at 0.144) are not bracketed; the clip's axis starts 48 ms before
     assert "ins_coverage" in str(err) and "[+0.148 s, +0.447 s]" in str(err)
+    # QA only says why; the flow quarantines, once, with the checks the error carries
+    assert not is_quarantined(lake, "gap")
+    bookkeeping.quarantine(lake, "gap", err, stage="qa")
     rep = read_report(lake, "gap")
     assert rep is not None and rep["stage"] == "qa"
     assert {c["check"] for c in rep["failed_checks"]} >= {"ins_coverage", "dropped_frames"}

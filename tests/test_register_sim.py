@@ -63,6 +63,9 @@ def test_deskew_on_simulated_clip(processed: tuple[Lake, Path]) -> None:
     for agent in ("red", "black"):
         frames = {f["frame_idx"]: f for f in lake.read_table(
             "clean", "lidar_frames", clip_id=CID, agent_id=agent).to_pylist()}
+        for d in lake.read_table("clean", "deskew_frames", clip_id=CID,
+                                 agent_id=agent).to_pylist():
+            frames[d["frame_idx"]]["deskew_ref_ns"] = d["deskew_ref_ns"]
         off = rel0 - frames[0]["stamp_ns"]  # clean (relative) -> simulator (absolute) time
         out = lake.read_table("clean", "lidar_points_deskewed", clip_id=CID, agent_id=agent)
         raw = lake.read_table("clean", "lidar_points", clip_id=CID, agent_id=agent)

@@ -167,4 +167,5 @@ def test_register_needs_deskew_and_handles_single_agent(tmp_path: Path,
     solo = _copy(clip_lakes["solo"], tmp_path / "solo")
     run_deskew(solo, CLIP)
     rep = run_register(solo, CLIP)
-    assert rep.metrics == {} and "nothing to register" in rep.notes[0]
+    assert rep.status == "not_applicable" and not rep.outputs
+    assert "the clip has 1 agent(s)" in (rep.reason or "")

@@ -21,13 +21,13 @@ def _client(s3: Any) -> Any:
 
 @pytest.mark.slow
 def test_s3_lake_flow_catalog_release(prefect_server: Any, s3_env: Any, tmp_path: Path) -> None:
-    from v2xlake.flows.process import process_clips
+    from v2xlake.flows.pipeline import process_clips
 
     uri = f"s3://{s3_env.bucket}/machinery"
     clips = [fakes.make_fake_clip(tmp_path / "in", f"s3clip{i}", weather=w)
              for i, w in enumerate(["clear", "rain", "clear"])]
     bad = fakes.make_fake_clip(tmp_path / "in", "s3bad", corrupt=True)
-    results = process_clips([str(c) for c in [*clips, bad]], uri, registry=fakes.FAKE_REGISTRY)
+    results = process_clips([str(c) for c in [*clips, bad]], uri, pipeline=fakes.FAKES)
     assert [r["status"] for r in results] == ["ok", "ok", "ok", "quarantined"]
     lake = Lake(uri)
     assert not lake.is_local
@@ -57,8 +57,7 @@ def test_s3_lake_flow_catalog_release(prefect_server: Any, s3_env: Any, tmp_path
 def test_s3_real_clip_end_to_end(prefect_server: Any, s3_env: Any, tmp_path: Path) -> None:
     """A simulated clip through every real stage into an S3 lake, answered by SQL."""
     from v2xlake.flows.cli import sim_config
-    from v2xlake.flows.process import process_clip
-    from v2xlake.flows.stages import STAGE_NAMES
+    from v2xlake.flows.pipeline import STAGE_NAMES, process_clip
     from v2xlake.tasks.simulate import simulate
 
     clip = simulate(tmp_path / "clip", sim_config("small", 1.0, "mcap", 11, "red,black", "1"))

@@ -72,7 +72,7 @@ def test_schedule_fires_and_processes_new_clip(prefect_server: Any, tmp_path: Pa
     lake_dir, inbox = tmp_path / "lake", tmp_path / "inbox"
     inbox.mkdir()
     _prefect(["work-pool", "create", pool, "--type", "process"], api)
-    params = {"lake": str(lake_dir), "inbox": str(inbox), "registry": fakes.FAKE_REGISTRY,
+    params = {"lake": str(lake_dir), "inbox": str(inbox), "pipeline": fakes.FAKES,
               "settle_seconds": 0.5}
     _prefect(["--no-prompt", "deploy", "--prefect-file", "deploy/prefect.yaml",
               "--name", "scan-landing", "--pool", pool, "--interval", "5",

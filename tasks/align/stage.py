@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
 from v2xlake.schemas.errors import ClipError
-from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import AlignmentRow
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.align.boxes import BoxArray
@@ -448,3 +448,12 @@ def _write_overlay(lake: Lake, clip_id: str, aid: str, agent: AgentData, T_el: n
     path = lake.path("clean", "images", clip_id, f"alignment_{aid}_{cam}.png")
     lake.write_bytes(path, render_overlay(panels))
     return path
+
+
+ALIGN = Stage(
+    name=STAGE, config_model=AlignConfig,
+    reads=tables("clean", "clips", "agents", "ego_poses", "calibrated_sensors", "lidar_frames",
+                 "camera_frames", "annotations", "lidar_points_deskewed", "deskew_frames",
+                 "registrations"),
+    owns=tables("clean", "alignments"), run=run_align,
+    doc="stamp-, frame- and target-based LiDAR-camera temporal alignment (Sec. 5)")

@@ -2,7 +2,8 @@
 
 * ``num_lidar_pts``: the real number of deskewed points inside each box (what nuScenes'
   detection evaluation filters on), counted on clean ``lidar_points_deskewed``, i.e. in the
-  same L0 frame the boxes are annotated in.
+  same L0 frame the boxes are annotated in, and stored in annotate's own
+  ``annotations_world`` (clean ``annotations`` belongs to anonymize and is never rewritten).
 * ``instances``: one row per global instance id across agents and frames (category,
   count, agents, first / last time, links); a global id that changes category is an error.
 * links: a linked instance (a trailer towed by a car) must exist in the clip, and where
@@ -54,7 +55,10 @@ class AnnotateConfig(BaseModel):
     max_link_gap_m: float = Field(
         default=3.0, ge=0,
         description="linked boxes: centre distance <= (l_a + l_b) / 2 + this gap")
-    link_policy: Literal["error", "warn"] = "error"
+    # A far link is a plausibility finding on an annotation (a trailer a few decimetres
+    # further than the limit), not bad input: by default it is reported, never quarantined.
+    link_policy: Literal["error", "warn"] = Field(
+        default="warn", description="linked objects too far apart: report (warn) or error")
     cross_agent_max_dt_ms: float = Field(
         default=60.0, gt=0, description="pair two agents' boxes of one id at most this apart")
     registration_min_fitness: float = Field(default=0.0, ge=0)
@@ -141,37 +145,9 @@ def check_links(
 
 
 # ------------------------------------------------------------------------------ lake I/O
-def _fail(clip_id: str, reason: str, **kw: str | None) -> ClipError:
-    return ClipError(clip_id, reason, stage=STAGE, **kw)
-
-
-def _rewrite_annotations(lake: Lake, clip_id: str, by_agent: dict[str, pa.Table]
-                         ) -> list[OutputFile]:
-    """Replace the clean annotations of the clip in the layout they were written in."""
-    root = lake.table_dir("clean", "annotations", clip_id)
-    files = lake.list_files(root, ".parquet")
-    per_agent = any("agent_id=" in f[len(root):] for f in files)
-    outputs: list[OutputFile] = []
-    if per_agent:
-        for aid, t in by_agent.items():
-            adir = lake.table_dir("clean", "annotations", clip_id, aid)
-            old = lake.list_files(adir, ".parquet")
-            name = old[0].rsplit("/", 1)[1][: -len(".parquet")] if old else "part"
-            path, n = lake.write_table("clean", "annotations", t, clip_id=clip_id,
-                                       agent_id=aid, name=name)
-            for f in old:
-                if f != path:
-                    lake.fs.delete_file(f)
-            outputs.append(OutputFile(path=path, rows=n))
-    else:
-        name = files[0].rsplit("/", 1)[1][: -len(".parquet")] if files else "part"
-        t = pa.concat_tables(list(by_agent.values()))
-        path, n = lake.write_table("clean", "annotations", t, clip_id=clip_id, name=name)
-        for f in files:
-            if f != path:
-                lake.fs.delete_file(f)
-        outputs.append(OutputFile(path=path, rows=n))
-    return outputs
+def _fail(clip_id: str, reason: str, *, agent_id: str | None = None,
+          path: str | None = None) -> ClipError:
+    return ClipError(clip_id, reason, stage=STAGE, agent_id=agent_id, path=path)
 
 
 def _t0_per_row(agent: AgentData, sensor: str, frames: np.ndarray, clip_id: str) -> np.ndarray:
@@ -230,8 +206,7 @@ def run_annotate(lake: Lake, clip_id: str,
     report = StageReport(stage=STAGE, clip_id=clip_id)
     ann_all = lake.read_table("clean", "annotations", clip_id=clip_id)
     if ann_all.num_rows == 0:
-        report.notes.append("clip has no annotations: nothing to do")
-        return report
+        return StageReport.not_applicable(STAGE, clip_id, "the clip has no annotations")
     try:
         clip = load_clip(lake, clip_id)
     except ClipError as e:
@@ -330,7 +305,6 @@ def run_annotate(lake: Lake, clip_id: str,
     report.metrics["links.n_target_not_in_scan"] = float(n_absent)
 
     # ---- outputs
-    report.outputs.extend(_rewrite_annotations(lake, clip_id, by_agent))
     for aid, w in world_tables.items():
         w = rows_to_table(AnnotationWorldRow, w.to_pylist())  # validated, typed
         path, n = lake.write_table("clean", "annotations_world", w, clip_id=clip_id,

@@ -57,7 +57,7 @@ STAGE = "anonymize"
 Progress = Callable[[int, int], None]
 
 COPY_TABLES = ("clips", "agents", "sensors", "calibrated_sensors", "qa_checks")
-SHIFT_TABLES = ("imu", "lidar_frames", "lidar_points", "annotations", "instances")
+SHIFT_TABLES = ("imu", "lidar_frames", "lidar_points", "annotations")
 NEVER_CLEAN = ("ins",)  # WGS84: replaced by ego_poses
 CLEAN_TABLES = (
     *COPY_TABLES,

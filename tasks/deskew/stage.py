@@ -4,15 +4,18 @@ Reads per agent the clean ``ego_poses`` (``T_world_ego``), the LiDAR extrinsic f
 ``calibrated_sensors`` and each scan's start time from ``lidar_frames``; moves every point
 into the LiDAR frame at its scan start (supplementary A.4, :func:`tasks.deskew.deskew_points`)
 and writes them with the same schema as ``lidar_points`` (one row group per frame). The
-per-frame figures (points outside INS coverage, reference time, max / RMS shift) go back
-into clean ``lidar_frames`` so the catalog can show how much each scan was corrected.
+per-frame figures (points outside INS coverage, reference time, max / RMS shift) go into
+deskew's own ``deskew_frames``; the catalog's ``lidar_frames`` view joins them, so the
+catalog shows how much each scan was corrected while ``lidar_frames`` keeps one writer.
 
 Policy for scans that cannot be compensated (points outside the INS span or over an INS
 gap): frames at the clip's edges (the INS starts after the first scan or stops before the
 last) are skipped and reported by default, an uncovered frame in the middle of the clip is
 a data fault and raises :class:`ClipError` naming clip, agent, frame and the time spans.
-An agent without INS raises too: per-point compensation without poses is impossible, and
-silently publishing skewed scans as "deskewed" would be worse than stopping.
+An agent without a pose track is not deskewed (a note says so) and a clip where no agent
+has one gets a ``not_applicable`` report: per-point compensation without poses is
+impossible, and publishing skewed scans as "deskewed" would be worse than saying so; the raw
+scans stay in ``lidar_points`` and the rest of the clip (images, QA) is kept.
 """
 
 from __future__ import annotations
@@ -29,8 +32,10 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
+from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.errors import ClipError
-from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
+from v2xlake.schemas.tables import DeskewFrameRow
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.deskew.core import DeskewResult, deskew_points
 from v2xlake.tasks.interpolate import PoseTrack
@@ -39,6 +44,7 @@ log = logging.getLogger(__name__)
 
 STAGE = "deskew"
 OUT_TABLE = "lidar_points_deskewed"
+FRAMES_TABLE = "deskew_frames"
 
 
 class DeskewConfig(BaseModel):
@@ -94,15 +100,23 @@ def _col(t: pa.Table, name: str) -> np.ndarray:
     return np.asarray(t.column(name).to_numpy(zero_copy_only=False))
 
 
+def pose_missing(lake: Lake, clip_id: str, agent_id: str) -> str | None:
+    """Why the agent has no pose track (None: it has one)."""
+    agents = lake.read_table("clean", "agents", clip_id=clip_id, agent_id=agent_id)
+    if agents.num_rows and not agents.column("has_ins")[0].as_py():
+        return "agents.has_ins is false"
+    ego = lake.read_table("clean", "ego_poses", clip_id=clip_id, agent_id=agent_id,
+                          columns=["t_ns"])
+    return None if ego.num_rows else "no clean ego_poses rows"
+
+
 def load_pose_track(lake: Lake, clip_id: str, agent_id: str) -> PoseTrack:
     """The agent's clean ``T_world_ego`` samples; ClipError if the agent has no INS."""
-    ego = lake.read_table("clean", "ego_poses", clip_id=clip_id, agent_id=agent_id)
-    agents = lake.read_table("clean", "agents", clip_id=clip_id, agent_id=agent_id)
-    has_ins = bool(agents.num_rows == 0 or agents.column("has_ins")[0].as_py())
-    if ego.num_rows == 0 or not has_ins:
-        why = "agents.has_ins is false" if not has_ins else "no clean ego_poses rows"
+    why = pose_missing(lake, clip_id, agent_id)
+    if why:
         raise _fail(clip_id, f"agent {agent_id} has no INS ({why}): per-point motion "
                              "compensation and registration need poses", agent_id)
+    ego = lake.read_table("clean", "ego_poses", clip_id=clip_id, agent_id=agent_id)
     order = np.argsort(_col(ego, "t_ns"), kind="stable")
     t = _col(ego, "t_ns")[order]
     keep = np.concatenate([[True], np.diff(t) > 0])  # a repeated stamp is one sample
@@ -199,14 +213,23 @@ def run_deskew(lake: Lake, clip_id: str, config: DeskewConfig | None = None) -> 
     if not point_files:
         raise _fail(clip_id, "no clean lidar_points: nothing to deskew")
     lake.delete_partition("clean", OUT_TABLE, clip_id)
+    lake.delete_partition("clean", FRAMES_TABLE, clip_id)
+    agents = sorted({a for _, a, _ in point_files if a is not None})
+    without = {a: why for a in agents if (why := pose_missing(lake, clip_id, a))}
+    if len(without) == len(agents):
+        return StageReport.not_applicable(
+            STAGE, clip_id, "no agent has a pose track (" + "; ".join(
+                f"{a}: {w}" for a, w in without.items()) + "): per-point motion compensation "
+            "needs poses; the raw scans stay available as lidar_points")
+    for a, why in without.items():
+        report.notes.append(f"{a} not deskewed: {why}")
     _warm_up()
     tot = _Totals()
     stats: dict[tuple[str, str, int], _FrameStat] = {}
-    agents = sorted({a for _, a, _ in point_files if a is not None})
-    for agent in agents:
+    for agent in (a for a in agents if a not in without):
         _deskew_agent(lake, clip_id, agent, cfg, frames_tbl,
                       [p for p, a, _ in point_files if a == agent], stats, tot, report)
-    _rewrite_frames(lake, clip_id, stats, report)
+    _write_frames(lake, clip_id, stats, report)
     report.notes.extend(tot.notes)
     wall = time.perf_counter() - wall0
     rms_all = float(np.sqrt(np.mean(np.square(tot.rms_shifts)))) if tot.rms_shifts else 0.0
@@ -344,28 +367,24 @@ def _uncompensable(res: DeskewResult, track: PoseTrack, gaps: np.ndarray,
     return None
 
 
-def _rewrite_frames(lake: Lake, clip_id: str, stats: dict[tuple[str, str, int], _FrameStat],
-                    report: StageReport) -> None:
-    """Put the per-frame deskew figures into clean ``lidar_frames`` (same files, atomically)."""
-    for path, agent, name in _partition_files(lake, "lidar_frames", clip_id):
-        tbl = pq.read_table(path, filesystem=lake.fs)
-        agents = _col(tbl, "agent_id").astype(str) if "agent_id" in tbl.column_names else \
-            np.full(tbl.num_rows, agent or "")
-        keys = [(str(a), str(s), int(f)) for a, s, f in
-                zip(agents, _col(tbl, "sensor"), _col(tbl, "frame_idx"), strict=True)]
-        got = [stats.get(k) for k in keys]
-        cols = {
-            "n_uncovered": (pa.int64(), [g.n_uncovered if g else None for g in got]),
-            "deskew_ref_ns": (pa.int64(), [g.ref_ns if g else None for g in got]),
-            "deskew_max_shift_m": (pa.float32(), [g.max_shift if g else None for g in got]),
-            "deskew_rms_shift_m": (pa.float32(), [g.rms_shift if g else None for g in got]),
-        }
-        for c, (typ, vals) in cols.items():
-            arr = pa.array(vals, typ)
-            if c in tbl.column_names:
-                tbl = tbl.set_column(tbl.schema.get_field_index(c), pa.field(c, typ), arr)
-            else:
-                tbl = tbl.append_column(pa.field(c, typ), arr)
-        out, rows = lake.write_table("clean", "lidar_frames", tbl, clip_id=clip_id,
-                                     agent_id=agent, name=name)
-        report.outputs.append(OutputFile(path=out, rows=rows))
+def _write_frames(lake: Lake, clip_id: str, stats: dict[tuple[str, str, int], _FrameStat],
+                  report: StageReport) -> None:
+    """Per-frame deskew figures into deskew's own ``deskew_frames`` (one file per agent)."""
+    by_agent: dict[str, list[DeskewFrameRow]] = {}
+    for (agent, sensor, frame_idx), g in sorted(stats.items()):
+        by_agent.setdefault(agent, []).append(DeskewFrameRow(
+            clip_id=clip_id, agent_id=agent, sensor=sensor, frame_idx=frame_idx,
+            n_uncovered=g.n_uncovered, deskew_ref_ns=g.ref_ns,
+            deskew_max_shift_m=g.max_shift, deskew_rms_shift_m=g.rms_shift))
+    for agent, rows in by_agent.items():
+        out, n = lake.write_table("clean", FRAMES_TABLE, rows_to_table(DeskewFrameRow, rows),
+                                  clip_id=clip_id, agent_id=agent, name="part")
+        report.outputs.append(OutputFile(path=out, rows=n))
+
+
+DESKEW = Stage(
+    name=STAGE, config_model=DeskewConfig,
+    reads=tables("clean", "agents", "ego_poses", "calibrated_sensors", "lidar_frames",
+                 "lidar_points"),
+    owns=tables("clean", OUT_TABLE, FRAMES_TABLE), run=run_deskew,
+    doc="per-point motion compensation into the scan-start LiDAR frame (supp. A.4 eq. 2-3)")

@@ -29,7 +29,7 @@ from v2xlake.tasks.export.common import (
 
 
 class BevConfig(BaseModel):
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     resolution_m: float = Field(0.2, gt=0)
     margin_m: float = Field(40.0, ge=0, description="grid extends this far around trajectories")

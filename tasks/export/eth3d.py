@@ -53,7 +53,7 @@ from v2xlake.tasks.interpolate import invert_rigid
 
 
 class Eth3dConfig(BaseModel):
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     lidar_sensor: str = "LIDAR_TOP"
     agents: list[str] | None = None

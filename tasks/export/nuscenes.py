@@ -71,7 +71,7 @@ VISIBILITY = [("1", "v0-40", "visibility of whole object is between 0 and 40%"),
 
 
 class NuScenesExportConfig(BaseModel):
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     version: str = Field("v1.0-trainval", description="must end in trainval, mini or test for "
                          "the devkit's evaluation to accept it")

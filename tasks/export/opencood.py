@@ -49,7 +49,7 @@ from v2xlake.tasks.export.common import (
 
 
 class OpenCoodConfig(BaseModel):
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     lidar_sensor: str = "LIDAR_TOP"
     default_split: str = "train"

@@ -53,7 +53,7 @@ _PF_FLOAT32, _PF_UINT16 = 7, 4
 
 
 class RosbagExportConfig(BaseModel):
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     lidar_sensor: str = "LIDAR_TOP"
     lidar_table: str = "lidar_points"  # raw scans; "lidar_points_deskewed" for deskewed

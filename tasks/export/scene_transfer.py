@@ -33,7 +33,7 @@ from v2xlake.tasks.export.common import file_output, load_clip
 
 
 class SceneTransferConfig(BaseModel):
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     camera: str = "CAM_FRONT"
     agents: list[str] | None = None  # None: the clip's reference agent only

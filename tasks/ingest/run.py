@@ -79,7 +79,7 @@ ACCEPTED: dict[Modality, tuple[str, ...]] = {
 class IngestConfig(BaseModel):
     """Ingest parameters (hashed into the manifest)."""
 
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     png_compression: int = Field(default=1, ge=0, le=9,
                                  description="zlib level for images re-encoded to PNG "

@@ -7,7 +7,7 @@ time not bracketed by INS samples each break a later stage (deskew, registration
 alignment) in a way that is hard to see there, so they are caught here, on the raw zone, with
 the value, the threshold and the place (agent, sensor, topic, time span) in every row.
 
-Severity: "error" quarantines the clip (``v2xlake.storage.quarantine``) and raises ``ClipError``;
+Severity: "error" raises ``ClipError`` carrying the checks (the flow quarantines the clip);
 "warning" is recorded only. PPS-grid checks are errors for an agent that has an INS (its GNSS
 receiver supplies the PPS the sensors claim to follow) and warnings for an agent without one
 (a free-running clock, e.g. the real Ouster test capture). An agent with no INS topic
@@ -31,7 +31,6 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import QaCheckRow
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.quarantine import quarantine
 
 STAGE = "qa"
 NS = 1_000_000_000
@@ -42,7 +41,7 @@ DEFAULT_RATE_HZ = {Modality.LIDAR: 10.0, Modality.CAMERA: 30.0, Modality.INS: 12
 class QaConfig(BaseModel):
     """Thresholds (hashed into the manifest)."""
 
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     lidar_grid_ms: float = Field(100.0, description="LiDAR scans start every this many ms")
     camera_fps: int = Field(30, description="camera frames at sec + round(k * 1e9 / fps)")
@@ -310,8 +309,8 @@ def load_landing_config(lake: Lake, clip_id: str) -> ClipConfig:
 
 
 def run_qa(lake: Lake, clip_id: str, config: QaConfig | None = None) -> StageReport:
-    """Check one ingested clip, write ``raw/qa_checks``; on an error-severity failure write
-    the quarantine report, remove the clip's partitions and raise ``ClipError``."""
+    """Check one ingested clip, write ``raw/qa_checks``; on an error-severity failure raise
+    ``ClipError`` with the checks (the flow writes the quarantine report)."""
     config = config or QaConfig()
     cfg = load_landing_config(lake, clip_id)
     qa = _Qa(lake, cfg, config)
@@ -324,14 +323,13 @@ def run_qa(lake: Lake, clip_id: str, config: QaConfig | None = None) -> StageRep
     path, n = lake.write_table("raw", "qa_checks", table, clip_id=clip_id)
     failed = [r for r in rows if not r.passed and r.severity == "error"]
     warnings = [r for r in rows if not r.passed and r.severity == "warning"]
-    if failed:
-        quarantine(lake, clip_id, checks=rows, stage=STAGE)
+    if failed:  # the flow quarantines (once, in one place) with these checks in the report
         first = failed[0]
         topic = None
         if first.agent_id and first.sensor:
             topic = cfg.agent(first.agent_id).sensor(first.sensor).topic
         raise ClipError(clip_id, "; ".join(f"{r.check}: {r.detail}" for r in failed),
-                        agent_id=first.agent_id, topic=topic, stage=STAGE)
+                        agent_id=first.agent_id, topic=topic, stage=STAGE, checks=rows)
     return StageReport(
         stage=STAGE, clip_id=clip_id,
         outputs=[OutputFile(path=path[len(lake.base) + 1:], rows=n)],

@@ -25,11 +25,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.geometry import matrix_to_quat
-from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import RegistrationRow
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.deskew.stage import OUT_TABLE as DESKEWED
-from v2xlake.tasks.deskew.stage import load_extrinsics, load_pose_track
+from v2xlake.tasks.deskew.stage import load_extrinsics, load_pose_track, pose_missing
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.register.backends import GicpParams, Prepared, RegistrationBackend, make_backend
 from v2xlake.tasks.register.bev import render_registration_bev
@@ -103,17 +103,21 @@ class _AgentScans:
             raise _fail(clip_id, f"LiDAR {sensor} has no calibrated_sensors row", agent)
         self.sensor, self.T_ego_lidar = sensor, extr[sensor]
         frames = lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent)
-        if frames.num_rows and "deskew_ref_ns" not in frames.column_names:
-            raise _fail(clip_id, "lidar_frames has no deskew_ref_ns: run deskew first", agent)
-        if frames.num_rows:
-            frames = frames.filter(pc.equal(frames.column("sensor"), sensor))
+        desk = lake.read_table("clean", "deskew_frames", clip_id=clip_id, agent_id=agent)
+        if frames.num_rows and not desk.num_rows:
+            raise _fail(clip_id, "no deskew_frames: run deskew first", agent)
+        ref_of = {(str(s), int(f)): r for s, f, r in zip(
+            desk.column("sensor").to_pylist(), desk.column("frame_idx").to_pylist(),
+            desk.column("deskew_ref_ns").to_pylist(), strict=True)} if desk.num_rows else {}
         # frame_idx -> (scan start, deskew reference time); frames deskew skipped are left out
         self.frames: dict[int, tuple[int, int]] = {}
-        for f, t0, tr in zip(frames.column("frame_idx").to_pylist(),
-                             frames.column("t_start_ns").to_pylist(),
-                             frames.column("deskew_ref_ns").to_pylist(), strict=True):
-            if tr is not None:
-                self.frames[int(f)] = (int(t0), int(tr))
+        if frames.num_rows:
+            for s, f, t0 in zip(frames.column("sensor").to_pylist(),
+                                frames.column("frame_idx").to_pylist(),
+                                frames.column("t_start_ns").to_pylist(), strict=True):
+                tr = ref_of.get((str(s), int(f)))
+                if s == sensor and tr is not None:
+                    self.frames[int(f)] = (int(t0), int(tr))
         self._lake = lake
         self._groups: dict[int, list[tuple[str, int]]] = {}
         for path in lake.list_files(lake.table_dir("clean", DESKEWED, clip_id, agent), ".parquet"):
@@ -194,6 +198,14 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     report = StageReport(stage=STAGE, clip_id=clip_id)
     ref_id, other_ids = _reference_agent(lake, clip_id)
     lake.delete_partition("clean", "registrations", clip_id)
+    missing = {a: why for a in (ref_id, *other_ids) if (why := pose_missing(lake, clip_id, a))}
+    if ref_id in missing or len(missing) == len(other_ids):
+        return StageReport.not_applicable(
+            STAGE, clip_id, "registration needs the reference agent and at least one other "
+            "agent with a pose track" + (f" ({'; '.join(f'{a}: {w}' for a, w in missing.items())})"
+                                         if missing else f"; the clip has {1 + len(other_ids)} "
+                                         "agent(s)"))
+    other_ids = [a for a in other_ids if a not in missing]
     if not other_ids:
         report.notes.append(f"single agent ({ref_id}): nothing to register")
         return report
@@ -291,3 +303,11 @@ def plot_registration(lake: Lake, clip_id: str, frame_idx: int, out_png: str | P
                             title=f"{clip_id} frame {frame_idx}: {r['agent_other']} -> "
                                   f"{r['agent_ref']} ({r['reason']})")
     return out
+
+
+REGISTER = Stage(
+    name=STAGE, config_model=RegisterConfig,
+    reads=tables("clean", "clips", "agents", "ego_poses", "calibrated_sensors", "lidar_frames",
+                 "deskew_frames", "lidar_points_deskewed", "annotations"),
+    owns=tables("clean", "registrations", "calibration_refined"), run=run_register,
+    doc="cross-agent LiDAR transform from poses (eq. 1a) refined by GICP (eq. 1b)")

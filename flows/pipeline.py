@@ -1,11 +1,19 @@
-"""Per-clip processing flows: ``process_clip`` chains the stages, ``process_clips`` maps it.
+"""The pipeline: the stages in order, and the flows that run them per clip.
 
-``process_clip`` runs the registry's stages in order as Prefect tasks (retries for transient
-errors, none for bad input), skips a stage whose ``v2xlake.storage.manifest`` key (input files or
-upstream stages' recorded outputs, parameters, code) matches its last successful run,
-records the manifest after each run, quarantines the clip when a stage raises
-:class:`v2xlake.tasks.errors.ClipError` (the flow run then ends Failed with the reason), and
-publishes artifacts: a stage table, per-stage metrics, the QA checks and links to pictures.
+``STAGES`` imports every stage's :class:`~v2xlake.schemas.stage.Stage` object directly, so a
+stage whose module fails to import fails the command before any clip is touched, and the
+call chain from the flow into every stage is plain Python (``flow -> run_stage ->
+stage.run``).
+
+``process_clip`` runs the stages in order as Prefect tasks (retries for transient errors,
+none for bad input), each with its effective parameters (``flows.params``: run parameters,
+then the clip's own ``params:`` block) and a lake handle that may write only the stage's own
+tables. A stage is skipped when its ``storage.manifest`` key (checksums of the files it
+reads, parameters, code) matches its last run. A stage that does not apply to the clip (no
+pose, one agent) reports ``not_applicable`` with the reason; nothing is quarantined for it.
+On :class:`~v2xlake.schemas.errors.ClipError` the clip is quarantined here, once, and the
+flow run ends Failed with the reason. Artifacts: a stage table, per-stage metrics, the QA
+checks and links to pictures.
 
 ``process_clips`` runs one ``process_clip`` flow per clip: one after another with the local
 runner, or each inside a task on a Dask cluster (``--runner dask[=ADDRESS]``), so that every
@@ -14,9 +22,10 @@ clip has its own flow run and state, and one bad clip never stops the others.
 
 from __future__ import annotations
 
+import importlib
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 from uuid import UUID
@@ -31,10 +40,45 @@ from prefect.artifacts import (
 )
 
 from v2xlake.flows import bookkeeping
-from v2xlake.flows.stages import StageSpec, check_available, resolve_registry, select
+from v2xlake.flows.params import ParamsError, clip_params, parse_params
 from v2xlake.schemas.errors import ClipError
-from v2xlake.schemas.stage import StageReport
+from v2xlake.schemas.stage import Stage, StageReport
 from v2xlake.storage.lake import Lake
+from v2xlake.tasks.align.stage import ALIGN
+from v2xlake.tasks.annotate.stage import ANNOTATE
+from v2xlake.tasks.anonymize.stage import ANONYMIZE
+from v2xlake.tasks.deskew.stage import DESKEW
+from v2xlake.tasks.ingest.stage import INGEST
+from v2xlake.tasks.qa.stage import QA
+from v2xlake.tasks.register.stage import REGISTER
+
+STAGES: tuple[Stage[Any], ...] = (INGEST, QA, ANONYMIZE, DESKEW, REGISTER, ANNOTATE, ALIGN)
+STAGE_NAMES = tuple(s.name for s in STAGES)
+
+
+def resolve_pipeline(pipeline: str | None = None) -> tuple[Stage[Any], ...]:
+    """The stages to run: ``STAGES``, or another tuple of Stage objects named as
+    ``module:ATTRIBUTE`` (test doubles and plugins that Dask workers and deployment
+    processes must import by name). Any import error propagates: nothing is skipped."""
+    if not pipeline:
+        return STAGES
+    mod, _, attr = pipeline.partition(":")
+    found = getattr(importlib.import_module(mod), attr)
+    if not isinstance(found, tuple | list) or not all(isinstance(s, Stage) for s in found):
+        raise TypeError(f"pipeline {pipeline!r} is not a sequence of Stage objects")
+    return tuple(found)
+
+
+def select(stages: Sequence[Stage[Any]], names: Iterable[str] | None) -> list[Stage[Any]]:
+    """Keep the pipeline order; unknown names are an error (typos must not pass silently)."""
+    if not names:
+        return list(stages)
+    wanted = list(names)
+    known = [s.name for s in stages]
+    unknown = [n for n in wanted if n not in known]
+    if unknown:
+        raise ValueError(f"unknown stage(s) {unknown}; known: {known}")
+    return [s for s in stages if s.name in wanted]
 
 # The CLI sets this to drive its progress display (only for in-process runs).
 ProgressHook = Callable[[dict[str, Any]], None]
@@ -93,31 +137,36 @@ def _no_retry_on_bad_input(task: Any, task_run: Any, state: Any) -> bool:
 
 
 @task(name="stage", retries=2, retry_delay_seconds=2, retry_condition_fn=_no_retry_on_bad_input,
-      task_run_name="{clip_id}:{stage_spec}")
-def run_stage(stage_spec: str, lake_uri: str, target: str, clip_id: str,
-              upstream: list[str]) -> dict[str, Any]:
+      task_run_name="{clip_id}:{stage_name}")
+def run_stage(stage_name: str, lake_uri: str, target: str, clip_id: str,
+              config: dict[str, Any], pipeline: str | None = None) -> dict[str, Any]:
     """Run one stage on one clip unless its manifest says it is current."""
     logger = get_run_logger()
-    spec = StageSpec.parse(stage_spec)
-    fn = spec.load()
+    stage = next(s for s in resolve_pipeline(pipeline) if s.name == stage_name)
+    cfg = stage.config(config)
     lake = Lake(lake_uri)
-    clip_dir = Path(target) if spec.input == "clip_dir" else None
-    key = bookkeeping.stage_key(lake, clip_id, spec, fn, upstream, clip_dir)
-    cached = bookkeeping.cached_report(lake, clip_id, spec.name, key)
+    clip_dir = Path(target) if stage.input == "clip_dir" else None
+    key = bookkeeping.stage_key(lake, clip_id, stage, cfg, clip_dir)
+    cached = bookkeeping.cached_report(lake, clip_id, stage.name, key)
     if cached is not None:
-        logger.info("%s: %s unchanged since its last run, skipped", clip_id, spec.name)
-        return {"stage": spec.name, "status": "cached", "seconds": 0.0,
+        logger.info("%s: %s unchanged since its last run, skipped", clip_id, stage.name)
+        return {"stage": stage.name, "status": "cached", "seconds": 0.0,
                 "report": cached.model_dump(mode="json")}
     t0 = time.perf_counter()
-    report = fn(lake, clip_dir if clip_dir is not None else target)
+    writer = lake.for_stage(stage.name, [(t.zone, t.name) for t in stage.owns])
+    report = stage.run(writer, str(clip_dir) if clip_dir is not None else target, cfg)
     if not isinstance(report, StageReport):
         report = StageReport.model_validate(report)
     seconds = time.perf_counter() - t0
     if report.clip_id != clip_id:
-        key = bookkeeping.stage_key(lake, report.clip_id, spec, fn, upstream, clip_dir)
+        key = bookkeeping.stage_key(lake, report.clip_id, stage, cfg, clip_dir)
     bookkeeping.record(lake, report, key)
-    logger.info("%s: %s done in %.1f s %s", report.clip_id, spec.name, seconds, report.metrics)
-    return {"stage": spec.name, "status": "done", "seconds": seconds,
+    if report.status == "not_applicable":
+        logger.info("%s: %s not applicable: %s", report.clip_id, stage.name, report.reason)
+    else:
+        logger.info("%s: %s done in %.1f s %s", report.clip_id, stage.name, seconds,
+                    report.metrics)
+    return {"stage": stage.name, "status": report.status, "seconds": seconds,
             "report": report.model_dump(mode="json")}
 
 
@@ -177,67 +226,72 @@ def _flow_run_name() -> str:
 
 @flow(name="process-clip", flow_run_name=_flow_run_name, log_prints=True)
 def process_clip(clip_dir: str, lake: str, stages: list[str] | None = None,
-                 registry: list[str] | None = None, refresh_catalog: bool = True) -> dict[str, Any]:
-    """Run the available stages on one clip folder; quarantine it on bad input."""
+                 params: dict[str, Any] | None = None, pipeline: str | None = None,
+                 refresh_catalog: bool = True) -> dict[str, Any]:
+    """Run the stages on one clip folder; quarantine it on bad input.
+
+    ``params`` is a ``PipelineParams`` as a mapping (one section per stage), the form a
+    deployment's ``parameters:`` block and the Prefect UI give."""
     logger = get_run_logger()
     the_lake = Lake(lake)
-    specs = select(resolve_registry(registry), stages)
-    avail = check_available(specs)
+    chosen = select(resolve_pipeline(pipeline), stages)
+    run_params = parse_params(params)
     clip_id = peek_clip_id(clip_dir)
-    missing = [a for a in avail if not a.ok]
-    for a in missing:
-        logger.warning("stage %s unavailable (%s): skipped", a.spec.name, a.error)
     summary: dict[str, Any] = {
         "clip_dir": str(clip_dir), "clip_id": clip_id, "status": "ok", "error": None,
-        "quarantine_report": None,
-        "stages": [{"stage": a.spec.name, "status": "unavailable", "seconds": 0.0,
-                    "error": a.error} for a in missing],
+        "quarantine_report": None, "stages": [],
     }
-    runnable = [a.spec for a in avail if a.ok]
-    order = {s.name: k for k, s in enumerate(specs)}
+    order = {s.name: k for k, s in enumerate(chosen)}
+
+    def fail(stage: str, exc: Exception, quarantine: bool) -> ClipFailed:
+        text = str(exc) if isinstance(exc, ClipError) else f"{type(exc).__name__}: {exc}"
+        summary["stages"].append({"stage": stage, "status": "failed", "seconds": 0.0,
+                                  "error": text})
+        summary["stages"].sort(key=lambda o: order.get(o["stage"], 99))
+        _emit(event="stage_end", clip_id=clip_id, stage=stage, status="failed", error=text)
+        if quarantine:
+            cid = getattr(exc, "clip_id", None) or clip_id
+            report_path = bookkeeping.quarantine(the_lake, cid, exc, stage=stage)
+            summary.update(status="quarantined", error=text, quarantine_report=report_path)
+            logger.error("clip %s quarantined at stage %s: %s (report: %s)",
+                         clip_id, stage, text, report_path)
+            _publish_artifacts(the_lake, summary)
+            return ClipFailed(f"clip {clip_id} quarantined at stage {stage}: {exc}", summary)
+        summary.update(status="failed", error=f"{stage}: {text}")
+        _publish_artifacts(the_lake, summary)
+        return ClipFailed(f"clip {clip_id} failed at stage {stage}: {text}", summary)
+
+    # every stage's effective parameters first: a bad params block fails before any work
+    try:
+        own = clip_params(clip_dir)
+        configs = {s.name: run_params.for_stage(s, own).model_dump(mode="json") for s in chosen}
+    except ParamsError as exc:
+        err = ClipError(clip_id, f"clip.yaml params: {exc}", path=str(Path(clip_dir) /
+                                                                        "clip.yaml"))
+        raise fail(chosen[0].name if chosen else "params", err, quarantine=True) from exc
     created = create_progress_artifact(
         progress=0.0, key=_artifact_key("clip", clip_id, "progress"),
         description=f"Stages done for clip {clip_id}")
     # the sync call returns the id itself (the async variant a coroutine)
     progress_id: UUID | None = created if isinstance(created, UUID) else None
-    upstream: list[str] = []  # stages whose recorded outputs are this stage's inputs
-    for i, spec in enumerate(runnable):
-        _emit(event="stage_start", clip_id=clip_id, stage=spec.name, index=i, total=len(runnable))
-        target = str(Path(clip_dir).resolve()) if spec.input == "clip_dir" else clip_id
+    for i, stage in enumerate(chosen):
+        _emit(event="stage_start", clip_id=clip_id, stage=stage.name, index=i, total=len(chosen))
+        target = str(Path(clip_dir).resolve()) if stage.input == "clip_dir" else clip_id
         try:
-            outcome = run_stage(spec.format(), lake, target, clip_id, upstream)
+            outcome = run_stage(stage.name, lake, target, clip_id, configs[stage.name],
+                                pipeline)
         except ClipError as exc:
-            report_path = bookkeeping.quarantine(the_lake, exc.clip_id or clip_id, exc,
-                                                 stage=spec.name)
-            summary["stages"].append({"stage": spec.name, "status": "failed",
-                                      "seconds": 0.0, "error": str(exc)})
-            summary.update(status="quarantined", error=str(exc), quarantine_report=report_path)
-            _emit(event="stage_end", clip_id=clip_id, stage=spec.name, status="failed",
-                  error=str(exc))
-            summary["stages"].sort(key=lambda o: order.get(o["stage"], 99))
-            logger.error("clip %s quarantined at stage %s: %s (report: %s)",
-                         clip_id, spec.name, exc, report_path)
-            _publish_artifacts(the_lake, summary)
-            raise ClipFailed(f"clip {clip_id} quarantined at stage {spec.name}: {exc}",
-                             summary) from exc
+            raise fail(stage.name, exc, quarantine=True) from exc
         except Exception as exc:
-            summary["stages"].append({"stage": spec.name, "status": "failed",
-                                      "seconds": 0.0, "error": f"{type(exc).__name__}: {exc}"})
-            summary.update(status="failed", error=f"{spec.name}: {type(exc).__name__}: {exc}")
-            summary["stages"].sort(key=lambda o: order.get(o["stage"], 99))
-            _emit(event="stage_end", clip_id=clip_id, stage=spec.name, status="failed",
-                  error=str(exc))
-            _publish_artifacts(the_lake, summary)
-            raise ClipFailed(f"clip {clip_id} failed at stage {spec.name}: "
-                             f"{type(exc).__name__}: {exc}", summary) from exc
+            raise fail(stage.name, exc, quarantine=False) from exc
         clip_id = outcome["report"]["clip_id"] or clip_id
-        upstream.append(spec.name)
         summary["clip_id"] = clip_id
         summary["stages"].append(outcome)
-        _emit(event="stage_end", clip_id=clip_id, stage=spec.name, status=outcome["status"],
-              seconds=outcome["seconds"], metrics=outcome["report"].get("metrics", {}))
+        _emit(event="stage_end", clip_id=clip_id, stage=stage.name, status=outcome["status"],
+              seconds=outcome["seconds"], metrics=outcome["report"].get("metrics", {}),
+              reason=outcome["report"].get("reason"))
         if progress_id is not None:
-            update_progress_artifact(progress_id, progress=100.0 * (i + 1) / len(runnable))
+            update_progress_artifact(progress_id, progress=100.0 * (i + 1) / len(chosen))
     summary["stages"].sort(key=lambda o: order.get(o["stage"], 99))
     if refresh_catalog:
         bookkeeping.refresh_catalog(the_lake)
@@ -262,37 +316,41 @@ def summary_from_state(clip_dir: str, state: Any) -> dict[str, Any]:
 
 @task(name="clip", task_run_name="clip-{clip_dir}")
 def clip_task(clip_dir: str, lake: str, stages: list[str] | None,
-              registry: list[str] | None) -> dict[str, Any]:
+              params: dict[str, Any] | None, pipeline: str | None) -> dict[str, Any]:
     """One clip's whole flow inside a task, so a Dask worker runs it (its own flow run)."""
-    state = process_clip(clip_dir, lake, stages, registry, refresh_catalog=False,
-                         return_state=True)
+    state = process_clip(clip_dir, lake, stages, params, pipeline,
+                         refresh_catalog=False, return_state=True)
     return summary_from_state(clip_dir, state)
 
 
 @flow(name="process-clips-distributed")
 def _process_clips_on_runner(clip_dirs: list[str], lake: str, stages: list[str] | None,
-                             registry: list[str] | None) -> list[dict[str, Any]]:
-    futures = [clip_task.submit(d, lake, stages, registry) for d in clip_dirs]
+                             params: dict[str, Any] | None,
+                             pipeline: str | None) -> list[dict[str, Any]]:
+    futures = [clip_task.submit(d, lake, stages, params, pipeline) for d in clip_dirs]
     return [f.result() for f in futures]
 
 
 @flow(name="process-clips", log_prints=True)
 def process_clips(clip_dirs: list[str], lake: str, stages: list[str] | None = None,
-                  registry: list[str] | None = None, runner: str = "local") -> list[dict[str, Any]]:
+                  params: dict[str, Any] | None = None, pipeline: str | None = None,
+                  runner: str = "local") -> list[dict[str, Any]]:
     """Process several clip folders; returns one summary per clip (never raises for a clip)."""
     from v2xlake.flows.runners import make_task_runner, parse_runner
 
     logger = get_run_logger()
     dirs = [str(Path(d).resolve()) for d in clip_dirs]
+    checked = parse_params(params).model_dump(mode="json")  # bad parameters: fail now
+    select(resolve_pipeline(pipeline), stages)  # unknown stages / broken imports: fail now
     if parse_runner(runner).kind == "local":
         results = []
         for d in dirs:
-            state = process_clip(d, lake, stages, registry, refresh_catalog=False,
+            state = process_clip(d, lake, stages, checked, pipeline, refresh_catalog=False,
                                  return_state=True)
             results.append(summary_from_state(d, state))
     else:
         results = _process_clips_on_runner.with_options(task_runner=make_task_runner(runner))(
-            dirs, lake, stages, registry)
+            dirs, lake, stages, checked, pipeline)
     bookkeeping.refresh_catalog(Lake(lake))
     bad = [r for r in results if r["status"] != "ok"]
     logger.info("%d clip(s) processed, %d ok, %d not", len(results), len(results) - len(bad),
