@@ -1,25 +1,90 @@
-"""The ``v2xlake`` command line (DESIGN.md "Command line").
+"""The ``v2xlake`` command line (DESIGN.md "Command line"), built with typer.
 
-Each sub-command is a thin function: parse, configure Prefect, lazily import the stage or
-flow module it needs (so ``v2xlake --help`` stays fast and a missing stage only breaks the
-command that needs it), call it, print with rich. Exit status: 0 success, 1 the work found
-problems (quarantined clip, audit findings, release mismatch), 2 usage / unavailable.
+Each command is a thin function: check its arguments, configure Prefect, lazily import the
+flow or stage module it needs (so ``v2xlake --help`` stays fast), call it, print with rich.
+Exit status: 0 success, 1 the work found problems (quarantined clip, audit findings, release
+mismatch), 2 a usage or input error. A user error (bad SQL, unknown clip, a lake that does
+not exist, bad parameters, a non-empty output folder) is one line on stderr, never a Python
+traceback; ``ClipError`` texts keep their ``[stage]`` tag.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import sys
 import time
 from collections.abc import Sequence
+from enum import StrEnum
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from v2xlake.flows.settings import configure_prefect, default_lake, prefect_session, v2xlake_home
+import typer
+from typer.exceptions import TyperException
+
+from v2xlake.flows.settings import DEFAULT_LAKE, configure_prefect, prefect_session, v2xlake_home
 
 STAGES_HELP = "ingest,qa,anonymize,deskew,register,annotate,align"
+
+app = typer.Typer(
+    name="v2xlake", no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
+    help="Multi-agent driving recordings -> Parquet lake + DuckDB catalog, processed per clip "
+         "by Prefect flows.")
+params_app = typer.Typer(no_args_is_help=True, help="pipeline parameters")
+release_app = typer.Typer(no_args_is_help=True, help="immutable, checksummed selections of clips")
+plot_app = typer.Typer(no_args_is_help=True, help="pictures of stage results")
+catalog_app = typer.Typer(no_args_is_help=True, help="the DuckDB catalog of a lake")
+app.add_typer(params_app, name="params")
+app.add_typer(release_app, name="release")
+app.add_typer(plot_app, name="plot")
+app.add_typer(catalog_app, name="catalog")
+
+
+class UserError(Exception):
+    """A mistake in what the user asked for: one line on stderr, exit status 2."""
+
+
+class Storage(StrEnum):
+    sqlite3 = "sqlite3"
+    mcap = "mcap"
+    ros1 = "ros1"
+
+
+class Preset(StrEnum):
+    small = "small"
+    cats = "cats"
+
+
+class BagVersion(StrEnum):
+    ros1 = "ros1"
+    ros2 = "ros2"
+
+
+class Ros2Storage(StrEnum):
+    sqlite3 = "sqlite3"
+    mcap = "mcap"
+
+
+class Format(StrEnum):
+    table = "table"
+    csv = "csv"
+    json = "json"
+
+
+class ExportFormat(StrEnum):
+    nuscenes = "nuscenes"
+    eth3d = "eth3d"
+    rosbag = "rosbag"
+    opencood = "opencood"
+    bev = "bev"
+    scene_transfer = "scene-transfer"
+
+
+LakeOpt = Annotated[str, typer.Option(
+    "--lake", envvar="V2XLAKE_LAKE", help="lake root: a directory or s3://bucket/prefix")]
+ParamsOpt = Annotated[Path | None, typer.Option(
+    "--params", metavar="FILE.yaml", help="pipeline parameters, one section per stage and "
+                                          "export format (see `v2xlake params show`)")]
 
 
 def _console(stderr: bool = False) -> Any:
@@ -34,7 +99,38 @@ def _csv(text: str | None) -> list[str] | None:
     return [t.strip() for t in text.split(",") if t.strip()]
 
 
-# ---------------------------------------------------------------- simulate
+def open_lake(uri: str) -> Any:
+    """An existing lake (a mistyped --lake is an error, never a silent empty answer)."""
+    from v2xlake.storage.lake import Lake
+
+    lake = Lake(uri, create=False)
+    if not lake.looks_like_lake():
+        raise UserError(f"no lake at {uri}: it has none of landing/, raw/, clean/, manifests/ "
+                        "(mistyped --lake? `v2xlake process` creates one)")
+    return lake
+
+
+def _version(value: bool) -> None:
+    if value:
+        from v2xlake import __version__
+
+        typer.echo(f"v2xlake {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    verbose: Annotated[bool, typer.Option("-v", "--verbose",
+                                          help="show Prefect's own log lines")] = False,
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                          help="print the version and exit")] = False,
+) -> None:
+    configure_prefect(quiet=not verbose)
+    if verbose:
+        os.environ.setdefault("PREFECT_LOGGING_LEVEL", "INFO")
+
+
+# ---------------------------------------------------------------- simulate / demo
 def sim_config(preset: str, seconds: float | None, storage: str | None, seed: int | None,
                agents: str | None, cameras: str | None, clip_id: str | None = None) -> Any:
     from v2xlake.tasks.simulate import SimConfig
@@ -43,16 +139,40 @@ def sim_config(preset: str, seconds: float | None, storage: str | None, seed: in
                             cameras=cameras, clip_id=clip_id)
 
 
-def cmd_simulate(args: argparse.Namespace) -> int:
-    from v2xlake.tasks.simulate import simulate
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option(help="where the clip and lake go")] = Path("./demo-lake"),
+    seconds: float = 2.0, cameras: int = 2, seed: int = 7,
+    storage: Storage = Storage.sqlite3,
+) -> int:
+    """Simulate a small clip, process it end to end, show results."""
+    from v2xlake.flows.demo import run_demo
 
-    cfg = sim_config(args.preset, args.seconds, args.storage, args.seed, args.agents,
-                     args.cameras, args.clip_id)
+    return run_demo(out, seconds=seconds, cameras=cameras, seed=seed, storage=storage.value)
+
+
+@app.command()
+def simulate(
+    out: Annotated[Path, typer.Argument(help="clip folder to write")],
+    preset: Preset = Preset.small,
+    seconds: float | None = None,
+    storage: Storage | None = None,
+    seed: int | None = None,
+    agents: Annotated[str | None, typer.Option(help="comma list, e.g. red,black,rsu")] = None,
+    cameras: Annotated[str | None, typer.Option(
+        help="how many cameras (N) or a comma list of names")] = None,
+    clip_id: str | None = None,
+) -> int:
+    """Write a simulated multi-agent clip folder."""
+    from v2xlake.tasks.simulate import simulate as run_simulate
+
+    cfg = sim_config(preset.value, seconds, storage.value if storage else None, seed, agents,
+                     cameras, clip_id)
     t0 = time.perf_counter()
-    out = simulate(Path(args.out), cfg)
-    _console().print(f"simulated clip [bold]{cfg.name}[/] ({args.preset}, "
-                     f"{cfg.seconds:g} s, {','.join(cfg.agents)}, {cfg.storage}) -> {out} "
-                     f"in {time.perf_counter() - t0:.1f} s")
+    path = run_simulate(out, cfg)
+    _console().print(f"simulated clip [bold]{cfg.name}[/] ({preset.value}, {cfg.seconds:g} s, "
+                     f"{','.join(cfg.agents)}, {cfg.storage}) -> {path} in "
+                     f"{time.perf_counter() - t0:.1f} s")
     return 0
 
 
@@ -157,13 +277,27 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
             server_cm.__exit__(None, None, None)
 
 
-def cmd_process(args: argparse.Namespace) -> int:
+@app.command()
+def process(
+    clip_dirs: Annotated[list[Path], typer.Argument(metavar="CLIP_DIR...",
+                                                    help="clip folders (bags + clip.yaml)")],
+    lake: LakeOpt = DEFAULT_LAKE,
+    runner: Annotated[str, typer.Option(
+        help="local | dask (LocalCluster, 2 workers) | dask=ADDRESS | dask=N")] = "local",
+    stages: Annotated[str | None, typer.Option(help=f"comma subset of {STAGES_HELP}")] = None,
+    params: ParamsOpt = None,
+    pipeline: Annotated[str | None, typer.Option(hidden=True)] = None,  # module:STAGES
+) -> int:
+    """Run the stages on clip folders through Prefect."""
     from v2xlake.flows.params import load_params
 
+    missing = [str(d) for d in clip_dirs if not (d / "clip.yaml").is_file()]
+    if missing:
+        raise UserError(f"not a clip folder (no clip.yaml): {', '.join(missing)}")
     console = _console()
     t0 = time.perf_counter()
-    results = run_process(args.clip_dirs, args.lake, args.runner, _csv(args.stages),
-                          load_params(args.params), args.pipeline, console)
+    results = run_process([str(d) for d in clip_dirs], lake, runner, _csv(stages),
+                          load_params(params), pipeline, console)
     for r in results:
         console.print(stage_table(r))
         if r["status"] != "ok":
@@ -172,27 +306,33 @@ def cmd_process(args: argparse.Namespace) -> int:
                              if r.get("quarantine_report") else ""))
     ok = sum(r["status"] == "ok" for r in results)
     console.print(f"{ok}/{len(results)} clip(s) ok in {time.perf_counter() - t0:.1f} s; "
-                  f"lake: {args.lake}")
+                  f"lake: {lake}")
     return 0 if ok == len(results) else 1
 
 
-def cmd_params_show(args: argparse.Namespace) -> int:
-    """The effective parameters: defaults, then ``--params``, then a clip's own block."""
+@params_app.command("show")
+def params_show(
+    params: ParamsOpt = None,
+    clip: Annotated[Path | None, typer.Option(metavar="CLIP_DIR",
+                                              help="apply this clip's params: block")] = None,
+    stage: Annotated[str | None, typer.Option(help="only this section")] = None,
+) -> int:
+    """Print the effective parameters as YAML: defaults, then --params, then the clip's."""
     import yaml
 
     from v2xlake.flows.params import clip_params, load_params
     from v2xlake.flows.pipeline import STAGES
 
-    run = load_params(args.params)
+    run = load_params(params)
     data = run.model_dump(mode="json")
-    if args.clip:
-        own = clip_params(args.clip)
-        for stage in STAGES:
-            data[stage.name] = run.for_stage(stage, own).model_dump(mode="json")
-    if args.stage:
-        if args.stage not in data:
-            raise ValueError(f"unknown section {args.stage!r}; known: {sorted(data)}")
-        data = {args.stage: data[args.stage]}
+    if clip is not None:
+        own = clip_params(clip)
+        for s in STAGES:
+            data[s.name] = run.for_stage(s, own).model_dump(mode="json")
+    if stage:
+        if stage not in data:
+            raise UserError(f"unknown section {stage!r}; known: {', '.join(data)}")
+        data = {stage: data[stage]}
     sys.stdout.write(yaml.safe_dump(data, sort_keys=False))
     return 0
 
@@ -223,70 +363,106 @@ def print_arrow(table: Any, fmt: str, console: Any, title: str | None = None,
         console.print(f"... {table.num_rows - max_rows} more rows (use --format csv)")
 
 
-def cmd_query(args: argparse.Namespace) -> int:
-    from v2xlake.flows.bookkeeping import query
-    from v2xlake.storage.lake import Lake
 
-    print_arrow(query(Lake(args.lake), args.sql), args.format, _console())
+@app.command()
+def query(
+    sql: Annotated[str, typer.Argument(help="one SELECT over the catalog's views")],
+    lake: LakeOpt = DEFAULT_LAKE,
+    format: Annotated[Format, typer.Option("--format")] = Format.table,
+) -> int:
+    """SQL over the catalog (read-only)."""
+    from v2xlake.flows.bookkeeping import query as run_query
+
+    print_arrow(run_query(open_lake(lake), sql), format.value, _console())
     return 0
 
 
 # ---------------------------------------------------------------- export / convert / plot / audit
-def cmd_export(args: argparse.Namespace) -> int:
-    from v2xlake.flows.bookkeeping import query
+@app.command()
+def export(
+    fmt: Annotated[ExportFormat, typer.Argument(metavar="FORMAT")],
+    out: Annotated[Path, typer.Option(help="output folder (new or empty)")],
+    lake: LakeOpt = DEFAULT_LAKE,
+    clip: Annotated[list[str] | None, typer.Option(help="clip id (repeatable; default all)")]
+    = None,
+    params: ParamsOpt = None,
+) -> int:
+    """Export clips to a dataset format."""
+    from v2xlake.flows.bookkeeping import query as run_query
     from v2xlake.flows.params import load_params
     from v2xlake.flows.release import call_export
-    from v2xlake.storage.lake import Lake
 
-    lake = Lake(args.lake)
-    params = load_params(args.params)
-    clip_ids = args.clip or [r["clip_id"] for r in query(
-        lake, "SELECT clip_id FROM clips WHERE status = 'ok' ORDER BY 1").to_pylist()]
-    out = Path(args.out)
+    the_lake = open_lake(lake)
+    cfg = load_params(params).export.section(fmt.value)
+    known = {r["clip_id"] for r in run_query(
+        the_lake, "SELECT clip_id FROM clips WHERE status = 'ok'").to_pylist()}
+    clip_ids = list(clip) if clip else sorted(known)
+    unknown = [c for c in clip_ids if c not in known]
+    if unknown:
+        raise UserError(f"unknown clip(s) {unknown} in {lake}; known: {sorted(known)}")
+    if not clip_ids:
+        raise UserError(f"no processed clips in {lake}")
+    if out.exists() and any(out.iterdir()):
+        raise UserError(f"output folder {out} is not empty; exports never overwrite")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    metrics = call_export(args.format, lake, clip_ids, out,
-                          config=params.export.section(args.format))
-    _console().print(f"{args.format}: {len(clip_ids)} clip(s) -> {out} in "
-                     f"{time.perf_counter() - t0:.1f} s {metrics}")
+    console = _console()
+    with console.status(f"exporting {len(clip_ids)} clip(s) as {fmt.value} -> {out} ..."):
+        metrics = call_export(fmt.value, the_lake, clip_ids, out, config=cfg)
+    console.print(f"{fmt.value}: {len(clip_ids)} clip(s) -> {out} in "
+                  f"{time.perf_counter() - t0:.1f} s {metrics}")
     return 0
 
 
-def cmd_convert_bag(args: argparse.Namespace) -> int:
-    """ROS 1 <-> ROS 2 (tasks.export.convert_bag: rosbags' converter + type translation)."""
-    from v2xlake.tasks.export import convert_bag
+@app.command("convert-bag")
+def convert_bag(
+    src: Path, dst: Path,
+    to: Annotated[BagVersion, typer.Option()],
+    storage: Annotated[Ros2Storage, typer.Option(help="ROS 2 storage for --to ros2")]
+    = Ros2Storage.sqlite3,
+) -> int:
+    """Convert a bag between ROS 1 and ROS 2."""
+    from v2xlake.tasks.export import convert_bag as run_convert
 
-    dst = Path(args.dst)
     if dst.exists():
-        raise ValueError(f"{dst} exists; a bag is never overwritten")
-    out = convert_bag(Path(args.src), dst, args.to, storage=args.storage)
-    _console().print(f"{args.src} -> {out} ({args.to})")
+        raise UserError(f"{dst} exists; a bag is never overwritten")
+    out = run_convert(src, dst, to.value, storage=storage.value)
+    _console().print(f"{src} -> {out} ({to.value})")
     return 0
 
 
-def cmd_plot(args: argparse.Namespace) -> int:
-    from v2xlake.storage.lake import Lake
-    from v2xlake.tasks.register.stage import plot_registration
+@plot_app.command("registration")
+def plot_registration(
+    clip: Annotated[str, typer.Option(help="clip id")],
+    out: Annotated[Path, typer.Option(help="PNG to write")],
+    lake: LakeOpt = DEFAULT_LAKE,
+    frame: Annotated[int | None, typer.Option(help="default: the middle registered frame")]
+    = None,
+) -> int:
+    """Bird's-eye view of one frame's registration before and after refinement."""
+    from v2xlake.tasks.register.stage import plot_registration as run_plot
 
-    lake = Lake(args.lake)
-    frame = args.frame
-    if frame is None:  # the middle registered frame
-        frames = sorted(set(lake.read_table("clean", "registrations", clip_id=args.clip,
-                                            columns=["frame_idx"]).column(0).to_pylist()))
+    the_lake = open_lake(lake)
+    if frame is None:
+        frames = sorted(set(the_lake.read_table("clean", "registrations", clip_id=clip,
+                                                columns=["frame_idx"]).column(0).to_pylist()))
         if not frames:
-            raise ValueError(f"clip {args.clip} has no registrations in {lake.uri}")
+            raise UserError(f"clip {clip} has no registrations in {lake}")
         frame = frames[len(frames) // 2]
-    out = plot_registration(lake, args.clip, frame, Path(args.out))
-    _console().print(f"registration of clip {args.clip}, frame {frame} -> {out}")
+    path = run_plot(the_lake, clip, frame, out)
+    _console().print(f"registration of clip {clip}, frame {frame} -> {path}")
     return 0
 
 
-def cmd_audit(args: argparse.Namespace) -> int:
-    from v2xlake.storage.lake import Lake
-    from v2xlake.tasks.anonymize.audit import audit
+@app.command()
+def audit(
+    lake: LakeOpt = DEFAULT_LAKE,
+    release: Annotated[str | None, typer.Option(help="audit this release instead")] = None,
+) -> int:
+    """Check that nothing identifying leaves the raw zone."""
+    from v2xlake.tasks.anonymize.audit import audit as run_audit
 
-    lake = Lake(args.lake)
-    report = audit(lake, args.release or "clean")
+    report = run_audit(open_lake(lake), release or "clean")
     console = _console()
     for f in report.findings:
         console.print(f"[red]{f.kind}[/] {f.location}: {f.detail}")
@@ -294,184 +470,117 @@ def cmd_audit(args: argparse.Namespace) -> int:
     return 0 if report.ok else 1
 
 
-# ---------------------------------------------------------------- release
-def cmd_release_build(args: argparse.Namespace) -> int:
+# ---------------------------------------------------------------- release / catalog
+@release_app.command("build")
+def release_build(
+    name: str,
+    where: Annotated[str, typer.Option(help="a boolean expression over the clips view")],
+    lake: LakeOpt = DEFAULT_LAKE,
+    formats: Annotated[str, typer.Option(help="comma list: lake,nuscenes,opencood,...")]
+    = "lake",
+    seed: int = 0,
+    fractions: Annotated[str, typer.Option(help="train,val,test")] = "0.7,0.15,0.15",
+) -> int:
+    """Build release NAME from a predicate on clips."""
     from v2xlake.flows.release import build_release
 
+    parts = tuple(float(x) for x in fractions.split(","))
+    if len(parts) != 3:
+        raise UserError("--fractions needs three numbers: train,val,test")
+    the_lake = open_lake(lake)
     t0 = time.perf_counter()
-    fractions = tuple(float(x) for x in args.fractions.split(","))
-    if len(fractions) != 3:
-        raise SystemExit("--fractions needs three numbers: train,val,test")
-    meta = build_release(args.lake, args.name, args.where, _csv(args.formats) or ["lake"],
-                         args.seed, (fractions[0], fractions[1], fractions[2]))
     console = _console()
-    console.print(f"release [bold]{args.name}[/]: {len(meta['clip_ids'])} clip(s), splits "
+    with console.status(f"building release {name} ({formats}) ..."):
+        meta = build_release(lake, name, where, _csv(formats) or ["lake"], seed,
+                             (parts[0], parts[1], parts[2]))
+    console.print(f"release [bold]{name}[/]: {len(meta['clip_ids'])} clip(s), splits "
                   f"{meta['split_counts']}, formats {meta['formats']} in "
                   f"{time.perf_counter() - t0:.1f} s")
-    from v2xlake.storage.lake import Lake
-
-    console.print(f"notes: {Lake(args.lake).path('releases', args.name, 'RELEASE.md')}")
+    console.print(f"notes: {the_lake.path('releases', name, 'RELEASE.md')}")
     return 0
 
 
-def cmd_release_verify(args: argparse.Namespace) -> int:
+@release_app.command("verify")
+def release_verify(name: str, lake: LakeOpt = DEFAULT_LAKE) -> int:
+    """Recompute every checksum of release NAME."""
     from v2xlake.flows.release import verify_release
 
-    res = verify_release(args.lake, args.name)
+    open_lake(lake)
+    res = verify_release(lake, name)
     console = _console()
     for p in res.problems:
         console.print(f"[red]FAIL[/] {p}")
     if res.ok:
-        console.print(f"release {args.name}: {res.checked} files OK")
+        console.print(f"release {name}: {res.checked} files OK")
         return 0
-    console.print(f"release {args.name}: {len(res.problems)} problem(s)")
+    console.print(f"release {name}: {len(res.problems)} problem(s)")
     return 1
 
 
-def cmd_release_list(args: argparse.Namespace) -> int:
+@release_app.command("list")
+def release_list(lake: LakeOpt = DEFAULT_LAKE) -> int:
+    """List the releases of a lake."""
     from v2xlake.flows.release import list_releases
 
-    for name in list_releases(args.lake):
+    open_lake(lake)
+    for name in list_releases(lake):
         print(name)
     return 0
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    from v2xlake.flows.demo import run_demo
+@catalog_app.command("refresh")
+def catalog_refresh(lake: LakeOpt = DEFAULT_LAKE) -> int:
+    """Rebuild catalog.duckdb from the lake's files."""
+    from v2xlake.flows.bookkeeping import refresh_catalog
 
-    return run_demo(Path(args.out), seconds=args.seconds, cameras=args.cameras,
-                    seed=args.seed, storage=args.storage)
-
-
-# ---------------------------------------------------------------- parser
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="v2xlake",
-        description="Multi-agent driving recordings -> Parquet lake + DuckDB catalog, "
-                    "processed per clip by Prefect flows.")
-    p.add_argument("-v", "--verbose", action="store_true", help="show Prefect's own log lines")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
-    def lake_arg(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--lake", default=default_lake(),
-                        help="lake root: directory or s3://bucket/prefix (default ./lake or "
-                             "$V2XLAKE_LAKE)")
-
-    d = sub.add_parser("demo", help="simulate a small clip, process it end to end, show results")
-    d.add_argument("--out", default="./demo-lake", help="where the clip and lake go")
-    d.add_argument("--seconds", type=float, default=2.0)
-    d.add_argument("--cameras", type=int, default=2)
-    d.add_argument("--seed", type=int, default=7)
-    d.add_argument("--storage", default="sqlite3", choices=["sqlite3", "mcap", "ros1"])
-    d.set_defaults(func=cmd_demo)
-
-    s = sub.add_parser("simulate", help="write a simulated multi-agent clip folder")
-    s.add_argument("out")
-    s.add_argument("--preset", default="small", choices=["small", "cats"])
-    s.add_argument("--seconds", type=float)
-    s.add_argument("--storage", choices=["sqlite3", "mcap", "ros1"])
-    s.add_argument("--seed", type=int)
-    s.add_argument("--agents", help="comma list, e.g. red,black,rsu")
-    s.add_argument("--cameras", help="how many cameras (N) or a comma list of names")
-    s.add_argument("--clip-id")
-    s.set_defaults(func=cmd_simulate)
-
-    pr = sub.add_parser("process", help="run the stages on clip folders through Prefect")
-    pr.add_argument("clip_dirs", nargs="+", metavar="CLIP_DIR")
-    lake_arg(pr)
-    pr.add_argument("--runner", default="local",
-                    help="local | dask (LocalCluster, 2 workers) | dask=ADDRESS | dask=N")
-    pr.add_argument("--stages", help=f"comma subset of {STAGES_HELP}")
-    pr.add_argument("--params", metavar="FILE.yaml",
-                    help="pipeline parameters, one section per stage (see `params show`)")
-    pr.add_argument("--pipeline", help=argparse.SUPPRESS)  # module:STAGES (test doubles)
-    pr.set_defaults(func=cmd_process)
-
-    pa_ = sub.add_parser("params", help="pipeline parameters")
-    ps = pa_.add_subparsers(dest="params_command", required=True, metavar="ACTION")
-    psh = ps.add_parser("show", help="print the effective parameters as YAML")
-    psh.add_argument("--params", metavar="FILE.yaml", help="a run's parameters file")
-    psh.add_argument("--clip", metavar="CLIP_DIR", help="apply this clip's params: block")
-    psh.add_argument("--stage", help="only this section")
-    psh.set_defaults(func=cmd_params_show)
-
-    q = sub.add_parser("query", help="SQL over the catalog")
-    q.add_argument("sql")
-    lake_arg(q)
-    q.add_argument("--format", default="table", choices=["table", "csv", "json"])
-    q.set_defaults(func=cmd_query)
-
-    e = sub.add_parser("export", help="export clips to a dataset format")
-    e.add_argument("format", choices=["nuscenes", "eth3d", "rosbag", "opencood", "bev",
-                                      "scene-transfer"])
-    lake_arg(e)
-    e.add_argument("--clip", action="append", help="clip id (repeatable; default all)")
-    e.add_argument("--out", required=True)
-    e.add_argument("--params", metavar="FILE.yaml", help="parameters; its export: section")
-    e.set_defaults(func=cmd_export)
-
-    c = sub.add_parser("convert-bag", help="convert a bag between ROS 1 and ROS 2")
-    c.add_argument("src")
-    c.add_argument("dst")
-    c.add_argument("--to", required=True, choices=["ros1", "ros2"])
-    c.add_argument("--storage", default="sqlite3", choices=["sqlite3", "mcap"],
-                   help="ROS 2 storage for --to ros2")
-    c.set_defaults(func=cmd_convert_bag)
-
-    pl = sub.add_parser("plot", help="pictures of stage results")
-    pl.add_argument("what", choices=["registration"])
-    lake_arg(pl)
-    pl.add_argument("--clip", required=True)
-    pl.add_argument("--frame", type=int, default=None)
-    pl.add_argument("--out", required=True)
-    pl.set_defaults(func=cmd_plot)
-
-    a = sub.add_parser("audit", help="check that nothing identifying leaves the raw zone")
-    lake_arg(a)
-    a.add_argument("--release")
-    a.set_defaults(func=cmd_audit)
-
-    r = sub.add_parser("release", help="immutable, checksummed selections of clips")
-    rs = r.add_subparsers(dest="release_command", required=True, metavar="ACTION")
-    rb = rs.add_parser("build", help="build release NAME from a predicate on clips")
-    rb.add_argument("name")
-    rb.add_argument("--where", required=True, help="SQL predicate on the clips view")
-    rb.add_argument("--formats", default="lake", help="comma list: lake,nuscenes,opencood,...")
-    rb.add_argument("--seed", type=int, default=0)
-    rb.add_argument("--fractions", default="0.7,0.15,0.15")
-    lake_arg(rb)
-    rb.set_defaults(func=cmd_release_build)
-    rv = rs.add_parser("verify", help="recompute every checksum of release NAME")
-    rv.add_argument("name")
-    lake_arg(rv)
-    rv.set_defaults(func=cmd_release_verify)
-    rl = rs.add_parser("list", help="list releases")
-    lake_arg(rl)
-    rl.set_defaults(func=cmd_release_list)
-    return p
+    the_lake = open_lake(lake)
+    refresh_catalog(the_lake)
+    _console().print(f"catalog refreshed: {the_lake.catalog_path}")
+    return 0
 
 
+# ---------------------------------------------------------------- entry point
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    configure_prefect(quiet=not args.verbose)
-    if args.verbose:
-        os.environ.setdefault("PREFECT_LOGGING_LEVEL", "INFO")
+    """Run the CLI; returns the exit status (0 ok, 1 problems found, 2 usage/input error)."""
+    err = _console(stderr=True)
     try:
-        return int(args.func(args) or 0)
-    except ImportError as exc:
-        _console(stderr=True).print(f"[red]unavailable[/]: {exc}")
-        return 2
+        rv = app(args=list(sys.argv[1:] if argv is None else argv), prog_name="v2xlake",
+                 standalone_mode=False)
+    except typer.Exit as e:
+        return int(e.exit_code or 0)
+    except typer.Abort:
+        return 130
+    except TyperException as e:  # usage errors: unknown option, bad choice, ...
+        show = getattr(e, "show", None)
+        if callable(show):
+            show(file=sys.stderr)
+        else:
+            err.print(f"[red]error[/]: {e}")
+        return int(getattr(e, "exit_code", 2) or 0)
     except KeyboardInterrupt:
         return 130
-    except Exception as exc:
-        from v2xlake.flows.release import ReleaseError
-        from v2xlake.schemas.errors import ClipError
-
-        if isinstance(exc, ReleaseError | ClipError | ValueError | FileNotFoundError):
-            # ParamsError is a ValueError: bad parameters are a usage error
-            _console(stderr=True).print(f"[red]error[/]: {exc}")
+    except ImportError as e:
+        err.print(f"[red]unavailable[/]: {e}")
+        return 2
+    except Exception as e:
+        if _is_user_error(e):
+            err.print(f"[red]error[/]: {e}")
             return 2
         raise
+    return int(rv or 0)
+
+
+def _is_user_error(e: Exception) -> bool:
+    """Bad input from the user (imported here, after the fact, to keep --help light)."""
+    from v2xlake.schemas.errors import ClipError
+
+    if isinstance(e, UserError | ClipError | ValueError | FileNotFoundError | PermissionError):
+        return True  # ParamsError is a ValueError
+    if "duckdb" in type(e).__module__:  # bad SQL: the parser's message, no trace
+        return True
+    from v2xlake.flows.release import ReleaseError
+
+    return isinstance(e, ReleaseError)
 
 
 if __name__ == "__main__":

@@ -350,7 +350,7 @@ def _partition_columns(names: Sequence[str], clip_id: str,
 
 
 class Lake:
-    def __init__(self, uri: str | os.PathLike[str]) -> None:
+    def __init__(self, uri: str | os.PathLike[str], *, create: bool = True) -> None:
         s = str(uri)
         if s.startswith("s3://"):
             u = urlparse(s)
@@ -361,7 +361,8 @@ class Lake:
             self.fs = pafs.LocalFileSystem()
             self.base = str(Path(s).expanduser().resolve())
             self.is_local = True
-            Path(self.base).mkdir(parents=True, exist_ok=True)
+            if create:
+                Path(self.base).mkdir(parents=True, exist_ok=True)
         self.uri = s if not self.is_local else self.base
         # final path -> (rows, checksum) of every Parquet file this instance wrote (TableWriter)
         self.written: dict[str, tuple[int, str]] = {}
@@ -391,6 +392,12 @@ class Lake:
         raise PermissionError(
             f"stage {self.writer!r} may not write {zone}.{table}: "
             + (f"it belongs to stage {owner!r}" if owner else "no stage declares it"))
+
+    def looks_like_lake(self) -> bool:
+        """True when the root holds at least one zone a pipeline writes (a mistyped path, or
+        an empty folder, is not a lake: reading it must be an error, not empty answers)."""
+        return any(self.exists(self.path(z)) for z in ("landing", "raw", "clean", "manifests",
+                                                       "quarantine", "releases"))
 
     # ---------------------------------------------------------------- paths
     def path(self, *parts: str) -> str:

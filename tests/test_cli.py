@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 import test_flows_fakestages as fakes
 
-from v2xlake.flows.cli import build_parser, main
+from v2xlake.flows.cli import main
 from v2xlake.storage.lake import Lake
 
 
@@ -35,31 +35,44 @@ def test_help_is_fast_and_lists_commands() -> None:
     took = time.perf_counter() - t0
     assert out.returncode == 0
     for cmd in ("demo", "simulate", "process", "query", "export", "convert-bag", "plot",
-                "audit", "release"):
+                "audit", "release", "params", "catalog"):
         assert cmd in out.stdout
     print(f"v2xlake --help: {took:.2f} s")
     # the stage modules and Prefect are imported lazily, by the command that needs them
     probe = subprocess.run(
-        [sys.executable, "-c", "import sys, flows.cli; flows.cli.build_parser(); "
-         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('prefect', 'tasks', "
-         "'duckdb', 'open3d')))"], capture_output=True, text=True, timeout=60)
-    assert probe.stdout.strip() == "[]", probe.stdout + probe.stderr
+        [sys.executable, "-c", "import sys, v2xlake.flows.cli as c; "
+         "c.main(['--help']); print(sorted(m for m in sys.modules if m.startswith(("
+         "'prefect', 'v2xlake.tasks', 'duckdb', 'open3d', 'tasks', 'flows', 'schemas'))))"],
+        capture_output=True, text=True, timeout=60)
+    assert probe.stdout.strip().splitlines()[-1] == "[]", probe.stdout + probe.stderr
 
 
-def test_parser_shapes() -> None:
-    p = build_parser()
-    a = p.parse_args(["process", "x", "y", "--lake", "s3://b/p", "--runner", "dask=tcp://h:1",
-                      "--stages", "ingest,qa"])
-    assert a.clip_dirs == ["x", "y"] and a.lake == "s3://b/p" and a.runner == "dask=tcp://h:1"
-    a = p.parse_args(["release", "build", "r1", "--where", "weather = 'rain'",
-                      "--formats", "nuscenes,opencood"])
-    assert (a.name, a.where, a.formats) == ("r1", "weather = 'rain'", "nuscenes,opencood")
-    a = p.parse_args(["simulate", "out", "--preset", "cats", "--seconds", "3", "--storage",
-                      "ros1", "--seed", "4", "--agents", "red,black,rsu", "--cameras", "3"])
-    assert (a.preset, a.seconds, a.storage, a.seed, a.agents, a.cameras) == (
-        "cats", 3.0, "ros1", 4, "red,black,rsu", "3")
-    with pytest.raises(SystemExit):
-        p.parse_args(["export", "kitti", "--out", "x"])
+def test_version_and_usage_errors_without_traceback(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from v2xlake import __version__
+
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"v2xlake {__version__}"
+    lake = _fake_lake(tmp_path)
+    cases = [
+        (["export", "kitti", "--out", str(tmp_path / "x")], "kitti"),
+        (["query", "SELEC clip_id FROM clips", "--lake", lake.uri], "syntax error"),
+        (["query", "SELECT 1", "--lake", str(tmp_path / "lakee")], "no lake at"),
+        (["export", "bev", "--lake", lake.uri, "--clip", "nope", "--out",
+          str(tmp_path / "o")], "unknown clip"),
+        (["process", str(tmp_path / "no_clip"), "--lake", lake.uri], "no clip.yaml"),
+    ]
+    for argv, msg in cases:
+        assert main(argv) == 2, argv
+        cap = capsys.readouterr()
+        assert msg in cap.err + cap.out, (argv, cap.err)
+        assert "Traceback" not in cap.err + cap.out
+    assert not (tmp_path / "lakee").exists()  # a mistyped lake is never created
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "keep.txt").write_text("x")
+    assert main(["export", "bev", "--lake", lake.uri, "--out", str(full)]) == 2
+    assert "not empty" in capsys.readouterr().err
 
 
 def test_sim_config_from_cli_options() -> None:
