@@ -153,10 +153,21 @@ def run_stage(stage_name: str, lake_uri: str, target: str, clip_id: str,
         return {"stage": stage.name, "status": "cached", "seconds": 0.0,
                 "report": cached.model_dump(mode="json")}
     t0 = time.perf_counter()
-    writer = lake.for_stage(stage.name, [(t.zone, t.name) for t in stage.owns])
-    report = stage.run(writer, str(clip_dir) if clip_dir is not None else target, cfg)
-    if not isinstance(report, StageReport):
-        report = StageReport.model_validate(report)
+    writer = lake.for_stage(stage.name, [(t.zone, t.name) for t in stage.owns],
+                            atomic_clip=clip_id if stage.atomic else None)
+    try:
+        report = stage.run(writer, str(clip_dir) if clip_dir is not None else target, cfg)
+        if not isinstance(report, StageReport):
+            report = StageReport.model_validate(report)
+        moved = writer.publish_stage()  # the stage's tables become visible together
+    except BaseException:
+        writer.discard_stage()
+        raise
+    for out in report.outputs:  # recorded paths: staged -> final (absolute or lake-relative)
+        for src, dst in moved.items():
+            for a, b in ((src, dst), (src[len(lake.base) + 1:], dst[len(lake.base) + 1:])):
+                if out.path.startswith(a + "/"):
+                    out.path = b + out.path[len(a):]
     seconds = time.perf_counter() - t0
     if report.clip_id != clip_id:
         key = bookkeeping.stage_key(lake, report.clip_id, stage, cfg, clip_dir)

@@ -88,6 +88,9 @@ class Stage(Generic[C]):
     run: Callable[[Lake, str, C], StageReport]
     input: Literal["clip_dir", "clip_id"] = "clip_id"
     doc: str = ""
+    # the flow stages this stage's Parquet output and publishes it when run returns, so a
+    # killed run never shows half of it; False for stages that stage and publish themselves
+    atomic: bool = True
 
     def config(self, values: dict[str, Any] | BaseModel | None = None) -> C:
         """The stage's config from user values (unknown keys are an error)."""

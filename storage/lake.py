@@ -370,20 +370,66 @@ class Lake:
         # tools); see ``for_stage``
         self.writer: str | None = None
         self.owns: frozenset[tuple[str, str]] = frozenset()
+        self._stage_root: str | None = None  # staged stage output (for_stage atomic_clip)
+        self._replaced: set[tuple[str, str, str]] = set()
 
-    def for_stage(self, stage: str, owns: Iterable[tuple[str, str]]) -> Lake:
+    def for_stage(self, stage: str, owns: Iterable[tuple[str, str]], *,
+                  atomic_clip: str | None = None) -> Lake:
         """A handle on the same lake that writes only the ``(zone, table)`` pairs ``owns``.
 
         The single-writer rule (each table has one owning stage, ``schemas.tables``) is
         enforced here, where every Parquet write goes through, so a stage that writes
         another stage's table fails at once instead of silently dropping that stage's
         columns on a re-run.
+
+        With ``atomic_clip`` the handle is also the stage's output for that clip: reads go
+        to the lake, Parquet writes go to a private staging folder
+        (``_staging/<stage>-<clip>-p<pid>-<uuid>``, the pid lets a sweep tell a live run's
+        folder from a dead one's), and deleting a partition only marks it for replacement.
+        ``publish_stage()`` then swaps each written (or deleted) partition into place, so a
+        run killed half-way never shows half a stage's output.
         """
         other = copy.copy(self)
         other.written = {}
         other.writer = stage
         other.owns = frozenset(owns)
+        other._replaced = set()
+        other._stage_root = None
+        if atomic_clip is not None:
+            other._stage_root = self.path(
+                "_staging", f"{stage}-{atomic_clip}-p{os.getpid()}-{uuid.uuid4().hex[:8]}")
         return other
+
+    def _write_dir(self, zone: str, table: str, clip_id: str, agent_id: str | None) -> str:
+        if self._stage_root is None:
+            return self.table_dir(zone, table, clip_id, agent_id)
+        self._replaced.add((zone, table, clip_id))
+        parts = [self._stage_root, zone, table, f"clip_id={clip_id}"]
+        if agent_id is not None:
+            parts.append(f"agent_id={agent_id}")
+        return "/".join(parts)
+
+    def publish_stage(self) -> dict[str, str]:
+        """Move a staged stage's partitions into place (see ``for_stage``); returns
+        {staged path prefix: final path prefix} for the caller to rewrite recorded paths."""
+        if self._stage_root is None:
+            return {}
+        moved: dict[str, str] = {}
+        for zone, table, clip_id in sorted(self._replaced):
+            src = "/".join([self._stage_root, zone, table, f"clip_id={clip_id}"])
+            dst = self.table_dir(zone, table, clip_id)
+            self.delete_dir(dst)
+            if self.exists(src):
+                self._move_tree(self, src, dst)
+                moved[src] = dst
+        self.discard_stage()
+        return moved
+
+    def discard_stage(self) -> None:
+        """Drop a staged stage's unpublished output (a failed run)."""
+        if self._stage_root is not None:
+            self.delete_dir(self._stage_root)
+            self._replaced = set()
 
     def _check_owner(self, zone: str, table: str) -> None:
         if self.writer is None or (zone, table) in self.owns:
@@ -543,7 +589,7 @@ class Lake:
         self._check_owner(zone, table)
         for key in _partition_columns(schema.names, clip_id, agent_id):
             schema = schema.remove(schema.get_field_index(key))
-        final = f"{self.table_dir(zone, table, clip_id, agent_id)}/{name}.parquet"
+        final = f"{self._write_dir(zone, table, clip_id, agent_id)}/{name}.parquet"
         return TableWriter(self, final, schema, options or ParquetOptions.for_zone(zone),
                            background=background)
 
@@ -578,6 +624,9 @@ class Lake:
 
     def delete_partition(self, zone: str, table: str, clip_id: str) -> None:
         self._check_owner(zone, table)
+        if self._stage_root is not None:  # replaced at publish_stage, never half-way
+            self._replaced.add((zone, table, clip_id))
+            return
         self.delete_dir(self.table_dir(zone, table, clip_id))
 
     # ---------------------------------------------------------------- clip-level operations
@@ -606,7 +655,7 @@ class Lake:
         partial output. ``_staging`` is never globbed by the catalog."""
         sub = self.path("_staging", f"{clip_id}-{uuid.uuid4().hex[:12]}")
         staged = Lake(sub if self.is_local else f"s3://{sub}")
-        staged.writer, staged.owns = self.writer, self.owns
+        staged.writer, staged.owns = self.writer, self.owns  # ownership, not the redirect
         return staged
 
     def discard_staging(self, clip_id: str) -> int:

@@ -210,3 +210,33 @@ def test_a_parameter_reaches_the_stage_and_its_manifest(prefect_server: Any, tmp
     pfile.write_text(yaml.safe_dump({"deskew": {"max_pose_gap": 1}}))
     assert main(["params", "show", "--params", str(pfile)]) == 2  # a usage error, no trace
     assert "max_pose_gap" in capsys.readouterr().err
+
+
+def test_a_stage_output_becomes_visible_together(tmp_path: Path) -> None:
+    """The flow stages a stage's Parquet output and publishes it when run returns: until
+    then readers see the previous run's files whole; a failed run leaves nothing."""
+    lake = Lake(tmp_path / "lake")
+    write_agent(lake, "red", Motion(), (100_000_000, 600_000_000))
+    owns = [(t.zone, t.name) for t in DESKEW.owns]
+    DESKEW.run(lake.for_stage("deskew", owns), CLIP, DESKEW.config())
+    root = lake.table_dir("clean", "lidar_points_deskewed", CLIP)
+    before = {f: lake.read_bytes(f) for f in lake.list_files(root, ".parquet")}
+    inodes = {os.stat(f).st_ino for f in before}
+    assert before
+
+    staged = lake.for_stage("deskew", owns, atomic_clip=CLIP)
+    report = DESKEW.run(staged, CLIP, DESKEW.config())
+    # mid-run (a kill here): the old output is intact and complete, nothing new is visible
+    assert {f: lake.read_bytes(f) for f in lake.list_files(root, ".parquet")} == before
+    assert all("/_staging/deskew-clipA-p" in o.path for o in report.outputs)
+    moved = staged.publish_stage()
+    after = {f: lake.read_bytes(f) for f in lake.list_files(root, ".parquet")}
+    assert after == before and moved  # same result, but the files were swapped in
+    assert not inodes & {os.stat(f).st_ino for f in after}
+    assert not lake.list_files(lake.path("_staging"))
+
+    failed = lake.for_stage("deskew", owns, atomic_clip=CLIP)
+    DESKEW.run(failed, CLIP, DESKEW.config())
+    failed.discard_stage()  # what the flow does when run raises
+    assert {f: lake.read_bytes(f) for f in lake.list_files(root, ".parquet")} == after
+    assert not lake.list_files(lake.path("_staging"))

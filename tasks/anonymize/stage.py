@@ -11,5 +11,5 @@ ANONYMIZE = Stage(
     name="anonymize", config_model=AnonymizeConfig,
     reads=tables("raw", *INGEST_TABLES, "qa_checks"),
     owns=tables("clean", *_CLEAN, "qa_checks", "anonymization_audit"),
-    run=run_anonymize,
+    run=run_anonymize, atomic=False,  # stages the whole clean zone and publishes it itself
     doc="faces and plates blurred, time made relative, positions made local")
