@@ -26,6 +26,7 @@ import importlib
 import re
 import time
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 from uuid import UUID
@@ -38,6 +39,7 @@ from prefect.artifacts import (
     create_table_artifact,
     update_progress_artifact,
 )
+from pydantic import BaseModel
 
 from v2xlake.flows import bookkeeping
 from v2xlake.flows.params import ParamsError, clip_params, parse_params
@@ -136,14 +138,11 @@ def _no_retry_on_bad_input(task: Any, task_run: Any, state: Any) -> bool:
     return False
 
 
-@task(name="stage", retries=2, retry_delay_seconds=2, retry_condition_fn=_no_retry_on_bad_input,
-      task_run_name="{clip_id}:{stage_name}")
-def run_stage(stage_name: str, lake_uri: str, target: str, clip_id: str,
-              config: dict[str, Any], pipeline: str | None = None) -> dict[str, Any]:
-    """Run one stage on one clip unless its manifest says it is current."""
+def _execute(stage: Stage[Any], lake_uri: str, target: str, clip_id: str, cfg: BaseModel,
+             do: Callable[[Lake, str, BaseModel], StageReport]) -> dict[str, Any]:
+    """Run one stage on one clip unless its manifest says it is current: key, staged
+    output published together, paths recorded as final, manifest written."""
     logger = get_run_logger()
-    stage = next(s for s in resolve_pipeline(pipeline) if s.name == stage_name)
-    cfg = stage.config(config)
     lake = Lake(lake_uri)
     clip_dir = Path(target) if stage.input == "clip_dir" else None
     key = bookkeeping.stage_key(lake, clip_id, stage, cfg, clip_dir)
@@ -156,7 +155,7 @@ def run_stage(stage_name: str, lake_uri: str, target: str, clip_id: str,
     writer = lake.for_stage(stage.name, [(t.zone, t.name) for t in stage.owns],
                             atomic_clip=clip_id if stage.atomic else None)
     try:
-        report = stage.run(writer, str(clip_dir) if clip_dir is not None else target, cfg)
+        report = do(writer, str(clip_dir) if clip_dir is not None else target, cfg)
         if not isinstance(report, StageReport):
             report = StageReport.model_validate(report)
         moved = writer.publish_stage()  # the stage's tables become visible together
@@ -179,6 +178,50 @@ def run_stage(stage_name: str, lake_uri: str, target: str, clip_id: str,
                     report.metrics)
     return {"stage": stage.name, "status": report.status, "seconds": seconds,
             "report": report.model_dump(mode="json")}
+
+
+def _stage(pipeline: str | None, name: str) -> Stage[Any]:
+    return next(s for s in resolve_pipeline(pipeline) if s.name == name)
+
+
+@task(name="stage", retries=2, retry_delay_seconds=2, retry_condition_fn=_no_retry_on_bad_input,
+      task_run_name="{clip_id}:{stage_name}")
+def run_stage(stage_name: str, lake_uri: str, target: str, clip_id: str,
+              config: dict[str, Any], pipeline: str | None = None) -> dict[str, Any]:
+    """One whole stage on one clip, as one task (on a cluster worker when distributed)."""
+    stage = _stage(pipeline, stage_name)
+    return _execute(stage, lake_uri, target, clip_id, stage.config(config), stage.run)
+
+
+@task(name="chunk", retries=2, retry_delay_seconds=2, retry_condition_fn=_no_retry_on_bad_input,
+      task_run_name="{clip_id}:{stage_name}:{index}")
+def run_chunk(stage_name: str, lake_uri: str, clip_id: str, config: dict[str, Any],
+              chunk: Any, index: int, stage_root: str | None,
+              pipeline: str | None = None) -> Any:
+    """One chunk of a chunked stage, writing into the stage's shared staged output."""
+    stage = _stage(pipeline, stage_name)
+    assert stage.chunked is not None
+    writer = Lake(lake_uri).for_stage(stage.name, [(t.zone, t.name) for t in stage.owns],
+                                      stage_root=stage_root)
+    return stage.chunked.run_chunk(writer, clip_id, stage.config(config), chunk)
+
+
+def run_chunked_stage(stage: Stage[Any], lake_uri: str, clip_id: str, config: dict[str, Any],
+                      pipeline: str | None = None) -> dict[str, Any]:
+    """A chunked stage from inside the flow: plan here, the chunks as tasks on the flow's
+    task runner (spread over the cluster's workers when distributed), finish here."""
+    chunked = stage.chunked
+    assert chunked is not None
+
+    def do(writer: Lake, target: str, cfg: BaseModel) -> StageReport:
+        plan = chunked.plan(writer, clip_id, cfg)
+        if isinstance(plan, StageReport):
+            return plan
+        futures = [run_chunk.submit(stage.name, lake_uri, clip_id, config, c, i,
+                                    writer.stage_root, pipeline) for i, c in enumerate(plan)]
+        return chunked.finish(writer, clip_id, cfg, [f.result() for f in futures])
+
+    return _execute(stage, lake_uri, clip_id, clip_id, stage.config(config), do)
 
 
 def _stage_row(outcome: dict[str, Any]) -> dict[str, Any]:
@@ -289,8 +332,11 @@ def process_clip(clip_dir: str, lake: str, stages: list[str] | None = None,
         _emit(event="stage_start", clip_id=clip_id, stage=stage.name, index=i, total=len(chosen))
         target = str(Path(clip_dir).resolve()) if stage.input == "clip_dir" else clip_id
         try:
-            outcome = run_stage(stage.name, lake, target, clip_id, configs[stage.name],
-                                pipeline)
+            if stage.chunked is not None and stage.atomic:
+                outcome = run_chunked_stage(stage, lake, clip_id, configs[stage.name], pipeline)
+            else:
+                outcome = run_stage.submit(stage.name, lake, target, clip_id,
+                                           configs[stage.name], pipeline).result()
         except ClipError as exc:
             raise fail(stage.name, exc, quarantine=True) from exc
         except Exception as exc:
@@ -325,43 +371,37 @@ def summary_from_state(clip_dir: str, state: Any) -> dict[str, Any]:
     return out
 
 
-@task(name="clip", task_run_name="clip-{clip_dir}")
-def clip_task(clip_dir: str, lake: str, stages: list[str] | None,
-              params: dict[str, Any] | None, pipeline: str | None) -> dict[str, Any]:
-    """One clip's whole flow inside a task, so a Dask worker runs it (its own flow run)."""
-    state = process_clip(clip_dir, lake, stages, params, pipeline,
-                         refresh_catalog=False, return_state=True)
-    return summary_from_state(clip_dir, state)
-
-
-@flow(name="process-clips-distributed")
-def _process_clips_on_runner(clip_dirs: list[str], lake: str, stages: list[str] | None,
-                             params: dict[str, Any] | None,
-                             pipeline: str | None) -> list[dict[str, Any]]:
-    futures = [clip_task.submit(d, lake, stages, params, pipeline) for d in clip_dirs]
-    return [f.result() for f in futures]
-
-
 @flow(name="process-clips", log_prints=True)
 def process_clips(clip_dirs: list[str], lake: str, stages: list[str] | None = None,
                   params: dict[str, Any] | None = None, pipeline: str | None = None,
                   runner: str = "local") -> list[dict[str, Any]]:
     """Process several clip folders; returns one summary per clip (never raises for a clip)."""
-    from v2xlake.flows.runners import make_task_runner, parse_runner
+    from v2xlake.flows.runners import dask_cluster, make_task_runner, parse_runner
 
     logger = get_run_logger()
     dirs = [str(Path(d).resolve()) for d in clip_dirs]
     checked = parse_params(params).model_dump(mode="json")  # bad parameters: fail now
     select(resolve_pipeline(pipeline), stages)  # unknown stages / broken imports: fail now
-    if parse_runner(runner).kind == "local":
+    spec = parse_runner(runner)
+    if spec.kind == "local":
         results = []
         for d in dirs:
             state = process_clip(d, lake, stages, checked, pipeline, refresh_catalog=False,
                                  return_state=True)
             results.append(summary_from_state(d, state))
     else:
-        results = _process_clips_on_runner.with_options(task_runner=make_task_runner(runner))(
-            dirs, lake, stages, checked, pipeline)
+        with dask_cluster(spec) as (address, threads):
+            clip_flow = process_clip.with_options(task_runner=make_task_runner(
+                f"dask={address}"))
+
+            def one(d: str) -> dict[str, Any]:
+                state = clip_flow(d, lake, stages, checked, pipeline, refresh_catalog=False,
+                                  return_state=True)
+                return summary_from_state(d, state)
+
+            # a few clips' flows at a time here; their stages and chunks run on the workers
+            with ThreadPoolExecutor(max_workers=max(1, min(len(dirs), threads))) as pool:
+                results = list(pool.map(one, dirs))
     bookkeeping.refresh_catalog(Lake(lake))
     bad = [r for r in results if r["status"] != "ok"]
     logger.info("%d clip(s) processed, %d ok, %d not", len(results), len(results) - len(bad),

@@ -3,14 +3,19 @@
 ``local`` runs clips one after another in this process. ``dask`` starts a
 ``dask.distributed.LocalCluster`` (2 single-threaded worker processes: stages are
 NumPy/Open3D heavy and hold the GIL or their own thread pools) for the duration of the
-flow; ``dask=tcp://host:8786`` connects to a running scheduler instead. Every Dask worker
-reports to the Prefect API named by ``PREFECT_API_URL``; without one each worker would
-start its own temporary server, so the CLI refuses ``dask`` without it (see NOTES.md).
+flow; ``dask=tcp://host:8786`` connects to a running scheduler instead. The clips' flows
+run in this process (a few at a time) and submit their work to the cluster: every stage
+as a task, and a chunked stage (``Stage.chunked``) as one task per chunk, so one long clip
+uses every worker. Every Dask worker reports to the Prefect API named by
+``PREFECT_API_URL``; without one each worker would start its own temporary server, so the
+CLI refuses ``dask`` without it (see NOTES.md).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,6 +58,22 @@ def make_task_runner(text: str) -> Any:
         cluster_kwargs={"n_workers": spec.n_workers, "threads_per_worker": 1,
                         "processes": True, "dashboard_address": None},
     )
+
+
+@contextlib.contextmanager
+def dask_cluster(spec: RunnerSpec) -> Iterator[tuple[str, int]]:
+    """(scheduler address, worker threads) of the spec's cluster, a LocalCluster started
+    for the duration when the spec names no address."""
+    from distributed import Client, LocalCluster
+
+    if spec.address:
+        with Client(spec.address, timeout=30) as client:
+            threads = sum(client.nthreads().values())
+        yield spec.address, max(threads, 1)
+        return
+    with LocalCluster(n_workers=spec.n_workers, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        yield cluster.scheduler_address, spec.n_workers
 
 
 def needs_api_server(text: str) -> bool:

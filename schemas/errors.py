@@ -38,8 +38,19 @@ class ClipError(Exception):
             where.insert(0, f"[{stage}]")
         super().__init__(f"{', '.join(where)}: {reason}")
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Picklable with its fields (it crosses process boundaries: Dask workers)."""
+        return (_rebuild, (self.clip_id, self.reason, self.agent_id, self.topic, self.path,
+                           self.stage, self.checks))
+
     def to_dict(self) -> dict[str, str | None]:
         return {
             "clip_id": self.clip_id, "agent_id": self.agent_id, "topic": self.topic,
             "path": self.path, "stage": self.stage, "reason": self.reason, "message": str(self),
         }
+
+
+def _rebuild(clip_id: str, reason: str, agent_id: str | None, topic: str | None,
+             path: str | None, stage: str | None, checks: list[Any]) -> ClipError:
+    return ClipError(clip_id, reason, agent_id=agent_id, topic=topic, path=path, stage=stage,
+                     checks=checks)

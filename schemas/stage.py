@@ -73,6 +73,23 @@ C = TypeVar("C", bound=BaseModel)
 
 
 @dataclass(frozen=True)
+class Chunked(Generic[C]):
+    """How a stage splits one clip's work so a cluster can share it.
+
+    ``plan`` (in the flow's process) lists picklable chunk descriptions, or returns a
+    not-applicable report; ``run_chunk`` (anywhere: a Dask worker) processes one chunk,
+    writes its share of the stage's output and returns a picklable partial result;
+    ``finish`` (in the flow's process) merges the partial results into the report and
+    writes what belongs to the whole clip. Run one after another, the three give the same
+    output as the stage's ``run``.
+    """
+
+    plan: Callable[[Lake, str, C], list[Any] | StageReport]
+    run_chunk: Callable[[Lake, str, C, Any], Any]
+    finish: Callable[[Lake, str, C, list[Any]], StageReport]
+
+
+@dataclass(frozen=True)
 class Stage(Generic[C]):
     """One pipeline stage.
 
@@ -91,6 +108,7 @@ class Stage(Generic[C]):
     # the flow stages this stage's Parquet output and publishes it when run returns, so a
     # killed run never shows half of it; False for stages that stage and publish themselves
     atomic: bool = True
+    chunked: Chunked[Any] | None = None  # how a cluster shares one clip's work, if it can
 
     def config(self, values: dict[str, Any] | BaseModel | None = None) -> C:
         """The stage's config from user values (unknown keys are an error)."""

@@ -374,7 +374,7 @@ class Lake:
         self._replaced: set[tuple[str, str, str]] = set()
 
     def for_stage(self, stage: str, owns: Iterable[tuple[str, str]], *,
-                  atomic_clip: str | None = None) -> Lake:
+                  atomic_clip: str | None = None, stage_root: str | None = None) -> Lake:
         """A handle on the same lake that writes only the ``(zone, table)`` pairs ``owns``.
 
         The single-writer rule (each table has one owning stage, ``schemas.tables``) is
@@ -387,7 +387,9 @@ class Lake:
         (``_staging/<stage>-<clip>-p<pid>-<uuid>``, the pid lets a sweep tell a live run's
         folder from a dead one's), and deleting a partition only marks it for replacement.
         ``publish_stage()`` then swaps each written (or deleted) partition into place, so a
-        run killed half-way never shows half a stage's output.
+        run killed half-way never shows half a stage's output. ``stage_root`` names an
+        existing staging folder instead: the handle of a chunk of a stage's work that a
+        cluster worker does, writing into the same output as the flow's handle.
         """
         other = copy.copy(self)
         other.written = {}
@@ -395,10 +397,16 @@ class Lake:
         other.owns = frozenset(owns)
         other._replaced = set()
         other._stage_root = None
-        if atomic_clip is not None:
+        if stage_root is not None:
+            other._stage_root = stage_root
+        elif atomic_clip is not None:
             other._stage_root = self.path(
                 "_staging", f"{stage}-{atomic_clip}-p{os.getpid()}-{uuid.uuid4().hex[:8]}")
         return other
+
+    @property
+    def stage_root(self) -> str | None:
+        return self._stage_root
 
     def _write_dir(self, zone: str, table: str, clip_id: str, agent_id: str | None) -> str:
         if self._stage_root is None:
@@ -415,6 +423,9 @@ class Lake:
         if self._stage_root is None:
             return {}
         moved: dict[str, str] = {}
+        for f in self.list_files(self._stage_root, ".parquet"):  # chunks' writes, too
+            zone, table, part = f[len(self._stage_root) + 1:].split("/")[:3]
+            self._replaced.add((zone, table, part.removeprefix("clip_id=")))
         for zone, table, clip_id in sorted(self._replaced):
             src = "/".join([self._stage_root, zone, table, f"clip_id={clip_id}"])
             dst = self.table_dir(zone, table, clip_id)

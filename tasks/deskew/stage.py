@@ -34,7 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.errors import ClipError
-from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
+from v2xlake.schemas.stage import Chunked, OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import DeskewFrameRow
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.deskew.core import DeskewResult, deskew_points
@@ -65,7 +65,9 @@ class DeskewConfig(BaseModel):
         50_000_000, gt=0,
         description="INS samples further apart than this are a gap, not something to "
                     "interpolate across (125 Hz INS: 8 ms nominal)")
-    frames_per_file: int = Field(100, ge=1, description="bounds memory: frames per output file")
+    frames_per_file: int = Field(
+        100, ge=1, description="frames per output file and per chunk of work (bounds memory; "
+                               "chunks are what a distributed run spreads over workers)")
 
 
 @dataclass
@@ -200,15 +202,31 @@ def _warm_up() -> None:
     deskew_points(np.zeros((1, 3), np.float32), np.zeros(1, np.int64), track, np.eye(4), 0)
 
 
-def run_deskew(lake: Lake, clip_id: str, config: DeskewConfig | None = None) -> StageReport:
-    """Deskew every LiDAR frame of every agent of the clip; see the module docstring."""
-    cfg = config or DeskewConfig()
-    wall0 = time.perf_counter()
-    report = StageReport(stage=STAGE, clip_id=clip_id)
+@dataclass(frozen=True)
+class DeskewChunk:
+    """A share of the clip's scans: row groups ``[rg0, rg1)`` of one agent's points file."""
+
+    agent: str
+    path: str
+    rg0: int
+    rg1: int
+
+
+@dataclass
+class DeskewPart:
+    """What a chunk produced: its output files, per-frame figures and totals."""
+
+    outputs: list[OutputFile]
+    stats: dict[tuple[str, str, int], _FrameStat]
+    tot: _Totals
+
+
+def plan_deskew(lake: Lake, clip_id: str, cfg: DeskewConfig) -> list[DeskewChunk] | StageReport:
+    """The chunks of the clip's scans (``frames_per_file`` frames each, one output file per
+    chunk), or a not-applicable report when no agent has a pose track."""
     agents_tbl = lake.read_table("clean", "agents", clip_id=clip_id)
     if agents_tbl.num_rows == 0:
         raise _fail(clip_id, "no clean 'agents' rows: run anonymize first")
-    frames_tbl = lake.read_table("clean", "lidar_frames", clip_id=clip_id)
     point_files = _partition_files(lake, "lidar_points", clip_id)
     if not point_files:
         raise _fail(clip_id, "no clean lidar_points: nothing to deskew")
@@ -221,22 +239,78 @@ def run_deskew(lake: Lake, clip_id: str, config: DeskewConfig | None = None) -> 
             STAGE, clip_id, "no agent has a pose track (" + "; ".join(
                 f"{a}: {w}" for a, w in without.items()) + "): per-point motion compensation "
             "needs poses; the raw scans stay available as lidar_points")
-    for a, why in without.items():
-        report.notes.append(f"{a} not deskewed: {why}")
+    chunks: list[DeskewChunk] = []
+    for path, agent, _ in point_files:
+        if agent is None or agent in without:
+            continue
+        n = pq.ParquetFile(path, filesystem=lake.fs).num_row_groups  # one per frame, usually
+        chunks += [DeskewChunk(agent, path, r, min(r + cfg.frames_per_file, n))
+                   for r in range(0, n, cfg.frames_per_file)]
+    return chunks
+
+
+def deskew_chunk(lake: Lake, clip_id: str, cfg: DeskewConfig, chunk: DeskewChunk) -> DeskewPart:
+    """Deskew one chunk and write its output file (runs anywhere: a Dask worker too)."""
     _warm_up()
+    agent = chunk.agent
+    track = load_pose_track(lake, clip_id, agent)
+    extr = load_extrinsics(lake, clip_id, agent)
+    gaps = _pose_gaps(track, cfg.max_pose_gap_ns)
+    fa = lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent)
+    t_start = {(str(s), int(f)): int(t0) for s, f, t0 in zip(
+        _col(fa, "sensor"), _col(fa, "frame_idx"), _col(fa, "t_start_ns"), strict=True)} \
+        if fa.num_rows else {}
+    part = DeskewPart([], {}, _Totals())
+    pending: list[pa.Table] = []
+    pf = pq.ParquetFile(chunk.path, filesystem=lake.fs)
+    for rg in range(chunk.rg0, chunk.rg1):
+        for frame_idx, rows in _frame_parts(pf.read_row_group(rg)):
+            for sensor, sub in _sensor_parts(rows):
+                out = _deskew_frame(clip_id, agent, sensor, frame_idx, sub, track, extr, gaps,
+                                    t_start, cfg, part.stats, part.tot)
+                if out is not None:
+                    pending.append(out)
+    if pending:
+        data = pa.concat_tables(pending)
+        first = int(_col(data, "frame_idx").min())
+        path, rows_n = lake.write_table("clean", OUT_TABLE, data, clip_id=clip_id,
+                                        agent_id=agent, name=f"frames-{first:06d}",
+                                        row_group_by="frame_idx")
+        part.outputs.append(OutputFile(path=path, rows=rows_n))
+    return part
+
+
+def finish_deskew(lake: Lake, clip_id: str, cfg: DeskewConfig, parts: list[DeskewPart],
+                  seconds: float | None = None) -> StageReport:
+    """Merge the chunks: ``deskew_frames``, the report's outputs, notes and metrics."""
+    report = StageReport(stage=STAGE, clip_id=clip_id)
     tot = _Totals()
     stats: dict[tuple[str, str, int], _FrameStat] = {}
-    for agent in (a for a in agents if a not in without):
-        _deskew_agent(lake, clip_id, agent, cfg, frames_tbl,
-                      [p for p, a, _ in point_files if a == agent], stats, tot, report)
+    for p in parts:
+        report.outputs.extend(p.outputs)
+        stats.update(p.stats)
+        for f in ("points", "valid", "uncovered", "nan", "frames", "skipped", "skipped_points"):
+            setattr(tot, f, getattr(tot, f) + getattr(p.tot, f))
+        tot.kernel_s += p.tot.kernel_s
+        tot.max_shift = max(tot.max_shift, p.tot.max_shift)
+        tot.rms_shifts += p.tot.rms_shifts
+        tot.notes += p.tot.notes
+    frames = lake.read_table("clean", "lidar_frames", clip_id=clip_id, columns=["n_points"])
+    tot.empty = int(np.sum(_col(frames, "n_points") == 0)) if frames.num_rows else 0
     _write_frames(lake, clip_id, stats, report)
+    posed = {k[0] for k in stats}
+    agents = lake.read_table("clean", "agents", clip_id=clip_id, columns=["agent_id"])
+    for a in sorted(set(agents.column("agent_id").to_pylist()) - posed):
+        if (why := pose_missing(lake, clip_id, a)):
+            report.notes.append(f"{a} not deskewed: {why}")
     report.notes.extend(tot.notes)
-    wall = time.perf_counter() - wall0
+    wall = seconds if seconds is not None else tot.kernel_s
     rms_all = float(np.sqrt(np.mean(np.square(tot.rms_shifts)))) if tot.rms_shifts else 0.0
     report.metrics.update(
         n_points=float(tot.points), n_deskewed=float(tot.valid), n_uncovered=float(tot.uncovered),
         n_nan=float(tot.nan), n_frames=float(tot.frames), n_frames_skipped=float(tot.skipped),
         n_frames_empty=float(tot.empty), n_points_in_skipped_frames=float(tot.skipped_points),
+        n_chunks=float(len(parts)),
         points_per_s=tot.points / tot.kernel_s if tot.kernel_s > 0 else 0.0,
         stage_points_per_s=tot.points / wall if wall > 0 else 0.0,
         max_shift_m=tot.max_shift, rms_shift_m=rms_all, seconds=wall,
@@ -246,47 +320,16 @@ def run_deskew(lake: Lake, clip_id: str, config: DeskewConfig | None = None) -> 
     return report
 
 
-def _deskew_agent(lake: Lake, clip_id: str, agent: str, cfg: DeskewConfig, frames_tbl: pa.Table,
-                  files: list[str], stats: dict[tuple[str, str, int], _FrameStat], tot: _Totals,
-                  report: StageReport) -> None:
-    track = load_pose_track(lake, clip_id, agent)
-    extr = load_extrinsics(lake, clip_id, agent)
-    gaps = _pose_gaps(track, cfg.max_pose_gap_ns)
-    t_start: dict[tuple[str, int], int] = {}
-    if frames_tbl.num_rows:
-        fa = frames_tbl.filter(pc.equal(frames_tbl.column("agent_id"), agent))
-        for s, f, t0 in zip(_col(fa, "sensor"), _col(fa, "frame_idx"), _col(fa, "t_start_ns"),
-                            strict=True):
-            t_start[(str(s), int(f))] = int(t0)
-        tot.empty += int(np.sum(_col(fa, "n_points") == 0))
-    pending: list[pa.Table] = []
-    pending_frames = 0
-
-    def flush() -> None:
-        nonlocal pending, pending_frames
-        if not pending:
-            return
-        data = pa.concat_tables(pending)
-        first = int(_col(data, "frame_idx").min())
-        path, rows = lake.write_table("clean", OUT_TABLE, data, clip_id=clip_id, agent_id=agent,
-                                      name=f"frames-{first:06d}", row_group_by="frame_idx")
-        report.outputs.append(OutputFile(path=path, rows=rows))
-        pending, pending_frames = [], 0
-
-    for path in files:
-        pf = pq.ParquetFile(path, filesystem=lake.fs)
-        for rg in range(pf.num_row_groups):
-            tbl = pf.read_row_group(rg)
-            for frame_idx, part in _frame_parts(tbl):
-                for sensor, sub in _sensor_parts(part):
-                    out = _deskew_frame(clip_id, agent, sensor, frame_idx, sub, track, extr,
-                                        gaps, t_start, cfg, stats, tot)
-                    if out is not None:
-                        pending.append(out)
-                pending_frames += 1
-                if pending_frames >= cfg.frames_per_file:
-                    flush()
-    flush()
+def run_deskew(lake: Lake, clip_id: str, config: DeskewConfig | None = None) -> StageReport:
+    """Deskew every LiDAR frame of every agent of the clip, chunk after chunk (the flow
+    spreads the chunks over its task runner instead); see the module docstring."""
+    cfg = config or DeskewConfig()
+    wall0 = time.perf_counter()
+    plan = plan_deskew(lake, clip_id, cfg)
+    if isinstance(plan, StageReport):
+        return plan
+    parts = [deskew_chunk(lake, clip_id, cfg, c) for c in plan]
+    return finish_deskew(lake, clip_id, cfg, parts, time.perf_counter() - wall0)
 
 
 def _deskew_frame(clip_id: str, agent: str, sensor: str, frame_idx: int, part: pa.Table,
@@ -387,4 +430,5 @@ DESKEW = Stage(
     reads=tables("clean", "agents", "ego_poses", "calibrated_sensors", "lidar_frames",
                  "lidar_points"),
     owns=tables("clean", OUT_TABLE, FRAMES_TABLE), run=run_deskew,
+    chunked=Chunked(plan=plan_deskew, run_chunk=deskew_chunk, finish=finish_deskew),
     doc="per-point motion compensation into the scan-start LiDAR frame (supp. A.4 eq. 2-3)")
