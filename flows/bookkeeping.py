@@ -99,8 +99,16 @@ def refresh_catalog(lake: Lake) -> None:
 
 
 def query(lake: Lake, sql: str) -> pa.Table:
-    """Run SQL over the lake's catalog (views over the Parquet files, always current)."""
+    """The project's own SQL over the lake's catalog (views over the Parquet files)."""
     from v2xlake.storage.catalog import Catalog
 
     with Catalog(lake, read_only=True) as cat:
         return cat.query(sql)
+
+
+def user_query(lake: Lake, sql: str) -> pa.Table:
+    """A user's SQL: one SELECT on a locked-down, read-only connection (storage.catalog)."""
+    from v2xlake.storage.catalog import Catalog
+
+    with Catalog(lake, read_only=True) as cat:
+        return cat.user_query(sql)

@@ -371,9 +371,9 @@ def query(
     format: Annotated[Format, typer.Option("--format")] = Format.table,
 ) -> int:
     """SQL over the catalog (read-only)."""
-    from v2xlake.flows.bookkeeping import query as run_query
+    from v2xlake.flows.bookkeeping import user_query
 
-    print_arrow(run_query(open_lake(lake), sql), format.value, _console())
+    print_arrow(user_query(open_lake(lake), sql), format.value, _console())
     return 0
 
 

@@ -32,7 +32,7 @@ from prefect import flow, get_run_logger
 from pydantic import BaseModel
 
 from v2xlake.flows import bookkeeping
-from v2xlake.storage.lake import Lake
+from v2xlake.storage.lake import Lake, checked_clip_id
 from v2xlake.tasks.export.exporters import EXPORTERS, FormatExporter
 from v2xlake.tasks.release_split import SPLITS, SceneKey, SplitConfig, assign_splits, split_counts
 
@@ -95,15 +95,24 @@ def _check_name(name: str) -> None:
 
 # ---------------------------------------------------------------- steps
 def select_scenes(lake: Lake, where: str) -> list[SceneKey]:
-    sql = ("SELECT DISTINCT clip_id, location, weather, lighting FROM clips "
-           f"WHERE status = 'ok' AND ({where}) ORDER BY clip_id")
-    rows = bookkeeping.query(lake, sql).to_pylist()
-    return [SceneKey(str(r["clip_id"]), str(r["location"]), str(r["weather"]),
-                     str(r["lighting"])) for r in rows]
+    """The clips a user predicate selects. The predicate is parsed as one expression over
+    ``clips`` on a locked-down connection (``Catalog.select_clips``), and every clip id that
+    comes back is checked before a path is built from it."""
+    from v2xlake.storage.catalog import Catalog
+
+    with Catalog(lake, read_only=True) as cat:
+        rows = cat.select_clips(where, ["clip_id", "location", "weather", "lighting"])
+    seen: dict[str, SceneKey] = {}
+    for r in rows.to_pylist():
+        cid = checked_clip_id(lake, str(r["clip_id"]))
+        seen.setdefault(cid, SceneKey(cid, str(r["location"]), str(r["weather"]),
+                                      str(r["lighting"])))
+    return list(seen.values())
 
 
 def copy_clean_zone(lake: Lake, writer: ReleaseWriter, clip_ids: Sequence[str]) -> int:
     """Format ``lake``: the selected clips' clean-zone tables and blobs, same layout."""
+    clip_ids = [checked_clip_id(lake, c) for c in clip_ids]
     n = 0
     for table in lake.tables("clean"):
         for cid in clip_ids:

@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import os
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass
 from urllib.parse import urlparse
 
@@ -51,6 +52,10 @@ MANIFEST_COLUMNS = {
 }
 QUARANTINE_COLUMNS = {"clip_id": "VARCHAR", "stage": "VARCHAR", "reason": "VARCHAR",
                       "quarantined_at": "VARCHAR"}
+
+
+class QueryRefused(ValueError):
+    """User SQL that is not allowed (not one SELECT, not one expression, not the lake's)."""
 
 
 def duck_type(t: pa.DataType) -> str:
@@ -231,7 +236,61 @@ class Catalog:
 
     # ------------------------------------------------------------------ queries
     def query(self, sql: str, params: list[object] | None = None) -> pa.Table:
+        """Trusted SQL (the project's own); user text goes through ``user_query``."""
         return self.con.execute(sql, params or []).fetch_arrow_table()
+
+    def lock_down(self) -> None:
+        """Make this connection safe for user SQL, for good: it may read the lake's own
+        files (the views) and nothing else — no other file, no network, no ATTACH, no
+        extension install or load — and the settings cannot be changed back."""
+        root = self.lake.base if self.lake.is_local else f"s3://{self.lake.base}"
+        for stmt in (f"SET allowed_directories = [{_q(root + '/')}]",
+                     "SET autoinstall_known_extensions = false",
+                     "SET autoload_known_extensions = false",
+                     "SET enable_external_access = false",
+                     "SET lock_configuration = true"):
+            self.con.execute(stmt)
+        self._locked = True
+
+    def user_query(self, sql: str) -> pa.Table:
+        """One SELECT statement of user text on a locked-down connection (``lock_down``):
+        COPY, ATTACH, INSTALL, PRAGMA, SET, a second statement... are refused before
+        anything runs."""
+        if not getattr(self, "_locked", False):
+            self.lock_down()
+        try:
+            statements = self.con.extract_statements(sql)
+        except duckdb.Error as e:
+            raise QueryRefused(f"cannot parse the query: {e}") from e
+        if len(statements) != 1:
+            raise QueryRefused(f"exactly one statement, please (got {len(statements)})")
+        kind = statements[0].type
+        if kind.name != "SELECT":
+            raise QueryRefused(f"only SELECT queries are allowed here (got {kind.name})")
+        return self.con.execute(sql).fetch_arrow_table()
+
+    def select_clips(self, where: str, columns: Sequence[str]) -> pa.Table:
+        """Rows of ``clips`` (status ok) matching a user predicate, which must be ONE boolean
+        expression over the clips view: it is parsed as an expression (never pasted into
+        SQL text), and subqueries are refused, so it can only filter clips."""
+        if not getattr(self, "_locked", False):
+            self.lock_down()
+        tokens = duckdb.tokenize(where)
+        words = [where[a:b].strip().upper() for (a, _), (b, _) in
+                 zip(tokens, [*tokens[1:], (len(where), None)], strict=True)]
+        if any(w in ("SELECT", "FROM", "UNION", "COPY", "ATTACH", "PRAGMA") or ";" in w
+               for w in words):
+            raise QueryRefused(f"--where must be one boolean expression over clips columns, "
+                               f"without subqueries: {where!r}")
+        try:
+            expr = duckdb.SQLExpression(where)
+        except duckdb.Error as e:
+            raise QueryRefused(f"--where is not one SQL expression: {e}") from e
+        rel = self.con.table("clips").filter(duckdb.SQLExpression("status = 'ok'"))
+        try:
+            return rel.filter(expr).select(*columns).order("clip_id").fetch_arrow_table()
+        except duckdb.Error as e:
+            raise QueryRefused(f"--where {where!r}: {e}") from e
 
     def close(self) -> None:
         self.con.close()

@@ -25,6 +25,7 @@ import itertools
 import json
 import os
 import queue
+import re
 import shutil
 import threading
 import uuid
@@ -41,6 +42,7 @@ import pyarrow.compute as pc
 import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 
+from v2xlake.schemas.clip import ID_PATTERN
 from v2xlake.schemas.tables import table_owner
 from v2xlake.storage import checksum
 
@@ -748,3 +750,21 @@ class Lake:
             pafs.copy_files(str(src), dest, source_filesystem=pafs.LocalFileSystem(),
                             destination_filesystem=self.fs)
         return size
+
+
+CLIP_ID = re.compile(ID_PATTERN)
+
+
+def checked_clip_id(lake: Lake, clip_id: str) -> str:
+    """A clip id that is safe to build lake paths from: it matches the id pattern of the
+    input contract, and its partition folders resolve inside the lake root (after
+    symlinks). Ids come back from user-written SQL, so they are checked, never trusted."""
+    if not isinstance(clip_id, str) or not CLIP_ID.fullmatch(clip_id):
+        raise ValueError(f"not a clip id: {clip_id!r}")
+    if lake.is_local:
+        root = os.path.realpath(lake.base)
+        for zone in ("raw", "clean"):
+            p = os.path.realpath(os.path.join(root, zone, "blobs", clip_id))
+            if os.path.commonpath([root, p]) != root:
+                raise ValueError(f"clip id {clip_id!r} resolves outside the lake")
+    return clip_id

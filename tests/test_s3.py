@@ -36,7 +36,10 @@ def test_s3_lake_flow_catalog_release(prefect_server: Any, s3_env: Any, tmp_path
     assert "machinery/clean/clips/clip_id=s3clip0/part.parquet" in keys
     assert "machinery/quarantine/s3bad/report.json" in keys
     assert not [k for k in keys if "clip_id=s3bad" in k]
-    got = query(lake, "SELECT clip_id, weather FROM clips ORDER BY 1").to_pylist()
+    from v2xlake.flows.bookkeeping import user_query
+
+    # the locked-down user connection reads an S3 lake too (and nothing else)
+    got = user_query(lake, "SELECT clip_id, weather FROM clips ORDER BY 1").to_pylist()
     assert [r["clip_id"] for r in got] == ["s3clip0", "s3clip1", "s3clip2"]
     n = query(lake, "SELECT count(*) FROM annotations").column(0)[0].as_py()
     assert n == 36
