@@ -79,13 +79,20 @@ def processed_clip_ids(lake: Lake) -> set[str]:
 
 
 # ---------------------------------------------------------------- quarantine
-def quarantine(lake: Lake, clip_id: str, error: Exception, *, stage: str) -> str:
-    """v2xlake.storage.quarantine (report, raw/clean removed) + forget the clip's manifests."""
+def quarantine(lake: Lake, clip_id: str, error: Exception, *, stage: str,
+               remove_data: bool = True) -> str:
+    """v2xlake.storage.quarantine (report, raw/clean removed) + forget the clip's manifests.
+
+    ``remove_data=False`` (a delivery that failed at ingest): only the report is written.
+    Ingest publishes nothing until it succeeds, and what the lake holds under that id may
+    be another delivery's, which a broken or hostile clip.yaml must never delete."""
     from v2xlake.storage.quarantine import quarantine as storage_quarantine
     from v2xlake.storage.quarantine import report_path
 
-    storage_quarantine(lake, clip_id, error, stage=stage)
-    manifest.clear(lake, clip_id)
+    storage_quarantine(lake, clip_id, error, stage=stage,
+                       zones=("raw", "clean") if remove_data else ())
+    if remove_data:
+        manifest.clear(lake, clip_id)
     return report_path(lake, clip_id)
 
 

@@ -88,6 +88,10 @@ class PipelineParams(BaseModel):
         own = (clip_params or {}).get(stage.name) or {}
         if not isinstance(own, dict):
             raise ParamsError(f"params.{stage.name} must be a mapping, got {type(own).__name__}")
+        forbidden = sorted(set(own) & getattr(stage.config_model, "OPERATOR_ONLY", frozenset()))
+        if forbidden:  # a clip is untrusted input: it may not widen what it may read
+            raise ParamsError(f"params.{stage.name}: {forbidden} can only be set by the "
+                              "operator (--params, a deployment), not by a clip's clip.yaml")
         try:
             return stage.config({**values, **own})
         except ValidationError as e:

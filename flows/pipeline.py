@@ -43,9 +43,9 @@ from pydantic import BaseModel
 
 from v2xlake.flows import bookkeeping
 from v2xlake.flows.params import ParamsError, clip_params, parse_params
-from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.errors import ClipError, DeliveryConflict
 from v2xlake.schemas.stage import Stage, StageReport
-from v2xlake.storage.lake import Lake
+from v2xlake.storage.lake import CLIP_ID, Lake
 from v2xlake.tasks.align.stage import ALIGN
 from v2xlake.tasks.annotate.stage import ANNOTATE
 from v2xlake.tasks.anonymize.stage import ANONYMIZE
@@ -110,17 +110,22 @@ class ClipFailed(Exception):
         return dict(self.args[1])
 
 
+UNREADABLE = "_unreadable-"  # no clip id starts with "_": these never name a real clip
+
+
 def peek_clip_id(clip_dir: str | Path) -> str:
-    """The clip id from clip.yaml (the folder name when the file is unreadable)."""
+    """The clip id from clip.yaml; when it has none (unreadable, invalid), a name that
+    cannot be any clip's id (``_unreadable-<folder>``): a broken delivery in a folder named
+    like an existing clip must never be taken for it."""
     path = Path(clip_dir) / "clip.yaml"
     try:
         data = yaml.safe_load(path.read_text())
         cid = data.get("clip_id") if isinstance(data, dict) else None
-        if isinstance(cid, str) and cid:
+        if isinstance(cid, str) and CLIP_ID.fullmatch(cid):
             return cid
-    except (OSError, yaml.YAMLError):
+    except (OSError, yaml.YAMLError, UnicodeDecodeError):
         pass
-    return Path(clip_dir).resolve().name
+    return UNREADABLE + Path(clip_dir).resolve().name
 
 
 def _artifact_key(*parts: str) -> str:
@@ -303,9 +308,17 @@ def process_clip(clip_dir: str, lake: str, stages: list[str] | None = None,
                                   "error": text})
         summary["stages"].sort(key=lambda o: order.get(o["stage"], 99))
         _emit(event="stage_end", clip_id=clip_id, stage=stage, status="failed", error=text)
+        if isinstance(exc, DeliveryConflict):  # another delivery's id: touch nothing
+            summary.update(status="refused", error=text)
+            logger.error("clip %s refused: %s", clip_id, text)
+            _publish_artifacts(the_lake, summary)
+            return ClipFailed(f"clip {clip_id} refused at stage {stage}: {exc}", summary)
         if quarantine:
-            cid = getattr(exc, "clip_id", None) or clip_id
-            report_path = bookkeeping.quarantine(the_lake, cid, exc, stage=stage)
+            cid = clip_id if clip_id.startswith(UNREADABLE) else (
+                getattr(exc, "clip_id", None) or clip_id)
+            inputs_stage = any(s.name == stage and s.input == "clip_dir" for s in chosen)
+            report_path = bookkeeping.quarantine(the_lake, cid, exc, stage=stage,
+                                                 remove_data=not inputs_stage)
             summary.update(status="quarantined", error=text, quarantine_report=report_path)
             logger.error("clip %s quarantined at stage %s: %s (report: %s)",
                          clip_id, stage, text, report_path)

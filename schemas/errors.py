@@ -50,6 +50,21 @@ class ClipError(Exception):
         }
 
 
+class DeliveryConflict(ClipError):
+    """A delivery whose bags differ from those already in the lake under the same clip id.
+
+    A clip's identity is its id plus the checksums of its delivered bags: the new delivery
+    is refused (the flow does not quarantine, so the existing clip's data is untouched)
+    unless the operator replaces it explicitly (``ingest.replace_existing``)."""
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_rebuild_conflict, (self.clip_id, self.reason, self.path))
+
+
+def _rebuild_conflict(clip_id: str, reason: str, path: str | None) -> DeliveryConflict:
+    return DeliveryConflict(clip_id, reason, path=path, stage="ingest")
+
+
 def _rebuild(clip_id: str, reason: str, agent_id: str | None, topic: str | None,
              path: str | None, stage: str | None, checks: list[Any]) -> ClipError:
     return ClipError(clip_id, reason, agent_id=agent_id, topic=topic, path=path, stage=stage,

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.fixtures.real import REAL_DATA_INGEST
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.anonymize.run import run_anonymize
 from v2xlake.tasks.ingest import run_ingest
@@ -21,7 +22,7 @@ OUSTER = REPO / "tests" / "fixtures" / "ouster"
 @pytest.fixture(scope="module")
 def anonymized(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, str, object]:
     lake = Lake(tmp_path_factory.mktemp("lake"))
-    clip_id = run_ingest(lake, OUSTER).clip_id
+    clip_id = run_ingest(lake, OUSTER, REAL_DATA_INGEST).clip_id
     # the case being tested: the raw ins partition exists and is empty
     assert lake.list_files(lake.table_dir("raw", "ins", clip_id), ".parquet")
     assert lake.read_table("raw", "ins", clip_id=clip_id).num_rows == 0

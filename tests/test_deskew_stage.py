@@ -10,6 +10,7 @@ import pyarrow.parquet as pq
 import pytest
 from scipy.spatial.transform import Rotation
 
+from tests.fixtures.real import REAL_DATA_INGEST
 from tests.test_deskew import (
     INS_PERIOD_NS,
     Motion,
@@ -162,7 +163,7 @@ def test_real_ouster_clip_without_ins_is_a_clear_error(tmp_path: Path) -> None:
         pytest.skip("ouster fixture not present")
     cid = "ouster-os1-128-real"
     lake = Lake(tmp_path / "lake")
-    run_ingest(lake, fixture)
+    run_ingest(lake, fixture, REAL_DATA_INGEST)
     for table in ("agents", "calibrated_sensors", "lidar_frames", "lidar_points", "ins"):
         for path in lake.list_files(lake.table_dir("raw", table, cid), ".parquet"):
             dest = lake.path("clean", path[len(lake.path("raw")):].lstrip("/"))

@@ -14,11 +14,12 @@ import pytest
 import yaml
 
 from tests.fixtures.minibag import T0, MiniClip, write_clip
+from tests.fixtures.real import REAL_DATA_INGEST
 from v2xlake.schemas.clip import PointTimeField, TimeReference, TimeUnit
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.catalog import Catalog
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.ingest import IngestConfig, clip_inputs, run_ingest
+from v2xlake.tasks.ingest import clip_inputs, run_ingest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -101,7 +102,7 @@ def test_reingest_replaces_partitions(tmp_path: Path) -> None:
 
 def test_ouster_real_bag(tmp_path: Path) -> None:
     lake = Lake(tmp_path / "lake")
-    rep = run_ingest(lake, OUSTER_FIXTURE)
+    rep = run_ingest(lake, OUSTER_FIXTURE, REAL_DATA_INGEST)
     assert any("no INS" in n for n in rep.notes)
     cat = Catalog(lake)
     cid = "ouster-os1-128-real"
@@ -140,7 +141,7 @@ def test_vlp16_packets_only_is_a_clear_error(tmp_path: Path) -> None:
                    "velodyne_msgs/msg/VelodyneScan")
     lake = Lake(tmp_path / "lake")
     with pytest.raises(ClipError) as e:
-        run_ingest(lake, d)
+        run_ingest(lake, d, REAL_DATA_INGEST)
     msg = str(e.value)
     assert e.value.topic == "/velodyne_packets" and "nebula_vlp16_packets_only" in msg
     assert "velodyne_msgs/msg/VelodyneScan" in msg and "PointCloud2" in msg
@@ -154,12 +155,13 @@ def test_qt128_empty_storage_identifier(tmp_path: Path) -> None:
     lake = Lake(tmp_path / "lake")
     # without recovery: the file and the field are named
     with pytest.raises(ClipError) as e:
-        run_ingest(lake, d, IngestConfig(recover_empty_storage_id=False))
+        run_ingest(lake, d, REAL_DATA_INGEST.model_copy(update={
+            "recover_empty_storage_id": False}))
     assert e.value.path and e.value.path.endswith("metadata.yaml")
     assert "storage_identifier" in str(e.value)
     # with the documented recovery the bag opens (sqlite3 detected) and fails on the packets
     with pytest.raises(ClipError) as e2:
-        run_ingest(lake, d)
+        run_ingest(lake, d, REAL_DATA_INGEST)
     assert e2.value.topic == "/pandar_packets" and "pandar_msgs/msg/PandarScan" in str(e2.value)
     assert raw_is_empty(lake, "qt")
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from tests.fixtures.minibag import MiniClip, write_clip
+from tests.fixtures.real import REAL_DATA_INGEST
 from v2xlake.flows import bookkeeping
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.catalog import Catalog
@@ -105,7 +106,7 @@ def test_camera_off_grid_is_an_error(tmp_path: Path) -> None:
 
 def test_ouster_real_bag_passes_with_warnings(tmp_path: Path) -> None:
     lake = Lake(tmp_path / "lake")
-    run_ingest(lake, REPO / "tests" / "fixtures" / "ouster")
+    run_ingest(lake, REPO / "tests" / "fixtures" / "ouster", REAL_DATA_INGEST)
     rep = run_qa(lake, "ouster-os1-128-real")
     assert rep.metrics["errors"] == 0
     joined = "\n".join(rep.notes)

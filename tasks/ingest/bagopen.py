@@ -125,8 +125,8 @@ def open_bag(clip_id: str, agent: AgentConfig, bag: Path, typestore: Typestore,
             if path != bag and notes is not None:
                 notes.append(f"agent {agent.agent_id}: {bag}/metadata.yaml has an empty "
                              "storage_identifier; read as detected from the data files")
-        reader = AnyReader([path], default_typestore=typestore)
         try:
+            reader = AnyReader([path], default_typestore=typestore)
             reader.open()
         except Exception as e:
             raise ClipError(clip_id, f"cannot open bag: {e}", agent_id=agent.agent_id,

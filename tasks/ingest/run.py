@@ -17,23 +17,25 @@ partial output.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pyarrow as pa
+import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from v2xlake.schemas.arrow import arrow_schema, columns_to_table
 from v2xlake.schemas.clip import AgentConfig, ClipConfig, Modality, SensorConfig
-from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.errors import ClipError, DeliveryConflict
 from v2xlake.schemas.geometry import Transform
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import (
@@ -89,6 +91,18 @@ class IngestConfig(BaseModel):
         default=True, description="read a ROS 2 bag whose metadata.yaml has an empty "
         "storage_identifier as the storage its files are (sqlite3/MCAP by magic bytes)")
     copy_to_landing: bool = True
+    allowed_bag_roots: tuple[str, ...] = Field(
+        default=(), description="folders outside the clip folder that clip.yaml may name bags, "
+        ".msg or annotation files in (after symlinks); by default a clip reads only its own "
+        "folder. An operator setting: a clip's own params: block cannot set it")
+
+    replace_existing: bool = Field(
+        default=False, description="accept a delivery whose bags differ from those already "
+        "ingested under the same clip id (it replaces that clip); otherwise it is refused")
+
+    # settings a clip.yaml's params: block may not change (the clip is untrusted input)
+    OPERATOR_ONLY: ClassVar[frozenset[str]] = frozenset({"allowed_bag_roots",
+                                                         "replace_existing"})
 
 
 def load_clip_config(clip_dir: Path) -> ClipConfig:
@@ -97,6 +111,9 @@ def load_clip_config(clip_dir: Path) -> ClipConfig:
         raise ClipError(clip_dir.name, "clip folder has no clip.yaml", path=str(path), stage=STAGE)
     try:
         return ClipConfig.load(clip_dir)
+    except (yaml.YAMLError, OSError, UnicodeDecodeError) as e:
+        raise ClipError(clip_dir.name, f"clip.yaml is not readable YAML: {e}", path=str(path),
+                        stage=STAGE) from e
     except (ValidationError, ValueError) as e:
         raise ClipError(clip_dir.name, f"invalid clip.yaml: {e}", path=str(path),
                         stage=STAGE) from e
@@ -120,6 +137,64 @@ def clip_inputs(clip_dir: str | Path) -> tuple[str, list[Path]]:
     if cfg.annotations:
         files.append(resolve(d, cfg.annotations))
     return cfg.clip_id, [f for f in files if f.exists()]
+
+
+def check_inputs(clip_dir: Path, cfg: ClipConfig, allowed_roots: Sequence[str] = ()) -> None:
+    """Every file clip.yaml names must exist and resolve (after symlinks) inside the clip
+    folder or an operator-allowed root: a clip folder is untrusted input, and nothing
+    outside it may be read, linked or copied into the lake because a clip.yaml says so."""
+    roots = [os.path.realpath(clip_dir), *(os.path.realpath(r) for r in allowed_roots)]
+    named: list[tuple[str | None, str, str]] = [(a.agent_id, "bag", a.bag) for a in cfg.agents]
+    named += [(None, "message definition", m) for m in cfg.message_definitions]
+    if cfg.annotations:
+        named.append((None, "annotation file", cfg.annotations))
+    for agent_id, what, rel in named:
+        p = resolve(clip_dir, rel)
+        real = os.path.realpath(p)
+        if not any(os.path.commonpath([r, real]) == r for r in roots):
+            raise ClipError(cfg.clip_id, f"{what} {rel!r} resolves to {real}, outside the clip "
+                            "folder (an operator may allow a root: ingest.allowed_bag_roots)",
+                            agent_id=agent_id, path=str(p), stage=STAGE)
+        if not p.exists():
+            raise ClipError(cfg.clip_id, f"{what} named in clip.yaml does not exist",
+                            agent_id=agent_id, path=str(p), stage=STAGE)
+
+
+DELIVERY = "delivery.json"
+
+
+def delivery_of(clip_dir: Path, cfg: ClipConfig) -> dict[str, Any]:
+    """The delivery's identity: the checksum of every bag file (clip.yaml may be fixed and
+    re-delivered for the same bags; different bags are a different recording)."""
+    from v2xlake.storage.manifest import file_checksum
+
+    bags: dict[str, str] = {}
+    for a in cfg.agents:
+        bag = resolve(clip_dir, a.bag)
+        for f in bag_files(bag):
+            rel = f.relative_to(bag).as_posix() if bag.is_dir() else f.name
+            bags[f"{a.agent_id}/{rel}"] = file_checksum(f)
+    digest = hashlib.sha256(json.dumps(bags, sort_keys=True).encode()).hexdigest()
+    return {"clip_id": cfg.clip_id, "fingerprint": digest, "bags": bags}
+
+
+def check_delivery(lake: Lake, clip_dir: Path, cfg: ClipConfig, replace: bool
+                   ) -> dict[str, Any]:
+    """Refuse a different delivery under an existing clip id (``DeliveryConflict``)."""
+    mine = delivery_of(clip_dir, cfg)
+    path = lake.path("landing", cfg.clip_id, DELIVERY)
+    if lake.exists(path) and not replace:
+        theirs = lake.read_json(path)
+        if theirs.get("fingerprint") != mine["fingerprint"]:
+            changed = sorted(k for k in {*theirs.get("bags", {}), *mine["bags"]}
+                             if theirs.get("bags", {}).get(k) != mine["bags"].get(k))
+            raise DeliveryConflict(
+                cfg.clip_id, f"clip id {cfg.clip_id!r} is already in the lake with other bags "
+                f"({len(changed)} file(s) differ, e.g. {changed[:3]}); refused, the existing "
+                "clip is untouched (give the recording its own clip_id, or replace it "
+                "explicitly with ingest.replace_existing)", path=str(clip_dir / "clip.yaml"),
+                stage=STAGE)
+    return mine
 
 
 # --------------------------------------------------------------------------- landing
@@ -152,7 +227,6 @@ def copy_to_landing(lake: Lake, clip_dir: Path, cfg: ClipConfig) -> int:
         data = cfg.model_dump(mode="json", exclude_none=True)
         for a in data["agents"]:
             a["bag"] = rewrite.get(a["agent_id"], a["bag"])
-        import yaml
         lake.write_bytes(f"{root}/clip.delivered.yaml", (clip_dir / "clip.yaml").read_bytes())
         lake.write_bytes(f"{root}/clip.yaml", yaml.safe_dump(data, sort_keys=False).encode())
     return n
@@ -507,10 +581,13 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
     d = Path(clip_dir).resolve()
     cfg = load_clip_config(d)
     cid = cfg.clip_id
+    check_inputs(d, cfg, config.allowed_bag_roots)
+    delivery = check_delivery(lake, d, cfg, config.replace_existing)
     typestore = build_typestore(d, cfg)
     notes: list[str] = []
     if config.copy_to_landing:
         copy_to_landing(lake, d, cfg)
+        lake.write_json(lake.path("landing", cid, DELIVERY), delivery)
     if lake.discard_staging(cid):
         notes.append(f"removed stale staging output of an earlier, interrupted ingest of {cid}")
     staging = lake.staging(cid)
