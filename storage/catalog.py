@@ -41,9 +41,15 @@ MAIN_NAMES = ("clips", "agents", "sensors", "calibrated_sensors", "ego_poses", "
               "lidar_frames", "lidar_points", "lidar_points_deskewed", "camera_frames",
               "annotations", "instances", "registrations", "alignments",
               "anonymization_audit", "qa_checks", "deskew_frames")
-# ``lidar_frames`` has one writer (ingest, then anonymize); deskew's per-frame figures live in
-# deskew's own ``deskew_frames`` and the main view joins them in.
-JOINED = {"lidar_frames": ("deskew_frames", ("clip_id", "agent_id", "sensor", "frame_idx"))}
+# Each table has one writer. What a later stage adds about another stage's rows lives in its
+# own table and the main view joins it in: deskew's per-frame figures (``deskew_frames``)
+# into ``lidar_frames``; annotate's point count per box (``annotations_world``) into
+# ``annotations``. (joined table, keys, columns it replaces; None: it adds its columns)
+JOINED: dict[str, tuple[str, tuple[str, ...], tuple[str, ...] | None]] = {
+    "lidar_frames": ("deskew_frames", ("clip_id", "agent_id", "sensor", "frame_idx"), None),
+    "annotations": ("annotations_world", ("clip_id", "agent_id", "frame_idx", "instance_id"),
+                    ("num_lidar_pts",)),
+}
 EXTRA_SCHEMAS = {"lidar_points_deskewed": LidarPointRow}
 MANIFEST_COLUMNS = {
     "clip_id": "VARCHAR", "stage": "VARCHAR", "status": "VARCHAR", "code_version": "VARCHAR",
@@ -180,9 +186,15 @@ class Catalog:
             zone = src.zone if src.files else "empty"
             sql = f"SELECT * FROM {src.schema}.{name}"
             if name in JOINED and src.zone == "clean":
-                other, keys = JOINED[name]
-                extra = [f.name for f in arrow_schema(LAKE_TABLES[other]) if f.name not in keys]
-                sql = (f"SELECT t.*, {', '.join('j.' + c for c in extra)} FROM clean.{name} t "
+                other, keys, replaced = JOINED[name]
+                if replaced is None:
+                    extra = [f.name for f in arrow_schema(LAKE_TABLES[other])
+                             if f.name not in keys]
+                    cols = "t.*, " + ", ".join("j." + c for c in extra)
+                else:
+                    cols = "t.* REPLACE (" + ", ".join(
+                        f"COALESCE(j.{c}, t.{c}) AS {c}" for c in replaced) + ")"
+                sql = (f"SELECT {cols} FROM clean.{name} t "
                        f"LEFT JOIN clean.{other} j USING ({', '.join(keys)})")
             views.append(ViewInfo("main", name, zone, src.files, sql))
         outputs = "CAST(outputs AS VARCHAR) AS outputs"

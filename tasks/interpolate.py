@@ -20,6 +20,8 @@ from typing import Literal
 import numpy as np
 from numba import njit
 
+from v2xlake.tasks.geometry import transform
+
 # Below this angle between two quaternions (radians on the 4-sphere) SLERP's 1/sin(theta)
 # loses more precision than the normalised linear blend it converges to (error ~theta^3).
 _SLERP_EPS = 1e-9
@@ -82,7 +84,7 @@ class PoseTrack:
                  uncovered: Literal["raise", "nan"] = "raise") -> np.ndarray:
         """(N, 4, 4) ``T_world_ego`` at the query times (NaN where uncovered, if allowed)."""
         xyz, q = self.at(np.atleast_1d(np.asarray(t_query_ns, dtype=np.int64)), uncovered)
-        return pose_matrices(xyz, q)
+        return transform(xyz, q)
 
 
 def _validated(t_ns: np.ndarray, xyz: np.ndarray,
@@ -208,26 +210,3 @@ def interpolate_poses(
         bad = tq[(tq < t[0]) | (tq > t[-1])]
         raise PoseCoverageError(bad.min(), bad.max(), t[0], t[-1], n_unc)
     return out_xyz, out_q
-
-
-def pose_matrices(xyz: np.ndarray, quat_wxyz: np.ndarray) -> np.ndarray:
-    """(N, 3) + (N, 4) -> (N, 4, 4) homogeneous matrices (eq. 2d-2e)."""
-    from v2xlake.schemas.geometry import quat_to_matrix
-
-    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
-    m = np.zeros((len(xyz), 4, 4))
-    m[:, :3, :3] = quat_to_matrix(np.asarray(quat_wxyz, dtype=np.float64).reshape(-1, 4))
-    m[:, :3, 3] = xyz
-    m[:, 3, 3] = 1.0
-    return m
-
-
-def invert_rigid(m: np.ndarray) -> np.ndarray:
-    """Inverse of (..., 4, 4) rigid transforms without a general matrix inverse."""
-    r = m[..., :3, :3]
-    out = np.zeros_like(m)
-    rt = np.swapaxes(r, -1, -2)
-    out[..., :3, :3] = rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", rt, m[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out

@@ -25,7 +25,9 @@ from v2xlake.schemas.arrow import columns_to_table, rows_to_table
 from v2xlake.schemas.geometry import matrix_to_quat, quat_to_matrix
 from v2xlake.schemas.tables import LAKE_TABLES
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.interpolate import PoseTrack, invert_rigid, pose_matrices
+from v2xlake.tasks.geometry import invert as invert_rigid
+from v2xlake.tasks.geometry import transform as pose_matrices
+from v2xlake.tasks.interpolate import PoseTrack
 
 T0_NS = 100_000_000
 LIDAR_PERIOD_NS = 100_000_000
@@ -386,6 +388,10 @@ def build_clean_clip(lake: Lake, clip_id: str = "clip-a", *, weather: str = "ove
                                                            ann_rows), clip_id=clip_id)
     lake.write_table("clean", "instances", rows_to_table(LAKE_TABLES["instances"],
                                                          list(inst.values())), clip_id=clip_id)
+    if with_deskewed:  # what the pipeline does next: annotate counts the points per box
+        from v2xlake.tasks.annotate.core import run_annotate
+
+        run_annotate(lake, clip_id)
 
 
 def world_box_at(instance_id: str, t_ns: int) -> np.ndarray:

@@ -23,7 +23,6 @@ from tests.test_align_scene import (
     write_lake,
 )
 from v2xlake.schemas.calibration import CameraIntrinsics
-from v2xlake.tasks.align.boxes import box_corners, count_points_in_boxes, points_in_boxes
 from v2xlake.tasks.align.methods import (
     AlignParams,
     CameraStream,
@@ -32,9 +31,15 @@ from v2xlake.tasks.align.methods import (
     compensate_points,
     scan_time,
 )
-from v2xlake.tasks.align.metrics import center_offset_px, iou_xyxy, summarize
+from v2xlake.tasks.align.metrics import center_offset_px, summarize
 from v2xlake.tasks.align.projection import project_boxes_2d, project_points
 from v2xlake.tasks.align.stage import AlignConfig, load_truth_boxes, run_align
+from v2xlake.tasks.geometry import (
+    box_corners,
+    count_points_in_boxes,
+    iou_xyxy,
+    points_in_boxes,
+)
 
 
 def _yawq(yaw: float) -> np.ndarray:
@@ -98,7 +103,7 @@ def test_points_in_boxes_matches_brute_force() -> None:
 def test_metrics_known_values() -> None:
     a = np.array([[0, 0, 10, 10], [0, 0, 10, 10], [0, 0, 10, 10]], float)
     b = np.array([[0, 0, 10, 10], [5, 0, 15, 10], [np.nan] * 4])
-    iou = iou_xyxy(a, b)
+    iou = iou_xyxy(a, b, paired=True)
     np.testing.assert_allclose(iou, [1.0, 50 / 150, 0.0])
     off = center_offset_px(a, b)
     np.testing.assert_allclose(off[:2], [0.0, 5.0])
@@ -162,7 +167,7 @@ def _evaluate_synthetic(params: AlignParams) -> dict[str, dict[str, float]]:
                 tb = truth[int(a.frame_pos[k])].get(str(s.boxes.instance_id[k]))
                 if tb is None:
                     continue
-                per[m][0].append(float(iou_xyxy(a.boxes2d[k], tb)[0]))
+                per[m][0].append(float(iou_xyxy(a.boxes2d[k], tb, paired=True)[0]))
                 per[m][1].append(float(center_offset_px(a.boxes2d[k], tb)[0]))
     return {m: summarize(np.array(i), np.array(o)) for m, (i, o) in per.items()}
 

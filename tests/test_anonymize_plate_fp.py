@@ -16,7 +16,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.anonymize.detectors import ClassicPlateDetector, Detection, iou_matrix
+from v2xlake.tasks.anonymize.detectors import ClassicPlateDetector, Detection
+from v2xlake.tasks.geometry import iou_xyxy as iou_matrix
 from v2xlake.tasks.ingest import run_ingest
 
 # a detection may exceed twice the largest true plate of its frame by this much (a plate box

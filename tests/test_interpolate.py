@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from v2xlake.tasks.interpolate import PoseCoverageError, PoseTrack, interpolate_poses, invert_rigid
+from v2xlake.tasks.geometry import invert as invert_rigid
+from v2xlake.tasks.interpolate import PoseCoverageError, PoseTrack, interpolate_poses
 
 
 def _track(n: int = 40, seed: int = 0, flip_signs: bool = True) -> tuple[np.ndarray, ...]:

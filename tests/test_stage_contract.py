@@ -240,3 +240,28 @@ def test_a_stage_output_becomes_visible_together(tmp_path: Path) -> None:
     failed.discard_stage()  # what the flow does when run raises
     assert {f: lake.read_bytes(f) for f in lake.list_files(root, ".parquet")} == after
     assert not lake.list_files(lake.path("_staging"))
+
+
+# ------------------------------------------------------------------ one geometry vocabulary
+def test_num_lidar_pts_has_one_definition(tmp_path: Path) -> None:
+    """Defect 3: the catalog summed 3,238 points on 80 boxes and the nuScenes export 645
+    (two points_in_boxes, one with a 5 cm margin). Now annotate counts once and the catalog
+    view, the export and the devkit's own points_in_box agree on every box."""
+    from tests.export_fixtures import build_clean_clip
+    from v2xlake.tasks.export.nuscenes import NuScenesExportConfig, export_nuscenes
+
+    lake = Lake(tmp_path / "lake")
+    build_clean_clip(lake, "clip-a", with_cameras=False, seconds=1.0)  # runs annotate
+    out = tmp_path / "nus"
+    export_nuscenes(lake, ["clip-a"], out, NuScenesExportConfig())
+    version = next(p.name for p in out.iterdir() if (p / "sample.json").is_file())
+    samples = {s["token"]: s["timestamp"] for s in
+               json.loads((out / version / "sample.json").read_text())}
+    anns = json.loads((out / version / "sample_annotation.json").read_text())
+    key_us = set(samples.values())
+    with Catalog(lake) as cat:
+        rows = cat.query("SELECT agent_id, t_ns, num_lidar_pts FROM annotations").to_pylist()
+        world = cat.query("SELECT sum(num_lidar_pts) AS n FROM clean.annotations_world")
+    assert sum(r["num_lidar_pts"] for r in rows) == world.column(0)[0].as_py() > 0
+    at_keys = [r["num_lidar_pts"] for r in rows if r["t_ns"] // 1000 in key_us]
+    assert at_keys and sorted(a["num_lidar_pts"] for a in anns) == sorted(at_keys)

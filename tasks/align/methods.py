@@ -31,9 +31,10 @@ from typing import Literal
 
 import numpy as np
 
-from v2xlake.tasks.align.boxes import BoxArray, points_in_boxes
+from v2xlake.tasks.align.boxes import BoxArray
 from v2xlake.tasks.align.projection import Camera, points_in_fov, project_boxes_2d
 from v2xlake.tasks.deskew.core import deskew_points
+from v2xlake.tasks.geometry import points_in_boxes
 from v2xlake.tasks.interpolate import PoseTrack
 
 Method = Literal["stamp", "frame", "target"]

@@ -12,21 +12,6 @@ import numpy as np
 RECALL_THRESHOLDS = (0.3, 0.5, 0.7)
 
 
-def iou_xyxy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Paired IoU of (N, 4) x0, y0, x1, y1 boxes; 0 where either box is NaN or empty."""
-    a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
-    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    iw = np.minimum(a[:, 2], b[:, 2]) - np.maximum(a[:, 0], b[:, 0])
-    ih = np.minimum(a[:, 3], b[:, 3]) - np.maximum(a[:, 1], b[:, 1])
-    inter = np.clip(iw, 0, None) * np.clip(ih, 0, None)
-    area_a = np.clip(a[:, 2] - a[:, 0], 0, None) * np.clip(a[:, 3] - a[:, 1], 0, None)
-    area_b = np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
-    union = area_a + area_b - inter
-    with np.errstate(invalid="ignore", divide="ignore"):
-        iou = np.where(union > 0, inter / union, 0.0)
-    return np.nan_to_num(iou, nan=0.0)
-
-
 def center_offset_px(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Paired distance between box centres in pixels; NaN where either box is missing."""
     a = np.asarray(a, dtype=np.float64).reshape(-1, 4)

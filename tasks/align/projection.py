@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 
 from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
-from v2xlake.tasks.align.boxes import EDGES, box_corners
+from v2xlake.tasks.align.boxes import EDGES
+from v2xlake.tasks.geometry import box_corners
 
 
 @dataclass(frozen=True)

@@ -44,10 +44,11 @@ from v2xlake.tasks.align.methods import (
     estimate_velocities,
     object_points,
 )
-from v2xlake.tasks.align.metrics import center_offset_px, iou_xyxy, summarize
+from v2xlake.tasks.align.metrics import center_offset_px, summarize
 from v2xlake.tasks.align.overlay import OverlayBoxes, Panel, render_overlay
 from v2xlake.tasks.align.projection import Camera, points_in_fov, project_points, transform_points
 from v2xlake.tasks.export.common import AgentData, CameraCalib, iter_point_frames, load_clip
+from v2xlake.tasks.geometry import iou_xyxy
 from v2xlake.tasks.interpolate import PoseCoverageError
 
 STAGE = "align"
@@ -335,7 +336,7 @@ def _rows_and_eval(
                 if tb is None or not ok[k]:
                     continue
                 has_truth[k] = True
-                iou[k] = iou_xyxy(a.boxes2d[k], tb)[0]
+                iou[k] = iou_xyxy(a.boxes2d[k], tb, paired=True)[0]
                 off[k] = center_offset_px(a.boxes2d[k], tb)[0]
                 v = boxes.velocity[k]
                 motion = "moving" if np.isfinite(v).all() and np.linalg.norm(v) > 0.5 \

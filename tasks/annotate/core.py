@@ -32,12 +32,11 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.errors import ClipError
-from v2xlake.schemas.geometry import matrix_to_quat, quat_to_matrix
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import AnnotationWorldRow, InstanceRow
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.align.boxes import count_points_in_boxes
 from v2xlake.tasks.export.common import AgentData, iter_point_frames, load_clip
+from v2xlake.tasks.geometry import count_points_in_boxes, matrix_to_quat, quat_to_matrix, transform
 
 STAGE = "annotate"
 
@@ -48,10 +47,11 @@ class AnnotateConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     lidar_sensor: str = "LIDAR_TOP"
-    # LiDAR returns lie ON an object's surface, i.e. on a tight box's faces; without a few
-    # centimetres of slack half of them fall out by rounding, deskew and calibration error
-    # (measured on the simulator: 0 m margin counts 46 % of the hits, 5 cm ~all).
-    count_margin_m: float = Field(default=0.05, ge=0, description="grow boxes when counting")
+    # nuScenes' num_lidar_pts is what the devkit's points_in_box counts on the exported scan
+    # (faces inclusive, no slack): the default counts exactly that, so the catalog, every
+    # export and the devkit agree. A margin (metres, every side) is there for users who
+    # want to count returns that calibration or deskew error pushed just outside a box.
+    count_margin_m: float = Field(default=0.0, ge=0, description="grow boxes when counting")
     max_link_gap_m: float = Field(
         default=3.0, ge=0,
         description="linked boxes: centre distance <= (l_a + l_b) / 2 + this gap")
@@ -180,9 +180,8 @@ def _registration_distances(
         tb = tb.filter(pc.equal(tb["frame_idx"], fi))
         if ta.num_rows == 0 or tb.num_rows == 0:
             continue
-        T = np.eye(4)
-        T[:3, :3] = quat_to_matrix(np.array([r["qw"], r["qx"], r["qy"], r["qz"]]))
-        T[:3, 3] = (r["tx"], r["ty"], r["tz"])
+        T = transform(np.array([r["tx"], r["ty"], r["tz"]]),
+                      np.array([r["qw"], r["qx"], r["qy"], r["qz"]]))
         ib = {i: k for k, i in enumerate(tb["instance_id"].to_pylist())}
         for k, inst in enumerate(ta["instance_id"].to_pylist()):
             j = ib.get(inst)

@@ -28,6 +28,8 @@ from typing import Protocol, runtime_checkable
 import cv2
 import numpy as np
 
+from v2xlake.tasks.geometry import iou_xyxy
+
 Box = tuple[float, float, float, float]
 
 
@@ -86,21 +88,6 @@ class ScanPass:
     tiles: tuple[tuple[int, int, int, int], ...]
 
 
-def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Pairwise IoU of (N, 4) and (M, 4) xyxy boxes."""
-    a = np.asarray(a, float).reshape(-1, 4)
-    b = np.asarray(b, float).reshape(-1, 4)
-    ix0 = np.maximum(a[:, None, 0], b[None, :, 0])
-    iy0 = np.maximum(a[:, None, 1], b[None, :, 1])
-    ix1 = np.minimum(a[:, None, 2], b[None, :, 2])
-    iy1 = np.minimum(a[:, None, 3], b[None, :, 3])
-    inter = np.clip(ix1 - ix0, 0, None) * np.clip(iy1 - iy0, 0, None)
-    area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
-    area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
-    union = area_a[:, None] + area_b[None, :] - inter
-    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
-
-
 def nms(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8) -> list[Detection]:
     """Greedy NMS per kind; also drops a box mostly contained in a better one (tile seams)."""
     out: list[Detection] = []
@@ -112,7 +99,7 @@ def nms(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8) -> li
             ok = True
             for k in kept:
                 kb = np.asarray(k.box)
-                if iou_matrix(bx, kb)[0, 0] >= iou:
+                if iou_xyxy(bx, kb)[0, 0] >= iou:
                     ok = False
                     break
                 ix = max(0.0, min(bx[2], kb[2]) - max(bx[0], kb[0]))

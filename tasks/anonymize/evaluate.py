@@ -20,7 +20,8 @@ import cv2
 import numpy as np
 
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.anonymize.detectors import Box, Detection, iou_matrix
+from v2xlake.tasks.anonymize.detectors import Box, Detection
+from v2xlake.tasks.geometry import iou_xyxy
 
 # Face boxes inside the source photos (CenterFace's own box on the full photo, rounded).
 ASTRONAUT_FACE: Box = (181.0, 58.0, 270.0, 178.0)
@@ -234,7 +235,7 @@ def match(
     used = np.zeros(len(dets), bool)
     if len(dets) and len(tk):
         db = np.array([d.box for d in dets], float)
-        m = iou_matrix(tb, db)
+        m = iou_xyxy(tb, db)
         for i, k in enumerate(tk):
             same = np.array([d.kind == k for d in dets])
             hit = (m[i] >= iou) & same

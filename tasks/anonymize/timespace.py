@@ -20,9 +20,9 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from v2xlake.schemas.arrow import columns_to_table
-from v2xlake.schemas.geometry import matrix_to_quat
 from v2xlake.schemas.tables import EgoPoseRow, GnssRow
 from v2xlake.tasks.geodesy import LocalFrame, attitude_to_matrix
+from v2xlake.tasks.geometry import matrix_to_quat
 
 T0_OFFSET_NS = 100_000_000
 EPOCH_LO_S, EPOCH_HI_S = 631_152_000, 4_102_444_800  # 1990 .. 2100

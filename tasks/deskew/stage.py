@@ -132,18 +132,15 @@ def load_pose_track(lake: Lake, clip_id: str, agent_id: str) -> PoseTrack:
 
 def load_extrinsics(lake: Lake, clip_id: str, agent_id: str) -> dict[str, np.ndarray]:
     """``T_ego_sensor`` 4x4 of every LiDAR of the agent, from clean ``calibrated_sensors``."""
-    from v2xlake.schemas.geometry import quat_to_matrix
-
+    from v2xlake.tasks.geometry import transform
     cal = lake.read_table("clean", "calibrated_sensors", clip_id=clip_id, agent_id=agent_id)
     out: dict[str, np.ndarray] = {}
     for row in cal.to_pylist():
         if row.get("modality") != "lidar":
             continue
         q = np.array([row["qw"], row["qx"], row["qy"], row["qz"]], dtype=np.float64)
-        m = np.eye(4)
-        m[:3, :3] = quat_to_matrix(q / np.linalg.norm(q))
-        m[:3, 3] = [row["tx"], row["ty"], row["tz"]]
-        out[str(row["sensor"])] = m
+        out[str(row["sensor"])] = transform(
+            np.array([row["tx"], row["ty"], row["tz"]]), q / np.linalg.norm(q))
     return out
 
 

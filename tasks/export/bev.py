@@ -20,12 +20,12 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.export.common import (
-    apply,
     file_output,
     iter_point_frames,
     lidar_world_poses,
     load_clip,
 )
+from v2xlake.tasks.geometry import apply
 
 
 class BevConfig(BaseModel):

@@ -34,7 +34,6 @@ import open3d as o3d
 from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.errors import ClipError
-from v2xlake.schemas.geometry import matrix_to_quat
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.export.common import (
@@ -42,14 +41,13 @@ from v2xlake.tasks.export.common import (
     CameraCalib,
     ClipData,
     Undistorter,
-    apply,
     boxes_matrices,
     file_output,
     iter_point_frames,
     lidar_world_poses,
     load_clip,
 )
-from v2xlake.tasks.interpolate import invert_rigid
+from v2xlake.tasks.geometry import apply, invert, matrix_to_quat
 
 
 class Eth3dConfig(BaseModel):
@@ -119,7 +117,7 @@ def _map_points(lake: Lake, clip: ClipData, agent: AgentData, cfg: Eth3dConfig
                 v = np.stack([np.nan_to_num(a[c].to_numpy(zero_copy_only=False), nan=np.inf)
                               for c in ("vx", "vy", "vz")], 1)
                 moving = np.linalg.norm(v, axis=1) > cfg.remove_moving_above_mps
-                B = invert_rigid(boxes_matrices(a))
+                B = invert(boxes_matrices(a))
                 for k in np.flatnonzero(moving):
                     q = apply(B[k], fr.xyz)
                     half = np.array([a["l"][k].as_py(), a["w"][k].as_py(), a["h"][k].as_py()]) / 2
@@ -186,7 +184,7 @@ def _export_agent(lake: Lake, clip: ClipData, agent: AgentData, out: Path, cfg: 
         if len(sel) == 0:
             continue
         T_wc = agent.T_world_ego(frames.stamp_ns[sel], clip_id=clip.clip_id) @ cam.T_ego_sensor
-        T_cw = invert_rigid(T_wc)
+        T_cw = invert(T_wc)
         for d in ("images", "depth", "depth_preview"):
             (base / d / ch).mkdir(parents=True, exist_ok=True)
         for k, j in enumerate(sel):

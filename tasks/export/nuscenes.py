@@ -31,7 +31,6 @@ from pydantic import BaseModel, ConfigDict, Field
 from v2xlake.schemas.annotation import NUSCENES_CATEGORY, ObjectClass
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.errors import ClipError
-from v2xlake.schemas.geometry import matrix_to_quat
 from v2xlake.schemas.nuscenes import NUSCENES_TABLES
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
@@ -41,16 +40,15 @@ from v2xlake.tasks.export.common import (
     CameraCalib,
     ClipData,
     Undistorter,
-    apply,
     available_frames,
     boxes_matrices,
     file_output,
     iter_point_frames,
     load_clip,
     nearest_index,
-    points_in_boxes,
     token,
 )
+from v2xlake.tasks.geometry import apply, matrix_to_quat
 
 ATTRIBUTES = {
     "vehicle.moving": "Vehicle is moving.",
@@ -176,6 +174,16 @@ def _map_grids(clips: list[ClipData], cfg: NuScenesExportConfig) -> dict[str, Be
         h = int(min(max(np.ceil(hi[1] / res), 1), cfg.map_max_px))
         grids[loc] = BevGrid(0.0, h * res, res, w, h)
     return grids
+
+
+def _counted(row: dict[str, Any], clip_id: str, agent_id: str) -> int:
+    """A box's num_lidar_pts as the annotate stage counted it (never recounted here)."""
+    n = row.get("num_lidar_pts")
+    if n is None:
+        raise ClipError(clip_id, f"box {row['instance_id']} of frame {row['frame_idx']} has no "
+                        "num_lidar_pts: run the annotate stage first", agent_id=agent_id,
+                        stage="export")
+    return int(n)
 
 
 def export_nuscenes(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
@@ -433,7 +441,6 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
             centers[row["instance_id"]].append((int(t_lidar[k]), Tw[r, :3, 3]))
         if fr.frame_idx not in key_frames:
             continue
-        counts = points_in_boxes(fr.xyz, Tb, wlh)
         T_w_ego = T_wl @ np.linalg.inv(T_el)
         cams = [(np.linalg.inv(T_w_ego @ cam.T_ego_sensor), K, cam.width, cam.height)
                 for _, cam, K in cam_for_vis]
@@ -441,7 +448,7 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
         for r, row in enumerate(a.to_pylist()):
             boxes[row["instance_id"]].append((int(t_lidar[k]), dict(
                 sample_token=st, translation=_xyz(Tw[r]), size=wlh[r].tolist(),
-                rotation=_quat(Tw[r]), num_lidar_pts=int(counts[r]), num_radar_pts=0,
+                rotation=_quat(Tw[r]), num_lidar_pts=_counted(row, cid, aid), num_radar_pts=0,
                 visibility_token=_visibility(_box_samples(Tw[r], wlh[r]), cams),
                 category=row["category"], links=row["links"] or [])))
     # ---- instances, attributes, prev/next chains

@@ -44,8 +44,8 @@ from v2xlake.tasks.export.common import (
     lidar_world_poses,
     load_clip,
     nearest_index,
-    transform_matrix,
 )
+from v2xlake.tasks.geometry import transform
 
 
 class OpenCoodConfig(BaseModel):
@@ -107,7 +107,8 @@ def _registered(clip: ClipData, other: str, frame_idx: int) -> np.ndarray | None
     if not rows:
         return None
     x = rows[0]
-    return transform_matrix(x["tx"], x["ty"], x["tz"], x["qw"], x["qx"], x["qy"], x["qz"])
+    return transform(np.array([x["tx"], x["ty"], x["tz"]]),
+                     np.array([x["qw"], x["qx"], x["qy"], x["qz"]]))
 
 
 def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,

@@ -33,7 +33,6 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from v2xlake.schemas.errors import ClipError
-from v2xlake.schemas.geometry import matrix_to_quat
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.export.common import (
@@ -44,6 +43,7 @@ from v2xlake.tasks.export.common import (
     iter_point_frames,
     load_clip,
 )
+from v2xlake.tasks.geometry import matrix_to_quat
 
 POINT_DTYPE = np.dtype({"names": ["x", "y", "z", "intensity", "ring", "time"],
                         "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],
@@ -177,7 +177,7 @@ def _streams(lake: Lake, clip: ClipData, agent: AgentData, ts: Any, cfg: RosbagE
 
     def odom() -> Iterator[tuple[int, Any]]:
         p = agent.poses
-        from v2xlake.schemas.geometry import quat_to_matrix
+        from v2xlake.tasks.geometry import quat_to_matrix
 
         R = quat_to_matrix(p.quat_wxyz)
         for k in range(len(p)):

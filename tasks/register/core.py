@@ -16,14 +16,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from v2xlake.tasks.interpolate import PoseTrack, invert_rigid
+from v2xlake.tasks.geometry import invert
+from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.register.backends import Prepared, RegistrationBackend
 
 
 def initial_transform(T_W_I1: np.ndarray, T_W_I2: np.ndarray, T_I1_L1: np.ndarray,
                       T_I2_L2: np.ndarray) -> np.ndarray:
     """Eq. 1a: ``T_L1_L2 = (T_I1_L1)^-1 (T_W_I1)^-1 T_W_I2 T_I2_L2``."""
-    return invert_rigid(T_I1_L1) @ invert_rigid(T_W_I1) @ T_W_I2 @ T_I2_L2
+    return invert(T_I1_L1) @ invert(T_W_I1) @ T_W_I2 @ T_I2_L2
 
 
 def initial_transform_at(track1: PoseTrack, track2: PoseTrack, T_I1_L1: np.ndarray,
@@ -80,7 +81,7 @@ class PairResult:
     @property
     def correction(self) -> np.ndarray:
         """Left correction ``T_final T_init^-1``: what warm-starts the next frame."""
-        return self.T_final @ invert_rigid(self.T_init)
+        return self.T_final @ invert(self.T_init)
 
 
 def evaluate(backend: RegistrationBackend, target: Prepared, source: Prepared, T: np.ndarray,

@@ -138,7 +138,7 @@ class MsgFactory:
             position_covariance_type=2)
 
     def tf_static(self, stamp_ns: int, parent: str, children: list[tuple[str, np.ndarray]]) -> Any:
-        from v2xlake.schemas.geometry import matrix_to_quat
+        from v2xlake.tasks.geometry import matrix_to_quat
 
         out = []
         for child, m in children:

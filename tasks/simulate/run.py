@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from v2xlake.schemas.annotation import AnnotationFile, Box3D, BoxAnnotation
-from v2xlake.schemas.geometry import matrix_to_quat
 from v2xlake.tasks.geodesy import LocalFrame
+from v2xlake.tasks.geometry import matrix_to_quat
 from v2xlake.tasks.pngcodec import encode_png
 from v2xlake.tasks.simulate.bagwrite import INS_MSG_TYPE, POINT_DTYPE, BagSink
 from v2xlake.tasks.simulate.camera import CameraRenderer

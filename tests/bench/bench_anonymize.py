@@ -105,7 +105,7 @@ def real_images(detectors: dict) -> None:
 
 
 def _iou(a, b) -> float:
-    from v2xlake.tasks.anonymize.detectors import iou_matrix
+    from v2xlake.tasks.geometry import iou_xyxy as iou_matrix
 
     return float(iou_matrix(np.array(a), np.array(b))[0, 0])
 

@@ -38,7 +38,8 @@ from tests.test_deskew import (
     true_lidar_matrices,
 )
 from v2xlake.tasks.deskew.core import deskew_points
-from v2xlake.tasks.interpolate import PoseTrack, interpolate_poses, pose_matrices
+from v2xlake.tasks.geometry import transform as pose_matrices
+from v2xlake.tasks.interpolate import PoseTrack, interpolate_poses
 
 
 def numpy_gather(xyz: np.ndarray, t_ns: np.ndarray, track: PoseTrack, e: np.ndarray,

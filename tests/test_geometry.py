@@ -1,0 +1,90 @@
+"""Property tests of the one geometry vocabulary (tasks/geometry.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from v2xlake.tasks.geometry import (
+    apply,
+    compose,
+    count_points_in_boxes,
+    invert,
+    iou_xyxy,
+    matrix_to_quat,
+    points_in_boxes,
+    quat_to_matrix,
+    transform,
+)
+from v2xlake.tasks.interpolate import interpolate_poses
+
+finite = st.floats(-50, 50, allow_nan=False, width=64)
+quats = arrays(np.float64, 4, elements=st.floats(-1, 1, allow_nan=False)).filter(
+    lambda q: np.linalg.norm(q) > 0.1).map(lambda q: q / np.linalg.norm(q))
+vecs = arrays(np.float64, 3, elements=finite)
+
+
+@given(vecs, quats, vecs, quats, arrays(np.float64, (7, 3), elements=finite))
+@settings(max_examples=60, deadline=None)
+def test_compose_invert_apply(t1: np.ndarray, q1: np.ndarray, t2: np.ndarray, q2: np.ndarray,
+                              pts: np.ndarray) -> None:
+    A, B = transform(t1, q1), transform(t2, q2)
+    np.testing.assert_allclose(compose(A, invert(A)), np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(invert(compose(A, B)), compose(invert(B), invert(A)), atol=1e-9)
+    homog = np.c_[pts, np.ones(len(pts))] @ compose(A, B).T
+    np.testing.assert_allclose(apply(compose(A, B), pts), homog[:, :3], atol=1e-8)
+    np.testing.assert_allclose(apply(A, apply(B, pts)), apply(compose(A, B), pts), atol=1e-8)
+    # quaternion round trip (sign canonical: w >= 0)
+    back = matrix_to_quat(quat_to_matrix(q1))
+    assert back[0] >= 0 and min(np.abs(back - q1).max(), np.abs(back + q1).max()) < 1e-9
+
+
+@given(quats, quats, vecs, vecs)
+@settings(max_examples=60, deadline=None)
+def test_slerp_end_points_and_monotonic_angle(qa: np.ndarray, qb: np.ndarray, pa: np.ndarray,
+                                              pb: np.ndarray) -> None:
+    t = np.array([0, 1_000_000_000], dtype=np.int64)
+    tq = np.linspace(0, 1_000_000_000, 11).astype(np.int64)
+    xyz, q = interpolate_poses(t, np.stack([pa, pb]), np.stack([qa, qb]), tq)
+    np.testing.assert_allclose(xyz[0], pa, atol=1e-9)
+    np.testing.assert_allclose(xyz[-1], pb, atol=1e-9)
+    Ra, Rb = quat_to_matrix(qa), quat_to_matrix(qb)
+    np.testing.assert_allclose(quat_to_matrix(q[0]), Ra, atol=1e-9)
+    np.testing.assert_allclose(quat_to_matrix(q[-1]), Rb, atol=1e-9)
+    # the angle from the start grows monotonically along the shorter arc
+    ang = [np.arccos(np.clip((np.trace(Ra.T @ quat_to_matrix(x)) - 1) / 2, -1, 1)) for x in q]
+    assert np.all(np.diff(ang) >= -1e-6)  # arccos near 1 is only good to ~1e-8
+
+
+@given(arrays(np.float64, (200, 3), elements=st.floats(-6, 6, allow_nan=False)),
+       arrays(np.float64, (4, 3), elements=st.floats(-3, 3, allow_nan=False)),
+       arrays(np.float64, (4, 3), elements=st.floats(0.2, 4, allow_nan=False)),
+       st.lists(quats, min_size=4, max_size=4), st.floats(0, 0.3))
+@settings(max_examples=40, deadline=None)
+def test_points_in_boxes_matches_brute_force(xyz: np.ndarray, center: np.ndarray,
+                                             size: np.ndarray, q: list[np.ndarray],
+                                             margin: float) -> None:
+    quat = np.stack(q)
+    got = points_in_boxes(xyz, center, size, quat, margin)
+    R = quat_to_matrix(quat)
+    for k in range(len(center)):
+        local = (xyz - center[k]) @ R[k]  # box frame: x length, y width, z height
+        half = np.array([size[k, 1], size[k, 0], size[k, 2]]) / 2 + margin
+        brute = np.flatnonzero(np.all(np.abs(local) <= half + 1e-12, axis=1))
+        np.testing.assert_array_equal(got[k], brute)
+    assert count_points_in_boxes(xyz, center, size, quat, margin).tolist() == \
+        [len(g) for g in got]
+
+
+@given(arrays(np.float64, (5, 2), elements=st.floats(0, 100, allow_nan=False)),
+       arrays(np.float64, (5, 2), elements=st.floats(1, 50, allow_nan=False)))
+@settings(max_examples=60, deadline=None)
+def test_iou_matrix_and_paired_agree(xy: np.ndarray, wh: np.ndarray) -> None:
+    a = np.c_[xy, xy + wh]
+    b = np.c_[xy + wh / 3, xy + wh]
+    m = iou_xyxy(a, b)
+    np.testing.assert_allclose(np.diag(m), iou_xyxy(a, b, paired=True))
+    np.testing.assert_allclose(np.diag(iou_xyxy(a, a)), 1.0)
+    assert np.all((m >= 0) & (m <= 1 + 1e-12))
