@@ -20,7 +20,8 @@ from scipy.spatial.transform import Rotation
 
 from tests.test_deskew import scipy_reference
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.deskew.stage import load_extrinsics, load_pose_track, run_deskew
+from v2xlake.tasks.deskew.stage import run_deskew
+from v2xlake.tasks.reader import load_extrinsics, load_pose_track
 from v2xlake.tasks.register.core import transform_delta
 from v2xlake.tasks.register.stage import run_register
 

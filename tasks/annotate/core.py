@@ -35,8 +35,8 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import AnnotationWorldRow, InstanceRow
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.export.common import AgentData, iter_point_frames, load_clip
 from v2xlake.tasks.geometry import count_points_in_boxes, matrix_to_quat, quat_to_matrix, transform
+from v2xlake.tasks.reader import AgentData, iter_point_frames, load_clip
 
 STAGE = "annotate"
 

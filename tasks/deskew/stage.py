@@ -39,6 +39,7 @@ from v2xlake.schemas.tables import DeskewFrameRow
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.deskew.core import DeskewResult, deskew_points
 from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.reader import load_extrinsics, load_pose_track, pose_missing
 
 log = logging.getLogger(__name__)
 
@@ -100,48 +101,6 @@ def _fail(clip_id: str, reason: str, agent_id: str | None = None) -> ClipError:
 
 def _col(t: pa.Table, name: str) -> np.ndarray:
     return np.asarray(t.column(name).to_numpy(zero_copy_only=False))
-
-
-def pose_missing(lake: Lake, clip_id: str, agent_id: str) -> str | None:
-    """Why the agent has no pose track (None: it has one)."""
-    agents = lake.read_table("clean", "agents", clip_id=clip_id, agent_id=agent_id)
-    if agents.num_rows and not agents.column("has_ins")[0].as_py():
-        return "agents.has_ins is false"
-    ego = lake.read_table("clean", "ego_poses", clip_id=clip_id, agent_id=agent_id,
-                          columns=["t_ns"])
-    return None if ego.num_rows else "no clean ego_poses rows"
-
-
-def load_pose_track(lake: Lake, clip_id: str, agent_id: str) -> PoseTrack:
-    """The agent's clean ``T_world_ego`` samples; ClipError if the agent has no INS."""
-    why = pose_missing(lake, clip_id, agent_id)
-    if why:
-        raise _fail(clip_id, f"agent {agent_id} has no INS ({why}): per-point motion "
-                             "compensation and registration need poses", agent_id)
-    ego = lake.read_table("clean", "ego_poses", clip_id=clip_id, agent_id=agent_id)
-    order = np.argsort(_col(ego, "t_ns"), kind="stable")
-    t = _col(ego, "t_ns")[order]
-    keep = np.concatenate([[True], np.diff(t) > 0])  # a repeated stamp is one sample
-    xyz = np.stack([_col(ego, c)[order] for c in ("x", "y", "z")], axis=1)[keep]
-    q = np.stack([_col(ego, c)[order] for c in ("qw", "qx", "qy", "qz")], axis=1)[keep]
-    try:
-        return PoseTrack.create(t[keep], xyz, q)
-    except ValueError as e:
-        raise _fail(clip_id, f"ego_poses unusable: {e}", agent_id) from e
-
-
-def load_extrinsics(lake: Lake, clip_id: str, agent_id: str) -> dict[str, np.ndarray]:
-    """``T_ego_sensor`` 4x4 of every LiDAR of the agent, from clean ``calibrated_sensors``."""
-    from v2xlake.tasks.geometry import transform
-    cal = lake.read_table("clean", "calibrated_sensors", clip_id=clip_id, agent_id=agent_id)
-    out: dict[str, np.ndarray] = {}
-    for row in cal.to_pylist():
-        if row.get("modality") != "lidar":
-            continue
-        q = np.array([row["qw"], row["qx"], row["qy"], row["qz"]], dtype=np.float64)
-        out[str(row["sensor"])] = transform(
-            np.array([row["tx"], row["ty"], row["tz"]]), q / np.linalg.norm(q))
-    return out
 
 
 def _pose_gaps(track: PoseTrack, max_gap: int) -> np.ndarray:

@@ -19,13 +19,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.export.common import (
-    file_output,
-    iter_point_frames,
-    lidar_world_poses,
-    load_clip,
-)
+from v2xlake.tasks.export.common import file_output
 from v2xlake.tasks.geometry import apply
+from v2xlake.tasks.reader import iter_point_frames, lidar_world_poses, load_clip
 
 
 class BevConfig(BaseModel):

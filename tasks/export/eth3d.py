@@ -36,18 +36,17 @@ from pydantic import BaseModel, ConfigDict, Field
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.export.common import (
+from v2xlake.tasks.export.common import Undistorter, file_output
+from v2xlake.tasks.geometry import apply, invert, matrix_to_quat
+from v2xlake.tasks.reader import (
     AgentData,
     CameraCalib,
     ClipData,
-    Undistorter,
     boxes_matrices,
-    file_output,
     iter_point_frames,
     lidar_world_poses,
     load_clip,
 )
-from v2xlake.tasks.geometry import apply, invert, matrix_to_quat
 
 
 class Eth3dConfig(BaseModel):

@@ -35,20 +35,18 @@ from v2xlake.schemas.nuscenes import NUSCENES_TABLES
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.export.bev import BevGrid
-from v2xlake.tasks.export.common import (
+from v2xlake.tasks.export.common import Undistorter, file_output, token
+from v2xlake.tasks.geometry import apply, matrix_to_quat
+from v2xlake.tasks.reader import (
     AgentData,
     CameraCalib,
     ClipData,
-    Undistorter,
     available_frames,
     boxes_matrices,
-    file_output,
     iter_point_frames,
     load_clip,
     nearest_index,
-    token,
 )
-from v2xlake.tasks.geometry import apply, matrix_to_quat
 
 ATTRIBUTES = {
     "vehicle.moving": "Vehicle is moving.",

@@ -35,17 +35,17 @@ from pydantic import BaseModel, ConfigDict
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.export.common import (
+from v2xlake.tasks.export.common import file_output
+from v2xlake.tasks.geometry import transform
+from v2xlake.tasks.reader import (
     ClipData,
     available_frames,
     boxes_matrices,
-    file_output,
     iter_point_frames,
     lidar_world_poses,
     load_clip,
     nearest_index,
 )
-from v2xlake.tasks.geometry import transform
 
 
 class OpenCoodConfig(BaseModel):

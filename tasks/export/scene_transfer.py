@@ -29,7 +29,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.export.common import file_output, load_clip
+from v2xlake.tasks.export.common import file_output
+from v2xlake.tasks.reader import load_clip
 
 
 class SceneTransferConfig(BaseModel):

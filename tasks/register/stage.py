@@ -28,9 +28,9 @@ from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import RegistrationRow
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.deskew.stage import OUT_TABLE as DESKEWED
-from v2xlake.tasks.deskew.stage import load_extrinsics, load_pose_track, pose_missing
 from v2xlake.tasks.geometry import matrix_to_quat
 from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.reader import load_extrinsics, load_pose_track, pose_missing
 from v2xlake.tasks.register.backends import GicpParams, Prepared, RegistrationBackend, make_backend
 from v2xlake.tasks.register.bev import render_registration_bev
 from v2xlake.tasks.register.core import PairResult, QualityLimits, initial_transform_at, refine
