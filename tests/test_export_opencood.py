@@ -64,8 +64,9 @@ def test_yaml_boxes_project_to_world(exported) -> None:
     _, out = exported
     for num in ("0", "1"):
         doc = yaml.safe_load((out / "test" / "clip-a" / num / "000005.yaml").read_text())
-        T_wl = np.array(doc["lidar_pose"])
+        T_wl = np.array(doc["lidar_pose_matrix"])
         assert T_wl.shape == (4, 4)
+        np.testing.assert_allclose(opencood_x_to_world(doc["lidar_pose"]), T_wl, atol=1e-9)
         assert doc["vehicles"]
         ass = {v["ass_id"] for v in doc["vehicles"].values()}
         assert len(ass) == len(doc["vehicles"])
@@ -95,3 +96,63 @@ def test_angles_invert_x_to_world() -> None:
     for R in Rotation.random(50, random_state=rng).as_matrix():
         ang = matrix_to_opencood_angles(R)
         assert np.allclose(opencood_x_to_world([0, 0, 0, *ang])[:3, :3], R, atol=1e-9)
+
+
+# V2V4Real's pose path, re-implemented from its published behaviour
+# (ucla-mobility/V2V4Real, opencood/hypes_yaml/yaml_utils.py::load_yaml and
+# opencood/utils/transformation_utils.py::x1_to_x2 / dist_two_pose), so that the test takes
+# exactly the road a training run takes with the values our YAML holds.
+def _v2v4real_load_yaml(path: Path) -> dict:
+    import re
+
+    loader = yaml.Loader
+    loader.add_implicit_resolver(
+        "tag:yaml.org,2002:float",
+        re.compile("""^(?:[-+]?(?:[0-9][0-9_]*)\\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+        |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+        |\\.[0-9_]+(?:[eE][-+][0-9]+)?
+        |[-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+\\.[0-9_]*
+        |[-+]?\\.(?:inf|Inf|INF)
+        |\\.(?:nan|NaN|NAN))$""", re.X), list("-+0123456789."))
+    with open(path) as f:
+        return dict(yaml.load(f, Loader=loader))
+
+
+def _v2v4real_x1_to_x2(x1: object, x2: object) -> np.ndarray:
+    if isinstance(x1, list) and isinstance(x2, list):
+        x1_to_world, x2_to_world = opencood_x_to_world(x1), opencood_x_to_world(x2)
+        return np.dot(np.linalg.inv(x2_to_world), x1_to_world)
+    if isinstance(x1, np.ndarray) and isinstance(x2, list):
+        return np.dot(np.linalg.inv(opencood_x_to_world(x2)), x1)
+    if isinstance(x1, np.ndarray) and isinstance(x2, np.ndarray):
+        return np.dot(np.linalg.inv(x2), x1)
+    x1_to_world = opencood_x_to_world(x1)  # type: ignore[arg-type]  # what the code does
+    return np.dot(np.linalg.inv(x2), x1_to_world)  # type: ignore[arg-type]
+
+
+def _v2v4real_dist_two_pose(cav_pose: list, ego_pose: list) -> float:
+    import math
+
+    return math.sqrt((cav_pose[0] - ego_pose[0]) ** 2 + (cav_pose[1] - ego_pose[1]) ** 2)
+
+
+def test_the_v2v4real_pose_path_takes_our_yaml(exported) -> None:
+    lake, out = exported
+    from v2xlake.tasks.reader import lidar_world_poses, load_clip
+
+    clip = load_clip(lake, "clip-a")
+    agent_of = {"0": "red", "1": "black"}
+    for name in ("000005.yaml", "000012.yaml"):
+        ego = _v2v4real_load_yaml(out / "test" / "clip-a" / "0" / name)
+        cav = _v2v4real_load_yaml(out / "test" / "clip-a" / "1" / name)
+        T_ego_cav = _v2v4real_x1_to_x2(cav["lidar_pose"], ego["lidar_pose"])
+        d = _v2v4real_dist_two_pose(cav["lidar_pose"], ego["lidar_pose"])
+        # the truth from the lake: both LiDARs' world poses at their scan starts
+        T = {n: lidar_world_poses(clip.agents[agent_of[n]], "LIDAR_TOP",
+                                  np.array([doc["timestamp_ns"]]), "clip-a")[0]
+             for n, doc in (("0", ego), ("1", cav))}
+        np.testing.assert_allclose(T_ego_cav, np.linalg.inv(T["0"]) @ T["1"], atol=1e-6)
+        assert abs(d - np.linalg.norm(T["1"][:2, 3] - T["0"][:2, 3])) < 1e-6
+        # and the form we wrote before this test existed (a nested 4x4 list) is what crashed
+        with pytest.raises((TypeError, ValueError)):
+            _v2v4real_x1_to_x2(cav["lidar_pose_matrix"], ego["lidar_pose_matrix"])

@@ -8,8 +8,13 @@ What the V2V4Real loader expects, and why each choice here:
 * every agent has the same file names (the loader indexes timestamps on the ego only), so
   frame ``%06d`` is the reference agent's LiDAR frame index and the other agents contribute
   their scan nearest in time;
-* ``lidar_pose``: the 4x4 ``T_world_lidar`` at scan start (V2V4Real style) in the clip world
-  frame; for a cooperative agent with an accepted registration (eq. 1b) the pose is
+* ``lidar_pose``: ``T_world_lidar`` at scan start in the clip world frame, written as
+  ``[x, y, z, roll, yaw, pitch]`` (degrees, OpenCOOD's ``x_to_world`` convention): the form
+  that the published pose path takes as it is — ``load_yaml`` (plain ``yaml.Loader``) gives
+  a list, ``x1_to_x2`` turns a list into a matrix through ``x_to_world`` (a nested 4x4 list
+  would crash it: only an ndarray is taken as a matrix), ``dist_two_pose`` subtracts the
+  first two entries. The exact 4x4 is kept beside it as ``lidar_pose_matrix``. For a
+  cooperative agent with an accepted registration (eq. 1b) the pose is
   ``T_world_lidar_ref @ T_L1_L2`` so that fusing uses the refined relative transform;
 * ``vehicles`` are in the agent's own LiDAR frame at t0 (as V2V4Real annotates): ``location``
   = box centre, ``center`` = 0, ``angle`` = [roll, yaw, pitch] in degrees in OpenCOOD's
@@ -64,6 +69,11 @@ def matrix_to_opencood_angles(R: np.ndarray) -> list[float]:
     roll = math.atan2(-float(R[2, 1]), float(R[2, 2]))
     yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
     return [math.degrees(roll), math.degrees(yaw), math.degrees(pitch)]
+
+
+def matrix_to_opencood_pose(T: np.ndarray) -> list[float]:
+    """``[x, y, z, roll, yaw, pitch]`` (degrees) of a 4x4 pose, as OpenCOOD's YAML carries it."""
+    return [float(v) for v in T[:3, 3]] + matrix_to_opencood_angles(T[:3, :3])
 
 
 def opencood_x_to_world(pose: Sequence[float]) -> np.ndarray:
@@ -195,7 +205,8 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                                 "ass_id": ass[row["instance_id"]],
                             }
                         n_boxes += a.num_rows
-                doc = {"lidar_pose": [[float(v) for v in row] for row in T],
+                doc = {"lidar_pose": matrix_to_opencood_pose(T),
+                       "lidar_pose_matrix": [[float(v) for v in row] for row in T],
                        "vehicles": vehicles, "agent_id": aid,
                        "timestamp_ns": int(lf.t_start_ns[lf.frame_idx == fr.frame_idx][0])}
                 yp = d / f"{name}.yaml"
