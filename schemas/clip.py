@@ -11,13 +11,13 @@ from __future__ import annotations
 
 from enum import StrEnum
 from pathlib import Path
-from typing import Any, Self
+from typing import Any, Literal, Self
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from v2xlake.schemas.calibration import CameraIntrinsics
-from v2xlake.schemas.geometry import Transform
+from v2xlake.schemas.geometry import Transform, Vec3
 
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_\-]*$"
 
@@ -129,6 +129,86 @@ class SensorConfig(BaseModel):
         return self
 
 
+class InsFields(BaseModel):
+    """Which field of a vendor INS message holds what (None: the usual names are tried)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    lat: str | None = None
+    lon: str | None = None
+    height: str | None = None
+    roll: str | None = None
+    pitch: str | None = None
+    heading: str | None = None
+    v_east: str | None = None
+    v_north: str | None = None
+    v_up: str | None = Field(default=None, description="or down, with velocity_axes ned")
+    status: str | None = None
+
+
+class Datum(BaseModel):
+    """What turns a local map frame into the clip's world: the map is a local ENU frame
+    whose origin is this geodetic point (``lat``/``lon`` degrees, ``alt`` metres), after
+    subtracting ``offset`` (a map frame with a large false origin). Without ``lat``/``lon``
+    the map is taken as already local ENU (its raw geodetic values are then nominal)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    lat: float | None = Field(default=None, ge=-90, le=90)
+    lon: float | None = Field(default=None, ge=-180, le=180)
+    alt: float = 0.0
+    offset: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+class PoseSource(BaseModel):
+    """Where an agent's pose comes from (one pose track comes out of every kind):
+
+    - ``ins``: a vendor INS message on ``topic`` (WGS84 position, attitude, velocities), with
+      ``fields``, ``angle_unit`` (deg / rad), ``heading`` (azimuth from north clockwise, or
+      yaw from east counter-clockwise) and ``velocity_axes`` (ENU or NED);
+    - ``odometry``: ``nav_msgs/msg/Odometry``, ``geometry_msgs/msg/PoseStamped`` or
+      ``PoseWithCovarianceStamped`` on ``topic``, in a local map frame given by ``datum``;
+    - ``navsat_imu``: position from ``sensor_msgs/msg/NavSatFix`` on ``topic`` and attitude
+      from the orientation of ``sensor_msgs/msg/Imu`` on ``attitude_topic`` (ENU, REP 103),
+      interpolated (SLERP) to the fix times;
+    - ``fixed``: a surveyed pose (a roadside unit): ``position`` lat/lon/alt (degrees, m)
+      and ``attitude`` roll/pitch/heading (degrees, heading from north clockwise);
+    - ``none``: the agent has no pose; pose-dependent stages say "not applicable".
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    kind: Literal["ins", "odometry", "navsat_imu", "fixed", "none"]
+    topic: str | None = Field(default=None, pattern=r"^/")
+    msg_type: str | None = None
+    attitude_topic: str | None = Field(default=None, pattern=r"^/")
+    fields: InsFields | None = None
+    angle_unit: Literal["rad", "deg"] = "rad"
+    heading: Literal["north_cw", "east_ccw"] = "north_cw"
+    velocity_axes: Literal["enu", "ned"] = "enu"
+    datum: Datum | None = None
+    position: Vec3 | None = None
+    attitude: Vec3 | None = None
+    rate_hz: float | None = Field(default=None, gt=0)
+
+    @model_validator(mode="after")
+    def _complete(self) -> Self:
+        need = {"ins": ("topic",), "odometry": ("topic", "msg_type"),
+                "navsat_imu": ("topic", "attitude_topic"), "fixed": ("position", "attitude"),
+                "none": ()}[self.kind]
+        missing = [n for n in need if getattr(self, n) is None]
+        if missing:
+            raise ValueError(f"pose kind {self.kind!r} needs {missing}")
+        if self.kind == "odometry" and self.msg_type not in ODOMETRY_TYPES:
+            raise ValueError(f"pose kind 'odometry' reads {list(ODOMETRY_TYPES)}, "
+                             f"not {self.msg_type!r}")
+        return self
+
+
+ODOMETRY_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
+                  "geometry_msgs/msg/PoseWithCovarianceStamped")
+
+
 class AgentConfig(BaseModel):
     model_config = ConfigDict(frozen=True)
 
@@ -138,6 +218,9 @@ class AgentConfig(BaseModel):
     bag: str = Field(description="bag path relative to the clip folder")
     ego_frame: str = Field(default="base_link", description="the INS/IMU frame in tf_static")
     tf_static_topic: str | None = "/tf_static"
+    pose: PoseSource | None = Field(
+        default=None, description="where the pose comes from; without it, the sensor of "
+        "modality 'ins' (the simulator's layout)")
     sensors: list[SensorConfig]
 
     @model_validator(mode="after")

@@ -66,6 +66,7 @@ from v2xlake.tasks.ingest.images import compressed_to_png, image_to_png
 from v2xlake.tasks.ingest.ins import GnssDecoder, ImuDecoder, InsDecoder, InsFieldError
 from v2xlake.tasks.ingest.payloads import messages as in_place_messages
 from v2xlake.tasks.ingest.pointcloud import DecodedCloud, decode_cloud
+from v2xlake.tasks.ingest.pose import PoseCollector, PoseSourceError
 from v2xlake.tasks.ingest.rawmsg import parser_for
 from v2xlake.tasks.ingest.rows import table_of
 
@@ -269,6 +270,7 @@ class _AgentIngest:
         self.png_pending: deque[tuple[SensorConfig, int, int, str,
                                       Future[tuple[int, int, str]]]] = deque()
         self.ins = InsDecoder()
+        self.pose = PoseCollector(agent.pose) if agent.pose is not None else None
         self.imu: dict[str, ImuDecoder] = {}
         self.gnss = GnssDecoder()
         self.tf = TfTree()
@@ -319,6 +321,8 @@ class _AgentIngest:
                     raise self.err(f"camera_info_topic of camera {s.name} is not in the bag; "
                                    f"the bag has {topics}", topic=s.camera_info_topic)
                 handlers[s.camera_info_topic] = self._camera_info(s.name)
+        if self.pose is not None:
+            handlers.update(self._pose_handlers(conns))
         tf_topic = self.agent.tf_static_topic
         if tf_topic and tf_topic in conns:
             handlers[tf_topic] = lambda msg, _c: self.tf.add_message(msg)
@@ -327,6 +331,31 @@ class _AgentIngest:
             raise self.err(f"tf_static topic is not in the bag and not every LiDAR/camera has "
                            f"an extrinsic in clip.yaml; the bag has {topics}", topic=tf_topic)
         return handlers
+
+    def _pose_handlers(self, conns: dict[str, Any]) -> dict[str, Callable[[Any, Any], None]]:
+        """The topics of the agent's pose source (``clip.yaml`` ``pose:``), checked."""
+        assert self.pose is not None
+        src = self.pose.src
+        want = {"odometry": src.msg_type, "navsat_imu": "sensor_msgs/msg/NavSatFix",
+                "attitude": "sensor_msgs/msg/Imu", "ins": src.msg_type}
+        out: dict[str, Callable[[Any, Any], None]] = {}
+        for topic, role in self.pose.topics().items():
+            if topic not in conns:
+                raise self.err(f"pose topic ({src.kind}, {role}) is not in the bag; the bag "
+                               f"has {sorted(conns)}", topic=topic)
+            have = conns[topic].msgtype
+            if want[role] is not None and have != want[role]:
+                raise self.err(f"pose {role} topic carries {have}, clip.yaml says "
+                               f"{want[role]}", topic=topic)
+
+            def handle(msg: Any, _c: Any, role: str = role, topic: str = topic) -> None:
+                try:
+                    self.pose.add(role, msg)  # type: ignore[union-attr]
+                except PoseSourceError as e:
+                    raise self.err(str(e), topic=topic) from e
+
+            out[topic] = handle
+        return out
 
     def _camera_info(self, name: str) -> Callable[[Any, Any], None]:
         def h(msg: Any, _c: Any) -> None:
@@ -462,14 +491,27 @@ class _AgentIngest:
                 topic=s.topic, msg_type=s.msg_type, n_messages=self.counts[s.name]))
             if s.modality is Modality.LIDAR:
                 self.res.lidar_frames[s.name] = self.counts[s.name]
-        self.res.has_ins = bool(self.agent.sensors_of(Modality.INS)) and bool(self.ins.cols["t_ns"])
+        ins_cols: dict[str, Any] = self.ins.cols
+        if self.pose is not None:
+            span = (self.res.t_min, self.res.t_max) if self.res.t_min is not None and \
+                self.res.t_max is not None else None
+            try:
+                got = self.pose.columns(span)
+            except PoseSourceError as e:
+                raise self.err(f"pose ({self.pose.src.kind}): {e}",
+                               topic=self.pose.src.topic) from e
+            ins_cols = got if got is not None else {c: [] for c in self.ins.cols}
+            self.res.has_ins = got is not None and len(got["t_ns"]) >= 2
+        else:
+            self.res.has_ins = bool(self.agent.sensors_of(Modality.INS)) and \
+                bool(self.ins.cols["t_ns"])
         self.res.calib = self._calibration()
         tables: dict[str, pa.Table] = {
             "sensors": table_of(SensorRow, self.res.sensors),
             "calibrated_sensors": table_of(CalibratedSensorRow, self.res.calib),
             "lidar_frames": _frame_table(LidarFrameRow, self.lidar_rows, cid, aid),
             "camera_frames": _frame_table(CameraFrameRow, self.cam_rows, cid, aid),
-            "ins": _cols_table(InsRow, self.ins.cols, cid, aid),
+            "ins": _cols_table(InsRow, ins_cols, cid, aid),
             "gnss": _cols_table(GnssRow, self.gnss.cols, cid, aid),
             "imu": pa.concat_tables([
                 _cols_table(ImuRow, {**d.cols, "sensor": [n] * len(d.cols["t_ns"])}, cid, aid)
@@ -563,7 +605,7 @@ def _frame_table(model: type[BaseModel], rows: list[dict[str, Any]], cid: str, a
     return table_of(model, [{**r, "clip_id": cid, "agent_id": aid} for r in rows])
 
 
-def _cols_table(model: type[BaseModel], cols: dict[str, list[Any]], cid: str, aid: str
+def _cols_table(model: type[BaseModel], cols: dict[str, Any], cid: str, aid: str
                 ) -> pa.Table:
     n = len(cols["t_ns"])
     data: dict[str, Any] = {k: np.asarray(v) if k != "sigma_h" else pa.array(v, pa.float64())

@@ -159,7 +159,8 @@ class _Qa:
         counts = {(r["agent_id"], r["sensor"]): r["n_messages"]
                   for r in self.t["sensors"].to_pylist()}
         for agent in self.cfg.agents:
-            has_ins = bool(agent.sensors_of(Modality.INS))
+            has_ins = bool(agent.sensors_of(Modality.INS)) or (
+                agent.pose is not None and agent.pose.kind != "none")
             for s in agent.sensors:
                 n = counts.get((agent.agent_id, s.name), 0)
                 self.add("messages_present", n > 0, "error",
@@ -242,37 +243,56 @@ class _Qa:
         self.drop_check(agent, s, np.sort(stamp))
 
     def ins(self, agent: AgentConfig) -> None:
+        """The pose track's timing and coverage. A PPS-locked INS sensor (the simulator's
+        and CATS-V2V's layout) is checked against its grid; a ``pose:`` source (Odometry,
+        NavSatFix + Imu, a vendor INS, a fixed pose) keeps its own rate and is checked for
+        covering every scan."""
         aid = agent.agent_id
         ins_sensors = agent.sensors_of(Modality.INS)
-        if not ins_sensors:
+        pose = agent.pose
+        if (pose is not None and pose.kind == "none") or (pose is None and not ins_sensors):
+            why = "pose: none" if pose is not None else "no INS topic configured"
             self.add("ins_coverage", False, "warning",
-                     f"agent {aid}: no INS topic configured: deskew/registration impossible",
-                     agent=aid)
+                     f"agent {aid}: {why}: deskew/registration impossible", agent=aid)
             return
-        s = ins_sensors[0]
+        s = ins_sensors[0] if pose is None else None
+        label = s.name if s is not None else "POSE"
+        topic = s.topic if s is not None else (pose.topic if pose and pose.topic
+                                               else f"pose ({pose.kind if pose else ''})")
         t = self.t["ins"]
         ins_t = np.sort(_col(t.filter(pa.array(
             np.asarray(t.column("agent_id").to_numpy(zero_copy_only=False) == aid)))
             if t.num_rows else t, "t_ns"))
         if ins_t.size == 0:
-            return  # messages_present already failed with an error
-        self.grid_check("pps_ins", agent, s, ins_t,
-                        grid_offsets_ns(ins_t, int(self.c.ins_grid_ms * MS)),
-                        self.c.ins_tolerance_ms, True, f"{self.c.ins_grid_ms:g} ms grid")
-        self.drop_check(agent, s, ins_t)
-        rtk = _col(t.filter(pa.array(np.asarray(
-            t.column("agent_id").to_numpy(zero_copy_only=False) == aid))), "rtk_status")
-        fixed = float(np.mean(rtk == self.c.rtk_fixed_status))
-        self.add("rtk_fixed", fixed >= self.c.min_rtk_fixed_fraction, "warning",
-                 f"{fixed:.1%} of INS samples on {s.topic} have RTK fixed "
-                 f"(status {self.c.rtk_fixed_status})", agent=aid, sensor=s.name,
-                 value=fixed, threshold=self.c.min_rtk_fixed_fraction)
+            if s is None:
+                self.add("ins_coverage", False, "error",
+                         f"pose source {topic} of agent {aid} gave no pose", agent=aid,
+                         sensor=label)
+            return  # an INS sensor: messages_present already failed with an error
+        if s is not None:
+            self.grid_check("pps_ins", agent, s, ins_t,
+                            grid_offsets_ns(ins_t, int(self.c.ins_grid_ms * MS)),
+                            self.c.ins_tolerance_ms, True, f"{self.c.ins_grid_ms:g} ms grid")
+            self.drop_check(agent, s, ins_t)
+        if s is not None or (pose is not None and pose.kind == "ins"):
+            rtk = _col(t.filter(pa.array(np.asarray(
+                t.column("agent_id").to_numpy(zero_copy_only=False) == aid))), "rtk_status")
+            fixed = float(np.mean(rtk == self.c.rtk_fixed_status))
+            self.add("rtk_fixed", fixed >= self.c.min_rtk_fixed_fraction, "warning",
+                     f"{fixed:.1%} of INS samples on {topic} have RTK fixed "
+                     f"(status {self.c.rtk_fixed_status})", agent=aid, sensor=label,
+                     value=fixed, threshold=self.c.min_rtk_fixed_fraction)
+        # a pose source keeps its own rate (a 20 Hz fix, a fixed pose at 10 Hz): a gap is
+        # 2.5 of its median sample interval, never less than the configured INS gap
+        max_gap = int(self.c.ins_max_gap_ms * MS)
+        if s is None and ins_t.size > 1:
+            max_gap = max(max_gap, int(2.5 * float(np.median(np.diff(ins_t)))))
         for lid in agent.sensors_of(Modality.LIDAR):
             f = self.frames("lidar_frames", aid, lid.name, "frame_idx")
             if f.num_rows == 0:
                 continue
             ts, te = _col(f, "t_start_ns"), _col(f, "t_end_ns")
-            bad = ins_uncovered(ins_t, ts, te, int(self.c.ins_max_gap_ms * MS))
+            bad = ins_uncovered(ins_t, ts, te, max_gap)
             # scans reaching past the INS recording at the clip's two ends (bags are cut
             # independently per topic) vs. scans inside the INS time range
             head = bad & (ts < ins_t[0])
@@ -283,13 +303,13 @@ class _Qa:
             sev = "error" if inner.any() or not edge_ok else "warning"
             where = "; ".join(self.span_txt(a, b) for a, b in spans(bad, ts, te))
             what = (f"{int(inner.sum())} inside the INS time range (gap > "
-                    f"{self.c.ins_max_gap_ms:g} ms), {int(head.sum())} before its first and "
+                    f"{max_gap / MS:g} ms), {int(head.sum())} before its first and "
                     f"{int(tail.sum())} after its last sample")
             self.add("ins_coverage", not bad.any(), sev,
-                     f"INS {s.topic} of agent {aid} does not cover {int(bad.sum())} of "
+                     f"INS {topic} of agent {aid} does not cover {int(bad.sum())} of "
                      f"{bad.size} {lid.name} scans ({what}): uncovered {where}" if bad.any() else
-                     f"INS {s.topic} brackets all {bad.size} {lid.name} scans",
-                     agent=aid, sensor=s.name, value=float(bad.sum()), threshold=0.0)
+                     f"INS {topic} brackets all {bad.size} {lid.name} scans",
+                     agent=aid, sensor=label, value=float(bad.sum()), threshold=0.0)
 
 
 def _col(t: pa.Table, name: str) -> np.ndarray:
@@ -327,7 +347,9 @@ def run_qa(lake: Lake, clip_id: str, config: QaConfig | None = None) -> StageRep
         first = failed[0]
         topic = None
         if first.agent_id and first.sensor:
-            topic = cfg.agent(first.agent_id).sensor(first.sensor).topic
+            agent = cfg.agent(first.agent_id)
+            named = [x for x in agent.sensors if x.name == first.sensor]
+            topic = named[0].topic if named else (agent.pose.topic if agent.pose else None)
         raise ClipError(clip_id, "; ".join(f"{r.check}: {r.detail}" for r in failed),
                         agent_id=first.agent_id, topic=topic, stage=STAGE, checks=rows)
     return StageReport(
