@@ -37,13 +37,49 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     return r
 
 
-def matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices -> (..., 4) w,x,y,z with w >= 0 (canonical sign)."""
-    from scipy.spatial.transform import Rotation
+def transform(translation: np.ndarray, quat_wxyz: np.ndarray) -> np.ndarray:
+    """(..., 3) translations + (..., 4) unit quaternions (w, x, y, z) -> (..., 4, 4) ``T_a_b``.
 
+    The stored form of a transform is (translation, quaternion); this is its one conversion
+    to a matrix (``tasks.geometry`` re-exports it for every stage and export).
+    """
+    t = np.asarray(translation, dtype=np.float64)
+    m = np.zeros((*t.shape[:-1], 4, 4))
+    m[..., :3, :3] = quat_to_matrix(quat_wxyz)
+    m[..., :3, 3] = t
+    m[..., 3, 3] = 1.0
+    return m
+
+
+def matrix_to_quat(r: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices -> (..., 4) w,x,y,z with w >= 0 (canonical sign).
+
+    Shepperd's method as SciPy's ``Rotation.from_matrix`` runs it (the largest of the four
+    quaternion components is computed from the diagonal, the rest from off-diagonal sums,
+    so no branch divides by a small number), in NumPy because schemas/ may not import
+    SciPy; tests/test_geometry.py checks it against SciPy.
+    """
     r = np.asarray(r, dtype=np.float64)
-    xyzw = Rotation.from_matrix(r.reshape(-1, 3, 3)).as_quat()
+    m = r.reshape(-1, 3, 3)
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    choice = np.argmax(np.stack([m[:, 0, 0], m[:, 1, 1], m[:, 2, 2], tr], axis=1), axis=1)
+    xyzw = np.empty((m.shape[0], 4))
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = choice == i
+        ms = m[s]
+        xyzw[s, i] = 1.0 - tr[s] + 2.0 * ms[:, i, i]
+        xyzw[s, j] = ms[:, j, i] + ms[:, i, j]
+        xyzw[s, k] = ms[:, k, i] + ms[:, i, k]
+        xyzw[s, 3] = ms[:, k, j] - ms[:, j, k]
+    s = choice == 3
+    ms = m[s]
+    xyzw[s, 0] = ms[:, 2, 1] - ms[:, 1, 2]
+    xyzw[s, 1] = ms[:, 0, 2] - ms[:, 2, 0]
+    xyzw[s, 2] = ms[:, 1, 0] - ms[:, 0, 1]
+    xyzw[s, 3] = 1.0 + tr[s]
     wxyz = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+    wxyz /= np.linalg.norm(wxyz, axis=1, keepdims=True)
     wxyz *= np.where(wxyz[:, :1] < 0, -1.0, 1.0)
     return wxyz.reshape(*r.shape[:-2], 4)
 
@@ -100,13 +136,5 @@ class Transform(BaseModel):
         return cls(translation=a[:3, 3].tolist(), rotation=(q / np.linalg.norm(q)).tolist())
 
     def matrix(self) -> np.ndarray:
-        m = np.eye(4)
-        m[:3, :3] = quat_to_matrix(np.asarray(self.rotation))
-        m[:3, 3] = self.translation
-        return m
-
-    def inverse(self) -> Transform:
-        return Transform.from_matrix(np.linalg.inv(self.matrix()))
-
-    def __matmul__(self, other: Transform) -> Transform:
-        return Transform.from_matrix(self.matrix() @ other.matrix())
+        """The 4x4 ``T_a_b``; compose, invert and apply it with ``tasks.geometry``."""
+        return transform(np.asarray(self.translation), np.asarray(self.rotation))

@@ -5,9 +5,15 @@ into frame ``a`` and is a (..., 4, 4) float64 matrix; quaternions are unit (w, x
 boxes carry ``size = (w, l, h)`` with the length along the box x-axis (nuScenes). Every
 stage and export composes, inverts and applies transforms, counts points in boxes and
 measures overlaps through these functions, so that a point count or an IoU has one
-definition in the whole project. The quaternion <-> matrix conversions live in
-``schemas.geometry`` (validation needs them, and schemas may not import tasks) and are
-re-exported here.
+definition in the whole project. The conversions between the stored form (translation,
+quaternion) and matrices live in ``schemas.geometry`` (validation needs them, and schemas may
+not import tasks) and are re-exported here. Interpolating a pose track in time (linear +
+SLERP) is ``tasks.interpolate``: its numba kernels are shared with deskew's inner loop.
+
+SciPy's ``RigidTransform``/``Rotation`` were measured against these functions
+(tests/bench/bench_geometry.py): on one transform they are 4-80x slower (object
+construction and validation per call) and on a 1000-batch 13-23x; only Rotation's
+quaternion -> matrix matches NumPy. So the vocabulary is plain NumPy on (..., 4, 4) arrays.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ from functools import reduce
 import numpy as np
 from scipy.spatial import cKDTree
 
-from v2xlake.schemas.geometry import matrix_to_quat, quat_to_matrix
+from v2xlake.schemas.geometry import matrix_to_quat, quat_to_matrix, transform
 
 __all__ = [
     "BOX_EDGES",
@@ -31,7 +37,10 @@ __all__ = [
     "points_in_boxes",
     "quat_to_matrix",
     "quat_wxyz_of",
+    "rigid",
+    "rotation_angle",
     "transform",
+    "transform_boxes",
 ]
 
 # unit-cube corner signs, ordered so that 0-3 is the bottom face and 4-7 the top face
@@ -46,13 +55,12 @@ BOX_EDGES = np.array(
 )
 
 
-def transform(translation: np.ndarray, quat_wxyz: np.ndarray) -> np.ndarray:
-    """(..., 3) translations + (..., 4) unit quaternions -> (..., 4, 4) transforms."""
-    t = np.asarray(translation, dtype=np.float64)
-    q = np.asarray(quat_wxyz, dtype=np.float64)
-    m = np.zeros((*t.shape[:-1], 4, 4))
-    m[..., :3, :3] = quat_to_matrix(q)
-    m[..., :3, 3] = t
+def rigid(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations + (..., 3) translations -> (..., 4, 4) transforms."""
+    R = np.asarray(rotation, dtype=np.float64)
+    m = np.zeros((*R.shape[:-2], 4, 4))
+    m[..., :3, :3] = R
+    m[..., :3, 3] = translation
     m[..., 3, 3] = 1.0
     return m
 
@@ -74,11 +82,51 @@ def compose(*Ts: np.ndarray) -> np.ndarray:
 
 
 def apply(T: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    """``T @ p`` for (N, 3) points, float64. einsum, not ``@``: a (N,3)x(3,3) matmul goes
-    through BLAS threading and measured 3-6x slower here on busy cores."""
-    out = np.einsum("ij,nj->ni", T[:3, :3], np.asarray(xyz, dtype=np.float64))
-    out += T[:3, 3]
+    """``T @ p`` for (N, 3) points (float32 or float64) -> (N, 3) float64.
+
+    One column at a time with in-place ufuncs: no float64 copy of the input, no BLAS. On a
+    225k-point scan (tests/bench/bench_geometry.py) 1.5 ms, steady; ``einsum`` 3.2 ms,
+    ``RigidTransform.apply`` 7.7 ms, and ``xyz @ R.T`` 0.9-3.5 ms depending on what BLAS
+    threads find free on a shared machine.
+    """
+    T = np.asarray(T, dtype=np.float64)
+    x = np.asarray(xyz)
+    out = np.empty((x.shape[0], 3))
+    c0, c1, c2 = x[:, 0], x[:, 1], x[:, 2]
+    for i in range(3):
+        o = out[:, i]
+        np.multiply(c0, T[i, 0], out=o)
+        o += c1 * T[i, 1]
+        o += c2 * T[i, 2]
+        o += T[i, 3]
     return out
+
+
+def rotation_angle(T: np.ndarray) -> np.ndarray:
+    """Angle (radians, [0, pi]) of the rotation part of (..., 3, 3) or (..., 4, 4) matrices.
+
+    ``atan2(|axis * sin|, cos)`` rather than ``arccos((tr - 1) / 2)``: arccos loses all
+    precision below ~1e-8 rad, which is where registration corrections live.
+    """
+    R = np.asarray(T, dtype=np.float64)[..., :3, :3]
+    cos = (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                  R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    return np.arctan2(np.linalg.norm(v, axis=-1) / 2.0, cos)
+
+
+def transform_boxes(T: np.ndarray, center: np.ndarray, quat: np.ndarray, velocity: np.ndarray,
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Boxes (M centres, M unit quaternions, M velocities, NaN allowed) expressed in another
+    frame: ``T`` is one 4x4 or (M, 4, 4), one per box, mapping old -> new coordinates."""
+    T = np.asarray(T, dtype=np.float64)
+    m = len(center)
+    Tm = np.broadcast_to(T, (m, 4, 4)) if T.ndim == 2 else T
+    R = Tm[:, :3, :3]
+    c = np.einsum("mij,mj->mi", R, center) + Tm[:, :3, 3]
+    q = matrix_to_quat(R @ quat_to_matrix(quat)) if m else np.zeros((0, 4))
+    v = np.einsum("mij,mj->mi", R, velocity)
+    return c, q, v
 
 
 def box_corners(center: np.ndarray, size: np.ndarray, quat: np.ndarray) -> np.ndarray:

@@ -6,6 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from scipy.spatial.transform import Rotation
 
 from v2xlake.tasks.geometry import (
     apply,
@@ -16,7 +17,11 @@ from v2xlake.tasks.geometry import (
     matrix_to_quat,
     points_in_boxes,
     quat_to_matrix,
+    quat_wxyz_of,
+    rigid,
+    rotation_angle,
     transform,
+    transform_boxes,
 )
 from v2xlake.tasks.interpolate import interpolate_poses
 
@@ -88,3 +93,48 @@ def test_iou_matrix_and_paired_agree(xy: np.ndarray, wh: np.ndarray) -> None:
     np.testing.assert_allclose(np.diag(m), iou_xyxy(a, b, paired=True))
     np.testing.assert_allclose(np.diag(iou_xyxy(a, a)), 1.0)
     assert np.all((m >= 0) & (m <= 1 + 1e-12))
+
+
+@given(quats, vecs)
+@settings(max_examples=60, deadline=None)
+def test_conversions_agree_with_scipy(q: np.ndarray, t: np.ndarray) -> None:
+    """schemas/ converts without SciPy (it may not import it); the numbers must be SciPy's."""
+    rot = Rotation.from_quat(q, scalar_first=True)
+    np.testing.assert_allclose(quat_to_matrix(q), rot.as_matrix(), atol=1e-12)
+    want = Rotation.from_matrix(rot.as_matrix()).as_quat(scalar_first=True)
+    T = transform(t, q)
+    np.testing.assert_allclose(T, rigid(rot.as_matrix(), t), atol=1e-12)
+    for got in (matrix_to_quat(rot.as_matrix()), quat_wxyz_of(T)):  # sign: w >= 0
+        assert got[0] >= 0 and min(np.abs(got - want).max(), np.abs(got + want).max()) < 1e-12
+    # the angle, also where arccos((tr - 1) / 2) has no digits left
+    assert abs(rotation_angle(T) - rot.magnitude()) < 1e-9
+    tiny = Rotation.from_rotvec(q[1:] * 1e-10)
+    assert abs(rotation_angle(tiny.as_matrix()) - tiny.magnitude()) < 1e-15
+
+
+def test_matrix_to_quat_every_branch() -> None:
+    """Shepperd's four branches (largest of w, x, y, z) and batch shapes."""
+    mats = np.stack([np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]),
+                     np.diag([-1.0, -1, 1])])
+    np.testing.assert_allclose(matrix_to_quat(mats), np.eye(4), atol=1e-15)
+    assert matrix_to_quat(np.zeros((0, 3, 3))).shape == (0, 4)
+    assert matrix_to_quat(np.broadcast_to(np.eye(3), (2, 5, 3, 3))).shape == (2, 5, 4)
+
+
+@given(arrays(np.float64, (5, 3), elements=finite), st.lists(quats, min_size=5, max_size=5),
+       arrays(np.float64, (5, 3), elements=finite), vecs, quats,
+       arrays(np.float64, (5, 3), elements=st.floats(0.5, 5)))
+@settings(max_examples=40, deadline=None)
+def test_transform_boxes_moves_their_corners(center: np.ndarray, q: list[np.ndarray],
+                                             vel: np.ndarray, t: np.ndarray, qt: np.ndarray,
+                                             size: np.ndarray) -> None:
+    """A box moved by T has T's image of its corners (one 4x4 or one per box)."""
+    from v2xlake.tasks.geometry import box_corners
+
+    quat = np.stack(q)
+    T = transform(t, qt)
+    for TT in (T, np.broadcast_to(T, (5, 4, 4))):
+        c, qq, v = transform_boxes(TT, center, quat, vel)
+        moved = apply(T, box_corners(center, size, quat).reshape(-1, 3)).reshape(5, 8, 3)
+        np.testing.assert_allclose(box_corners(c, size, qq), moved, atol=1e-8)
+        np.testing.assert_allclose(v, vel @ T[:3, :3].T, atol=1e-9)

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from v2xlake.tasks.geometry import BOX_EDGES, matrix_to_quat, quat_to_matrix
+from v2xlake.tasks.geometry import BOX_EDGES, quat_to_matrix, transform_boxes
 
 EDGES = BOX_EDGES  # corner pairs of box_corners' corners, for drawing
 
@@ -39,13 +39,7 @@ class BoxArray:
 
     def transformed(self, T: np.ndarray) -> BoxArray:
         """Same boxes expressed in another frame: ``T`` (4x4 or (M,4,4)) maps old -> new."""
-        T = np.asarray(T, dtype=np.float64)
-        Tm = np.broadcast_to(T, (len(self), 4, 4)) if T.ndim == 2 else T
-        R = Tm[:, :3, :3]
-        center = np.einsum("mij,mj->mi", R, self.center) + Tm[:, :3, 3]
-        rot = R @ quat_to_matrix(self.quat) if len(self) else np.zeros((0, 3, 3))
-        quat = matrix_to_quat(rot) if len(self) else np.zeros((0, 4))
-        vel = np.einsum("mij,mj->mi", R, self.velocity)
+        center, quat, vel = transform_boxes(T, self.center, self.quat, self.velocity)
         return replace(self, center=center, quat=quat, velocity=vel)
 
     def shifted(self, displacement: np.ndarray) -> BoxArray:

@@ -34,7 +34,7 @@ import numpy as np
 from v2xlake.tasks.align.boxes import BoxArray
 from v2xlake.tasks.align.projection import Camera, points_in_fov, project_boxes_2d
 from v2xlake.tasks.deskew.core import deskew_points
-from v2xlake.tasks.geometry import points_in_boxes
+from v2xlake.tasks.geometry import compose, invert, points_in_boxes
 from v2xlake.tasks.interpolate import PoseTrack
 
 Method = Literal["stamp", "frame", "target"]
@@ -166,8 +166,7 @@ def camera_from_l0(
     t_cam = np.atleast_1d(np.asarray(t_cam_ns, dtype=np.int64))
     T_w_e0 = traj.matrices(int(t0_ns))[0]
     T_w_ec = traj.matrices(t_cam)
-    left = np.linalg.inv(T_ego_cam)[None] @ np.linalg.inv(T_w_ec)
-    return np.asarray(left @ (T_w_e0 @ T_ego_lidar)[None])
+    return compose(invert(T_ego_cam), invert(T_w_ec), T_w_e0, T_ego_lidar)
 
 
 def compensate_points(
@@ -204,7 +203,7 @@ def align_stamp(scan: LidarScan, boxes: BoxArray, stream: CameraStream,
                 T_ego_lidar: np.ndarray) -> Association:
     m = len(boxes)
     pos = int(stream.nearest(scan.t0_ns)[0])
-    T_cam_lidar = np.linalg.inv(stream.camera.T_ego_cam) @ T_ego_lidar
+    T_cam_lidar = compose(invert(stream.camera.T_ego_cam), T_ego_lidar)
     b2d = project_boxes_2d(boxes.center, boxes.size, boxes.quat, T_cam_lidar,
                            stream.camera.intrinsics)
     return Association(
@@ -217,7 +216,7 @@ def align_stamp(scan: LidarScan, boxes: BoxArray, stream: CameraStream,
 def frame_association(scan: LidarScan, stream: CameraStream, T_ego_lidar: np.ndarray,
                       params: AlignParams) -> tuple[int, int, int]:
     """Frame-based choice for one camera: (frame position, association time, FOV points)."""
-    T_cam_lidar = np.linalg.inv(stream.camera.T_ego_cam) @ T_ego_lidar
+    T_cam_lidar = compose(invert(stream.camera.T_ego_cam), T_ego_lidar)
     fov = points_in_fov(scan.xyz, T_cam_lidar, stream.camera.intrinsics, params.fov_near_m)
     n = int(fov.sum())
     if n == 0:  # nothing in view: fall back to the scan start, like the stamp method

@@ -46,8 +46,8 @@ from v2xlake.tasks.align.methods import (
 )
 from v2xlake.tasks.align.metrics import center_offset_px, summarize
 from v2xlake.tasks.align.overlay import OverlayBoxes, Panel, render_overlay
-from v2xlake.tasks.align.projection import Camera, points_in_fov, project_points, transform_points
-from v2xlake.tasks.geometry import iou_xyxy
+from v2xlake.tasks.align.projection import Camera, points_in_fov, project_points
+from v2xlake.tasks.geometry import apply, compose, invert, iou_xyxy
 from v2xlake.tasks.interpolate import PoseCoverageError
 from v2xlake.tasks.reader import AgentData, CameraCalib, iter_point_frames, load_clip
 
@@ -412,12 +412,12 @@ def _overlay_points(scan: LidarScan, st: CameraStream, agent: AgentData, T_el: n
     ``compensate``: ego-motion compensated from t0 to the image's stamp (frame-based);
     otherwise the deskewed points as they are (t0), as the stamp method pairs them.
     """
-    T_cam_lidar = np.linalg.inv(st.camera.T_ego_cam) @ T_el
+    T_cam_lidar = compose(invert(st.camera.T_ego_cam), T_el)
     fov = points_in_fov(scan.xyz, T_cam_lidar, st.camera.intrinsics, params.fov_near_m)
     xyz = scan.xyz[fov]
     if compensate and xyz.size:
         xyz = compensate_points(xyz, agent.poses, T_el, scan.t0_ns, int(st.stamp_ns[pos]))
-    cam = transform_points(T_cam_lidar, xyz)
+    cam = apply(T_cam_lidar, xyz)
     uv, front = project_points(cam, st.camera.intrinsics, params.fov_near_m)
     ok = front & np.isfinite(uv).all(axis=1)
     return np.concatenate([uv[ok], cam[ok, 2:3]], axis=1)

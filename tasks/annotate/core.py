@@ -35,7 +35,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import AnnotationWorldRow, InstanceRow
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.geometry import count_points_in_boxes, matrix_to_quat, quat_to_matrix, transform
+from v2xlake.tasks.geometry import count_points_in_boxes, transform, transform_boxes
 from v2xlake.tasks.reader import AgentData, iter_point_frames, load_clip
 
 STAGE = "annotate"
@@ -75,11 +75,7 @@ class WorldBoxes:
 def world_boxes(T_world_l0: np.ndarray, center: np.ndarray, quat: np.ndarray,
                 velocity: np.ndarray) -> WorldBoxes:
     """Boxes given in L0 (one ``T_world_L0`` (M, 4, 4) per box) -> world frame."""
-    R = T_world_l0[:, :3, :3]
-    c = np.einsum("mij,mj->mi", R, center) + T_world_l0[:, :3, 3]
-    q = matrix_to_quat(R @ quat_to_matrix(quat)) if len(center) else np.zeros((0, 4))
-    v = np.einsum("mij,mj->mi", R, velocity)
-    return WorldBoxes(c, q, v)
+    return WorldBoxes(*transform_boxes(T_world_l0, center, quat, velocity))
 
 
 def cross_agent_distances(

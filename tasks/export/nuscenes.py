@@ -36,7 +36,7 @@ from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.export.bev import BevGrid
 from v2xlake.tasks.export.common import Undistorter, file_output, token
-from v2xlake.tasks.geometry import apply, matrix_to_quat
+from v2xlake.tasks.geometry import apply, compose, invert, quat_wxyz_of
 from v2xlake.tasks.reader import (
     AgentData,
     CameraCalib,
@@ -91,7 +91,7 @@ class NuScenesExportConfig(BaseModel):
 
 
 def _quat(m: np.ndarray) -> list[float]:
-    return [float(v) for v in matrix_to_quat(m[:3, :3])]
+    return [float(v) for v in quat_wxyz_of(m)]
 
 
 def _xyz(m: np.ndarray) -> list[float]:
@@ -439,8 +439,8 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
             centers[row["instance_id"]].append((int(t_lidar[k]), Tw[r, :3, 3]))
         if fr.frame_idx not in key_frames:
             continue
-        T_w_ego = T_wl @ np.linalg.inv(T_el)
-        cams = [(np.linalg.inv(T_w_ego @ cam.T_ego_sensor), K, cam.width, cam.height)
+        T_w_ego = compose(T_wl, invert(T_el))
+        cams = [(invert(compose(T_w_ego, cam.T_ego_sensor)), K, cam.width, cam.height)
                 for _, cam, K in cam_for_vis]
         st = sample_tok[int(np.flatnonzero(sample_frames == fr.frame_idx)[0])]
         for r, row in enumerate(a.to_pylist()):

@@ -36,6 +36,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from v2xlake.tasks.geometry import compose, rigid
 from v2xlake.tasks.simulate.rig import CameraRig
 from v2xlake.tasks.simulate.scene import GROUND_ID, Actor, World
 from v2xlake.tasks.simulate.textures import FACE_M, PLATE_MM, face_textures, plate_texture
@@ -226,9 +227,7 @@ class CameraRenderer:
         w = self.world
         sc = w.scene
         p, r = w.agents[self.agent].pose(np.array([tau]))
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = r[0], p[0]
-        T = T @ self.rig.T_ego_cam_true
+        T = compose(rigid(r[0], p[0]), self.rig.T_ego_cam_true)
         self.C = T[:3, 3]
         self.Rwc_T = T[:3, :3]  # row vectors: pc = (pw - C) @ R_world_cam
         self.img = self.sky.copy()

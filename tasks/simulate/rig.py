@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
+from v2xlake.tasks.geometry import rigid
 from v2xlake.tasks.simulate.config import SimConfig
 
 # name: (yaw deg, hfov deg, base width, base height red, base height black, x, y, z) with x y z
@@ -43,12 +44,6 @@ def frame_name(agent: str, sensor: str) -> str:
     return f"{agent}/{sensor.lower()}"
 
 
-def _mat(r: np.ndarray, t: np.ndarray) -> np.ndarray:
-    m = np.eye(4)
-    m[:3, :3], m[:3, 3] = r, t
-    return m
-
-
 def _cam_rotation(yaw_deg: float, pitch_down_deg: float) -> np.ndarray:
     y = np.radians(yaw_deg)
     z = np.array([np.cos(y), np.sin(y), 0.0])
@@ -61,7 +56,7 @@ def _error(rng: np.random.Generator, trans: float, rot_deg: float) -> np.ndarray
     def unit() -> np.ndarray:
         v = rng.normal(size=3)
         return v / np.linalg.norm(v)
-    return _mat(Rotation.from_rotvec(unit() * np.radians(rot_deg)).as_matrix(), unit() * trans)
+    return rigid(Rotation.from_rotvec(unit() * np.radians(rot_deg)).as_matrix(), unit() * trans)
 
 
 @dataclass(frozen=True)
@@ -85,12 +80,12 @@ def build_rigs(cfg: SimConfig) -> dict[str, AgentRig]:
     for k, agent in enumerate(cfg.agents):
         rng = np.random.default_rng([cfg.seed, 777, k])
         if agent == "rsu":
-            lid_nom = _mat(np.eye(3), np.array([0.0, 0.0, 5.5]))
+            lid_nom = rigid(np.eye(3), np.array([0.0, 0.0, 5.5]))
             cams_for = [c for c in ("CAM_FRONT",) if c in cfg.cameras]
         else:
-            lid_nom = _mat(np.eye(3), np.array([0.20, 0.0, 1.55]))
+            lid_nom = rigid(np.eye(3), np.array([0.20, 0.0, 1.55]))
             cams_for = list(cfg.cameras)
-        mount = _mat(Rotation.from_rotvec(rng.normal(size=3) * np.radians(0.3)).as_matrix(),
+        mount = rigid(Rotation.from_rotvec(rng.normal(size=3) * np.radians(0.3)).as_matrix(),
                      rng.normal(size=3) * 0.02)
         lid_true = lid_nom @ mount
         lid_pub = lid_true @ _error(rng, cfg.lidar_ext_trans_err_m, cfg.lidar_ext_rot_err_deg)
@@ -111,9 +106,9 @@ def build_rigs(cfg: SimConfig) -> dict[str, AgentRig]:
                 r, t = _cam_rotation(0.0, 12.0), np.array([0.3, 0.0, 5.3])
             else:
                 r, t = _cam_rotation(yaw, 2.0), np.array([x, y, z])
-            cmount = _mat(Rotation.from_rotvec(rng.normal(size=3) * np.radians(0.2)).as_matrix(),
+            cmount = rigid(Rotation.from_rotvec(rng.normal(size=3) * np.radians(0.2)).as_matrix(),
                           rng.normal(size=3) * 0.01)
-            c_true = _mat(r, t) @ cmount
+            c_true = rigid(r, t) @ cmount
             c_pub = c_true @ _error(rng, cfg.cam_ext_trans_err_m, cfg.cam_ext_rot_err_deg)
             cams[name] = CameraRig(name, intr, c_true, c_pub)
         rigs[agent] = AgentRig(agent, lid_true, lid_pub, cams)

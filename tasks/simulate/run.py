@@ -30,7 +30,7 @@ import numpy as np
 
 from v2xlake.schemas.annotation import AnnotationFile, Box3D, BoxAnnotation
 from v2xlake.tasks.geodesy import LocalFrame
-from v2xlake.tasks.geometry import matrix_to_quat
+from v2xlake.tasks.geometry import compose, invert, matrix_to_quat, rigid, rotation_angle
 from v2xlake.tasks.pngcodec import encode_png
 from v2xlake.tasks.simulate.bagwrite import INS_MSG_TYPE, POINT_DTYPE, BagSink
 from v2xlake.tasks.simulate.camera import CameraRenderer
@@ -87,9 +87,7 @@ def _annotations(world: World, agent: str, caster: LidarCaster, scan: Scan,
     st = caster.last
     ids, counts = np.unique(scan.obj_id, return_counts=True)
     cnt = dict(zip(ids.tolist(), counts.tolist(), strict=True))
-    T_wl0 = np.eye(4)
-    T_wl0[:3, :3], T_wl0[:3, 3] = st.rot[0], st.origin[0]
-    T_l0w = np.linalg.inv(T_wl0)
+    T_l0w = invert(rigid(st.rot[0], st.origin[0]))
     ncol = len(st.t_ns)
     col_az = 2 * np.pi * np.arange(ncol) / ncol
     out = []
@@ -325,12 +323,11 @@ def _write_truth(tdir: Path, cfg: SimConfig, world: World, rigs: dict, errs: dic
     I1 = ins_matrix(errs["red"], T1, tau_s) @ rigs["red"].T_ego_lidar_pub
     for other in others:
         T2 = world.agents[other].matrix(tau_s)
-        true = np.linalg.inv(L1) @ (T2 @ rigs[other].T_ego_lidar_true)
+        true = compose(invert(L1), T2, rigs[other].T_ego_lidar_true)
         I2 = ins_matrix(errs[other], T2, tau_s) @ rigs[other].T_ego_lidar_pub
-        init = np.linalg.inv(I1) @ I2
-        d = np.linalg.inv(true) @ init
-        cos_a = (np.trace(d[:, :3, :3], axis1=1, axis2=2) - 1) / 2
-        ang = np.degrees(np.arccos(np.clip(cos_a, -1, 1)))
+        init = compose(invert(I1), I2)
+        d = compose(invert(true), init)
+        ang = np.degrees(rotation_angle(d))
         part = {"agent_ref": ["red"] * n_scans, "agent_other": [other] * n_scans,
                 "frame_idx": np.arange(n_scans, dtype=np.int32), "t_ns": scan_t,
                 **pose_columns(true),

@@ -34,6 +34,8 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from v2xlake.tasks.geometry import rigid
+
 GRAVITY = 9.80665
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
 _KNOT_DT = 0.05
@@ -195,11 +197,7 @@ class Trajectory:
 
     def matrix(self, tau: np.ndarray) -> np.ndarray:
         p, r = self.pose(tau)
-        m = np.zeros((*np.shape(tau), 4, 4))
-        m[..., :3, :3] = r
-        m[..., :3, 3] = p
-        m[..., 3, 3] = 1.0
-        return m
+        return rigid(r, p)
 
     def velocity(self, tau: np.ndarray, h: float = 1e-3) -> np.ndarray:
         tau = np.asarray(tau, float)
