@@ -35,7 +35,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import AnnotationWorldRow, InstanceRow
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.geometry import count_points_in_boxes, transform, transform_boxes
+from v2xlake.tasks.geometry import apply, count_points_in_boxes, transform, transform_boxes
 from v2xlake.tasks.reader import AgentData, iter_point_frames, load_clip
 
 STAGE = "annotate"
@@ -184,7 +184,7 @@ def _registration_distances(
             if j is None:
                 continue
             ca = np.array([ta[c][k].as_py() for c in ("cx", "cy", "cz")])
-            cb = T[:3, :3] @ np.array([tb[c][j].as_py() for c in ("cx", "cy", "cz")]) + T[:3, 3]
+            cb = apply(T, np.array([[tb[c][j].as_py() for c in ("cx", "cy", "cz")]]))[0]
             dt = (int(ta["t_ns"][k].as_py()) - int(tb["t_ns"][j].as_py()))
             if abs(dt) > max_dt_ns:
                 continue

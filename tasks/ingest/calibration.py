@@ -16,6 +16,7 @@ import numpy as np
 
 from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
 from v2xlake.schemas.geometry import Transform
+from v2xlake.tasks.geometry import invert
 
 
 class TfTree:
@@ -27,7 +28,7 @@ class TfTree:
     def add(self, parent: str, child: str, T_parent_child: np.ndarray) -> None:
         parent, child = parent.lstrip("/"), child.lstrip("/")
         self.edges.setdefault(parent, {})[child] = T_parent_child
-        self.edges.setdefault(child, {})[parent] = np.linalg.inv(T_parent_child)
+        self.edges.setdefault(child, {})[parent] = invert(T_parent_child)
 
     def add_message(self, msg: Any) -> None:
         for ts in msg.transforms:

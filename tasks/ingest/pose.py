@@ -18,13 +18,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from v2xlake.schemas.clip import Datum, PoseSource
 from v2xlake.tasks.geodesy import LocalFrame, matrix_to_attitude
 from v2xlake.tasks.geometry import quat_to_matrix
 from v2xlake.tasks.ingest.bagopen import header_stamp_ns
 from v2xlake.tasks.ingest.ins import INS_ALIASES
+from v2xlake.tasks.interpolate import interpolate_poses
 
 INS_COLUMNS = ("t_ns", "lat", "lon", "alt", "roll", "pitch", "azimuth", "ve", "vn", "vu",
                "rtk_status")
@@ -81,8 +81,8 @@ def navsat_imu_to_ins(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, alt: 
     if inside.sum() < 2:
         raise PoseSourceError("fewer than 2 position fixes inside the attitude's time span")
     t = t_fix[inside]
-    rot = Slerp((t_att - t_att[0]) * 1e-9, Rotation.from_quat(q[:, [1, 2, 3, 0]]))
-    R = rot((t - t_att[0]) * 1e-9).as_matrix()
+    _, q_t = interpolate_poses(t_att, np.zeros((len(t_att), 3)), q, t)  # the one SLERP
+    R = quat_to_matrix(q_t)
     roll, pitch, azimuth = matrix_to_attitude(R)
     la, lo, al = (np.asarray(a, float)[inside] for a in (lat, lon, alt))
     frame = LocalFrame(float(la[0]), float(lo[0]))

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from v2xlake.tasks.geometry import apply
+
 
 def _thin(xyz: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
     p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
@@ -36,7 +38,7 @@ def render_registration_bev(ref_xyz: np.ndarray, other_xyz: np.ndarray, T_init: 
     fig, axes = plt.subplots(1, 2, figsize=(12, 6), dpi=110, sharex=True, sharey=True)
     for ax, T, name in ((axes[0], T_init, "initial (eq. 1a)"), (axes[1], T_refined,
                                                                   "GICP refined (eq. 1b)")):
-        moved = oth @ T[:3, :3].T + T[:3, 3]
+        moved = apply(T, oth)
         for pts, color, label in ((ref, "#d62728", "reference"), (moved, "#1f77b4", "other")):
             keep = (np.abs(pts[:, 0]) < extent_m) & (np.abs(pts[:, 1]) < extent_m)
             p = pts[keep]

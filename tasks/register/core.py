@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from v2xlake.tasks.geometry import invert
+from v2xlake.tasks.geometry import apply, compose, invert, rotation_angle
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.register.backends import Prepared, RegistrationBackend
 
@@ -43,8 +43,7 @@ def transform_delta(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """(metres, degrees) between two estimates of the same transform: where the source
     origin lands, and the angle of ``R_b R_a^T``."""
     dt = float(np.linalg.norm(b[:3, 3] - a[:3, 3]))
-    r = b[:3, :3] @ a[:3, :3].T
-    ang = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+    ang = float(np.degrees(rotation_angle(compose(b, invert(a)))))
     return dt, ang
 
 
@@ -93,7 +92,7 @@ def evaluate(backend: RegistrationBackend, target: Prepared, source: Prepared, T
     n = len(source.points)
     if n == 0 or len(target.points) == 0:
         return 0.0, 0.0, 0
-    moved = source.points @ T[:3, :3].T + T[:3, 3]
+    moved = apply(T, source.points)
     d2 = backend.nearest_sq_dist(target, moved)
     inl = d2 <= distance_m**2
     k = int(inl.sum())

@@ -28,7 +28,7 @@ from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import RegistrationRow
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.deskew.stage import OUT_TABLE as DESKEWED
-from v2xlake.tasks.geometry import matrix_to_quat
+from v2xlake.tasks.geometry import matrix_to_quat, transform
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.reader import load_extrinsics, load_pose_track, pose_missing
 from v2xlake.tasks.register.backends import GicpParams, Prepared, RegistrationBackend, make_backend
@@ -279,8 +279,6 @@ def plot_registration(lake: Lake, clip_id: str, frame_idx: int, out_png: str | P
                       agent_other: str | None = None, config: RegisterConfig | None = None
                       ) -> Path:
     """Fig. 5 for one frame from the stored ``registrations`` row and deskewed scans."""
-    from v2xlake.schemas.geometry import Transform
-
     cfg = config or RegisterConfig()
     regs = lake.read_table("clean", "registrations", clip_id=clip_id)
     rows = [r for r in regs.to_pylist() if r["frame_idx"] == frame_idx
@@ -292,8 +290,8 @@ def plot_registration(lake: Lake, clip_id: str, frame_idx: int, out_png: str | P
 
     def mat(prefix: str) -> np.ndarray:
         q = np.array([r[f"{prefix}qw"], r[f"{prefix}qx"], r[f"{prefix}qy"], r[f"{prefix}qz"]])
-        return Transform(translation=[r[f"{prefix}tx"], r[f"{prefix}ty"], r[f"{prefix}tz"]],
-                         rotation=(q / np.linalg.norm(q)).tolist()).matrix()
+        return transform(np.array([r[f"{prefix}tx"], r[f"{prefix}ty"], r[f"{prefix}tz"]]),
+                         q / np.linalg.norm(q))
 
     ref = _AgentScans(lake, clip_id, r["agent_ref"], cfg.sensor)
     oth = _AgentScans(lake, clip_id, r["agent_other"], cfg.sensor)
