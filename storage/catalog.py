@@ -224,13 +224,20 @@ class Catalog:
         return self.zones
 
     def _persist(self) -> None:
-        """Write the same views into ``catalog.duckdb`` via a temporary file + atomic rename."""
+        """Write the same views into ``catalog.duckdb`` via a temporary file + atomic rename,
+        with file paths relative to the lake root so that a copied or moved lake reads its
+        own files: ``cd <lake> && duckdb catalog.duckdb`` (or ``SET file_search_path`` to the
+        lake root from anywhere); ``v2xlake catalog refresh`` rewrites it."""
         final = self.lake.catalog_path
         tmp = f"{os.path.dirname(final)}/.catalog-{uuid.uuid4().hex}.duckdb"
+        root = _q(self.lake.base + "/")[:-1]  # the quoted literal's opening: '<root>/
+        travelling = [ViewInfo(v.schema, v.name, v.zone, v.files, v.sql.replace(root, "'"))
+                      for v in self.views]
         try:
             con = duckdb.connect(tmp)
             try:
-                self._apply(con, self.views)
+                con.execute(f"SET file_search_path = {_q(self.lake.base)}")  # to bind them
+                self._apply(con, travelling)
             finally:
                 con.close()
             os.replace(tmp, final)

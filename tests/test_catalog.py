@@ -173,3 +173,33 @@ def test_s3_lake_ingest_and_catalog(tmp_path: Path, s3_env: Any) -> None:
         w.write(t)
         raise RuntimeError("boom")
     assert lake.list_files(lake.table_dir("raw", "failed"), ".parquet") == []
+
+
+def test_the_persisted_catalog_travels_with_the_lake(tmp_path: Path) -> None:
+    """#15: catalog.duckdb holds paths relative to the lake, so a moved lake reads its own
+    files from the plain duckdb client started in the lake folder."""
+    import os
+    import shutil
+
+    import duckdb
+
+    from tests.fixtures.minibag import MiniClip, write_clip
+    from v2xlake.tasks.ingest import run_ingest
+
+    lake = Lake(tmp_path / "lake")
+    run_ingest(lake, write_clip(tmp_path / "c", MiniClip(seconds=0.2, points=100,
+                                                         cameras=(), clip_id="trav")))
+    Catalog(lake).close()  # persists catalog.duckdb
+    moved = tmp_path / "elsewhere" / "lake2"
+    shutil.move(lake.base, moved)
+    here = os.getcwd()
+    try:
+        os.chdir(moved)
+        con = duckdb.connect(str(moved / "catalog.duckdb"), read_only=True)
+        n = con.execute("SELECT count(*) FROM lidar_frames").fetchone()
+        con.close()
+    finally:
+        os.chdir(here)
+    assert n is not None and n[0] == 4
+    assert str(tmp_path / "lake") not in (moved / "catalog.duckdb").read_bytes().decode(
+        "latin-1")
