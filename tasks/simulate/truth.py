@@ -47,7 +47,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from v2xlake.schemas.geometry import Transform, matrix_to_quat
+from v2xlake.schemas.geometry import Transform
+from v2xlake.tasks.geometry import matrix_to_quat, rigid
 from v2xlake.tasks.simulate.config import SimConfig
 from v2xlake.tasks.simulate.ins import InsError, ins_error
 from v2xlake.tasks.simulate.rig import AgentRig, build_rigs
@@ -73,10 +74,7 @@ def write_parquet(path: Path, cols: dict[str, Any]) -> int:
 
 def ins_matrix(err: InsError, T_true: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """What the INS reports as T_world_ego (world = truth world)."""
-    out = T_true.copy()
-    out[..., :3, :3] = err.R_bias @ T_true[..., :3, :3]
-    out[..., :3, 3] = T_true[..., :3, 3] + err.bias(tau)
-    return out
+    return rigid(err.R_bias @ T_true[..., :3, :3], T_true[..., :3, 3] + err.bias(tau))
 
 
 @dataclass
