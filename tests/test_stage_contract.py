@@ -245,9 +245,11 @@ def test_a_stage_output_becomes_visible_together(tmp_path: Path) -> None:
 # ------------------------------------------------------------------ one geometry vocabulary
 def test_num_lidar_pts_has_one_definition(tmp_path: Path) -> None:
     """Defect 3: the catalog summed 3,238 points on 80 boxes and the nuScenes export 645
-    (two points_in_boxes, one with a 5 cm margin). Now annotate counts once and the catalog
-    view, the export and the devkit's own points_in_box agree on every box."""
+    (two points_in_boxes, one with a 5 cm margin). Now annotate counts once, and box by box
+    the catalog's annotations view and the export's sample_annotation.json carry the same
+    number (test_export_nuscenes checks it against the devkit's points_in_box)."""
     from tests.export_fixtures import build_clean_clip
+    from v2xlake.tasks.export.common import token
     from v2xlake.tasks.export.nuscenes import NuScenesExportConfig, export_nuscenes
 
     lake = Lake(tmp_path / "lake")
@@ -255,13 +257,16 @@ def test_num_lidar_pts_has_one_definition(tmp_path: Path) -> None:
     out = tmp_path / "nus"
     export_nuscenes(lake, ["clip-a"], out, NuScenesExportConfig())
     version = next(p.name for p in out.iterdir() if (p / "sample.json").is_file())
-    samples = {s["token"]: s["timestamp"] for s in
-               json.loads((out / version / "sample.json").read_text())}
     anns = json.loads((out / version / "sample_annotation.json").read_text())
-    key_us = set(samples.values())
     with Catalog(lake) as cat:
-        rows = cat.query("SELECT agent_id, t_ns, num_lidar_pts FROM annotations").to_pylist()
+        rows = cat.query("SELECT agent_id, frame_idx, instance_id, num_lidar_pts "
+                         "FROM annotations").to_pylist()
         world = cat.query("SELECT sum(num_lidar_pts) AS n FROM clean.annotations_world")
-    assert sum(r["num_lidar_pts"] for r in rows) == world.column(0)[0].as_py() > 0
-    at_keys = [r["num_lidar_pts"] for r in rows if r["t_ns"] // 1000 in key_us]
-    assert at_keys and sorted(a["num_lidar_pts"] for a in anns) == sorted(at_keys)
+    catalog = {(token("sample", "clip-a", r["agent_id"], r["frame_idx"]),
+                token("instance", "clip-a", r["agent_id"], r["instance_id"])): r["num_lidar_pts"]
+               for r in rows}
+    exported = {(a["sample_token"], a["instance_token"]): a["num_lidar_pts"] for a in anns}
+    assert len(exported) == len(anns) >= 10 and set(exported) <= set(catalog)
+    assert exported == {k: catalog[k] for k in exported}
+    assert sum(exported.values()) > 0
+    assert sum(catalog.values()) == world.column(0)[0].as_py()
