@@ -11,12 +11,12 @@ import yaml
 
 from tests.export_fixtures import build_clean_clip, world_box_at
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import iter_point_frames
 from v2xlake.tasks.export.opencood import (
     export_opencood,
     matrix_to_opencood_angles,
     opencood_x_to_world,
 )
-from v2xlake.tasks.reader import iter_point_frames
 
 
 @pytest.fixture(scope="module")

@@ -13,8 +13,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from tests.export_fixtures import build_clean_clip
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import iter_point_frames
 from v2xlake.tasks.export.rosbag import convert_bag, export_rosbag
-from v2xlake.tasks.reader import iter_point_frames
 
 TOPICS = {"/red/lidar/points": 10, "/red/camera/CAM_FRONT/image/compressed": 30,
           "/red/camera/CAM_FRONT/camera_info": 30, "/red/imu": -1, "/red/ins/odometry": -1,

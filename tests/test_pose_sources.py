@@ -23,12 +23,13 @@ from tests.fixtures.minibag import T0, MiniClip, _cloud, _header, _quat, _store,
 from tests.test_deskew import scipy_reference
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import read_extrinsics
 from v2xlake.tasks.anonymize.run import run_anonymize
 from v2xlake.tasks.deskew.stage import run_deskew
 from v2xlake.tasks.geodesy import LocalFrame
 from v2xlake.tasks.ingest import run_ingest
 from v2xlake.tasks.qa.core import run_qa
-from v2xlake.tasks.reader import load_extrinsics, load_pose_track
+from v2xlake.tasks.reader import load_pose_track
 
 ORIGIN = (48.137, 11.575, 520.0)  # the map frame's geodetic origin
 OFFSET = np.array([691_000.0, 5_334_000.0, 0.0])  # a UTM-like false origin of the map
@@ -211,7 +212,7 @@ def test_pose_source_reproduces_the_motion(tmp_path: Path, kind: str) -> None:
     out = lake.read_table("clean", "lidar_points_deskewed", clip_id=cid)
     ref_t = {d["frame_idx"]: d["deskew_ref_ns"] for d in
              lake.read_table("clean", "deskew_frames", clip_id=cid).to_pylist()}
-    e = load_extrinsics(lake, cid, "car")["LIDAR_TOP"]
+    e = read_extrinsics(lake, cid, "car")["LIDAR_TOP"]
     for k in (0, 5):
         r = raw.filter(pc.equal(raw["frame_idx"], k))
         d = out.filter(pc.equal(out["frame_idx"], k))

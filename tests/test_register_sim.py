@@ -20,8 +20,9 @@ from scipy.spatial.transform import Rotation
 
 from tests.test_deskew import scipy_reference
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import read_extrinsics
 from v2xlake.tasks.deskew.stage import run_deskew
-from v2xlake.tasks.reader import load_extrinsics, load_pose_track
+from v2xlake.tasks.reader import load_pose_track
 from v2xlake.tasks.register.core import transform_delta
 from v2xlake.tasks.register.stage import run_register
 
@@ -71,7 +72,7 @@ def test_deskew_on_simulated_clip(processed: tuple[Lake, Path]) -> None:
         out = lake.read_table("clean", "lidar_points_deskewed", clip_id=CID, agent_id=agent)
         raw = lake.read_table("clean", "lidar_points", clip_id=CID, agent_id=agent)
         track = load_pose_track(lake, CID, agent)
-        e_pub = load_extrinsics(lake, CID, agent)["LIDAR_TOP"]
+        e_pub = read_extrinsics(lake, CID, agent)["LIDAR_TOP"]
         for k, fr in frames.items():
             if fr["deskew_ref_ns"] is None:  # an edge frame the INS does not cover
                 continue

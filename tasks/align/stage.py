@@ -30,6 +30,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import AlignmentRow
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import CameraCalib, iter_point_frames
 from v2xlake.tasks.align.boxes import BoxArray
 from v2xlake.tasks.align.methods import (
     METHODS,
@@ -49,7 +50,7 @@ from v2xlake.tasks.align.overlay import OverlayBoxes, Panel, render_overlay
 from v2xlake.tasks.align.projection import Camera, points_in_fov, project_points
 from v2xlake.tasks.geometry import apply, compose, invert, iou_xyxy
 from v2xlake.tasks.interpolate import PoseCoverageError
-from v2xlake.tasks.reader import AgentData, CameraCalib, iter_point_frames, load_clip
+from v2xlake.tasks.reader import AgentData, load_clip
 
 STAGE = "align"
 

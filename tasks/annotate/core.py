@@ -35,8 +35,9 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import AnnotationWorldRow, InstanceRow
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import iter_point_frames
 from v2xlake.tasks.geometry import apply, count_points_in_boxes, transform, transform_boxes
-from v2xlake.tasks.reader import AgentData, iter_point_frames, load_clip
+from v2xlake.tasks.reader import AgentData, load_clip
 
 STAGE = "annotate"
 

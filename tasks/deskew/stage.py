@@ -37,9 +37,10 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import Chunked, OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import DeskewFrameRow
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import pose_missing, read_extrinsics
 from v2xlake.tasks.deskew.core import DeskewResult, deskew_points
 from v2xlake.tasks.interpolate import PoseTrack
-from v2xlake.tasks.reader import load_extrinsics, load_pose_track, pose_missing
+from v2xlake.tasks.reader import load_pose_track
 
 log = logging.getLogger(__name__)
 
@@ -210,7 +211,7 @@ def deskew_chunk(lake: Lake, clip_id: str, cfg: DeskewConfig, chunk: DeskewChunk
     _warm_up()
     agent = chunk.agent
     track = load_pose_track(lake, clip_id, agent)
-    extr = load_extrinsics(lake, clip_id, agent)
+    extr = read_extrinsics(lake, clip_id, agent)
     gaps = _pose_gaps(track, cfg.max_pose_gap_ns)
     fa = lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent)
     t_start = {(str(s), int(f)): int(t0) for s, f, t0 in zip(

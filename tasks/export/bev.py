@@ -19,9 +19,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import iter_point_frames
 from v2xlake.tasks.export.common import file_output
 from v2xlake.tasks.geometry import apply
-from v2xlake.tasks.reader import iter_point_frames, lidar_world_poses, load_clip
+from v2xlake.tasks.reader import lidar_world_poses, load_clip
 
 
 class BevConfig(BaseModel):
@@ -122,7 +123,7 @@ def accumulate(lake: Lake, clip_id: str, config: BevConfig,
         sensor = agent.lidar_sensor(config.sensor)
         lf = agent.lidar[sensor]
         sel = lf.frame_idx[::config.frame_stride]
-        t0 = dict(zip(lf.frame_idx.tolist(), lf.t_start_ns.tolist(), strict=True))
+        t0 = dict(zip(lf.frame_idx.tolist(), lf.points_t_ns.tolist(), strict=True))
         for fr in iter_point_frames(lake, clip_id, aid, sensor=sensor, frames=sel.tolist()):
             T = lidar_world_poses(agent, sensor, np.array([t0[fr.frame_idx]]), clip_id)[0]
             w = apply(T, fr.xyz)

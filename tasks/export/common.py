@@ -14,8 +14,8 @@ import numpy as np
 
 from v2xlake.schemas.stage import OutputFile
 from v2xlake.storage import checksum
+from v2xlake.storage.reader import CameraCalib
 from v2xlake.tasks.pngcodec import encode_png
-from v2xlake.tasks.reader import CameraCalib
 
 __all__ = ["Undistorter", "file_output", "token"]
 

@@ -36,17 +36,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import CameraCalib, iter_point_frames
 from v2xlake.tasks.export.common import Undistorter, file_output
 from v2xlake.tasks.geometry import apply, invert, matrix_to_quat
-from v2xlake.tasks.reader import (
-    AgentData,
-    CameraCalib,
-    ClipData,
-    boxes_matrices,
-    iter_point_frames,
-    lidar_world_poses,
-    load_clip,
-)
+from v2xlake.tasks.reader import AgentData, ClipData, boxes_matrices, lidar_world_poses, load_clip
 
 
 class Eth3dConfig(BaseModel):
@@ -102,7 +95,7 @@ def _map_points(lake: Lake, clip: ClipData, agent: AgentData, cfg: Eth3dConfig
                 ) -> tuple[np.ndarray, np.ndarray]:
     sensor = agent.lidar_sensor(cfg.lidar_sensor)
     lf = agent.lidar[sensor]
-    t0 = dict(zip(lf.frame_idx.tolist(), lf.t_start_ns.tolist(), strict=True))
+    t0 = dict(zip(lf.frame_idx.tolist(), lf.points_t_ns.tolist(), strict=True))
     ann = agent.annotations
     chunks: list[np.ndarray] = []
     inten: list[np.ndarray] = []

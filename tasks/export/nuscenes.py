@@ -34,19 +34,11 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.nuscenes import NUSCENES_TABLES
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import CameraCalib, available_frames, iter_point_frames
 from v2xlake.tasks.export.bev import BevGrid
 from v2xlake.tasks.export.common import Undistorter, file_output, token
 from v2xlake.tasks.geometry import apply, compose, invert, quat_wxyz_of
-from v2xlake.tasks.reader import (
-    AgentData,
-    CameraCalib,
-    ClipData,
-    available_frames,
-    boxes_matrices,
-    iter_point_frames,
-    load_clip,
-    nearest_index,
-)
+from v2xlake.tasks.reader import AgentData, ClipData, boxes_matrices, load_clip, nearest_index
 
 ATTRIBUTES = {
     "vehicle.moving": "Vehicle is moving.",
@@ -154,7 +146,7 @@ def _scene_name(clip_id: str, agent_id: str) -> str:
 def _keyframe_times(clip: ClipData, cfg: NuScenesExportConfig) -> np.ndarray:
     ref = clip.agents[clip.reference_agent]
     lf = ref.lidar[ref.lidar_sensor(cfg.lidar_sensor)]
-    return lf.t_start_ns[::cfg.keyframe_every]
+    return lf.points_t_ns[::cfg.keyframe_every]
 
 
 def _map_grids(clips: list[ClipData], cfg: NuScenesExportConfig) -> dict[str, BevGrid]:
@@ -301,7 +293,7 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
     if not have:
         raise ClipError(cid, "clean table 'lidar_points_deskewed' has no points for this "
                         "agent (run the deskew stage first)", agent_id=aid, stage="export")
-    covered = agent.poses.covers(lf.t_start_ns) & np.isin(lf.frame_idx, list(have))
+    covered = agent.poses.covers(lf.points_t_ns) & np.isin(lf.frame_idx, list(have))
     if not covered.all():
         notes.append(f"{name}: {int((~covered).sum())} LiDAR frames without deskewed points "
                      "or outside pose coverage dropped")
@@ -309,7 +301,7 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
     if len(li) == 0:
         raise ClipError(cid, "no LiDAR frame inside ego pose coverage", agent_id=aid,
                         stage="export")
-    t_lidar = lf.t_start_ns[li]
+    t_lidar = lf.points_t_ns[li]
     # keyframes: this agent's scans nearest the reference agent's keyframe times
     near = nearest_index(t_lidar, kf_times)
     ok = np.abs(t_lidar[near] - kf_times) <= cfg.keyframe_tolerance_ms * 1e6

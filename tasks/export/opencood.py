@@ -40,13 +40,12 @@ from pydantic import BaseModel, ConfigDict
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import available_frames, iter_point_frames
 from v2xlake.tasks.export.common import file_output
 from v2xlake.tasks.geometry import transform
 from v2xlake.tasks.reader import (
     ClipData,
-    available_frames,
     boxes_matrices,
-    iter_point_frames,
     lidar_world_poses,
     load_clip,
     nearest_index,
@@ -134,7 +133,7 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
         ref = clip.agents[clip.reference_agent]
         rs = ref.lidar_sensor(config.lidar_sensor)
         ref_frames = ref.lidar[rs]
-        ref_t = ref_frames.t_start_ns
+        ref_t = ref_frames.points_t_ns
         gids = sorted(set(clip.instances["instance_id"].to_pylist())) \
             if clip.instances.num_rows else []
         for a in clip.agents.values():
@@ -156,10 +155,10 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
         for aid, agent in clip.agents.items():
             sensor = agent.lidar_sensor(config.lidar_sensor)
             lf = agent.lidar[sensor]
-            near = nearest_index(lf.t_start_ns, ref_t)
+            near = nearest_index(lf.points_t_ns, ref_t)
             have = available_frames(lake, cid, aid, sensor=sensor)
-            common &= np.abs(lf.t_start_ns[near] - ref_t) <= config.match_tolerance_ms * 1e6
-            common &= agent.poses.covers(lf.t_start_ns[near])
+            common &= np.abs(lf.points_t_ns[near] - ref_t) <= config.match_tolerance_ms * 1e6
+            common &= agent.poses.covers(lf.points_t_ns[near])
             common &= np.isin(lf.frame_idx[near], list(have))
             nears[aid] = near
         if not common.any():
@@ -174,7 +173,7 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
             d.mkdir(parents=True, exist_ok=True)
             near, ok = nears[aid], common
             want = {int(lf.frame_idx[near[k]]): k for k in np.flatnonzero(ok)}
-            T_wl = lidar_world_poses(agent, sensor, lf.t_start_ns[near[ok]], cid)
+            T_wl = lidar_world_poses(agent, sensor, lf.points_t_ns[near[ok]], cid)
             T_by_frame = dict(zip([int(f) for f in lf.frame_idx[near[ok]]], T_wl, strict=True))
             ann = agent.annotations
             for fr in iter_point_frames(lake, cid, aid, sensor=sensor, frames=list(want)):
@@ -208,7 +207,7 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                 doc = {"lidar_pose": matrix_to_opencood_pose(T),
                        "lidar_pose_matrix": [[float(v) for v in row] for row in T],
                        "vehicles": vehicles, "agent_id": aid,
-                       "timestamp_ns": int(lf.t_start_ns[lf.frame_idx == fr.frame_idx][0])}
+                       "timestamp_ns": int(lf.points_t_ns[lf.frame_idx == fr.frame_idx][0])}
                 yp = d / f"{name}.yaml"
                 yp.write_text(yaml.safe_dump(doc, sort_keys=False))
                 n_frames += 1

@@ -35,9 +35,10 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import CameraCalib, iter_point_frames
 from v2xlake.tasks.export.common import file_output
 from v2xlake.tasks.geometry import matrix_to_quat
-from v2xlake.tasks.reader import AgentData, CameraCalib, ClipData, iter_point_frames, load_clip
+from v2xlake.tasks.reader import AgentData, ClipData, load_clip
 
 POINT_DTYPE = np.dtype({"names": ["x", "y", "z", "intensity", "ring", "time"],
                         "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],

@@ -27,10 +27,11 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import RegistrationRow
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import pose_missing, read_extrinsics
 from v2xlake.tasks.deskew.stage import OUT_TABLE as DESKEWED
 from v2xlake.tasks.geometry import matrix_to_quat, transform
 from v2xlake.tasks.interpolate import PoseTrack
-from v2xlake.tasks.reader import load_extrinsics, load_pose_track, pose_missing
+from v2xlake.tasks.reader import load_pose_track
 from v2xlake.tasks.register.backends import GicpParams, Prepared, RegistrationBackend, make_backend
 from v2xlake.tasks.register.bev import render_registration_bev
 from v2xlake.tasks.register.core import PairResult, QualityLimits, initial_transform_at, refine
@@ -94,7 +95,7 @@ class _AgentScans:
     def __init__(self, lake: Lake, clip_id: str, agent: str, sensor: str | None) -> None:
         self.agent = agent
         self.track: PoseTrack = load_pose_track(lake, clip_id, agent)
-        extr = load_extrinsics(lake, clip_id, agent)
+        extr = read_extrinsics(lake, clip_id, agent)
         if not extr:
             raise _fail(clip_id, "no LiDAR in calibrated_sensors", agent)
         if sensor is None:

@@ -27,12 +27,12 @@ sys.path.insert(0, str(REPO))
 
 from tests.export_fixtures import build_clean_clip  # noqa: E402
 from v2xlake.storage.lake import Lake  # noqa: E402
+from v2xlake.storage.reader import iter_point_frames  # noqa: E402
 from v2xlake.tasks.export.nuscenes import (  # noqa: E402
     NuScenesExportConfig,
     export_nuscenes,
     write_pcd_bin,
 )
-from v2xlake.tasks.reader import iter_point_frames  # noqa: E402
 
 
 def main() -> None:
