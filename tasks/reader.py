@@ -92,3 +92,42 @@ def nearest_index(sorted_t: np.ndarray, t: np.ndarray | int) -> np.ndarray:
 def lidar_world_poses(agent: AgentData, sensor: str, t_ns: np.ndarray, clip_id: str) -> np.ndarray:
     """``T_world_lidar(t) = T_world_ego(t) @ T_ego_lidar`` for each time."""
     return agent.T_world_ego(t_ns, clip_id=clip_id) @ agent.sensors[sensor].T_ego_sensor
+
+
+def registered_T(clip: ClipRecord, other: str, ref_frame_idx: int) -> np.ndarray | None:
+    """The accepted refined ``T_Lref_Lother`` (eq. 1b) of one reference frame, if any."""
+    r = clip.registrations
+    if r.num_rows == 0:
+        return None
+    for x in r.to_pylist():
+        if x["agent_other"] == other and x["agent_ref"] == clip.reference_agent \
+                and x["frame_idx"] == ref_frame_idx and x["accepted"]:
+            return transform(np.array([x["tx"], x["ty"], x["tz"]]),
+                             np.array([x["qw"], x["qx"], x["qy"], x["qz"]]))
+    return None
+
+
+def match_agents(clip: ClipData, ref_t: np.ndarray, tolerance_ns: float, *,
+                 sensor: str = "LIDAR_TOP", have: dict[str, set[int]] | None = None,
+                 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Which reference times every agent can fill, and with which of its LiDAR frames.
+
+    For each agent its scan nearest each time in ``ref_t`` (by the time its deskewed points
+    are expressed at); a time is kept when every agent has one within ``tolerance_ns``,
+    inside its pose coverage and with deskewed points (``have``: frame indices per agent
+    that have points; default: what ``deskew_frames`` says). Returns (keep mask, {agent:
+    index into that agent's ``LidarFrames`` per reference time}).
+    """
+    ref = clip.agents[clip.reference_agent]
+    common = ref.poses.covers(ref_t)
+    nears: dict[str, np.ndarray] = {}
+    for aid, agent in clip.agents.items():
+        lf = agent.lidar[agent.lidar_sensor(sensor)]
+        t = lf.points_t_ns
+        near = nearest_index(t, ref_t)
+        common &= np.abs(t[near] - ref_t) <= tolerance_ns
+        common &= agent.poses.covers(t[near])
+        common &= np.isin(lf.frame_idx[near], list(have[aid])) if have is not None \
+            else lf.deskewed[near]
+        nears[aid] = near
+    return common, nears

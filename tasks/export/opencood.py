@@ -42,13 +42,12 @@ from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import available_frames, iter_point_frames
 from v2xlake.tasks.export.common import file_output
-from v2xlake.tasks.geometry import transform
 from v2xlake.tasks.reader import (
-    ClipData,
     boxes_matrices,
     lidar_world_poses,
     load_clip,
-    nearest_index,
+    match_agents,
+    registered_T,
 )
 
 
@@ -106,20 +105,6 @@ def write_pcd(path: Path, xyz: np.ndarray, intensity01: np.ndarray) -> None:
         raise OSError(f"open3d could not write {path}")
 
 
-def _registered(clip: ClipData, other: str, frame_idx: int) -> np.ndarray | None:
-    r = clip.registrations
-    if r.num_rows == 0:
-        return None
-    rows = [x for x in r.to_pylist() if x["agent_other"] == other
-            and x["agent_ref"] == clip.reference_agent and x["frame_idx"] == frame_idx
-            and x["accepted"]]
-    if not rows:
-        return None
-    x = rows[0]
-    return transform(np.array([x["tx"], x["ty"], x["tz"]]),
-                     np.array([x["qw"], x["qx"], x["qy"], x["qz"]]))
-
-
 def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                     splits: dict[str, str] | None = None,
                     config: OpenCoodConfig = OpenCoodConfig()) -> StageReport:  # noqa: B008
@@ -150,17 +135,10 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
         (root / split / f"{cid}.json").write_text(json.dumps(meta, indent=1))
         # the loader reads the same file names for every agent: keep only reference frames
         # that every agent can fill (a matching scan, pose coverage, deskewed points)
-        nears: dict[str, np.ndarray] = {}
-        common = ref.poses.covers(ref_t)
-        for aid, agent in clip.agents.items():
-            sensor = agent.lidar_sensor(config.lidar_sensor)
-            lf = agent.lidar[sensor]
-            near = nearest_index(lf.points_t_ns, ref_t)
-            have = available_frames(lake, cid, aid, sensor=sensor)
-            common &= np.abs(lf.points_t_ns[near] - ref_t) <= config.match_tolerance_ms * 1e6
-            common &= agent.poses.covers(lf.points_t_ns[near])
-            common &= np.isin(lf.frame_idx[near], list(have))
-            nears[aid] = near
+        have = {aid: available_frames(lake, cid, aid, sensor=a.lidar_sensor(config.lidar_sensor))
+                for aid, a in clip.agents.items()}
+        common, nears = match_agents(clip, ref_t, config.match_tolerance_ms * 1e6,
+                                     sensor=config.lidar_sensor, have=have)
         if not common.any():
             raise ClipError(cid, "no LiDAR frame that every agent can provide",
                             stage="export_opencood")
@@ -182,7 +160,7 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                 name = f"{ref_fi:06d}"
                 T = T_by_frame[fr.frame_idx]
                 if aid != clip.reference_agent and config.use_registrations:
-                    reg = _registered(clip, aid, ref_fi)
+                    reg = registered_T(clip, aid, ref_fi)
                     if reg is not None:
                         T = T_wl_ref[k] @ reg
                 inten = fr.intensity.astype(np.float64)
