@@ -386,6 +386,9 @@ def export(
     clip: Annotated[list[str] | None, typer.Option(help="clip id (repeatable; default all)")]
     = None,
     params: ParamsOpt = None,
+    storage: Annotated[Ros2Storage | None, typer.Option(
+        help="rosbag only: sqlite3 or mcap (zstd chunks, /tf, markers: opens in Foxglove)")]
+    = None,
 ) -> int:
     """Export clips to a dataset format."""
     from v2xlake.flows.bookkeeping import query as run_query
@@ -394,6 +397,10 @@ def export(
 
     the_lake = open_lake(lake)
     cfg = load_params(params).export.section(fmt.value)
+    if storage is not None:
+        if fmt != ExportFormat.rosbag:
+            raise UserError("--storage applies to the rosbag export only")
+        cfg = cfg.model_copy(update={"storage": storage.value})
     known = {r["clip_id"] for r in run_query(
         the_lake, "SELECT clip_id FROM clips WHERE status = 'ok'").to_pylist()}
     clip_ids = list(clip) if clip else sorted(known)
