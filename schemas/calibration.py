@@ -31,9 +31,10 @@ _N_COEFFS = {
 
 
 class CameraIntrinsics(BaseModel):
-    """Pinhole intrinsics plus distortion, checked against the image size they claim."""
+    """Pinhole intrinsics plus distortion, checked against the image size they claim (and,
+    at ingest, against the size of the images themselves)."""
 
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     width: int = Field(gt=0)
     height: int = Field(gt=0)

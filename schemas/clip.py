@@ -2,24 +2,35 @@
 
 A clip folder holds one bag per agent plus this file, which says what the bags cannot: the
 conditions, which agent is the reference, and per sensor the topic, message type, field
-mapping and calibration source. Real recordings are ingested by writing one of these files,
-never by changing code, so every driver-specific quirk (time field name, unit, reference)
-must be expressible here.
+mapping, calibration source and timing model; per agent where its pose comes from. Real
+recordings are ingested by writing one of these files, never by changing code, so every
+driver-specific quirk (time field name, unit, reference; an INS's angle conventions; the
+datum of a localisation stack's map frame) must be expressible here. ``docs/recordings.md``
+is the cookbook.
+
+Every model forbids unknown keys: a misspelled key (``extrinsics:`` for ``extrinsic:``)
+would otherwise be ignored and its sensor silently calibrated from somewhere else.
 """
 
 from __future__ import annotations
 
 from enum import StrEnum
 from pathlib import Path
-from typing import Any, Literal, Self
+from typing import Annotated, Any, Literal, Self
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from v2xlake.schemas.calibration import CameraIntrinsics
-from v2xlake.schemas.geometry import Transform, Vec3
+from v2xlake.schemas.geometry import Transform
 
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_\-]*$"
+
+
+class _Strict(BaseModel):
+    """Frozen, and an unknown key is an error naming the key."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
 
 class Weather(StrEnum):
@@ -58,7 +69,7 @@ class AgentRole(StrEnum):
 class Modality(StrEnum):
     LIDAR = "lidar"
     CAMERA = "camera"
-    INS = "ins"
+    INS = "ins"  # any pose message: vendor INS, Odometry, PoseStamped, /tf ...
     IMU = "imu"
     GNSS = "gnss"
     RADAR = "radar"
@@ -78,18 +89,17 @@ class TimeReference(StrEnum):
     HEADER = "header"  # offset from the message header stamp (Ouster ``t``, Velodyne ``time``)
 
 
-class PointTimeField(BaseModel):
-    model_config = ConfigDict(frozen=True)
-
+class PointTimeField(_Strict):
     field: str
     unit: TimeUnit
     reference: TimeReference
 
 
-class LidarFields(BaseModel):
-    """Which PointCloud2 fields carry what. ``None`` means the sensor does not provide it."""
+class LidarFields(_Strict):
+    """Which PointCloud2 fields carry what. ``None`` means the sensor does not provide it.
 
-    model_config = ConfigDict(frozen=True)
+    Radar point clouds use the same mapping plus ``velocity`` (radial, m/s) and ``rcs``;
+    their ``time`` may be omitted (one time per scan: the header stamp)."""
 
     x: str = "x"
     y: str = "y"
@@ -97,17 +107,33 @@ class LidarFields(BaseModel):
     intensity: str | None = "intensity"
     ring: str | None = "ring"
     return_id: str | None = None
-    time: PointTimeField
+    time: PointTimeField | None = None
+    velocity: str | None = Field(default=None, description="radar: radial velocity field (m/s)")
+    rcs: str | None = Field(default=None, description="radar: radar cross-section field (dBsm)")
 
 
-class SensorConfig(BaseModel):
+class SyncMode(StrEnum):
+    PPS = "pps"  # triggered from the GNSS PPS edge: stamps on a grid (sec + phase + k/rate)
+    FREE = "free"  # free-running clock: checked for gaps and jitter only
+
+
+class SyncModel(_Strict):
+    """How a sensor's stamps are timed; QA derives its grid and tolerance from this."""
+
+    mode: SyncMode = SyncMode.PPS
+    phase_ms: float = Field(0.0, description="PPS-locked: offset of the first stamp after "
+                            "each PPS edge (e.g. a camera triggered 5 ms after the edge)")
+    tolerance_ms: float | None = Field(
+        default=None, gt=0, description="largest allowed distance to the grid (PPS) or "
+        "deviation from the period (free-running); default: QA's per-modality tolerance")
+
+
+class SensorConfig(_Strict):
     """One sensor of one agent.
 
     Calibration comes from ``extrinsic`` / ``intrinsics`` when given, else from the agent's
     ``tf_static_topic`` (looked up by ``frame_id``) and ``camera_info_topic``.
     """
-
-    model_config = ConfigDict(frozen=True)
 
     name: str = Field(pattern=ID_PATTERN, description="channel name, e.g. LIDAR_TOP, CAM_FRONT")
     modality: Modality
@@ -118,110 +144,231 @@ class SensorConfig(BaseModel):
     extrinsic: Transform | None = Field(default=None, description="T_ego_sensor")
     intrinsics: CameraIntrinsics | None = None
     camera_info_topic: str | None = None
-    rate_hz: float | None = Field(default=None, gt=0)
+    rate_hz: float | None = Field(default=None, gt=0, description="nominal rate; QA estimates "
+                                  "it from the stamps (and says so) when not given")
+    sync: SyncModel | None = Field(default=None, description="PPS-locked or free-running; "
+                                   "default: PPS-locked when the agent has a pose source "
+                                   "(its GNSS supplies the PPS), else free-running")
+    scan_fov_deg: float = Field(360.0, gt=0, le=360, description="LiDAR: azimuth range one "
+                                "scan covers; a FOV-limited scan spans fov/360 of the period")
 
     @model_validator(mode="after")
     def _lidar_needs_fields(self) -> Self:
-        if self.modality is Modality.LIDAR and self.fields is None:
+        if self.modality is Modality.LIDAR and (self.fields is None or self.fields.time is None):
             raise ValueError(
                 f"lidar sensor {self.name!r} needs a 'fields' mapping with a time field"
             )
         return self
 
 
-class InsFields(BaseModel):
-    """Which field of a vendor INS message holds what (None: the usual names are tried)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    lat: str | None = None
-    lon: str | None = None
-    height: str | None = None
-    roll: str | None = None
-    pitch: str | None = None
-    heading: str | None = None
-    v_east: str | None = None
-    v_north: str | None = None
-    v_up: str | None = Field(default=None, description="or down, with velocity_axes ned")
-    status: str | None = None
+# --------------------------------------------------------------------------- pose sources
+class AngleUnit(StrEnum):
+    DEG = "deg"
+    RAD = "rad"
 
 
-class Datum(BaseModel):
-    """What turns a local map frame into the clip's world: the map is a local ENU frame
-    whose origin is this geodetic point (``lat``/``lon`` degrees, ``alt`` metres), after
-    subtracting ``offset`` (a map frame with a large false origin). Without ``lat``/``lon``
-    the map is taken as already local ENU (its raw geodetic values are then nominal)."""
+class AttitudeConvention(StrEnum):
+    """How roll / pitch / heading (or an orientation quaternion) are meant.
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    ``ned``: aerospace, used by most INS vendors (NovAtel, OxTS NCOM, Applanix, SBG, Xsens in
+    NED mode): heading clockwise from true north, pitch positive nose-up, roll positive
+    right side down; the quaternion (if any) is ``q_ned_frd`` (body x forward, y right,
+    z down). ``enu``: ROS REP-103 (``sensor_msgs/Imu``, Xsens default): yaw counter-clockwise
+    from east, rotations about body x forward, y left, z up; quaternion ``q_enu_flu``."""
 
-    lat: float | None = Field(default=None, ge=-90, le=90)
-    lon: float | None = Field(default=None, ge=-180, le=180)
-    alt: float = 0.0
-    offset: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.0])
+    NED = "ned"
+    ENU = "enu"
 
 
-class PoseSource(BaseModel):
-    """Where an agent's pose comes from (one pose track comes out of every kind):
+class VelocityFrame(StrEnum):
+    ENU = "enu"  # east, north, up at the vehicle
+    NED = "ned"  # north, east, down at the vehicle
+    BODY = "body"  # in the pose's body frame (nav_msgs/Odometry twist: child_frame_id)
 
-    - ``ins``: a vendor INS message on ``topic`` (WGS84 position, attitude, velocities), with
-      ``fields``, ``angle_unit`` (deg / rad), ``heading`` (azimuth from north clockwise, or
-      yaw from east counter-clockwise) and ``velocity_axes`` (ENU or NED);
-    - ``odometry``: ``nav_msgs/msg/Odometry``, ``geometry_msgs/msg/PoseStamped`` or
-      ``PoseWithCovarianceStamped`` on ``topic``, in a local map frame given by ``datum``;
-    - ``navsat_imu``: position from ``sensor_msgs/msg/NavSatFix`` on ``topic`` and attitude
-      from the orientation of ``sensor_msgs/msg/Imu`` on ``attitude_topic`` (ENU, REP 103),
-      interpolated (SLERP) to the fix times;
-    - ``fixed``: a surveyed pose (a roadside unit): ``position`` lat/lon/alt (degrees, m)
-      and ``attitude`` roll/pitch/heading (degrees, heading from north clockwise);
-    - ``none``: the agent has no pose; pose-dependent stages say "not applicable".
-    """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+class DatumKind(StrEnum):
+    UTM = "utm"  # map x, y = UTM easting, northing (minus ``offset``); z = ellipsoidal height
+    GEODETIC = "geodetic"  # map = the ENU tangent frame at ``origin``
+    LOCAL = "local"  # already a local ENU frame; no geodetic reference (no lat/lon anywhere)
 
-    kind: Literal["ins", "odometry", "navsat_imu", "fixed", "none"]
-    topic: str | None = Field(default=None, pattern=r"^/")
-    msg_type: str | None = None
-    attitude_topic: str | None = Field(default=None, pattern=r"^/")
-    fields: InsFields | None = None
-    angle_unit: Literal["rad", "deg"] = "rad"
-    heading: Literal["north_cw", "east_ccw"] = "north_cw"
-    velocity_axes: Literal["enu", "ned"] = "enu"
-    datum: Datum | None = None
-    position: Vec3 | None = None
-    attitude: Vec3 | None = None
-    rate_hz: float | None = Field(default=None, gt=0)
+
+class GeodeticPoint(_Strict):
+    latitude: float = Field(ge=-90, le=90, description="degrees, WGS84")
+    longitude: float = Field(ge=-180, le=360, description="degrees, WGS84")
+    height: float = Field(0.0, description="metres above the WGS84 ellipsoid")
+
+
+class Datum(_Strict):
+    """What a map frame's coordinates mean: ``datum = map + offset``."""
+
+    kind: DatumKind
+    utm_zone: int | None = Field(default=None, ge=1, le=60)
+    hemisphere: Literal["north", "south"] = "north"
+    origin: GeodeticPoint | None = None
+    offset: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="added to map coordinates (e.g. the UTM easting, "
+        "northing, height of the map origin of an Autoware-style map)")
 
     @model_validator(mode="after")
     def _complete(self) -> Self:
-        need = {"ins": ("topic",), "odometry": ("topic", "msg_type"),
-                "navsat_imu": ("topic", "attitude_topic"), "fixed": ("position", "attitude"),
-                "none": ()}[self.kind]
-        missing = [n for n in need if getattr(self, n) is None]
-        if missing:
-            raise ValueError(f"pose kind {self.kind!r} needs {missing}")
-        if self.kind == "odometry" and self.msg_type not in ODOMETRY_TYPES:
-            raise ValueError(f"pose kind 'odometry' reads {list(ODOMETRY_TYPES)}, "
-                             f"not {self.msg_type!r}")
+        if self.kind is DatumKind.UTM and self.utm_zone is None:
+            raise ValueError("datum kind 'utm' needs utm_zone (1..60)")
+        if self.kind is DatumKind.GEODETIC and self.origin is None:
+            raise ValueError("datum kind 'geodetic' needs origin: {latitude, longitude, height}")
+        if self.kind is not DatumKind.UTM and self.utm_zone is not None:
+            raise ValueError(f"utm_zone given for datum kind {self.kind.value!r}")
+        if self.kind is not DatumKind.GEODETIC and self.origin is not None:
+            raise ValueError(f"origin given for datum kind {self.kind.value!r}")
+        return self
+
+    @property
+    def geodetic(self) -> bool:
+        return self.kind is not DatumKind.LOCAL
+
+
+class Vec3Paths(_Strict):
+    """Dotted field paths of a 3-vector in a message (``velocity.x`` or ``north_velocity``)."""
+
+    x: str
+    y: str
+    z: str
+
+
+class GeoFields(_Strict):
+    latitude: str = "latitude"
+    longitude: str = "longitude"
+    height: str = "altitude"
+
+
+class EulerFields(_Strict):
+    roll: str = "roll"
+    pitch: str = "pitch"
+    heading: str = Field("azimuth", description="heading (ned) or yaw (enu) field")
+
+
+class InsFields(_Strict):
+    """Field paths of a vendor INS solution message (dotted: ``lla.latitude``)."""
+
+    latitude: str = "latitude"
+    longitude: str = "longitude"
+    height: str = "altitude"
+    roll: str = "roll"
+    pitch: str = "pitch"
+    heading: str = "azimuth"
+    velocity: Vec3Paths | None = Field(default=None, description="components in "
+                                       "velocity_frame order (ENU: e,n,u; NED: n,e,d; body)")
+    status: str | None = Field(default=None, description="solution status (RTK fixed...)")
+
+
+class _PoseBase(_Strict):
+    body_frame: str | None = Field(
+        default=None, description="the frame the pose is of, when it is not the agent's "
+        "ego_frame (an INS box, an Imu's frame): T_body_ego comes from tf_static or the pose "
+        "sensor's extrinsic")
+
+
+class InsPose(_PoseBase):
+    """A vendor INS message: geodetic position, Euler attitude, velocity in one message."""
+
+    source: Literal["ins"] = "ins"
+    sensor: str = Field(description="name of the agent's ins-modality sensor carrying it")
+    fields: InsFields | None = Field(default=None, description="None: found by the names "
+                                     "vendors use (latitude/lat, azimuth/heading/yaw, ...)")
+    angle_unit: AngleUnit = AngleUnit.RAD
+    latlon_unit: AngleUnit = AngleUnit.DEG
+    attitude: AttitudeConvention = AttitudeConvention.NED
+    velocity_frame: VelocityFrame = VelocityFrame.ENU
+
+
+class OdometryPose(_PoseBase):
+    """``nav_msgs/Odometry``, ``geometry_msgs/PoseStamped`` or ``PoseWithCovarianceStamped``
+    in a map frame whose meaning ``datum`` gives. The pose is of ``child_frame_id``
+    (Odometry) unless ``body_frame`` says otherwise, else of the ego frame."""
+
+    source: Literal["odometry"] = "odometry"
+    sensor: str
+    datum: Datum
+    map_frame: str | None = Field(default=None, description="expected header.frame_id; "
+                                  "another frame is an error")
+
+
+class SplitPose(_PoseBase):
+    """Position from one topic, attitude (and optionally velocity) from others, sampled at
+    the attitude (or position) topic's stamps with the other interpolated (linear / SLERP,
+    never across a gap longer than ``max_gap_ms``, never extrapolated)."""
+
+    source: Literal["split"] = "split"
+    position: str = Field(description="sensor: NavSatFix, or a message with position_fields")
+    attitude: str = Field(description="sensor: Imu (orientation), or attitude_fields")
+    velocity: str | None = Field(default=None, description="sensor: TwistStamped, "
+                                 "Vector3Stamped, or velocity_fields; None: differentiated")
+    position_fields: GeoFields | None = None
+    attitude_fields: EulerFields | None = Field(default=None, description="Euler angles; "
+                                                "None: an orientation quaternion")
+    velocity_fields: Vec3Paths | None = None
+    attitude_convention: AttitudeConvention = AttitudeConvention.ENU
+    angle_unit: AngleUnit = AngleUnit.RAD
+    latlon_unit: AngleUnit = AngleUnit.DEG
+    velocity_frame: VelocityFrame = VelocityFrame.ENU
+    position_frame: str | None = Field(default=None, description="frame whose position the "
+                                       "position topic gives (the GNSS antenna): lever arm "
+                                       "from tf_static; default: the message's frame_id")
+    sample_at: Literal["attitude", "position"] = "attitude"
+    max_gap_ms: float = Field(250.0, gt=0)
+
+
+class TfPose(_PoseBase):
+    """Dynamic ``/tf`` (``tf2_msgs/TFMessage``): ``parent_frame -> child_frame`` through any
+    chain of dynamic and static transforms."""
+
+    source: Literal["tf"] = "tf"
+    sensor: str
+    parent_frame: str = "map"
+    child_frame: str | None = Field(default=None, description="default: the agent's ego_frame")
+    datum: Datum
+
+
+class FixedPose(_Strict):
+    """A surveyed pose (a roadside unit): geodetic (with attitude angles) or local."""
+
+    source: Literal["fixed"] = "fixed"
+    geodetic: GeodeticPoint | None = None
+    roll: float = 0.0
+    pitch: float = 0.0
+    heading: float = 0.0
+    angle_unit: AngleUnit = AngleUnit.DEG
+    attitude: AttitudeConvention = AttitudeConvention.NED
+    local: Transform | None = Field(default=None, description="T_map_ego in a local map "
+                                    "shared with the other agents (datum: local)")
+
+    @model_validator(mode="after")
+    def _one(self) -> Self:
+        if (self.geodetic is None) == (self.local is None):
+            raise ValueError("a fixed pose is either 'geodetic' (with roll/pitch/heading) or "
+                             "'local' (a transform), exactly one")
         return self
 
 
-ODOMETRY_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
-                  "geometry_msgs/msg/PoseWithCovarianceStamped")
+class NoPose(_Strict):
+    """No pose at all: ingest, QA and anonymize run; pose-dependent stages do not apply."""
+
+    source: Literal["none"] = "none"
 
 
-class AgentConfig(BaseModel):
-    model_config = ConfigDict(frozen=True)
+PoseConfig = Annotated[InsPose | OdometryPose | SplitPose | TfPose | FixedPose | NoPose,
+                       Field(discriminator="source")]
 
+
+class AgentConfig(_Strict):
     agent_id: str = Field(pattern=ID_PATTERN)
     kind: AgentKind
     role: AgentRole
     bag: str = Field(description="bag path relative to the clip folder")
     ego_frame: str = Field(default="base_link", description="the INS/IMU frame in tf_static")
     tf_static_topic: str | None = "/tf_static"
-    pose: PoseSource | None = Field(
-        default=None, description="where the pose comes from; without it, the sensor of "
-        "modality 'ins' (the simulator's layout)")
-    sensors: list[SensorConfig]
+    sensors: list[SensorConfig] = Field(min_length=1)
+    pose: PoseConfig | None = Field(default=None, description="where the agent's pose comes "
+                                    "from; default: its ins-modality sensor, else none")
 
     @model_validator(mode="after")
     def _unique_sensors(self) -> Self:
@@ -229,7 +376,33 @@ class AgentConfig(BaseModel):
         dup = {n for n in names if names.count(n) > 1}
         if dup:
             raise ValueError(f"agent {self.agent_id!r}: duplicate sensor names {sorted(dup)}")
+        topics = [s.topic for s in self.sensors]
+        dup = {t for t in topics if topics.count(t) > 1}
+        if dup:
+            raise ValueError(f"agent {self.agent_id!r}: several sensors on topic(s) "
+                             f"{sorted(dup)}")
+        for name in self.pose_sensor_names():
+            if name not in names:
+                raise ValueError(f"agent {self.agent_id!r}: pose names sensor {name!r}, which "
+                                 f"is not in its sensors {names}")
         return self
+
+    def pose_sensor_names(self) -> list[str]:
+        p = self.effective_pose
+        if isinstance(p, InsPose | OdometryPose | TfPose):
+            return [p.sensor]
+        if isinstance(p, SplitPose):
+            return [n for n in (p.position, p.attitude, p.velocity) if n]
+        return []
+
+    @property
+    def effective_pose(self) -> InsPose | OdometryPose | SplitPose | TfPose | FixedPose | NoPose:
+        """The ``pose`` block, or what an agent without one means: its ins-modality sensor
+        read as a vendor INS with fields found by name, else no pose."""
+        if self.pose is not None:
+            return self.pose
+        ins = self.sensors_of(Modality.INS)
+        return InsPose(sensor=ins[0].name) if ins else NoPose()
 
     def sensor(self, name: str) -> SensorConfig:
         for s in self.sensors:
@@ -241,10 +414,8 @@ class AgentConfig(BaseModel):
         return [s for s in self.sensors if s.modality is modality]
 
 
-class ClipConfig(BaseModel):
+class ClipConfig(_Strict):
     """The whole ``clip.yaml``."""
-
-    model_config = ConfigDict(frozen=True)
 
     clip_id: str = Field(pattern=ID_PATTERN)
     location: str

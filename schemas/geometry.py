@@ -87,7 +87,7 @@ def matrix_to_quat(r: np.ndarray) -> np.ndarray:
 class Transform(BaseModel):
     """A rigid transform ``T_a_b``; validated so that only proper rotations are stored."""
 
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     translation: Vec3 = Field(description="metres, frame a")
     rotation: Quat = Field(description="unit quaternion w, x, y, z")

@@ -38,11 +38,18 @@ class ClipRow(_Row):
 
 
 class AgentRow(_Row):
+    """``has_ins``: the agent has a pose track (raw ``ins`` or ``ego_poses``, clean
+    ``ego_poses``); ``pose_source`` says from what (clip.yaml ``pose.source``: ins, odometry,
+    split, tf, fixed, or none), ``pose_frame`` in what (wgs84: georeferenced, map: a local
+    map frame without geodetic reference, null: no pose)."""
+
     clip_id: str
     agent_id: str
     kind: str
     role: str
     has_ins: bool
+    pose_source: str | None = None
+    pose_frame: str | None = None
 
 
 class SensorRow(_Row):
@@ -53,6 +60,8 @@ class SensorRow(_Row):
     topic: str
     msg_type: str
     n_messages: int
+    n_duplicates: int = 0  # messages repeating an earlier stamp of the topic: dropped
+    n_backwards: int = 0  # messages whose stamp is earlier than the one before (bag order)
 
 
 class CalibratedSensorRow(_Row):
@@ -79,7 +88,11 @@ class CalibratedSensorRow(_Row):
 
 
 class InsRow(_Row):
-    """Raw zone only: what the INS said, in WGS84 and local-level attitude."""
+    """Raw zone only: the agent's georeferenced pose track, in WGS84 and local-level attitude
+    (what an INS reports; ingest converts every georeferenced pose source to it, for the
+    agent's ego frame). ``rtk_status`` is the source's solution status, -2 if it has none.
+    An agent whose pose is in a local map without geodetic reference has raw ``ego_poses``
+    (map coordinates, absolute time) instead."""
 
     clip_id: str
     agent_id: str
@@ -154,6 +167,7 @@ class LidarFrameRow(_Row):
     t_end_ns: I64
     n_points: I64
     n_nan: I64
+    n_zero: I64 = 0  # no-return points at the sensor origin (zero range): dropped
 
 
 class DeskewFrameRow(_Row):

@@ -20,10 +20,15 @@ from v2xlake.tasks.geometry import invert
 
 
 class TfTree:
-    """Static transforms as an undirected graph; ``lookup(a, b)`` returns ``T_a_b``."""
+    """Static transforms as an undirected graph; ``lookup(a, b)`` returns ``T_a_b``.
 
-    def __init__(self) -> None:
+    A rotation whose quaternion is not unit within ``quat_tolerance`` is refused (ValueError
+    naming the transform): normalising it silently would turn a typo in a calibration into
+    a mis-calibration of tens of degrees."""
+
+    def __init__(self, quat_tolerance: float = 1e-3) -> None:
         self.edges: dict[str, dict[str, np.ndarray]] = {}
+        self.quat_tolerance = quat_tolerance
 
     def add(self, parent: str, child: str, T_parent_child: np.ndarray) -> None:
         parent, child = parent.lstrip("/"), child.lstrip("/")
@@ -34,7 +39,13 @@ class TfTree:
         for ts in msg.transforms:
             t, q = ts.transform.translation, ts.transform.rotation
             qn = np.array([q.w, q.x, q.y, q.z], dtype=np.float64)
-            qn /= np.linalg.norm(qn)
+            norm = float(np.linalg.norm(qn))
+            if not np.isfinite(norm) or abs(norm - 1.0) > self.quat_tolerance:
+                raise ValueError(
+                    f"transform {ts.header.frame_id} -> {ts.child_frame_id}: rotation "
+                    f"quaternion (w, x, y, z) {qn.tolist()} has norm {norm:.6f}, not 1 "
+                    f"(tolerance {self.quat_tolerance:g}); refusing to normalise it")
+            qn /= norm
             m = Transform(translation=[t.x, t.y, t.z], rotation=qn.tolist()).matrix()
             self.add(ts.header.frame_id, ts.child_frame_id, m)
 

@@ -22,6 +22,7 @@ from v2xlake.schemas.clip import LidarFields, PointTimeField, TimeReference, Tim
 # sensor_msgs/PointField datatype constants
 POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 UNIT_NS = {TimeUnit.S: 1_000_000_000, TimeUnit.MS: 1_000_000, TimeUnit.US: 1_000, TimeUnit.NS: 1}
+SCAN_TIME = PointTimeField(field="", unit=TimeUnit.NS, reference=TimeReference.HEADER)
 
 
 def cloud_dtype(fields: list[Any], point_step: int, is_bigendian: bool) -> np.dtype:
@@ -88,7 +89,8 @@ def point_times_ns(values: np.ndarray, tf: PointTimeField, stamp_ns: int) -> np.
 
 @dataclass
 class DecodedCloud:
-    """One scan as columns; non-finite points are already dropped and counted."""
+    """One scan as columns; non-finite and no-return points are already dropped and counted
+    (``n_nan``, ``n_zero``); the time span covers every finite point, returns or not."""
 
     stamp_ns: int
     t_ns: np.ndarray
@@ -101,6 +103,7 @@ class DecodedCloud:
     n_nan: int
     t_start_ns: int
     t_end_ns: int
+    n_zero: int = 0
 
     @property
     def n_points(self) -> int:
@@ -120,66 +123,120 @@ def _source(arr: np.ndarray, name: str | None, what: str) -> np.ndarray | None:
 @njit(cache=True, nogil=True)
 def _compact(x: np.ndarray, y: np.ndarray, z: np.ndarray, t: np.ndarray, inten: np.ndarray,
              ring: np.ndarray, ret: np.ndarray, has: np.ndarray, t_float: bool, scale: int,
-             off: float, base: int, ox: np.ndarray, oy: np.ndarray, oz: np.ndarray,
-             ot: np.ndarray, oi: np.ndarray, oring: np.ndarray, oret: np.ndarray
-             ) -> tuple[int, int, int]:
-    """One pass over the records: keep points with finite x, y, z, convert each field to its
-    column type and the time to int64 ns as ``point_times_ns`` does (``time_origin``); returns the
-    number kept and their time span. ``has`` flags intensity, ring, return (absent: zeros).
-    One pass matters: the record buffer is read from memory once, where column-by-column
-    NumPy reads it once per column (strided reads touch every cache line)."""
+             off: float, base: int, min_r2: float, ox: np.ndarray, oy: np.ndarray,
+             oz: np.ndarray, ot: np.ndarray, oi: np.ndarray, oring: np.ndarray, oret: np.ndarray
+             ) -> tuple[int, int, int, int]:
+    """One pass over the records: keep points with finite x, y, z beyond the minimum range
+    (no-return points sit at the origin), convert each field to its column type and the time
+    to int64 ns as ``point_times_ns`` does (``time_origin``); returns the number kept, the
+    number dropped as no-return, and the time span of every finite point. ``has`` flags
+    intensity, ring, return (absent: zeros). One pass matters: the record buffer is read from
+    memory once, where column-by-column NumPy reads it once per column (strided reads touch
+    every cache line)."""
     k = 0
+    n_zero = 0
     t_min: Any = np.iinfo(np.int64).max
     t_max: Any = np.iinfo(np.int64).min
     for j in range(x.size):
         xv, yv, zv = np.float64(x[j]), np.float64(y[j]), np.float64(z[j])
         if not (np.isfinite(xv) and np.isfinite(yv) and np.isfinite(zv)):
             continue
-        ox[k], oy[k], oz[k] = xv, yv, zv
         if t_float:
             tv = np.int64(np.rint((np.float64(t[j]) - off) * scale)) + base
         else:
             tv = np.int64(t[j]) * scale + base
-        ot[k] = tv
         if tv < t_min:
             t_min = tv
         if tv > t_max:
             t_max = tv
+        if xv * xv + yv * yv + zv * zv <= min_r2:
+            n_zero += 1
+            continue
+        ox[k], oy[k], oz[k] = xv, yv, zv
+        ot[k] = tv
         oi[k] = inten[j] if has[0] else 0
         oring[k] = ring[j] if has[1] else 0
         oret[k] = ret[j] if has[2] else 0
         k += 1
-    return k, t_min, t_max
+    return k, n_zero, t_min, t_max
 
 
-def decode_cloud(msg: Any, fields: LidarFields, stamp_ns: int) -> DecodedCloud:
+def check_integer_field(col: np.ndarray, name: str, what: str, hi: int) -> None:
+    """A ring / return field must hold whole numbers in [0, hi]: a float field mapped there
+    (intensity, a time) would be cast to garbage rings without a word."""
+    if np.issubdtype(col.dtype, np.integer):
+        return
+    v = np.asarray(col, np.float64)
+    v = v[np.isfinite(v)]
+    if v.size and (np.any(v != np.rint(v)) or v.min() < 0 or v.max() > hi):
+        raise ValueError(
+            f"{what} field {name!r} is {col.dtype} with non-integer values (e.g. "
+            f"{v[np.flatnonzero(v != np.rint(v))[:3]].tolist() or [v.min(), v.max()]}); "
+            f"{what} must be an integer field in 0..{hi}: map the right field or set "
+            f"{what}: null")
+
+
+def check_time_reference(tf: PointTimeField, stamp_ns: int, t0: int, t1: int,
+                         max_offset_ns: int) -> None:
+    """Per-point times must lie near the header stamp whatever their declared reference: a
+    header-relative field declared absolute lands ~50 years off, an absolute field declared
+    header-relative ~50 years ahead; both are refused, saying which it looks like."""
+    worst = max(abs(t0 - stamp_ns), abs(t1 - stamp_ns))
+    if worst <= max_offset_ns:
+        return
+    rel = (t0 - stamp_ns) / 1e9, (t1 - stamp_ns) / 1e9
+    if tf.reference is TimeReference.ABSOLUTE:
+        hint = ("its values look relative to the header stamp: set reference: header"
+                if abs(t1 - stamp_ns) > 1e9 * 3600 * 24 * 365 else "check the unit")
+    else:
+        hint = ("its values look like absolute epoch times: set reference: absolute"
+                if abs(t1 - stamp_ns) > 1e9 * 3600 * 24 * 365 else "check the unit")
+    raise ValueError(
+        f"per-point time field {tf.field!r} (declared {tf.reference.value}, unit "
+        f"{tf.unit.value}) puts the points {rel[0]:.6g}..{rel[1]:.6g} s from the header stamp "
+        f"{stamp_ns} ns, beyond the {max_offset_ns / 1e9:g} s allowed "
+        f"(ingest.max_point_time_offset_s); {hint}")
+
+
+def decode_cloud(msg: Any, fields: LidarFields, stamp_ns: int, *, min_range_m: float = 0.0,
+                 max_time_offset_ns: int | None = None) -> DecodedCloud:
     """Decode one PointCloud2 according to the clip.yaml field mapping in one compiled pass
-    (``_compact``): non-finite points dropped, columns contiguous, time in int64 ns."""
+    (``_compact``): non-finite and no-return points dropped and counted, columns contiguous,
+    time in int64 ns (checked against the header stamp when ``max_time_offset_ns`` is set)."""
     arr = cloud_array(msg)
     if not arr.dtype.isnative:
         arr = arr.astype(arr.dtype.newbyteorder("="))  # big-endian cloud: one native copy
     n = arr.size
-    x, y, z, t = (_source(arr, name, what) for what, name in (
-        ("x", fields.x), ("y", fields.y), ("z", fields.z), ("time", fields.time.field)))
+    tf = fields.time or SCAN_TIME  # radar without per-point time: the header stamp
+    x, y, z = (_source(arr, name, what) for what, name in (
+        ("x", fields.x), ("y", fields.y), ("z", fields.z)))
+    t = _source(arr, fields.time.field, "time") if fields.time else np.zeros(n, np.uint8)
     assert x is not None and y is not None and z is not None and t is not None
     dummy = np.zeros(1, np.uint8)
     opt = [_source(arr, fields.intensity, "intensity"), _source(arr, fields.ring, "ring"),
            _source(arr, fields.return_id, "return_id")]
     has = np.array([o is not None for o in opt])
+    if opt[1] is not None:
+        check_integer_field(opt[1], str(fields.ring), "ring", 65535)
+    if opt[2] is not None:
+        check_integer_field(opt[2], str(fields.return_id), "return_id", 255)
     inten, ring, ret = (o if o is not None else dummy for o in opt)
     ox, oy, oz, oi = (np.empty(n, np.float32) for _ in range(4))
     ot, oring, oret = np.empty(n, np.int64), np.empty(n, np.uint16), np.empty(n, np.uint8)
-    tf = fields.time
     t_float = not np.issubdtype(t.dtype, np.integer)
     off, base = time_origin(tf, stamp_ns, t_float)
-    k, t0, t1 = _compact(x, y, z, t, inten, ring, ret, has, t_float, UNIT_NS[tf.unit], off,
-                         base, ox, oy, oz, ot, oi, oring, oret)
-    if k == 0 and n:  # only non-finite points: the scan still took place, keep its time span
+    k, n_zero, t0, t1 = _compact(x, y, z, t, inten, ring, ret, has, t_float, UNIT_NS[tf.unit],
+                                 off, base, float(min_range_m) ** 2, ox, oy, oz, ot, oi, oring,
+                                 oret)
+    if k + n_zero == 0 and n:  # only non-finite points: the scan took place, keep its span
         t_all = point_times_ns(t, tf, stamp_ns)
         t0, t1 = int(t_all.min()), int(t_all.max())
-    elif k == 0:
+    elif k + n_zero == 0:
         t0 = t1 = stamp_ns
+    if max_time_offset_ns is not None and fields.time is not None:
+        check_time_reference(tf, stamp_ns, int(t0), int(t1), max_time_offset_ns)
     return DecodedCloud(
         stamp_ns=stamp_ns, t_ns=ot[:k], x=ox[:k], y=oy[:k], z=oz[:k], intensity=oi[:k],
-        ring=oring[:k], return_id=oret[:k], n_nan=n - k, t_start_ns=int(t0), t_end_ns=int(t1),
+        ring=oring[:k], return_id=oret[:k], n_nan=n - k - n_zero, t_start_ns=int(t0),
+        t_end_ns=int(t1), n_zero=n_zero,
     )

@@ -1,256 +1,749 @@
-"""Pose sources -> the one pose track: rows of the raw ``ins`` table.
+"""Pose sources -> the one pose track of an agent (``clip.yaml`` ``pose:`` block).
 
-Whatever an agent's pose is delivered as (``schemas.clip.PoseSource``: a vendor INS, an
-Odometry / PoseStamped in a local map frame, NavSatFix + Imu orientation, a surveyed fixed
-pose), ingest turns it into the same columns: WGS84 ``lat``/``lon`` (degrees) and ``alt``,
-the attitude relative to the local level at the vehicle (``roll``, ``pitch``, ``azimuth``
-from north clockwise, radians, body x forward / y left / z up) and ENU velocities. Anonymize
-turns that into local-ENU ``ego_poses``; nothing downstream knows which source it was.
+Whatever the recording carries — a vendor INS message, ``nav_msgs/Odometry`` /
+``PoseStamped`` / ``PoseWithCovarianceStamped`` in a map frame, ``NavSatFix`` + ``Imu``, dynamic
+``/tf``, a surveyed fixed pose — ingest turns it into one :class:`Track`: samples of
+``T_frame_ego`` (the agent's ego frame, not the INS box or the antenna) with velocity and a
+status, where ``frame`` is ECEF when the source is georeferenced and the shared local map
+otherwise. A georeferenced track is written as the raw ``ins`` table (WGS84 + attitude to the
+local level, as an INS reports it, so the existing anonymize -> ``ego_poses`` path is the one
+path); a local-map track as the raw ``ego_poses`` table in map coordinates. Nothing
+downstream of ingest knows which source it was.
 
-The numeric core is pure functions on arrays; the ``*Collector`` classes gather message
-fields during ingest's single pass over a bag.
+Every conversion is exact to float64 (no flat-earth shortcut): datum -> ECEF through
+``tasks.geodesy`` (UTM by Krueger's series, nm-accurate), attitude through the local-level
+rotation at each sample's own position, lever arms applied in the source frame.
+
+The numeric core (``build_*``) works on arrays; :class:`PoseCollector` gathers them from
+messages during ingest's single pass.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from v2xlake.schemas.clip import Datum, PoseSource
-from v2xlake.tasks.geodesy import LocalFrame, matrix_to_attitude
-from v2xlake.tasks.geometry import quat_to_matrix
+from v2xlake.schemas.clip import (
+    AgentConfig,
+    AngleUnit,
+    AttitudeConvention,
+    Datum,
+    DatumKind,
+    FixedPose,
+    InsFields,
+    InsPose,
+    NoPose,
+    OdometryPose,
+    SplitPose,
+    TfPose,
+    Vec3Paths,
+    VelocityFrame,
+)
+from v2xlake.tasks.geodesy import (
+    R_ENU_NED,
+    R_ecef_enu,
+    attitude_to_matrix,
+    ecef_to_geodetic,
+    enu_euler_to_matrix,
+    geodetic_to_ecef,
+    matrix_to_attitude,
+    ned_to_enu_attitude,
+    rot_z,
+    utm_to_geodetic,
+)
+from v2xlake.tasks.geometry import matrix_to_quat, quat_to_matrix
 from v2xlake.tasks.ingest.bagopen import header_stamp_ns
-from v2xlake.tasks.ingest.ins import INS_ALIASES
 from v2xlake.tasks.interpolate import interpolate_poses
 
-INS_COLUMNS = ("t_ns", "lat", "lon", "alt", "roll", "pitch", "azimuth", "ve", "vn", "vu",
-               "rtk_status")
-FIELD_OF = {"lat": "lat", "lon": "lon", "alt": "height", "roll": "roll", "pitch": "pitch",
-            "azimuth": "heading", "ve": "v_east", "vn": "v_north", "vu": "v_up",
-            "rtk_status": "status"}
+STATUS_UNKNOWN = -2  # the source reports no solution status (NavSatFix uses -1..2)
+
+ODOMETRY_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
+                  "geometry_msgs/msg/PoseWithCovarianceStamped")
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+NAVSATFIX = "sensor_msgs/msg/NavSatFix"
+IMU = "sensor_msgs/msg/Imu"
+# velocity messages with a fixed layout: path of the linear velocity vector
+VELOCITY_PATHS = {
+    "geometry_msgs/msg/TwistStamped": "twist.linear",
+    "geometry_msgs/msg/TwistWithCovarianceStamped": "twist.twist.linear",
+    "geometry_msgs/msg/Vector3Stamped": "vector",
+    "nav_msgs/msg/Odometry": "twist.twist.linear",
+}
+# legacy INS messages without a field mapping: column -> names vendors use, first match wins
+INS_ALIASES: dict[str, tuple[str, ...]] = {
+    "latitude": ("latitude", "lat"),
+    "longitude": ("longitude", "lon"),
+    "height": ("altitude", "height", "alt"),
+    "roll": ("roll",),
+    "pitch": ("pitch",),
+    "heading": ("azimuth", "heading", "yaw"),
+}
+VEL_ALIASES = (("east_velocity", "ve", "velocity_east"), ("north_velocity", "vn", "velocity_north"),
+               ("up_velocity", "vu", "velocity_up"))
+STATUS_ALIASES = ("rtk_status", "status", "solution_status")
 
 
-class PoseSourceError(ValueError):
-    """A pose source the messages do not fit (missing field, too few samples)."""
+class PoseError(ValueError):
+    """A pose source that cannot be turned into a track; ``sensor`` names where."""
+
+    def __init__(self, reason: str, sensor: str | None = None) -> None:
+        self.sensor = sensor
+        super().__init__(reason)
 
 
-# ------------------------------------------------------------------ numeric core
-def local_to_ins(t_ns: np.ndarray, xyz_map: np.ndarray, R_map_body: np.ndarray,
-                 v_map: np.ndarray | None, datum: Datum | None) -> dict[str, np.ndarray]:
-    """Poses in a local ENU map frame -> ``ins`` columns.
+# --------------------------------------------------------------------------- the track
+@dataclass(frozen=True, eq=False)
+class Track:
+    """Samples of ``T_frame_ego``: ``frame`` is "ecef" (georeferenced) or "map" (local)."""
 
-    The map frame is ENU at the datum's geodetic origin (after removing its false-origin
-    ``offset``); without an origin it is taken as already local (nominal origin 0°, 0°). The
-    attitude becomes relative to the local level at each position (the INS convention), so
-    anonymize's local frame rebuilds exactly these poses up to one rigid transform.
-    Velocities: given (map axes), or central differences of the positions.
-    """
-    d = datum or Datum()
-    lat0 = d.lat if d.lat is not None else 0.0
-    lon0 = d.lon if d.lon is not None else 0.0
-    frame = LocalFrame(lat0, lon0)
-    local = np.asarray(xyz_map, float) - np.asarray(d.offset, float)
-    local = local + np.array([0.0, 0.0, d.alt])
-    lat, lon, alt = frame.to_geodetic(local)
-    R_enu_map = np.swapaxes(frame.R_local_enu(lat, lon), -1, -2)  # map axes -> local level
-    R_enu_body = R_enu_map @ R_map_body
-    roll, pitch, azimuth = matrix_to_attitude(R_enu_body)
-    if v_map is None:
-        v_map = _finite_velocity(np.asarray(t_ns, np.int64), local)
-    v = np.einsum("nij,nj->ni", R_enu_map, np.asarray(v_map, float))
-    return _columns(t_ns, lat, lon, alt, roll, pitch, azimuth, v)
+    frame: str
+    t_ns: np.ndarray  # (N,) int64, strictly increasing
+    p: np.ndarray  # (N, 3)
+    R: np.ndarray  # (N, 3, 3) R_frame_ego
+    v: np.ndarray  # (N, 3) velocity of the ego origin in frame axes
+    status: np.ndarray  # (N,) int64
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
 
 
-def navsat_imu_to_ins(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, alt: np.ndarray,
-                      status: np.ndarray, t_att: np.ndarray, q_att_wxyz: np.ndarray
-                      ) -> dict[str, np.ndarray]:
-    """NavSatFix positions + Imu orientations (ENU, body FLU) -> ``ins`` columns at the fix
-    times, the attitude SLERPed between the two nearest orientations (fixes outside the
-    attitude span are dropped: no extrapolation)."""
-    t_fix, t_att = np.asarray(t_fix, np.int64), np.asarray(t_att, np.int64)
-    order = np.argsort(t_att, kind="stable")
-    t_att, q = t_att[order], np.asarray(q_att_wxyz, float)[order]
-    keep_att = np.concatenate([[True], np.diff(t_att) > 0])
-    t_att, q = t_att[keep_att], q[keep_att]
-    if len(t_att) < 2:
-        raise PoseSourceError(f"{len(t_att)} attitude sample(s): at least 2 are needed")
-    inside = (t_fix >= t_att[0]) & (t_fix <= t_att[-1])
-    if inside.sum() < 2:
-        raise PoseSourceError("fewer than 2 position fixes inside the attitude's time span")
-    t = t_fix[inside]
-    _, q_t = interpolate_poses(t_att, np.zeros((len(t_att), 3)), q, t)  # the one SLERP
-    R = quat_to_matrix(q_t)
-    roll, pitch, azimuth = matrix_to_attitude(R)
-    la, lo, al = (np.asarray(a, float)[inside] for a in (lat, lon, alt))
-    frame = LocalFrame(float(la[0]), float(lo[0]))
-    v = _finite_velocity(t, frame.to_local(la, lo, al).reshape(-1, 3))
-    v = np.einsum("nij,nj->ni", np.swapaxes(frame.R_local_enu(la, lo), -1, -2), v)
-    cols = _columns(t, la, lo, al, roll, pitch, azimuth, v)
-    cols["rtk_status"] = np.asarray(status, np.int64)[inside]
-    return cols
+def ins_columns(track: Track) -> dict[str, np.ndarray]:
+    """A georeferenced track as raw ``ins`` columns (WGS84, attitude to the local level at
+    each sample's position, ENU velocity)."""
+    if track.frame != "ecef":
+        raise ValueError("only a georeferenced track has WGS84 columns")
+    lat, lon, alt = ecef_to_geodetic(track.p)
+    r_e = R_ecef_enu(lat, lon)  # ENU -> ECEF
+    r_enu_ego = np.einsum("nji,njk->nik", r_e, track.R)
+    roll, pitch, az = matrix_to_attitude(r_enu_ego)
+    v_enu = np.einsum("nji,nj->ni", r_e, track.v)
+    return {"t_ns": track.t_ns, "lat": lat, "lon": lon, "alt": alt, "roll": roll,
+            "pitch": pitch, "azimuth": az, "ve": v_enu[:, 0], "vn": v_enu[:, 1],
+            "vu": v_enu[:, 2], "rtk_status": track.status}
 
 
-def fixed_to_ins(t_ns: np.ndarray, position: list[float], attitude_deg: list[float]
-                 ) -> dict[str, np.ndarray]:
-    """A surveyed, constant pose (lat/lon degrees, alt; roll/pitch/heading degrees)."""
-    n = len(t_ns)
-    roll, pitch, heading = (math.radians(a) for a in attitude_deg)
-    return _columns(np.asarray(t_ns, np.int64), np.full(n, position[0]),
-                    np.full(n, position[1]), np.full(n, position[2]), np.full(n, roll),
-                    np.full(n, pitch), np.full(n, heading % (2 * math.pi)), np.zeros((n, 3)))
+def map_columns(track: Track) -> dict[str, np.ndarray]:
+    """A local-map track as raw ``ego_poses`` columns (absolute time, map coordinates)."""
+    q = matrix_to_quat(track.R).reshape(-1, 4)
+    return {"t_ns": track.t_ns, "x": track.p[:, 0], "y": track.p[:, 1], "z": track.p[:, 2],
+            "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3], "vx": track.v[:, 0],
+            "vy": track.v[:, 1], "vz": track.v[:, 2], "rtk_status": track.status}
 
 
-def vendor_ins(cols: dict[str, list[Any]], src: PoseSource) -> dict[str, np.ndarray]:
-    """A vendor INS's values in its own units and conventions -> ``ins`` columns."""
-    out: dict[str, np.ndarray] = {
-        k: np.asarray(v, dtype=np.int64 if k in ("t_ns", "rtk_status") else np.float64)
-        for k, v in cols.items()}
-    if src.angle_unit == "deg":
-        for k in ("roll", "pitch", "azimuth"):
-            out[k] = np.radians(out[k])
-    if src.heading == "east_ccw":  # a yaw from east, counter-clockwise -> azimuth
-        out["azimuth"] = np.pi / 2 - out["azimuth"]
-    out["azimuth"] = np.mod(out["azimuth"], 2 * np.pi)
-    if src.velocity_axes == "ned":  # the third velocity is down
-        out["vu"] = -out["vu"]
-    return out
+# --------------------------------------------------------------------------- numeric core
+def angle_scale(unit: AngleUnit) -> float:
+    return math.pi / 180.0 if unit is AngleUnit.DEG else 1.0
 
 
-def _finite_velocity(t_ns: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+def euler_to_enu(roll: np.ndarray, pitch: np.ndarray, heading: np.ndarray,
+                 convention: AttitudeConvention) -> np.ndarray:
+    """Euler angles (radians) in ``convention`` -> ``R_enu_body`` (body x fwd, y left, z up)."""
+    if convention is AttitudeConvention.NED:
+        return attitude_to_matrix(roll, pitch, heading)
+    return enu_euler_to_matrix(roll, pitch, heading)
+
+
+def quat_to_enu(q_xyzw: np.ndarray, convention: AttitudeConvention) -> np.ndarray:
+    """Orientation quaternions (x, y, z, w as ROS stores them) -> ``R_enu_body``; a quaternion
+    of norm far from one is an error (never silently normalised)."""
+    q = np.asarray(q_xyzw, float).reshape(-1, 4)
+    n = np.linalg.norm(q, axis=1)
+    if n.size and np.max(np.abs(n - 1.0)) > 1e-3:
+        i = int(np.argmax(np.abs(n - 1.0)))
+        raise PoseError(f"orientation quaternion {q[i].tolist()} (x, y, z, w) has norm "
+                        f"{n[i]:.6f}, not 1 (tolerance 1e-3)")
+    r = Rotation.from_quat(q / n[:, None]).as_matrix()
+    return ned_to_enu_attitude(r) if convention is AttitudeConvention.NED else r
+
+
+def velocity_to_frame(v: np.ndarray, frame: VelocityFrame, r_frame_enu: np.ndarray,
+                      r_frame_body: np.ndarray) -> np.ndarray:
+    """Velocity vectors in ``frame`` -> the track frame's axes."""
+    v = np.asarray(v, float)
+    if frame is VelocityFrame.BODY:
+        return np.einsum("nij,nj->ni", r_frame_body, v)
+    if frame is VelocityFrame.NED:
+        v = v @ R_ENU_NED.T
+    return np.einsum("nij,nj->ni", r_frame_enu, v)
+
+
+def differentiate(t_ns: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Velocity by central differences (one-sided at the ends) where the source gives none."""
     if len(t_ns) < 2:
-        return np.zeros_like(xyz)
-    return np.gradient(xyz, t_ns.astype(np.float64) * 1e-9, axis=0)
+        return np.zeros_like(p)
+    t = (t_ns - t_ns[0]) * 1e-9
+    return np.gradient(p, t, axis=0)
 
 
-def _columns(t: np.ndarray, lat: np.ndarray, lon: np.ndarray, alt: np.ndarray,
-             roll: np.ndarray, pitch: np.ndarray, azimuth: np.ndarray, v_enu: np.ndarray
-             ) -> dict[str, np.ndarray]:
-    n = len(t)
-    return {"t_ns": np.asarray(t, np.int64), "lat": np.asarray(lat, float).reshape(n),
-            "lon": np.asarray(lon, float).reshape(n), "alt": np.asarray(alt, float).reshape(n),
-            "roll": np.asarray(roll, float).reshape(n),
-            "pitch": np.asarray(pitch, float).reshape(n),
-            "azimuth": np.asarray(azimuth, float).reshape(n),
-            "ve": v_enu[:, 0], "vn": v_enu[:, 1], "vu": v_enu[:, 2],
-            "rtk_status": np.zeros(n, np.int64)}
+def apply_lever(p_body: np.ndarray, R_f_body: np.ndarray, T_body_ego: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """``T_frame_ego = T_frame_body T_body_ego`` for every sample."""
+    R = R_f_body @ T_body_ego[:3, :3]
+    p = p_body + np.einsum("nij,j->ni", R_f_body, T_body_ego[:3, 3])
+    return p, R
 
 
-# ------------------------------------------------------------------ message collectors
-def _vec(v: Any) -> list[float]:
-    return [float(v.x), float(v.y), float(v.z)]
+def datum_to_frame(datum: Datum, xyz_map: np.ndarray, R_map_body: np.ndarray
+                   ) -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
+    """Map-frame poses -> (frame, position, R_frame_body, R_frame_enu at each position).
+
+    UTM: map axes are grid east/north/up; the grid is rotated against true ENU by the
+    convergence gamma at each point (``R_enu_grid = Rz(-gamma)``). Geodetic: the map is the
+    ENU tangent frame at the origin. Local: the map itself is the frame (R_frame_enu = I)."""
+    d = np.asarray(xyz_map, float) + np.asarray(datum.offset, float)
+    n = len(d)
+    if datum.kind is DatumKind.LOCAL:
+        return "map", d, R_map_body, np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    if datum.kind is DatumKind.UTM:
+        assert datum.utm_zone is not None
+        lat, lon, gamma = utm_to_geodetic(d[:, 0], d[:, 1], datum.utm_zone,
+                                          datum.hemisphere == "south")
+        p = geodetic_to_ecef(lat, lon, d[:, 2])
+        r_ecef_enu = R_ecef_enu(lat, lon)
+        r_ecef_map = r_ecef_enu @ rot_z(-gamma)
+        return "ecef", p, r_ecef_map @ R_map_body, r_ecef_enu
+    assert datum.origin is not None
+    o = datum.origin
+    r0 = R_ecef_enu(np.array(o.latitude), np.array(o.longitude))
+    p0 = geodetic_to_ecef(np.array(o.latitude), np.array(o.longitude), np.array(o.height))
+    p = p0 + d @ r0.T
+    lat, lon, _ = ecef_to_geodetic(p)
+    return "ecef", p, r0 @ R_map_body, R_ecef_enu(lat, lon)
 
 
-def _quat(q: Any) -> list[float]:
-    return [float(q.w), float(q.x), float(q.y), float(q.z)]
+def geodetic_frame(lat_deg: np.ndarray, lon_deg: np.ndarray, h: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """ECEF positions and ``R_ecef_enu`` (local level) at each geodetic point."""
+    return geodetic_to_ecef(lat_deg, lon_deg, h), R_ecef_enu(lat_deg, lon_deg)
 
 
+def sorted_unique(t_ns: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Samples in time order, one per stamp (the first of a repeated stamp)."""
+    order = np.argsort(t_ns, kind="stable")
+    t = t_ns[order]
+    keep = np.concatenate([[True], np.diff(t) > 0]) if len(t) else np.zeros(0, bool)
+    return (t[keep], *(a[order][keep] for a in arrays))
+
+
+def resample_indices(t_src: np.ndarray, t_q: np.ndarray, max_gap_ns: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each query: bracketing source indices (k, k+1), alpha, and whether it is covered
+    (inside the source span, bracket no longer than ``max_gap_ns``)."""
+    k = np.searchsorted(t_src, t_q, side="right") - 1
+    k = np.clip(k, 0, max(len(t_src) - 2, 0))
+    inside = (t_q >= t_src[0]) & (t_q <= t_src[-1]) if len(t_src) >= 2 else np.zeros(
+        len(t_q), bool)
+    dt = (t_src[k + 1] - t_src[k]) if len(t_src) >= 2 else np.ones(len(t_q), np.int64)
+    ok = inside & (dt <= max_gap_ns)
+    alpha = np.where(dt > 0, (t_q - t_src[k]) / np.maximum(dt, 1), 0.0)
+    return k, np.clip(alpha, 0.0, 1.0), ok
+
+
+def lerp(values: np.ndarray, k: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    a = alpha.reshape(-1, *([1] * (values.ndim - 1)))
+    return (1.0 - a) * values[k] + a * values[k + 1]
+
+
+def slerp_matrices(t_src: np.ndarray, R: np.ndarray, t_q: np.ndarray) -> np.ndarray:
+    """Rotation matrices at ``t_q`` (inside the source span) by the project's one SLERP
+    (``tasks.interpolate.interpolate_poses``)."""
+    if len(t_q) == 0:
+        return np.zeros((0, 3, 3))
+    _, q = interpolate_poses(t_src, np.zeros((len(t_src), 3)), matrix_to_quat(R),
+                             np.asarray(t_q, np.int64))
+    return quat_to_matrix(q)
+
+
+# --------------------------------------------------------------------------- field access
+def get_path(msg: Any, path: str) -> Any:
+    obj = msg
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def has_path(msg: Any, path: str) -> bool:
+    try:
+        get_path(msg, path)
+    except AttributeError:
+        return False
+    return True
+
+
+def _vec(msg: Any, path: str) -> tuple[float, float, float]:
+    v = get_path(msg, path)
+    return float(v.x), float(v.y), float(v.z)
+
+
+def _status_value(v: Any) -> int:
+    return int(getattr(v, "status", v))
+
+
+# --------------------------------------------------------------------------- collection
 @dataclass
-class PoseCollector:
-    """Gathers one agent's pose messages during ingest, then gives the ``ins`` columns."""
+class Samples:
+    """Values one pose sensor delivered, in message order."""
 
-    src: PoseSource
     t: list[int] = field(default_factory=list)
-    xyz: list[list[float]] = field(default_factory=list)
-    quat: list[list[float]] = field(default_factory=list)
-    vel: list[list[float]] = field(default_factory=list)
-    fix: list[tuple[int, float, float, float, int]] = field(default_factory=list)
-    att: list[tuple[int, list[float]]] = field(default_factory=list)
-    vendor: dict[str, list[Any]] = field(default_factory=lambda: {c: [] for c in INS_COLUMNS})
-    _names: dict[str, str] | None = None
+    cols: dict[str, list[Any]] = field(default_factory=dict)
+    frame_ids: set[str] = field(default_factory=set)
+    child_frame_ids: set[str] = field(default_factory=set)
 
-    def topics(self) -> dict[str, str]:
-        """{topic: role} this source reads."""
-        out: dict[str, str] = {}
-        if self.src.topic and self.src.kind in ("ins", "odometry", "navsat_imu"):
-            out[self.src.topic] = self.src.kind
-        if self.src.attitude_topic:
-            out[self.src.attitude_topic] = "attitude"
-        return out
+    def put(self, t: int, **values: Any) -> None:
+        self.t.append(t)
+        for k, v in values.items():
+            self.cols.setdefault(k, []).append(v)
 
-    def add(self, role: str, msg: Any) -> None:
-        t = header_stamp_ns(msg)
-        if role == "odometry":
-            pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
-            self.t.append(t)
-            self.xyz.append(_vec(pose.position))
-            self.quat.append(_quat(pose.orientation))
-            if hasattr(msg, "twist"):  # Odometry: twist in the child (body) frame
-                self.vel.append(_vec(msg.twist.twist.linear))
-        elif role == "navsat_imu":
-            self.fix.append((t, float(msg.latitude), float(msg.longitude), float(msg.altitude),
-                             int(msg.status.status)))
-        elif role == "attitude":
-            self.att.append((t, _quat(msg.orientation)))
+    def array(self, name: str) -> np.ndarray:
+        return np.asarray(self.cols.get(name, []), dtype=np.float64)
+
+    @property
+    def t_ns(self) -> np.ndarray:
+        return np.asarray(self.t, dtype=np.int64)
+
+
+Extractor = Callable[[Any, Samples], None]
+
+
+class PoseCollector:
+    """Gathers one agent's pose messages during ingest's pass, then builds its track."""
+
+    def __init__(self, agent: AgentConfig) -> None:
+        self.agent = agent
+        self.pose = agent.effective_pose
+        self.samples: dict[str, Samples] = {}
+        self._extract: dict[str, Extractor] = {}
+        self.tf_edges: dict[tuple[str, str], Samples] = {}
+
+    @property
+    def sensors(self) -> list[str]:
+        return self.agent.pose_sensor_names()
+
+    # -- plan: one extractor per pose sensor, chosen from the pose block and its msg_type
+    def plan(self) -> None:
+        p = self.pose
+        for name in self.sensors:
+            s = self.agent.sensor(name)
+            self.samples[name] = Samples()
+            self._extract[name] = self._extractor(p, name, s.msg_type)
+
+    def _extractor(self, p: Any, name: str, msg_type: str) -> Extractor:
+        if isinstance(p, InsPose):
+            return self._ins_extractor(p)
+        if isinstance(p, OdometryPose):
+            if msg_type not in ODOMETRY_TYPES:
+                raise PoseError(f"pose source 'odometry' reads {list(ODOMETRY_TYPES)}, the "
+                                f"sensor carries {msg_type}", name)
+            return _odometry_extractor(msg_type)
+        if isinstance(p, TfPose):
+            if msg_type != TF_TYPE:
+                raise PoseError(f"pose source 'tf' reads {TF_TYPE}, the sensor carries "
+                                f"{msg_type}", name)
+            return self._tf_extractor
+        assert isinstance(p, SplitPose)
+        ex: list[Extractor] = []
+        if name == p.position:
+            ex.append(_geo_extractor(p.position_fields, msg_type, name))
+        if name == p.attitude:
+            ex.append(_attitude_extractor(p.attitude_fields, msg_type, name))
+        if name == p.velocity:
+            ex.append(_velocity_extractor(p.velocity_fields, msg_type, name))
+
+        def both(msg: Any, out: Samples) -> None:
+            t = header_stamp_ns(msg)
+            out.t.append(t)
+            for e in ex:
+                e(msg, out)
+        return both
+
+    def _ins_extractor(self, p: InsPose) -> Extractor:
+        fields: list[InsFields | None] = [p.fields]
+
+        def ex(msg: Any, out: Samples) -> None:
+            if fields[0] is None:
+                fields[0] = _ins_fields_by_name(msg)
+            f = fields[0]
+            assert f is not None
+            vals = {k: float(get_path(msg, getattr(f, k))) for k in
+                    ("latitude", "longitude", "height", "roll", "pitch", "heading")}
+            if f.velocity is not None:
+                v = f.velocity
+                vals.update(v0=float(get_path(msg, v.x)), v1=float(get_path(msg, v.y)),
+                            v2=float(get_path(msg, v.z)))
+            vals["status"] = (_status_value(get_path(msg, f.status)) if f.status
+                              else STATUS_UNKNOWN)
+            out.put(header_stamp_ns(msg), **vals)
+        return ex
+
+    def _tf_extractor(self, msg: Any, out: Samples) -> None:
+        for ts in msg.transforms:
+            key = (str(ts.header.frame_id).lstrip("/"), str(ts.child_frame_id).lstrip("/"))
+            tr, q = ts.transform.translation, ts.transform.rotation
+            self.tf_edges.setdefault(key, Samples()).put(
+                header_stamp_ns(ts), x=tr.x, y=tr.y, z=tr.z, qx=q.x, qy=q.y, qz=q.z, qw=q.w)
+        out.t.append(0)  # counted as one message; times are per edge
+
+    def add(self, name: str, msg: Any) -> None:
+        out = self.samples[name]
+        if hasattr(msg, "header"):
+            out.frame_ids.add(str(msg.header.frame_id).lstrip("/"))
+        if hasattr(msg, "child_frame_id"):
+            out.child_frame_ids.add(str(msg.child_frame_id).lstrip("/"))
+        self._extract[name](msg, out)
+
+    # -- build
+    def build(self, lookup: Callable[[str, str], np.ndarray | None], t_span: tuple[int, int]
+              ) -> Track | None:
+        """The agent's track; ``lookup(a, b)`` gives static ``T_a_b`` (tf_static or a
+        sensor's extrinsic), ``t_span`` the agent's recording span (for a fixed pose)."""
+        p = self.pose
+        if isinstance(p, NoPose):
+            return None
+        if isinstance(p, FixedPose):
+            return build_fixed(p, t_span)
+        ego = self.agent.ego_frame.lstrip("/")
+
+        def body_to_ego(body: str | None, sensor: str | None) -> np.ndarray:
+            if body is None or body == ego:
+                return np.eye(4)
+            T = lookup(body, ego)
+            if T is None:
+                raise PoseError(f"pose is of frame {body!r} but no static transform connects "
+                                f"it to ego frame {ego!r} (tf_static or an extrinsic of the "
+                                "pose sensor)", sensor)
+            return T
+
+        if isinstance(p, InsPose):
+            s = self.samples[p.sensor]
+            return build_ins(p, s, body_to_ego(p.body_frame, p.sensor))
+        if isinstance(p, OdometryPose):
+            s = self.samples[p.sensor]
+            _check_frame(s, p.map_frame, p.sensor)
+            body = p.body_frame or (_one(s.child_frame_ids, "child_frame_id", p.sensor)
+                                    if s.child_frame_ids else ego)
+            return build_odometry(p, s, body_to_ego(body, p.sensor))
+        if isinstance(p, TfPose):
+            child = (p.child_frame or ego).lstrip("/")
+            return build_tf(p, self.tf_edges, child, lookup,
+                            body_to_ego(p.body_frame or child, p.sensor))
+        assert isinstance(p, SplitPose)
+        pos, att = self.samples[p.position], self.samples[p.attitude]
+        vel = self.samples[p.velocity] if p.velocity else None
+        ant = p.position_frame or (_one(pos.frame_ids, "frame_id", p.position)
+                                   if pos.frame_ids else ego)
+        imu = p.body_frame or (_one(att.frame_ids, "frame_id", p.attitude)
+                               if att.frame_ids else ego)
+        return build_split(p, pos, att, vel, body_to_ego(ant, p.position),
+                           body_to_ego(imu, p.attitude))
+
+
+def _one(values: set[str], what: str, sensor: str) -> str:
+    if len(values) != 1:
+        raise PoseError(f"the pose messages carry several {what}s {sorted(values)}; name the "
+                        "one meant in the pose block", sensor)
+    return next(iter(values))
+
+
+def _check_frame(s: Samples, expected: str | None, sensor: str) -> None:
+    if expected is not None and s.frame_ids and s.frame_ids != {expected.lstrip("/")}:
+        raise PoseError(f"pose messages are in frame(s) {sorted(s.frame_ids)}, clip.yaml says "
+                        f"map_frame {expected!r}", sensor)
+    if len(s.frame_ids) > 1:
+        raise PoseError(f"pose messages switch between frames {sorted(s.frame_ids)}", sensor)
+
+
+def _ins_fields_by_name(msg: Any) -> InsFields:
+    found: dict[str, Any] = {}
+    for col, names in INS_ALIASES.items():
+        hit = next((n for n in names if hasattr(msg, n)), None)
+        if hit is None:
+            raise PoseError(f"INS message {type(msg).__name__} has none of the fields "
+                            f"{list(names)} (needed for {col!r}); map the fields in the "
+                            "agent's pose block (pose: {source: ins, fields: ...})")
+        found[col] = hit
+    vel = [next((n for n in names if hasattr(msg, n)), None) for names in VEL_ALIASES]
+    if all(vel):
+        found["velocity"] = Vec3Paths(x=str(vel[0]), y=str(vel[1]), z=str(vel[2]))
+    found["status"] = next((n for n in STATUS_ALIASES if hasattr(msg, n)), None)
+    return InsFields(**found)
+
+
+def _odometry_extractor(msg_type: str) -> Extractor:
+    pose_path = "pose" if msg_type.endswith("PoseStamped") else "pose.pose"
+    twist = msg_type == "nav_msgs/msg/Odometry"
+
+    def ex(msg: Any, out: Samples) -> None:
+        pose = get_path(msg, pose_path)
+        pp, q = pose.position, pose.orientation
+        vals = dict(x=pp.x, y=pp.y, z=pp.z, qx=q.x, qy=q.y, qz=q.z, qw=q.w)
+        if twist:
+            lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+            vals.update(v0=lin.x, v1=lin.y, v2=lin.z, w0=ang.x, w1=ang.y, w2=ang.z)
+        out.put(header_stamp_ns(msg), **vals)
+    return ex
+
+
+def _geo_extractor(fields: Any, msg_type: str, name: str) -> Extractor:
+    if fields is None and msg_type != NAVSATFIX:
+        raise PoseError(f"position sensor carries {msg_type}: give position_fields "
+                        "(latitude, longitude, height paths) or use a NavSatFix", name)
+
+    def ex(msg: Any, out: Samples) -> None:
+        if fields is None:
+            vals = dict(latitude=msg.latitude, longitude=msg.longitude, height=msg.altitude,
+                        status=int(msg.status.status))
         else:
-            self._vendor(t, msg)
-
-    def _vendor(self, t: int, msg: Any) -> None:
-        if self._names is None:
-            given = self.src.fields
-            names: dict[str, str] = {}
-            for col, key in FIELD_OF.items():
-                name = getattr(given, key) if given is not None else None
-                cands = (name,) if name else INS_ALIASES[col]
-                hit = next((n for n in cands if hasattr(msg, n)), None)
-                if hit is None:
-                    raise PoseSourceError(
-                        f"INS message {type(msg).__name__} has none of the fields "
-                        f"{list(cands)} (needed for column {col!r}; map it in clip.yaml "
-                        f"pose.fields.{key})")
-                names[col] = hit
-            self._names = names
-        self.vendor["t_ns"].append(t)
-        for col, name in self._names.items():
-            v = getattr(msg, name)
-            if col == "rtk_status" and not isinstance(v, int | float):
-                v = getattr(v, "status", v)
-            self.vendor[col].append(v)
-
-    def columns(self, t_span: tuple[int, int] | None) -> dict[str, np.ndarray] | None:
-        """The ``ins`` columns (None: no pose). ``t_span`` (first, last sensor stamp) bounds
-        a fixed pose's samples."""
-        kind = self.src.kind
-        if kind == "none":
-            return None
-        if kind == "ins":
-            return vendor_ins(self.vendor, self.src) if self.vendor["t_ns"] else None
-        if kind == "odometry":
-            if not self.t:
-                return None
-            t = np.asarray(self.t, np.int64)
-            R = quat_to_matrix(_unit(np.asarray(self.quat, float)))
-            v = None
-            if self.vel and len(self.vel) == len(self.t):
-                v = np.einsum("nij,nj->ni", R, np.asarray(self.vel, float))
-            return local_to_ins(t, np.asarray(self.xyz, float), R, v, self.src.datum)
-        if kind == "navsat_imu":
-            if not self.fix or not self.att:
-                return None
-            f = np.asarray([x[:4] for x in self.fix], float)
-            return navsat_imu_to_ins(
-                np.asarray([x[0] for x in self.fix], np.int64), f[:, 1], f[:, 2], f[:, 3],
-                np.asarray([x[4] for x in self.fix], np.int64),
-                np.asarray([a[0] for a in self.att], np.int64),
-                _unit(np.asarray([a[1] for a in self.att], float)))
-        # fixed: samples over the recording (and a little beyond) at rate_hz
-        if t_span is None:
-            return None
-        step = int(1e9 / (self.src.rate_hz or 10.0))
-        t = np.arange(t_span[0] - step, t_span[1] + 2 * step, step, dtype=np.int64)
-        assert self.src.position is not None and self.src.attitude is not None
-        return fixed_to_ins(t, list(self.src.position), list(self.src.attitude))
+            vals = {k: float(get_path(msg, getattr(fields, k)))
+                    for k in ("latitude", "longitude", "height")}
+            vals["status"] = STATUS_UNKNOWN
+        for k, v in vals.items():
+            out.cols.setdefault(k, []).append(v)
+    return ex
 
 
-def _unit(q: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(q, axis=-1, keepdims=True)
-    if np.any(np.abs(n - 1.0) > 1e-3):
-        raise PoseSourceError("orientation quaternions are not unit length (|q| off by more "
-                              f"than 1e-3, worst {float(np.abs(n - 1).max()):.3g})")
-    return q / n
+def _attitude_extractor(fields: Any, msg_type: str, name: str) -> Extractor:
+    if fields is None and msg_type != IMU and not msg_type.endswith("QuaternionStamped"):
+        raise PoseError(f"attitude sensor carries {msg_type}: give attitude_fields (roll, "
+                        "pitch, heading paths) or use sensor_msgs/Imu orientation", name)
+    qpath = "orientation" if fields is None and msg_type == IMU else "quaternion"
+
+    def ex(msg: Any, out: Samples) -> None:
+        if fields is None:
+            q = get_path(msg, qpath)
+            vals = dict(qx=q.x, qy=q.y, qz=q.z, qw=q.w)
+        else:
+            vals = {k: float(get_path(msg, getattr(fields, k)))
+                    for k in ("roll", "pitch", "heading")}
+        for k, v in vals.items():
+            out.cols.setdefault(k, []).append(v)
+    return ex
 
 
-__all__ = ["PoseCollector", "PoseSourceError", "fixed_to_ins", "local_to_ins",
-           "navsat_imu_to_ins", "vendor_ins"]
+def _velocity_extractor(fields: Vec3Paths | None, msg_type: str, name: str) -> Extractor:
+    path = VELOCITY_PATHS.get(msg_type)
+    if fields is None and path is None:
+        raise PoseError(f"velocity sensor carries {msg_type}: give velocity_fields (x, y, z "
+                        f"paths) or use one of {sorted(VELOCITY_PATHS)}", name)
+
+    def ex(msg: Any, out: Samples) -> None:
+        if fields is None:
+            assert path is not None
+            v = _vec(msg, path)
+        else:
+            v = (float(get_path(msg, fields.x)), float(get_path(msg, fields.y)),
+                 float(get_path(msg, fields.z)))
+        for k, c in zip(("v0", "v1", "v2"), v, strict=True):
+            out.cols.setdefault(k, []).append(c)
+    return ex
+
+
+# --------------------------------------------------------------------------- builders
+def _finite_rows(name: str, t: np.ndarray, *arrays: np.ndarray
+                 ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Drop samples with a non-finite value (an invalid solution); at least two must stay."""
+    ok = np.ones(len(t), bool)
+    for a in arrays:
+        ok &= np.all(np.isfinite(a.reshape(len(t), -1)), axis=1)
+    if np.count_nonzero(ok) < 2:
+        raise PoseError(f"fewer than 2 pose samples with finite values ({np.count_nonzero(ok)} "
+                        f"of {len(t)})", name)
+    return t[ok], [a[ok] for a in arrays]
+
+
+def build_ins(p: InsPose, s: Samples, T_body_ego: np.ndarray) -> Track:
+    """Vendor INS: geodetic position, Euler attitude (``p.attitude`` convention), velocity."""
+    k = angle_scale(p.angle_unit)
+    kl = 180.0 / math.pi if p.latlon_unit is AngleUnit.RAD else 1.0
+    lat, lon, h = (s.array(c) for c in ("latitude", "longitude", "height"))
+    att = np.stack([s.array(c) * k for c in ("roll", "pitch", "heading")], 1)
+    has_v = "v0" in s.cols
+    v = np.stack([s.array(c) for c in ("v0", "v1", "v2")], 1) if has_v else np.zeros((len(
+        s.t), 3))
+    status = np.asarray(s.cols.get("status", []), np.int64)
+    t, (lat, lon, h, att, v, status) = _finite_rows(p.sensor, *sorted_unique(
+        s.t_ns, lat * kl, lon * kl, h, att, v, status))
+    pe, r_e = geodetic_frame(lat, lon, h)
+    R_body = r_e @ euler_to_enu(att[:, 0], att[:, 1], att[:, 2], p.attitude)
+    pos, R = apply_lever(pe, R_body, T_body_ego)
+    vel = (velocity_to_frame(v, p.velocity_frame, r_e, R_body) if has_v
+           else differentiate(t, pos))
+    return Track("ecef", t, pos, R, vel, status)
+
+
+def build_odometry(p: OdometryPose, s: Samples, T_body_ego: np.ndarray) -> Track:
+    xyz = np.stack([s.array(c) for c in ("x", "y", "z")], 1)
+    q = np.stack([s.array(c) for c in ("qx", "qy", "qz", "qw")], 1)
+    has_v = "v0" in s.cols
+    v = np.stack([s.array(c) for c in ("v0", "v1", "v2")], 1) if has_v else np.zeros_like(xyz)
+    w = np.stack([s.array(c) for c in ("w0", "w1", "w2")], 1) if has_v else np.zeros_like(xyz)
+    t, (xyz, q, v, w) = _finite_rows(p.sensor, *sorted_unique(s.t_ns, xyz, q, v, w))
+    try:
+        R_map_body = Rotation.from_quat(_unit(q, p.sensor)).as_matrix()
+    except PoseError:
+        raise
+    frame, pos_b, R_body, _r_enu = datum_to_frame(p.datum, xyz, R_map_body)
+    pos, R = apply_lever(pos_b, R_body, T_body_ego)
+    if has_v:  # body twist of the child frame; the ego origin adds w x r
+        v_ego_body = v + np.cross(w, T_body_ego[:3, 3])
+        vel = np.einsum("nij,nj->ni", R_body, v_ego_body)
+    else:
+        vel = differentiate(t, pos)
+    return Track(frame, t, pos, R, vel, np.full(len(t), STATUS_UNKNOWN, np.int64))
+
+
+def _unit(q_xyzw: np.ndarray, sensor: str) -> np.ndarray:
+    n = np.linalg.norm(q_xyzw, axis=1)
+    if n.size and np.max(np.abs(n - 1.0)) > 1e-3:
+        i = int(np.argmax(np.abs(n - 1.0)))
+        raise PoseError(f"orientation quaternion {q_xyzw[i].tolist()} (x, y, z, w) has norm "
+                        f"{n[i]:.6f}, not 1 (tolerance 1e-3)", sensor)
+    return q_xyzw / n[:, None]
+
+
+def build_split(p: SplitPose, pos: Samples, att: Samples, vel: Samples | None,
+                T_ant_ego: np.ndarray, T_att_ego: np.ndarray) -> Track:
+    """Position and attitude from different topics, resampled onto one set of stamps."""
+    kl = 180.0 / math.pi if p.latlon_unit is AngleUnit.RAD else 1.0
+    gap = int(p.max_gap_ms * 1e6)
+    geo = np.stack([pos.array("latitude") * kl, pos.array("longitude") * kl,
+                    pos.array("height")], 1)
+    status = np.asarray(pos.cols.get("status", []), np.int64)
+    tp, (geo, status) = _finite_rows(p.position, *sorted_unique(pos.t_ns, geo, status))
+    if p.attitude_fields is None:
+        q = np.stack([att.array(c) for c in ("qx", "qy", "qz", "qw")], 1)
+        ta, (q,) = _finite_rows(p.attitude, *sorted_unique(att.t_ns, q))
+        try:
+            r_enu_att = quat_to_enu(q, p.attitude_convention)
+        except PoseError as e:
+            raise PoseError(str(e), p.attitude) from e
+    else:
+        k = angle_scale(p.angle_unit)
+        eul = np.stack([att.array(c) * k for c in ("roll", "pitch", "heading")], 1)
+        ta, (eul,) = _finite_rows(p.attitude, *sorted_unique(att.t_ns, eul))
+        r_enu_att = euler_to_enu(eul[:, 0], eul[:, 1], eul[:, 2], p.attitude_convention)
+    t_q = ta if p.sample_at == "attitude" else tp
+    ki, al, ok_p = resample_indices(tp, t_q, gap)
+    _, _, ok_a = resample_indices(ta, t_q, gap)
+    ok = ok_p & ok_a
+    if np.count_nonzero(ok) < 2:
+        raise PoseError(f"position ({len(tp)} samples, {_span(tp)}) and attitude "
+                        f"({len(ta)} samples, {_span(ta)}) do not overlap in time (gaps of at "
+                        f"most {p.max_gap_ms:g} ms)", p.position)
+    t_q, ki, al = t_q[ok], ki[ok], al[ok]
+    pe_ant = lerp(geodetic_to_ecef(geo[:, 0], geo[:, 1], geo[:, 2]), ki, al)
+    lat, lon, _ = ecef_to_geodetic(pe_ant)
+    r_e = R_ecef_enu(lat, lon)
+    R_att = r_e @ slerp_matrices(ta, r_enu_att, t_q)
+    R = R_att @ T_att_ego[:3, :3]
+    # lever arm of the antenna: p_ant = p_ego + R_ecef_ego t_ego_ant
+    T_ego_ant = np.linalg.inv(T_ant_ego)
+    pe = pe_ant - np.einsum("nij,j->ni", R, T_ego_ant[:3, 3])
+    st = status[np.where(al < 0.5, ki, ki + 1)]
+    if vel is not None:
+        v = np.stack([vel.array(c) for c in ("v0", "v1", "v2")], 1)
+        tv, (v,) = _finite_rows(p.velocity or "", *sorted_unique(vel.t_ns, v))
+        kv, av, ok_v = resample_indices(tv, t_q, gap)
+        if not ok_v.all():
+            raise PoseError(f"velocity does not cover the pose samples ({_span(tv)} vs "
+                            f"{_span(t_q)})", p.velocity)
+        vel_q = lerp(v, kv, av)
+        vv = velocity_to_frame(vel_q, p.velocity_frame, r_e, R_att)
+    else:
+        vv = differentiate(t_q, pe)
+    return Track("ecef", t_q, pe, R, vv, st)
+
+
+def _span(t: np.ndarray) -> str:
+    return f"[{int(t[0])}, {int(t[-1])}] ns" if len(t) else "no samples"
+
+
+def build_tf(p: TfPose, edges: dict[tuple[str, str], Samples], child: str,
+             lookup: Callable[[str, str], np.ndarray | None], T_body_ego: np.ndarray
+             ) -> Track:
+    """``parent -> child`` through the dynamic edges of ``/tf`` (each interpolated) and
+    static ones (``lookup``), sampled at the stamps of the densest dynamic edge."""
+    parent = p.parent_frame.lstrip("/")
+    chain = _tf_chain(edges, parent, child, lookup)
+    if chain is None:
+        have = sorted(f"{a}->{b}" for a, b in edges)
+        raise PoseError(f"/tf has no chain of transforms from {parent!r} to {child!r} "
+                        f"(dynamic edges: {have})", p.sensor)
+    dyn = [e for e in chain if isinstance(e, tuple)]
+    if not dyn:
+        raise PoseError(f"the chain {parent!r} -> {child!r} has no dynamic transform", p.sensor)
+    tracks: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    for key in dyn:
+        s = edges[key]
+        xyz = np.stack([s.array(c) for c in ("x", "y", "z")], 1)
+        q = np.stack([s.array(c) for c in ("qx", "qy", "qz", "qw")], 1)
+        t, (xyz, q) = _finite_rows(p.sensor, *sorted_unique(s.t_ns, xyz, q))
+        tracks[key] = (t, xyz, Rotation.from_quat(_unit(q, p.sensor)).as_matrix())
+    t_q = max(tracks.values(), key=lambda v: len(v[0]))[0]
+    lo = max(v[0][0] for v in tracks.values())
+    hi = min(v[0][-1] for v in tracks.values())
+    t_q = t_q[(t_q >= lo) & (t_q <= hi)]
+    T = np.broadcast_to(np.eye(4), (len(t_q), 4, 4)).copy()
+    for e in chain:
+        if isinstance(e, tuple):
+            t, xyz, R = tracks[e]
+            k, a, _ = resample_indices(t, t_q, np.iinfo(np.int64).max)
+            M = np.broadcast_to(np.eye(4), (len(t_q), 4, 4)).copy()
+            M[:, :3, :3] = slerp_matrices(t, R, t_q)
+            M[:, :3, 3] = lerp(xyz, k, a)
+        else:
+            M = e
+        T = T @ M
+    frame, pos_b, R_body, _ = datum_to_frame(p.datum, T[:, :3, 3], T[:, :3, :3])
+    pos, R = apply_lever(pos_b, R_body, T_body_ego)
+    return Track(frame, t_q, pos, R, differentiate(t_q, pos),
+                 np.full(len(t_q), STATUS_UNKNOWN, np.int64))
+
+
+def _tf_chain(edges: dict[tuple[str, str], Samples], parent: str, child: str,
+              lookup: Callable[[str, str], np.ndarray | None]
+              ) -> list[tuple[str, str] | np.ndarray] | None:
+    """Path parent -> child along dynamic edges (forward only, as tf trees are) with static
+    transforms (``lookup``) allowed to bridge from any frame reached to the child."""
+    from collections import deque
+
+    todo: deque[tuple[str, list[tuple[str, str] | np.ndarray]]] = deque([(parent, [])])
+    seen = {parent}
+    while todo:
+        frame, path = todo.popleft()
+        if frame == child:
+            return path
+        static = lookup(frame, child) if path else None
+        if static is not None:
+            return [*path, static]
+        for a, b in edges:
+            if a == frame and b not in seen:
+                seen.add(b)
+                todo.append((b, [*path, (a, b)]))
+    return None
+
+
+def build_fixed(p: FixedPose, t_span: tuple[int, int]) -> Track:
+    """A constant pose at the two ends of the agent's recording (interpolation between two
+    equal samples is exact everywhere in between)."""
+    t0, t1 = t_span
+    if t1 <= t0:
+        t1 = t0 + 1
+    t = np.array([t0, t1], np.int64)
+    if p.local is not None:
+        M = p.local.matrix()
+        pos, R = np.repeat(M[None, :3, 3], 2, 0), np.repeat(M[None, :3, :3], 2, 0)
+        return Track("map", t, pos, R, np.zeros((2, 3)), np.full(2, STATUS_UNKNOWN, np.int64))
+    g = p.geodetic
+    assert g is not None
+    k = angle_scale(p.angle_unit)
+    pe, r_e = geodetic_frame(np.array([g.latitude]), np.array([g.longitude]),
+                             np.array([g.height]))
+    R = r_e @ euler_to_enu(np.array([p.roll * k]), np.array([p.pitch * k]),
+                           np.array([p.heading * k]), p.attitude)
+    return Track("ecef", t, np.repeat(pe, 2, 0), np.repeat(R, 2, 0), np.zeros((2, 3)),
+                 np.full(2, STATUS_UNKNOWN, np.int64))

@@ -21,7 +21,7 @@ import json
 import os
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -43,6 +43,7 @@ from v2xlake.schemas.tables import (
     CalibratedSensorRow,
     CameraFrameRow,
     ClipRow,
+    EgoPoseRow,
     GnssRow,
     ImuRow,
     InsRow,
@@ -62,11 +63,17 @@ from v2xlake.tasks.ingest.bagopen import (
     resolve,
 )
 from v2xlake.tasks.ingest.calibration import TfTree, intrinsics_from_camera_info
-from v2xlake.tasks.ingest.images import compressed_to_png, image_to_png
-from v2xlake.tasks.ingest.ins import GnssDecoder, ImuDecoder, InsDecoder, InsFieldError
+from v2xlake.tasks.ingest.images import JPEG_MAGIC, compressed_image, image_to_png
+from v2xlake.tasks.ingest.ins import GnssDecoder, ImuDecoder
 from v2xlake.tasks.ingest.payloads import messages as in_place_messages
 from v2xlake.tasks.ingest.pointcloud import DecodedCloud, decode_cloud
-from v2xlake.tasks.ingest.pose import PoseCollector, PoseSourceError
+from v2xlake.tasks.ingest.pose import (
+    PoseCollector,
+    PoseError,
+    Track,
+    ins_columns,
+    map_columns,
+)
 from v2xlake.tasks.ingest.rawmsg import parser_for
 from v2xlake.tasks.ingest.rows import table_of
 
@@ -100,6 +107,19 @@ class IngestConfig(BaseModel):
     replace_existing: bool = Field(
         default=False, description="accept a delivery whose bags differ from those already "
         "ingested under the same clip id (it replaces that clip); otherwise it is refused")
+    quat_tolerance: float = Field(
+        default=1e-3, gt=0, description="largest |norm - 1| of a tf_static or pose "
+        "quaternion; a larger one is an error (never silently normalised)")
+    max_point_time_offset_s: float = Field(
+        default=1.0, gt=0, description="per-point times declared absolute must lie within "
+        "this of the header stamp, and header-relative ones be smaller than this: a time "
+        "reference that contradicts the values is an error")
+    min_range_m: float = Field(
+        default=0.0, ge=0, description="points at or below this range are no-return points "
+        "(drivers emit them at the origin): dropped and counted in lidar_frames.n_zero")
+    min_agent_overlap_s: float = Field(
+        default=0.0, ge=0, description="every agent's recording must overlap the reference "
+        "agent's by more than this; agents that never recorded together are not a clip")
 
     # settings a clip.yaml's params: block may not change (the clip is untrusted input)
     OPERATOR_ONLY: ClassVar[frozenset[str]] = frozenset({"allowed_bag_roots",
@@ -245,6 +265,7 @@ class AgentResult:
     t_min: int | None = None
     t_max: int | None = None
     has_ins: bool = False
+    pose_frame: str | None = None  # "ecef" (written as raw ins) | "map" (raw ego_poses)
 
     def stamp(self, t0: int, t1: int | None = None) -> None:
         t1 = t0 if t1 is None else t1
@@ -269,11 +290,16 @@ class _AgentIngest:
         # camera frames being encoded: (sensor, frame index, stamp, blob key, (w, h, sha256))
         self.png_pending: deque[tuple[SensorConfig, int, int, str,
                                       Future[tuple[int, int, str]]]] = deque()
-        self.ins = InsDecoder()
-        self.pose = PoseCollector(agent.pose) if agent.pose is not None else None
+        self.pose = PoseCollector(agent)
         self.imu: dict[str, ImuDecoder] = {}
         self.gnss = GnssDecoder()
-        self.tf = TfTree()
+        self.tf = TfTree(config.quat_tolerance)
+        # per sensor, in bag order: stamps seen (duplicates dropped), the last stamp, and
+        # how many messages repeated a stamp or went back in time (QA reports both)
+        self.stamps_seen: dict[str, set[int]] = {s.name: set() for s in agent.sensors}
+        self.last_stamp: dict[str, int] = {}
+        self.n_dup: dict[str, int] = {s.name: 0 for s in agent.sensors}
+        self.n_back: dict[str, int] = {s.name: 0 for s in agent.sensors}
         self.camera_info: dict[str, Any] = {}
         self.writers: dict[str, TableWriter] = {}
         self.point_schema = arrow_schema(LidarPointRow)
@@ -313,6 +339,9 @@ class _AgentIngest:
                 self.notes.append(f"{self.aid}/{s.name}: radar is not ingested (no table)")
                 continue
             handlers[s.topic] = self._handler(s)
+            if (s.modality is Modality.INS and s.name not in self.pose.sensors):
+                self.notes.append(f"{self.aid}/{s.name}: INS sensor not used by the agent's "
+                                  "pose block; its messages are counted, not read")
             if s.modality is Modality.CAMERA and s.intrinsics is None:
                 if not s.camera_info_topic:
                     raise self.err(f"camera {s.name} has neither intrinsics in clip.yaml nor a "
@@ -321,41 +350,27 @@ class _AgentIngest:
                     raise self.err(f"camera_info_topic of camera {s.name} is not in the bag; "
                                    f"the bag has {topics}", topic=s.camera_info_topic)
                 handlers[s.camera_info_topic] = self._camera_info(s.name)
-        if self.pose is not None:
-            handlers.update(self._pose_handlers(conns))
+        try:
+            self.pose.plan()
+        except PoseError as e:
+            raise self.err(str(e), topic=self._topic_of(e.sensor)) from e
         tf_topic = self.agent.tf_static_topic
         if tf_topic and tf_topic in conns:
-            handlers[tf_topic] = lambda msg, _c: self.tf.add_message(msg)
+            handlers[tf_topic] = self._tf_static
         elif tf_topic and any(s.extrinsic is None for s in self.agent.sensors
                               if s.modality in (Modality.LIDAR, Modality.CAMERA)):
             raise self.err(f"tf_static topic is not in the bag and not every LiDAR/camera has "
                            f"an extrinsic in clip.yaml; the bag has {topics}", topic=tf_topic)
         return handlers
 
-    def _pose_handlers(self, conns: dict[str, Any]) -> dict[str, Callable[[Any, Any], None]]:
-        """The topics of the agent's pose source (``clip.yaml`` ``pose:``), checked."""
-        assert self.pose is not None
-        src = self.pose.src
-        want = {"odometry": src.msg_type, "navsat_imu": "sensor_msgs/msg/NavSatFix",
-                "attitude": "sensor_msgs/msg/Imu", "ins": src.msg_type}
-        out: dict[str, Callable[[Any, Any], None]] = {}
-        for topic, role in self.pose.topics().items():
-            if topic not in conns:
-                raise self.err(f"pose topic ({src.kind}, {role}) is not in the bag; the bag "
-                               f"has {sorted(conns)}", topic=topic)
-            have = conns[topic].msgtype
-            if want[role] is not None and have != want[role]:
-                raise self.err(f"pose {role} topic carries {have}, clip.yaml says "
-                               f"{want[role]}", topic=topic)
+    def _topic_of(self, sensor: str | None) -> str | None:
+        return self.agent.sensor(sensor).topic if sensor else None
 
-            def handle(msg: Any, _c: Any, role: str = role, topic: str = topic) -> None:
-                try:
-                    self.pose.add(role, msg)  # type: ignore[union-attr]
-                except PoseSourceError as e:
-                    raise self.err(str(e), topic=topic) from e
-
-            out[topic] = handle
-        return out
+    def _tf_static(self, msg: Any, _c: Any) -> None:
+        try:
+            self.tf.add_message(msg)
+        except ValueError as e:
+            raise self.err(str(e), topic=self.agent.tf_static_topic) from e
 
     def _camera_info(self, name: str) -> Callable[[Any, Any], None]:
         def h(msg: Any, _c: Any) -> None:
@@ -368,10 +383,24 @@ class _AgentIngest:
         if s.modality is Modality.CAMERA:
             return lambda msg, _c: self._camera(s, msg)
         if s.modality is Modality.INS:
-            return lambda msg, _c: self._simple(s, msg, self.ins)
+            return lambda msg, _c: self._simple(s, msg, None)
         if s.modality is Modality.IMU:
             return lambda msg, _c: self._simple(s, msg, self.imu.setdefault(s.name, ImuDecoder()))
         return lambda msg, _c: self._simple(s, msg, self.gnss)
+
+    def _order(self, s: SensorConfig, stamp: int, drop_duplicates: bool) -> bool:
+        """Record the stamp's place in bag order; False for a repeated stamp that is dropped."""
+        seen = self.stamps_seen[s.name]
+        if stamp in seen:
+            self.n_dup[s.name] += 1
+            if drop_duplicates:
+                return False
+        seen.add(stamp)
+        last = self.last_stamp.get(s.name)
+        if last is not None and stamp < last:
+            self.n_back[s.name] += 1
+        self.last_stamp[s.name] = stamp
+        return True
 
     def _first(self, s: SensorConfig, msg: Any) -> int:
         idx = self.counts[s.name]
@@ -380,26 +409,37 @@ class _AgentIngest:
             self.frame_ids[s.name] = s.frame_id or str(msg.header.frame_id)
         return idx
 
-    def _simple(self, s: SensorConfig, msg: Any, dec: InsDecoder | ImuDecoder | GnssDecoder
-                ) -> None:
+    def _simple(self, s: SensorConfig, msg: Any, dec: ImuDecoder | GnssDecoder | None) -> None:
+        """INS / IMU / GNSS: a message repeating a stamp of its topic is a duplicate (a
+        driver publishing twice, a bag recorded from two nodes): dropped and counted."""
         self._first(s, msg)
-        try:
+        stamp = header_stamp_ns(msg) if hasattr(msg, "header") else None
+        if stamp is not None and not self._order(s, stamp, drop_duplicates=True):
+            return
+        if dec is not None:
             dec.add(msg)
-        except InsFieldError as e:
-            raise self.err(str(e), topic=s.topic) from e
-        self.res.stamp(header_stamp_ns(msg))
+        if s.name in self.pose.samples:
+            try:
+                self.pose.add(s.name, msg)
+            except (AttributeError, PoseError) as e:
+                raise self.err(f"pose message: {e}", topic=s.topic) from e
+        if stamp is not None:
+            self.res.stamp(stamp)
 
     def _lidar(self, s: SensorConfig, msg: Any) -> None:
         idx = self._first(s, msg)
         stamp = header_stamp_ns(msg)
+        self._order(s, stamp, drop_duplicates=False)
         assert s.fields is not None
         try:
-            cloud = decode_cloud(msg, s.fields, stamp)
+            cloud = decode_cloud(msg, s.fields, stamp, min_range_m=self.config.min_range_m,
+                                 max_time_offset_ns=int(self.config.max_point_time_offset_s
+                                                        * 1e9))
         except (KeyError, ValueError) as e:
             raise self.err(f"LiDAR frame {idx}: {e}", topic=s.topic) from e
         if cloud.n_points == 0:
-            self.notes.append(f"{self.aid}/{s.name} frame {idx}: no finite point "
-                              f"({cloud.n_nan} non-finite)")
+            self.notes.append(f"{self.aid}/{s.name} frame {idx}: no point with a return "
+                              f"({cloud.n_nan} non-finite, {cloud.n_zero} at zero range)")
         w = self.writers.get(s.name)
         if w is None:
             w = self.staging.open_writer("raw", "lidar_points", self.point_schema,
@@ -411,7 +451,8 @@ class _AgentIngest:
         self.res.n_points += cloud.n_points
         self.lidar_rows.append(dict(
             sensor=s.name, frame_idx=idx, stamp_ns=stamp, t_start_ns=cloud.t_start_ns,
-            t_end_ns=cloud.t_end_ns, n_points=cloud.n_points, n_nan=cloud.n_nan))
+            t_end_ns=cloud.t_end_ns, n_points=cloud.n_points, n_nan=cloud.n_nan,
+            n_zero=cloud.n_zero))
         self.res.stamp(min(stamp, cloud.t_start_ns), max(stamp, cloud.t_end_ns))
 
     def _camera(self, s: SensorConfig, msg: Any) -> None:
@@ -420,12 +461,16 @@ class _AgentIngest:
         on every core while the bag is read; rows are still recorded in frame order."""
         idx = self._first(s, msg)
         stamp = header_stamp_ns(msg)
-        key = self.staging.blob_key(self.cid, self.aid, s.name, idx)
+        self._order(s, stamp, drop_duplicates=False)
+        compressed = s.msg_type.endswith("CompressedImage")
+        # a JPEG is stored as delivered (its bytes, checksummed); other formats become PNG
+        jpeg = compressed and bytes(np.asarray(msg.data[:3], np.uint8)) == JPEG_MAGIC
+        key = self.staging.blob_key(self.cid, self.aid, s.name, idx,
+                                    ext="jpg" if jpeg else "png")
         if self.png_pool is None:
             self.png_pool = self.stack.enter_context(
                 ThreadPoolExecutor(PNG_WORKERS, thread_name_prefix="png"))
-        job = self.png_pool.submit(_store_png, self.staging, key, msg,
-                                   s.msg_type.endswith("CompressedImage"),
+        job = self.png_pool.submit(_store_image, self.staging, key, msg, compressed,
                                    self.config.png_compression)
         self.png_pending.append((s, idx, stamp, key, job))
         self.res.n_camera_frames += 1
@@ -460,7 +505,8 @@ class _AgentIngest:
             fdefs, ros2 = reader.typestore.fielddefs, bool(reader.is2)
             fast = {id(c): parser_for(fdefs, c.msgtype, ros2) for c in conns}
             try:
-                for conn, _t, raw in in_place_messages(reader, conns):
+                # (rosbags reads every connection when given none: nothing to read then)
+                for conn, _t, raw in in_place_messages(reader, conns) if conns else ():
                     self.res.bytes_read += len(raw)
                     seen[id(conn)] += 1
                     parse = fast[id(conn)]
@@ -480,38 +526,62 @@ class _AgentIngest:
                     raise self.err(f"the bag's index promises {c.msgcount} messages on this "
                                    f"topic but only {seen[id(c)]} could be read; truncated?",
                                    topic=c.topic, path=str(bag))
+        self.track = self._pose_track()
         self._write_tables()
         return self.res
+
+    def _static(self, a: str, b: str) -> np.ndarray | None:
+        """Static ``T_a_b``: a pose sensor's clip.yaml extrinsic when its frame is ``a`` and
+        ``b`` is the ego frame, else tf_static."""
+        ego = self.agent.ego_frame.lstrip("/")
+        for s in self.agent.sensors:
+            frame = (s.frame_id or self.frame_ids.get(s.name) or "").lstrip("/")
+            if s.extrinsic is not None and frame == a and b == ego:
+                return np.linalg.inv(s.extrinsic.matrix())
+        return self.tf.lookup(a, b)
+
+    def _pose_track(self) -> Track | None:
+        span = (self.res.t_min or 0, self.res.t_max or 0)
+        try:
+            track = self.pose.build(self._static, span)
+        except PoseError as e:
+            raise self.err(f"pose ({self.pose.pose.source}): {e}",
+                           topic=self._topic_of(e.sensor)) from e
+        except ValueError as e:
+            raise self.err(f"pose ({self.pose.pose.source}): {e}") from e
+        if track is not None:
+            self.res.pose_frame = track.frame
+            self.res.stamp(int(track.t_ns[0]), int(track.t_ns[-1]))
+        self.res.has_ins = track is not None
+        return track
 
     def _write_tables(self) -> None:
         st, cid, aid = self.staging, self.cid, self.aid
         for s in self.agent.sensors:
             self.res.sensors.append(SensorRow(
                 clip_id=cid, agent_id=aid, sensor=s.name, modality=s.modality.value,
-                topic=s.topic, msg_type=s.msg_type, n_messages=self.counts[s.name]))
+                topic=s.topic, msg_type=s.msg_type,
+                n_messages=self.counts[s.name] - self.n_dup_dropped(s),
+                n_duplicates=self.n_dup[s.name], n_backwards=self.n_back[s.name]))
+            if self.n_dup[s.name]:
+                self.notes.append(f"{aid}/{s.name}: {self.n_dup[s.name]} message(s) on "
+                                  f"{s.topic} repeat an earlier stamp"
+                                  + (": dropped" if self.n_dup_dropped(s) else ""))
             if s.modality is Modality.LIDAR:
                 self.res.lidar_frames[s.name] = self.counts[s.name]
-        ins_cols: dict[str, Any] = self.ins.cols
-        if self.pose is not None:
-            span = (self.res.t_min, self.res.t_max) if self.res.t_min is not None and \
-                self.res.t_max is not None else None
-            try:
-                got = self.pose.columns(span)
-            except PoseSourceError as e:
-                raise self.err(f"pose ({self.pose.src.kind}): {e}",
-                               topic=self.pose.src.topic) from e
-            ins_cols = got if got is not None else {c: [] for c in self.ins.cols}
-            self.res.has_ins = got is not None and len(got["t_ns"]) >= 2
-        else:
-            self.res.has_ins = bool(self.agent.sensors_of(Modality.INS)) and \
-                bool(self.ins.cols["t_ns"])
         self.res.calib = self._calibration()
+        self._check_image_sizes()
+        ins_cols = (ins_columns(self.track) if self.track is not None
+                    and self.track.frame == "ecef" else {c: np.zeros(0) for c in _INS_COLS})
+        map_cols = (map_columns(self.track) if self.track is not None
+                    and self.track.frame == "map" else {c: np.zeros(0) for c in _MAP_COLS})
         tables: dict[str, pa.Table] = {
             "sensors": table_of(SensorRow, self.res.sensors),
             "calibrated_sensors": table_of(CalibratedSensorRow, self.res.calib),
             "lidar_frames": _frame_table(LidarFrameRow, self.lidar_rows, cid, aid),
             "camera_frames": _frame_table(CameraFrameRow, self.cam_rows, cid, aid),
             "ins": _cols_table(InsRow, ins_cols, cid, aid),
+            "ego_poses": _cols_table(EgoPoseRow, map_cols, cid, aid),
             "gnss": _cols_table(GnssRow, self.gnss.cols, cid, aid),
             "imu": pa.concat_tables([
                 _cols_table(ImuRow, {**d.cols, "sensor": [n] * len(d.cols["t_ns"])}, cid, aid)
@@ -519,6 +589,28 @@ class _AgentIngest:
         }
         for name, t in tables.items():
             st.write_table("raw", name, t, clip_id=cid, agent_id=aid)
+
+    def n_dup_dropped(self, s: SensorConfig) -> int:
+        dropped = s.modality in (Modality.INS, Modality.IMU, Modality.GNSS)
+        return self.n_dup[s.name] if dropped else 0
+
+    def _check_image_sizes(self) -> None:
+        """Every frame of a camera must have the size its intrinsics were calibrated for:
+        a 1920x1080 calibration on 1920x1200 images projects every point to the wrong row."""
+        sizes: dict[str, set[tuple[int, int]]] = {}
+        for r in self.cam_rows:
+            sizes.setdefault(r["sensor"], set()).add((int(r["width"]), int(r["height"])))
+        for c in self.res.calib:
+            if c.modality != "camera" or c.width is None or c.sensor not in sizes:
+                continue
+            s = self.agent.sensor(c.sensor)
+            got = sorted(sizes[c.sensor])
+            if got != [(c.width, c.height)]:
+                src = "clip.yaml intrinsics" if "clip.yaml" in c.source else "CameraInfo"
+                raise self.err(
+                    f"camera {c.sensor}: images are {', '.join(f'{w}x{h}' for w, h in got)} "
+                    f"but its {src} are for {c.width}x{c.height}; the calibration does not "
+                    "belong to these images", topic=s.topic)
 
     def _calibration(self) -> list[CalibratedSensorRow]:
         rows = []
@@ -572,12 +664,18 @@ class _AgentIngest:
 PNG_WORKERS = min(8, os.cpu_count() or 1)
 
 
-def _store_png(lake: Lake, key: str, msg: Any, compressed: bool, level: int
-               ) -> tuple[int, int, str]:
-    """One camera frame as a lossless PNG blob: (width, height, SHA-256 of the PNG)."""
-    png, w, h = (compressed_to_png if compressed else image_to_png)(msg, level)
-    lake.write_blob("raw", key, png)
-    return w, h, hashlib.sha256(png).hexdigest()
+def _store_image(lake: Lake, key: str, msg: Any, compressed: bool, level: int
+                 ) -> tuple[int, int, str]:
+    """One camera frame as a blob: a delivered JPEG or PNG as is, anything else as a lossless
+    PNG; returns (width, height, SHA-256 of the stored bytes)."""
+    data, w, h = (compressed_image if compressed else image_to_png)(msg, level)
+    lake.write_blob("raw", key, data)
+    return w, h, hashlib.sha256(data).hexdigest()
+
+
+_INS_COLS = ("t_ns", "lat", "lon", "alt", "roll", "pitch", "azimuth", "ve", "vn", "vu",
+             "rtk_status")
+_MAP_COLS = ("t_ns", "x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "rtk_status")
 
 
 POINT_FILE_SCHEMA = arrow_schema(LidarPointRow).remove(0).remove(0)  # minus clip_id, agent_id
@@ -605,13 +703,45 @@ def _frame_table(model: type[BaseModel], rows: list[dict[str, Any]], cid: str, a
     return table_of(model, [{**r, "clip_id": cid, "agent_id": aid} for r in rows])
 
 
-def _cols_table(model: type[BaseModel], cols: dict[str, Any], cid: str, aid: str
-                ) -> pa.Table:
+def _cols_table(model: type[BaseModel], cols: Mapping[str, Sequence[Any] | np.ndarray],
+                cid: str, aid: str) -> pa.Table:
     n = len(cols["t_ns"])
     data: dict[str, Any] = {k: np.asarray(v) if k != "sigma_h" else pa.array(v, pa.float64())
                             for k, v in cols.items()}
     data["clip_id"], data["agent_id"] = [cid] * n, [aid] * n
     return columns_to_table(model, data)
+
+
+def check_agents(cfg: ClipConfig, results: dict[str, AgentResult], config: IngestConfig
+                 ) -> None:
+    """What makes several recordings one clip: their pose tracks live in one world (all
+    georeferenced, or all in the same local map), and every agent recorded while the
+    reference agent did."""
+    frames = {aid: r.pose_frame for aid, r in results.items() if r.pose_frame}
+    if len(set(frames.values())) > 1:
+        kinds = {"ecef": "georeferenced (WGS84)", "map": "in a local map without geodetic "
+                 "reference (datum: local)"}
+        raise ClipError(cfg.clip_id, "the agents' poses are not in one world: " + "; ".join(
+            f"{aid} {kinds[f]}" for aid, f in sorted(frames.items())) + ". Give every agent a "
+            "geodetic datum (UTM zone, geodetic origin) or none of them", stage=STAGE)
+    ref = cfg.reference_agent.agent_id
+    r0 = results[ref]
+    if r0.t_min is None or r0.t_max is None:
+        return
+    need = int(config.min_agent_overlap_s * 1e9)
+    for aid, r in results.items():
+        if aid == ref or r.t_min is None or r.t_max is None:
+            continue
+        overlap = min(r.t_max, r0.t_max) - max(r.t_min, r0.t_min)
+        if overlap <= need:
+            raise ClipError(
+                cfg.clip_id, f"agent {aid} recorded [{r.t_min}, {r.t_max}] ns and the "
+                f"reference agent {ref} [{r0.t_min}, {r0.t_max}] ns: they "
+                + ("do not overlap in time" if overlap <= 0 else
+                   f"overlap by only {overlap / 1e9:.3f} s (ingest.min_agent_overlap_s "
+                   f"{config.min_agent_overlap_s:g})")
+                + "; recordings that were not made together are not one clip",
+                agent_id=aid, stage=STAGE)
 
 
 # --------------------------------------------------------------------------- entry point
@@ -639,9 +769,9 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
             results[agent.agent_id] = _AgentIngest(staging, cfg, agent, config, notes).run(
                 resolve(d, agent.bag), typestore)
             if not results[agent.agent_id].has_ins:
-                notes.append(f"agent {agent.agent_id}: no INS "
-                             + ("topic configured" if not agent.sensors_of(Modality.INS)
-                                else "messages") + ": deskew/registration impossible")
+                notes.append(f"agent {agent.agent_id}: no pose (pose source "
+                             f"{agent.effective_pose.source!r}): deskew/registration impossible")
+        check_agents(cfg, results, config)
         if cfg.annotations:
             path = resolve(d, cfg.annotations)
             frames = {(a, s): n for a, r in results.items() for s, n in r.lidar_frames.items()}
@@ -655,7 +785,9 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
             a = cfg.agent(aid)
             staging.write_table("raw", "agents", table_of(AgentRow, [AgentRow(
                 clip_id=cid, agent_id=aid, kind=a.kind.value, role=a.role.value,
-                has_ins=r.has_ins)]), clip_id=cid, agent_id=aid)
+                has_ins=r.has_ins, pose_source=a.effective_pose.source,
+                pose_frame={"ecef": "wgs84", "map": "map"}.get(r.pose_frame or ""))]),
+                clip_id=cid, agent_id=aid)
         tmins = [r.t_min for r in results.values() if r.t_min is not None]
         tmaxs = [r.t_max for r in results.values() if r.t_max is not None]
         if not tmins:
