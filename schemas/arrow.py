@@ -89,19 +89,23 @@ def rows_to_table(model: type[BaseModel],
 def columns_to_table(model: type[BaseModel], columns: dict[str, Any]) -> pa.Table:
     """Build a table from NumPy columns (bulk tables like points) with the derived schema.
 
-    Missing nullable columns become nulls; a missing non-nullable column is an error, so a
-    writer cannot silently drop a field.
+    Missing nullable columns become nulls, missing columns whose model field has a default
+    (a counter added later, e.g. ``n_zero``) that default; any other missing column is an
+    error, so a writer cannot silently drop a field.
     """
     schema = arrow_schema(model)
     n = len(next(iter(columns.values()))) if columns else 0
     arrays = []
     for f in schema:
+        default = getattr(model.model_fields.get(f.name), "default", None)
         if f.name in columns:
             v = columns[f.name]
             arr = v.cast(f.type) if isinstance(v, pa.Array) else pa.array(v, type=f.type)
             arrays.append(arr)
         elif f.nullable:
             arrays.append(pa.nulls(n, type=f.type))
+        elif isinstance(default, int | float | str | bool):
+            arrays.append(pa.array([default] * n, type=f.type))
         else:
             raise KeyError(f"{model.__name__}: column {f.name!r} missing")
     extra = set(columns) - set(schema.names)

@@ -168,16 +168,38 @@ class AngleUnit(StrEnum):
 
 
 class AttitudeConvention(StrEnum):
-    """How roll / pitch / heading (or an orientation quaternion) are meant.
-
-    ``ned``: aerospace, used by most INS vendors (NovAtel, OxTS NCOM, Applanix, SBG, Xsens in
-    NED mode): heading clockwise from true north, pitch positive nose-up, roll positive
-    right side down; the quaternion (if any) is ``q_ned_frd`` (body x forward, y right,
-    z down). ``enu``: ROS REP-103 (``sensor_msgs/Imu``, Xsens default): yaw counter-clockwise
-    from east, rotations about body x forward, y left, z up; quaternion ``q_enu_flu``."""
+    """What an orientation quaternion rotates: ``enu``: ``q_enu_flu`` (ROS REP-103,
+    ``sensor_msgs/Imu``, Xsens default: body x forward, y left, z up, in east-north-up);
+    ``ned``: ``q_ned_frd`` (aerospace: body x forward, y right, z down, in north-east-down)."""
 
     NED = "ned"
     ENU = "enu"
+
+
+class Heading(StrEnum):
+    NORTH_CW = "north_cw"  # azimuth: clockwise from true north (NovAtel, OxTS, Applanix, SBG)
+    EAST_CCW = "east_ccw"  # yaw: counter-clockwise from east (REP-103)
+
+
+class PitchSign(StrEnum):
+    NOSE_UP = "nose_up"  # aerospace / most INS vendors
+    NOSE_DOWN = "nose_down"  # REP-103 Euler angles (rotation about the left-pointing y axis)
+
+
+class RollSign(StrEnum):
+    RIGHT_DOWN = "right_down"  # aerospace and REP-103 alike
+    LEFT_DOWN = "left_down"
+
+
+class _Euler(_Strict):
+    """How Euler attitude angles are meant; always Tait-Bryan heading, then pitch, then roll
+    of the body relative to the local level. The defaults are the aerospace convention most
+    INS vendors use; REP-103 Euler angles are ``heading: east_ccw, pitch: nose_down``."""
+
+    angle_unit: AngleUnit = AngleUnit.RAD
+    heading: Heading = Heading.NORTH_CW
+    pitch: PitchSign = PitchSign.NOSE_UP
+    roll: RollSign = RollSign.RIGHT_DOWN
 
 
 class VelocityFrame(StrEnum):
@@ -267,16 +289,14 @@ class _PoseBase(_Strict):
         "sensor's extrinsic")
 
 
-class InsPose(_PoseBase):
+class InsPose(_PoseBase, _Euler):
     """A vendor INS message: geodetic position, Euler attitude, velocity in one message."""
 
-    source: Literal["ins"] = "ins"
+    kind: Literal["ins"] = "ins"
     sensor: str = Field(description="name of the agent's ins-modality sensor carrying it")
     fields: InsFields | None = Field(default=None, description="None: found by the names "
                                      "vendors use (latitude/lat, azimuth/heading/yaw, ...)")
-    angle_unit: AngleUnit = AngleUnit.RAD
     latlon_unit: AngleUnit = AngleUnit.DEG
-    attitude: AttitudeConvention = AttitudeConvention.NED
     velocity_frame: VelocityFrame = VelocityFrame.ENU
 
 
@@ -285,29 +305,29 @@ class OdometryPose(_PoseBase):
     in a map frame whose meaning ``datum`` gives. The pose is of ``child_frame_id``
     (Odometry) unless ``body_frame`` says otherwise, else of the ego frame."""
 
-    source: Literal["odometry"] = "odometry"
+    kind: Literal["odometry"] = "odometry"
     sensor: str
     datum: Datum
     map_frame: str | None = Field(default=None, description="expected header.frame_id; "
                                   "another frame is an error")
 
 
-class SplitPose(_PoseBase):
+class SplitPose(_PoseBase, _Euler):
     """Position from one topic, attitude (and optionally velocity) from others, sampled at
     the attitude (or position) topic's stamps with the other interpolated (linear / SLERP,
     never across a gap longer than ``max_gap_ms``, never extrapolated)."""
 
-    source: Literal["split"] = "split"
+    kind: Literal["split"] = "split"
     position: str = Field(description="sensor: NavSatFix, or a message with position_fields")
     attitude: str = Field(description="sensor: Imu (orientation), or attitude_fields")
     velocity: str | None = Field(default=None, description="sensor: TwistStamped, "
                                  "Vector3Stamped, or velocity_fields; None: differentiated")
     position_fields: GeoFields | None = None
-    attitude_fields: EulerFields | None = Field(default=None, description="Euler angles; "
+    attitude_fields: EulerFields | None = Field(default=None, description="Euler angles "
+                                                "(angle_unit, heading, pitch, roll say how); "
                                                 "None: an orientation quaternion")
     velocity_fields: Vec3Paths | None = None
-    attitude_convention: AttitudeConvention = AttitudeConvention.ENU
-    angle_unit: AngleUnit = AngleUnit.RAD
+    quaternion_frame: AttitudeConvention = AttitudeConvention.ENU
     latlon_unit: AngleUnit = AngleUnit.DEG
     velocity_frame: VelocityFrame = VelocityFrame.ENU
     position_frame: str | None = Field(default=None, description="frame whose position the "
@@ -321,23 +341,29 @@ class TfPose(_PoseBase):
     """Dynamic ``/tf`` (``tf2_msgs/TFMessage``): ``parent_frame -> child_frame`` through any
     chain of dynamic and static transforms."""
 
-    source: Literal["tf"] = "tf"
+    kind: Literal["tf"] = "tf"
     sensor: str
     parent_frame: str = "map"
     child_frame: str | None = Field(default=None, description="default: the agent's ego_frame")
     datum: Datum
 
 
-class FixedPose(_Strict):
-    """A surveyed pose (a roadside unit): geodetic (with attitude angles) or local."""
-
-    source: Literal["fixed"] = "fixed"
-    geodetic: GeodeticPoint | None = None
+class FixedAttitude(_Strict):
     roll: float = 0.0
     pitch: float = 0.0
     heading: float = 0.0
+
+
+class FixedPose(_Euler):
+    """A surveyed pose (a roadside unit): geodetic with attitude angles (degrees by default;
+    ``heading``, ``pitch``, ``roll`` conventions as for an INS), or local."""
+
+    kind: Literal["fixed"] = "fixed"
+    geodetic: GeodeticPoint | None = None
+    attitude: FixedAttitude = FixedAttitude()
     angle_unit: AngleUnit = AngleUnit.DEG
-    attitude: AttitudeConvention = AttitudeConvention.NED
+    rate_hz: float = Field(50.0, gt=0, description="samples of the constant pose per second "
+                           "over the recording (deskew and QA bound the gap between poses)")
     local: Transform | None = Field(default=None, description="T_map_ego in a local map "
                                     "shared with the other agents (datum: local)")
 
@@ -352,11 +378,11 @@ class FixedPose(_Strict):
 class NoPose(_Strict):
     """No pose at all: ingest, QA and anonymize run; pose-dependent stages do not apply."""
 
-    source: Literal["none"] = "none"
+    kind: Literal["none"] = "none"
 
 
 PoseConfig = Annotated[InsPose | OdometryPose | SplitPose | TfPose | FixedPose | NoPose,
-                       Field(discriminator="source")]
+                       Field(discriminator="kind")]
 
 
 class AgentConfig(_Strict):

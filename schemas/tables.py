@@ -39,7 +39,7 @@ class ClipRow(_Row):
 
 class AgentRow(_Row):
     """``has_ins``: the agent has a pose track (raw ``ins`` or ``ego_poses``, clean
-    ``ego_poses``); ``pose_source`` says from what (clip.yaml ``pose.source``: ins, odometry,
+    ``ego_poses``); ``pose_source`` says from what (clip.yaml ``pose.kind``: ins, odometry,
     split, tf, fixed, or none), ``pose_frame`` in what (wgs84: georeferenced, map: a local
     map frame without geodetic reference, null: no pose)."""
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from tests.fixtures.minibag import MiniClip, write_clip
 from tests.fixtures.real import REAL_DATA_INGEST
@@ -98,10 +99,21 @@ def test_ins_gap_quarantines_and_names_the_span(tmp_path: Path) -> None:
 
 
 def test_camera_off_grid_is_an_error(tmp_path: Path) -> None:
+    """A camera declared PPS-locked 5 ms after the edge, whose frames come on the edge."""
+    d = write_clip(tmp_path / "c", MiniClip(seconds=0.2, points=100, clip_id="cam"))
+    meta = yaml.safe_load((d / "clip.yaml").read_text())
+    cam = meta["agents"][0]["sensors"][1]
+    assert cam["modality"] == "camera"
+    cam["sync"] = {"mode": "pps", "phase_ms": 5.0}
+    (d / "clip.yaml").write_text(yaml.safe_dump(meta))
     lake = Lake(tmp_path / "lake")
-    run_ingest(lake, write_clip(tmp_path / "c", MiniClip(seconds=0.2, points=100, clip_id="cam")))
-    with pytest.raises(ClipError, match="pps_camera"):
-        run_qa(lake, "cam", QaConfig(camera_fps=25))
+    run_ingest(lake, d)
+    with pytest.raises(ClipError, match=r"pps_camera: 6/6 stamps of /red/camera/CAM_FRONT/image "
+                       r"off the PPS \+ 5 ms \+ k x 33.333 ms grid"):
+        run_qa(lake, "cam")
+    # a tolerance that covers the offset (a per-clip QA parameter) lets them pass
+    assert run_qa(lake, "cam", QaConfig(camera_tolerance_ms=6.0)).metrics["errors"] == 0
+
 
 
 def test_ouster_real_bag_passes_with_warnings(tmp_path: Path) -> None:
@@ -110,7 +122,8 @@ def test_ouster_real_bag_passes_with_warnings(tmp_path: Path) -> None:
     rep = run_qa(lake, "ouster-os1-128-real")
     assert rep.metrics["errors"] == 0
     joined = "\n".join(rep.notes)
-    assert "no INS topic configured: deskew/registration impossible" in joined
+    assert "no pose source (no pose block and no INS topic configured): deskew/registration " \
+        "impossible" in joined
     assert "free-running clock" in joined  # scans at +50 ms from the grid: no PPS, warning
     checks = {c["check"]: c for c in Catalog(lake).query(
         "SELECT * FROM qa_checks").to_pylist()}

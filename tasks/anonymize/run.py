@@ -45,6 +45,8 @@ from v2xlake.tasks.anonymize.timespace import (
     clip_t0_abs,
     gnss_to_local,
     ins_to_ego_poses,
+    map_origin,
+    map_poses_to_world,
     reference_origin,
     scrub_table,
     shift_times,
@@ -146,7 +148,7 @@ def run_anonymize(
 
     raw = {
         n: lake.read_table("raw", n, clip_id=clip_id)
-        for n in ("clips", "lidar_frames", "camera_frames", "ins", "imu", "gnss")
+        for n in ("clips", "lidar_frames", "camera_frames", "ins", "imu", "gnss", "ego_poses")
     }
     if raw["clips"].num_rows == 0:
         raise fail("no raw 'clips' row: run ingest first")
@@ -157,8 +159,14 @@ def run_anonymize(
     ref = str(raw["clips"].column("reference_agent")[0].as_py())
 
     frame: LocalFrame | None = None
+    map_xy: tuple[float, float] | None = None  # poses in a local map without geodetic datum
     ins = raw["ins"]
-    if ins.num_rows:
+    if raw["ego_poses"].num_rows:
+        x0, y0, used = map_origin(raw["ego_poses"], ref)
+        map_xy = (x0, y0)
+        report.notes.append(f"poses are in a local map without geodetic reference: the clip "
+                            f"world is that map shifted to agent {used}'s first pose")
+    elif ins.num_rows:
         lat0, lon0, used = reference_origin(ins, ref)
         if used != ref:
             report.notes.append(
@@ -180,7 +188,7 @@ def run_anonymize(
     # so a clip that fails half-way (a corrupt image) never leaves a half-clean zone behind
     stage = lake.staging(clip_id)
     try:
-        _write_clean(lake, stage, clip_id, cfg, t0, frame, report, progress)
+        _write_clean(lake, stage, clip_id, cfg, t0, frame, report, progress, map_xy)
         for table in CLEAN_TABLES:
             lake.delete_partition("clean", table, clip_id)
         lake.publish(stage, "clean", clip_id)
@@ -208,6 +216,7 @@ def _write_clean(
     frame: LocalFrame | None,
     report: StageReport,
     progress: Progress | None,
+    map_xy: tuple[float, float] | None = None,
 ) -> None:
     def final_path(table: str, agent: str | None, name: str) -> str:
         return f"{lake.table_dir('clean', table, clip_id, agent)}/{name}.parquet"
@@ -249,6 +258,10 @@ def _write_clean(
         if frame is None:  # an empty ins partition (a clip without INS): nothing to convert
             continue
         write("ego_poses", ins_to_ego_poses(_read_file(lake, path), frame, t0), agent, name)
+    for path, agent, name in _partition_files(lake, "raw", "ego_poses", clip_id):
+        if map_xy is None:  # empty partitions (every clip with an INS-style track)
+            continue
+        write("ego_poses", map_poses_to_world(_read_file(lake, path), map_xy, t0), agent, name)
     for path, agent, name in _partition_files(lake, "raw", "gnss", clip_id):
         write("gnss", gnss_to_local(_read_file(lake, path), frame, t0), agent, name)
 

@@ -144,6 +144,36 @@ def ins_to_ego_poses(ins: pa.Table, frame: LocalFrame, t0_abs: int) -> pa.Table:
     return _order(columns_to_table(EgoPoseRow, _complete(EgoPoseRow, cols, n)), ins)
 
 
+def map_origin(poses: pa.Table, reference_agent: str) -> tuple[float, float, str]:
+    """x0, y0 of the reference agent's first pose in a local map (another agent's if it has
+    none): the clean world of a clip whose poses have no geodetic reference is the map
+    shifted in the xy-plane to that point (CATS-V2V A.3), z kept."""
+    if poses.num_rows == 0:
+        raise ValueError("no pose rows")
+    agents = (poses.column("agent_id").to_pylist() if "agent_id" in poses.column_names
+              else [reference_agent] * poses.num_rows)
+    t = poses.column("t_ns").to_numpy()
+    mask = np.array([a == reference_agent for a in agents])
+    used = reference_agent
+    if not mask.any():
+        mask = np.ones(len(t), bool)
+        used = str(agents[int(np.argmin(t))])
+    i = np.flatnonzero(mask)[int(np.argmin(t[mask]))]
+    return float(poses.column("x")[i].as_py()), float(poses.column("y")[i].as_py()), used
+
+
+def map_poses_to_world(poses: pa.Table, origin_xy: tuple[float, float], t0_abs: int
+                       ) -> pa.Table:
+    """Raw ``ego_poses`` in a local map (absolute time) -> clean ``ego_poses``: relative time,
+    xy shifted to the clip origin; orientation, z and velocities are unchanged."""
+    out = shift_times(poses, "ego_poses", t0_abs)
+    for c, o in zip(("x", "y"), origin_xy, strict=True):
+        i = out.column_names.index(c)
+        out = out.set_column(i, out.schema.field(c), pc.subtract(out.column(c),
+                                                                 pa.scalar(float(o))))
+    return out
+
+
 def gnss_to_local(gnss: pa.Table, frame: LocalFrame | None, t0_abs: int) -> pa.Table:
     """Raw ``gnss`` -> clean: the fix as local x/y/z, lat/lon/alt null, relative time.
 

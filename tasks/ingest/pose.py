@@ -35,10 +35,13 @@ from v2xlake.schemas.clip import (
     Datum,
     DatumKind,
     FixedPose,
+    Heading,
     InsFields,
     InsPose,
     NoPose,
     OdometryPose,
+    PitchSign,
+    RollSign,
     SplitPose,
     TfPose,
     Vec3Paths,
@@ -49,7 +52,6 @@ from v2xlake.tasks.geodesy import (
     R_ecef_enu,
     attitude_to_matrix,
     ecef_to_geodetic,
-    enu_euler_to_matrix,
     geodetic_to_ecef,
     matrix_to_attitude,
     ned_to_enu_attitude,
@@ -140,12 +142,16 @@ def angle_scale(unit: AngleUnit) -> float:
     return math.pi / 180.0 if unit is AngleUnit.DEG else 1.0
 
 
-def euler_to_enu(roll: np.ndarray, pitch: np.ndarray, heading: np.ndarray,
-                 convention: AttitudeConvention) -> np.ndarray:
-    """Euler angles (radians) in ``convention`` -> ``R_enu_body`` (body x fwd, y left, z up)."""
-    if convention is AttitudeConvention.NED:
-        return attitude_to_matrix(roll, pitch, heading)
-    return enu_euler_to_matrix(roll, pitch, heading)
+def euler_to_enu(roll: np.ndarray, pitch: np.ndarray, heading: np.ndarray, conv: Any
+                 ) -> np.ndarray:
+    """Euler angles as the source gives them (``conv``: a pose block's angle_unit, heading,
+    pitch, roll) -> ``R_enu_body`` (body x forward, y left, z up)."""
+    k = angle_scale(conv.angle_unit)
+    h = np.asarray(heading, float) * k
+    az = h if conv.heading is Heading.NORTH_CW else np.pi / 2 - h
+    up = np.asarray(pitch, float) * k * (1.0 if conv.pitch is PitchSign.NOSE_UP else -1.0)
+    rd = np.asarray(roll, float) * k * (1.0 if conv.roll is RollSign.RIGHT_DOWN else -1.0)
+    return attitude_to_matrix(rd, up, az)
 
 
 def quat_to_enu(q_xyzw: np.ndarray, convention: AttitudeConvention) -> np.ndarray:
@@ -464,7 +470,7 @@ def _ins_fields_by_name(msg: Any) -> InsFields:
         if hit is None:
             raise PoseError(f"INS message {type(msg).__name__} has none of the fields "
                             f"{list(names)} (needed for {col!r}); map the fields in the "
-                            "agent's pose block (pose: {source: ins, fields: ...})")
+                            "agent's pose block (pose: {kind: ins, fields: ...})")
         found[col] = hit
     vel = [next((n for n in names if hasattr(msg, n)), None) for names in VEL_ALIASES]
     if all(vel):
@@ -557,10 +563,9 @@ def _finite_rows(name: str, t: np.ndarray, *arrays: np.ndarray
 
 def build_ins(p: InsPose, s: Samples, T_body_ego: np.ndarray) -> Track:
     """Vendor INS: geodetic position, Euler attitude (``p.attitude`` convention), velocity."""
-    k = angle_scale(p.angle_unit)
     kl = 180.0 / math.pi if p.latlon_unit is AngleUnit.RAD else 1.0
     lat, lon, h = (s.array(c) for c in ("latitude", "longitude", "height"))
-    att = np.stack([s.array(c) * k for c in ("roll", "pitch", "heading")], 1)
+    att = np.stack([s.array(c) for c in ("roll", "pitch", "heading")], 1)
     has_v = "v0" in s.cols
     v = np.stack([s.array(c) for c in ("v0", "v1", "v2")], 1) if has_v else np.zeros((len(
         s.t), 3))
@@ -568,7 +573,7 @@ def build_ins(p: InsPose, s: Samples, T_body_ego: np.ndarray) -> Track:
     t, (lat, lon, h, att, v, status) = _finite_rows(p.sensor, *sorted_unique(
         s.t_ns, lat * kl, lon * kl, h, att, v, status))
     pe, r_e = geodetic_frame(lat, lon, h)
-    R_body = r_e @ euler_to_enu(att[:, 0], att[:, 1], att[:, 2], p.attitude)
+    R_body = r_e @ euler_to_enu(att[:, 0], att[:, 1], att[:, 2], p)
     pos, R = apply_lever(pe, R_body, T_body_ego)
     vel = (velocity_to_frame(v, p.velocity_frame, r_e, R_body) if has_v
            else differentiate(t, pos))
@@ -618,14 +623,13 @@ def build_split(p: SplitPose, pos: Samples, att: Samples, vel: Samples | None,
         q = np.stack([att.array(c) for c in ("qx", "qy", "qz", "qw")], 1)
         ta, (q,) = _finite_rows(p.attitude, *sorted_unique(att.t_ns, q))
         try:
-            r_enu_att = quat_to_enu(q, p.attitude_convention)
+            r_enu_att = quat_to_enu(q, p.quaternion_frame)
         except PoseError as e:
             raise PoseError(str(e), p.attitude) from e
     else:
-        k = angle_scale(p.angle_unit)
-        eul = np.stack([att.array(c) * k for c in ("roll", "pitch", "heading")], 1)
+        eul = np.stack([att.array(c) for c in ("roll", "pitch", "heading")], 1)
         ta, (eul,) = _finite_rows(p.attitude, *sorted_unique(att.t_ns, eul))
-        r_enu_att = euler_to_enu(eul[:, 0], eul[:, 1], eul[:, 2], p.attitude_convention)
+        r_enu_att = euler_to_enu(eul[:, 0], eul[:, 1], eul[:, 2], p)
     t_q = ta if p.sample_at == "attitude" else tp
     ki, al, ok_p = resample_indices(tp, t_q, gap)
     _, _, ok_a = resample_indices(ta, t_q, gap)
@@ -728,22 +732,21 @@ def _tf_chain(edges: dict[tuple[str, str], Samples], parent: str, child: str,
 
 
 def build_fixed(p: FixedPose, t_span: tuple[int, int]) -> Track:
-    """A constant pose at the two ends of the agent's recording (interpolation between two
-    equal samples is exact everywhere in between)."""
+    """A constant pose sampled at ``rate_hz`` over the agent's recording, both ends included
+    (interpolation between equal samples is exact everywhere in between)."""
     t0, t1 = t_span
-    if t1 <= t0:
-        t1 = t0 + 1
-    t = np.array([t0, t1], np.int64)
+    step = max(int(1e9 / p.rate_hz), 1)
+    t = np.append(np.arange(t0, t1, step, dtype=np.int64), np.int64(max(t1, t0 + 1)))
+    n = len(t)
     if p.local is not None:
         M = p.local.matrix()
-        pos, R = np.repeat(M[None, :3, 3], 2, 0), np.repeat(M[None, :3, :3], 2, 0)
-        return Track("map", t, pos, R, np.zeros((2, 3)), np.full(2, STATUS_UNKNOWN, np.int64))
+        pos, R = np.repeat(M[None, :3, 3], n, 0), np.repeat(M[None, :3, :3], n, 0)
+        return Track("map", t, pos, R, np.zeros((n, 3)), np.full(n, STATUS_UNKNOWN, np.int64))
     g = p.geodetic
     assert g is not None
-    k = angle_scale(p.angle_unit)
+    a = p.attitude
     pe, r_e = geodetic_frame(np.array([g.latitude]), np.array([g.longitude]),
                              np.array([g.height]))
-    R = r_e @ euler_to_enu(np.array([p.roll * k]), np.array([p.pitch * k]),
-                           np.array([p.heading * k]), p.attitude)
-    return Track("ecef", t, np.repeat(pe, 2, 0), np.repeat(R, 2, 0), np.zeros((2, 3)),
-                 np.full(2, STATUS_UNKNOWN, np.int64))
+    R = r_e @ euler_to_enu(np.array([a.roll]), np.array([a.pitch]), np.array([a.heading]), p)
+    return Track("ecef", t, np.repeat(pe, n, 0), np.repeat(R, n, 0), np.zeros((n, 3)),
+                 np.full(n, STATUS_UNKNOWN, np.int64))

@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
@@ -34,7 +35,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from v2xlake.schemas.arrow import arrow_schema, columns_to_table
-from v2xlake.schemas.clip import AgentConfig, ClipConfig, Modality, SensorConfig
+from v2xlake.schemas.clip import ID_PATTERN, AgentConfig, ClipConfig, Modality, SensorConfig
 from v2xlake.schemas.errors import ClipError, DeliveryConflict
 from v2xlake.schemas.geometry import Transform
 from v2xlake.schemas.stage import OutputFile, StageReport
@@ -131,13 +132,91 @@ def load_clip_config(clip_dir: Path) -> ClipConfig:
     if not path.is_file():
         raise ClipError(clip_dir.name, "clip folder has no clip.yaml", path=str(path), stage=STAGE)
     try:
-        return ClipConfig.load(clip_dir)
+        data = yaml.safe_load(path.read_text())
     except (yaml.YAMLError, OSError, UnicodeDecodeError) as e:
         raise ClipError(clip_dir.name, f"clip.yaml is not readable YAML: {e}", path=str(path),
                         stage=STAGE) from e
-    except (ValidationError, ValueError) as e:
+    try:
+        return ClipConfig.model_validate(data)
+    except ValidationError as e:
+        cid, agent, reason = explain_invalid(data, e)
+        raise ClipError(cid or clip_dir.name, f"invalid clip.yaml: {reason}", agent_id=agent,
+                        path=str(path), stage=STAGE) from e
+    except ValueError as e:
         raise ClipError(clip_dir.name, f"invalid clip.yaml: {e}", path=str(path),
                         stage=STAGE) from e
+
+
+def explain_invalid(data: Any, e: ValidationError) -> tuple[str | None, str | None, str]:
+    """(clip id, agent id, reason) of a clip.yaml that does not validate: each problem with
+    its place written as keys (``agents[red].sensors[LIDAR_TOP].extrinsics``), an unknown
+    key named with the closest known one."""
+    import difflib
+
+    cid = data.get("clip_id") if isinstance(data, dict) else None
+    cid = cid if isinstance(cid, str) and re.fullmatch(ID_PATTERN, cid) else None
+    agents: set[str] = set()
+    parts = []
+    for err in e.errors():
+        loc, node, where = err["loc"], data, []
+        for i, key in enumerate(loc):
+            if isinstance(key, int) and isinstance(node, list) and key < len(node):
+                node = node[key]
+                named = node.get("agent_id") or node.get("name") if isinstance(node, dict) \
+                    else None
+                where.append(f"[{named}]" if isinstance(named, str) else f"[{key}]")
+                if i > 0 and loc[i - 1] == "agents" and isinstance(named, str):
+                    agents.add(named)
+            elif isinstance(node, dict) and key in node:
+                node = node[key]
+                where.append(f".{key}")
+            elif err["type"] != "extra_forbidden" or i < len(loc) - 1:
+                continue  # a union member's tag (pose kinds): not a key of the file
+            else:
+                where.append(f".{key}")
+        place = "".join(where).lstrip(".") or "(top level)"
+        if err["type"] == "extra_forbidden":
+            key = str(loc[-1])
+            known = _known_keys(loc, data)
+            near = difflib.get_close_matches(key, known, n=1)
+            hint = f" (did you mean {near[0]!r}?)" if near else (
+                f" (known keys: {', '.join(sorted(known))})" if known else "")
+            parts.append(f"{place}: unknown key {key!r}{hint}")
+        else:
+            parts.append(f"{place}: {err['msg']}")
+    agent = next(iter(agents)) if len(agents) == 1 else None
+    return cid, agent, "; ".join(parts)
+
+
+def _known_keys(loc: tuple[Any, ...], data: Any) -> list[str]:
+    """The keys the model at ``loc[:-1]`` accepts (for a 'did you mean')."""
+    from v2xlake.schemas import clip as clipschema
+
+    model: Any = ClipConfig
+    for key in loc[:-1]:
+        if isinstance(key, int) or model is None:
+            continue
+        fields = getattr(model, "model_fields", {})
+        if key in fields:
+            model = _model_of(fields[key].annotation)
+        else:  # a union tag, e.g. the pose kind 'odometry'
+            model = next((m for m in vars(clipschema).values() if isinstance(m, type)
+                          and issubclass(m, BaseModel) and "kind" in m.model_fields
+                          and m.model_fields["kind"].default == key), None)
+    return list(getattr(model, "model_fields", {}))
+
+
+def _model_of(annotation: Any) -> Any:
+    """The pydantic model inside ``X | None`` / ``list[X]`` (None for plain values)."""
+    import typing
+
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in typing.get_args(annotation):
+        m = _model_of(arg)
+        if m is not None:
+            return m
+    return None
 
 
 def bag_files(bag: Path) -> list[Path]:
@@ -405,7 +484,7 @@ class _AgentIngest:
     def _first(self, s: SensorConfig, msg: Any) -> int:
         idx = self.counts[s.name]
         self.counts[s.name] = idx + 1
-        if idx == 0:
+        if idx == 0 and (s.frame_id or hasattr(msg, "header")):
             self.frame_ids[s.name] = s.frame_id or str(msg.header.frame_id)
         return idx
 
@@ -545,10 +624,10 @@ class _AgentIngest:
         try:
             track = self.pose.build(self._static, span)
         except PoseError as e:
-            raise self.err(f"pose ({self.pose.pose.source}): {e}",
+            raise self.err(f"pose ({self.pose.pose.kind}): {e}",
                            topic=self._topic_of(e.sensor)) from e
         except ValueError as e:
-            raise self.err(f"pose ({self.pose.pose.source}): {e}") from e
+            raise self.err(f"pose ({self.pose.pose.kind}): {e}") from e
         if track is not None:
             self.res.pose_frame = track.frame
             self.res.stamp(int(track.t_ns[0]), int(track.t_ns[-1]))
@@ -770,7 +849,7 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
                 resolve(d, agent.bag), typestore)
             if not results[agent.agent_id].has_ins:
                 notes.append(f"agent {agent.agent_id}: no pose (pose source "
-                             f"{agent.effective_pose.source!r}): deskew/registration impossible")
+                             f"{agent.effective_pose.kind!r}): deskew/registration impossible")
         check_agents(cfg, results, config)
         if cfg.annotations:
             path = resolve(d, cfg.annotations)
@@ -785,7 +864,7 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
             a = cfg.agent(aid)
             staging.write_table("raw", "agents", table_of(AgentRow, [AgentRow(
                 clip_id=cid, agent_id=aid, kind=a.kind.value, role=a.role.value,
-                has_ins=r.has_ins, pose_source=a.effective_pose.source,
+                has_ins=r.has_ins, pose_source=a.effective_pose.kind,
                 pose_frame={"ecef": "wgs84", "map": "map"}.get(r.pose_frame or ""))]),
                 clip_id=cid, agent_id=aid)
         tmins = [r.t_min for r in results.values() if r.t_min is not None]

@@ -1,20 +1,28 @@
-"""QA stage: sync and completeness checks against the PPS model (DESIGN.md stage 2).
+"""QA stage: timing and completeness checks against each sensor's declared model (DESIGN.md
+stage 2).
 
-Hardware sync means every stamp is predictable: LiDAR scans start on the 100 ms grid, camera
-frames at ``sec + round(k * 1e9 / 30)``, INS samples every 8 ms from the PPS edge. A stamp off
-its grid, a missing frame, a scan whose per-point times do not span one revolution, or LiDAR
-time not bracketed by INS samples each break a later stage (deskew, registration, temporal
-alignment) in a way that is hard to see there, so they are caught here, on the raw zone, with
-the value, the threshold and the place (agent, sensor, topic, time span) in every row.
+Nothing here assumes one rig. Every sensor's ``clip.yaml`` entry says its rate and how it is
+timed (``sync``): PPS-locked sensors stamp on a grid ``sec + phase + round(k * 1e9 / rate)``
+(LiDAR scans every 100 ms at 10 Hz, cameras at 20 or 30 Hz, an INS at 100 or 125 Hz) and are
+checked against it; free-running ones are checked for gaps and jitter of their intervals
+instead. A rate that is not declared is measured from the stamps (and the check says so); a
+declared rate the stamps contradict is an error. A stamp off its grid, a missing frame, a
+stamp going back in time (checked in bag order, before anything is sorted), a scan whose
+per-point times do not span its share of a revolution (``scan_fov_deg``), or a LiDAR scan
+not bracketed by the agent's pose track each break a later stage (deskew, registration,
+temporal alignment) in a way that is hard to see there, so they are caught here, on the raw
+zone, with the value, the threshold and the place (agent, sensor, topic, time span) in every
+row. Every threshold is a ``QaConfig`` field, settable per clip in its ``params: qa:``.
 
 Severity: "error" raises ``ClipError`` carrying the checks (the flow quarantines the clip);
-"warning" is recorded only. PPS-grid checks are errors for an agent that has an INS (its GNSS
-receiver supplies the PPS the sensors claim to follow) and warnings for an agent without one
-(a free-running clock, e.g. the real Ouster test capture). An agent with no INS topic
-configured gets the warning "no INS topic configured: deskew/registration impossible"; an
-agent whose INS is configured but silent, or has gaps inside LiDAR scans, fails with an error.
+"warning" is recorded only. A sensor that declares no ``sync`` is PPS-locked when its agent
+has a pose or GNSS source (the receiver supplies the PPS) and grid findings are errors;
+without one (a free-running clock, e.g. the real Ouster test capture) they are warnings. An
+agent without a pose gets the warning "no pose: deskew/registration impossible"; an agent
+whose pose source is configured but silent, or leaves gaps inside LiDAR scans, an error.
 
-The numeric core (``check_*`` functions) works on NumPy arrays; ``run_qa`` does the I/O.
+The numeric core (``check_*`` / offset functions) works on NumPy arrays; ``run_qa`` does the
+I/O.
 """
 
 from __future__ import annotations
@@ -26,7 +34,18 @@ import pyarrow as pa
 from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.arrow import rows_to_table
-from v2xlake.schemas.clip import AgentConfig, ClipConfig, Modality, SensorConfig
+from v2xlake.schemas.clip import (
+    AgentConfig,
+    ClipConfig,
+    FixedPose,
+    InsPose,
+    Modality,
+    NoPose,
+    OdometryPose,
+    SensorConfig,
+    SplitPose,
+    SyncMode,
+)
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import QaCheckRow
@@ -35,28 +54,40 @@ from v2xlake.storage.lake import Lake
 STAGE = "qa"
 NS = 1_000_000_000
 MS = 1_000_000
-DEFAULT_RATE_HZ = {Modality.LIDAR: 10.0, Modality.CAMERA: 30.0, Modality.INS: 125.0}
+STATUS_UNKNOWN = -2  # tasks.ingest.pose: the pose source reports no solution status
 
 
 class QaConfig(BaseModel):
-    """Thresholds (hashed into the manifest)."""
+    """Thresholds (hashed into the manifest). Rates and sync models are the sensors' own
+    (``clip.yaml``); these are the tolerances applied to them."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    lidar_grid_ms: float = Field(100.0, description="LiDAR scans start every this many ms")
-    camera_fps: int = Field(30, description="camera frames at sec + round(k * 1e9 / fps)")
-    ins_grid_ms: float = Field(8.0, description="INS samples every this many ms")
-    lidar_tolerance_ms: float = Field(1.0, gt=0)
-    camera_tolerance_ms: float = Field(1.0, gt=0)
-    ins_tolerance_ms: float = Field(0.5, gt=0)
+    lidar_tolerance_ms: float = Field(1.0, gt=0, description="PPS grid tolerance, LiDAR")
+    camera_tolerance_ms: float = Field(1.0, gt=0, description="PPS grid tolerance, cameras")
+    ins_tolerance_ms: float = Field(0.5, gt=0, description="PPS grid tolerance, pose sources")
+    imu_tolerance_ms: float = Field(0.5, gt=0, description="PPS grid tolerance, IMUs")
+    gnss_tolerance_ms: float = Field(1.0, gt=0, description="PPS grid tolerance, GNSS fixes")
+    radar_tolerance_ms: float = Field(1.0, gt=0, description="PPS grid tolerance, radars")
+    free_jitter_fraction: float = Field(
+        0.25, gt=0, description="free-running sensors: largest deviation of an interval from "
+        "a whole number of periods, as a fraction of the period (unless its sync gives "
+        "tolerance_ms)")
+    rate_mismatch_fraction: float = Field(
+        0.1, gt=0, description="a declared rate_hz further than this (relative) from the "
+        "measured median rate is an error")
     max_dropped_fraction: float = Field(0.05, ge=0, description="above: error, else warning")
-    scan_span_min: float = Field(0.5, description="min scan time span / scan period")
-    scan_span_max: float = Field(1.05, description="max scan time span / scan period")
+    scan_span_min: float = Field(0.5, description="min scan time span / expected span "
+                                 "(period x scan_fov_deg / 360)")
+    scan_span_max: float = Field(1.05, description="max scan time span / expected span")
     min_rtk_fixed_fraction: float = Field(0.9, ge=0, le=1)
     rtk_fixed_status: int = 2
-    ins_max_gap_ms: float = Field(20.0, gt=0, description="largest INS gap inside a scan")
+    ins_max_gap_ms: float = Field(20.0, gt=0, description="largest pose gap inside a scan "
+                                  "(at least pose_gap_periods of the pose source's period)")
+    pose_gap_periods: float = Field(2.5, gt=1, description="a pose gap longer than this many "
+                                    "periods of its source leaves a scan uncovered")
     ins_edge_scans: int = Field(1, ge=0, description=(
-        "scans at each end of the clip that may reach past the first/last INS sample "
+        "scans at each end of the clip that may reach past the first/last pose sample "
         "(recording boundaries): a warning; more, or any gap inside, is an error"))
 
 
@@ -74,13 +105,42 @@ def grid_offsets_ns(t_ns: np.ndarray, period_ns: int) -> np.ndarray:
     return np.where(r > period_ns // 2, r - period_ns, r)
 
 
-def camera_offsets_ns(t_ns: np.ndarray, fps: int) -> np.ndarray:
-    """Signed distance of each stamp to ``sec + round(k * 1e9 / fps)`` for the nearest k."""
-    sec = np.floor_divide(t_ns, NS)
-    frac = t_ns - sec * NS
-    k = np.rint(frac * fps / NS).astype(np.int64)
-    grid = np.rint(k * (NS / fps)).astype(np.int64)  # k == fps lands on the next second
+def pps_offsets_ns(t_ns: np.ndarray, rate_hz: float, phase_ns: int = 0) -> np.ndarray:
+    """Signed distance of each stamp to ``sec + phase + round(k * 1e9 / rate)`` for the
+    nearest k: the grid of a sensor triggered from every PPS edge (at 30 Hz the grid restarts
+    each second, so k * 33.333 ms is rounded per frame, never accumulated)."""
+    t = np.asarray(t_ns, np.int64) - int(phase_ns)
+    if rate_hz < 1.0:  # slower than the PPS: every period_ns from the epoch
+        return grid_offsets_ns(t, round(NS / rate_hz))
+    sec = np.floor_divide(t, NS)
+    frac = t - sec * NS
+    k = np.rint(frac * rate_hz / NS).astype(np.int64)
+    grid = np.rint(k * (NS / rate_hz)).astype(np.int64)  # k == rate lands on the next second
     return frac - grid
+
+
+def camera_offsets_ns(t_ns: np.ndarray, fps: float) -> np.ndarray:
+    """``pps_offsets_ns`` at ``fps`` with no phase (the CATS-V2V camera trigger)."""
+    return pps_offsets_ns(t_ns, fps)
+
+
+def interval_jitter_ns(t_ns: np.ndarray, period_ns: float) -> np.ndarray:
+    """Deviation of each interval from the nearest whole number (>= 1) of periods: the
+    jitter of a free-running sensor, with dropped frames not counted as jitter."""
+    if t_ns.size < 2:
+        return np.zeros(0)
+    dt = np.diff(t_ns).astype(np.float64)
+    n = np.maximum(np.rint(dt / period_ns), 1.0)
+    return dt - n * period_ns
+
+
+def measured_rate_hz(t_ns: np.ndarray) -> float | None:
+    """The rate the stamps show: 1 / median positive interval (None: fewer than 2 stamps)."""
+    if t_ns.size < 2:
+        return None
+    dt = np.diff(np.sort(t_ns))
+    dt = dt[dt > 0]
+    return float(NS / np.median(dt)) if dt.size else None
 
 
 def dropped_frames(t_ns: np.ndarray, period_ns: float) -> tuple[int, list[tuple[int, int]]]:
@@ -95,7 +155,7 @@ def dropped_frames(t_ns: np.ndarray, period_ns: float) -> tuple[int, list[tuple[
 
 def ins_uncovered(ins_t: np.ndarray, t_start: np.ndarray, t_end: np.ndarray,
                   max_gap_ns: int) -> np.ndarray:
-    """Boolean per scan: True when INS samples do not bracket [t_start, t_end] densely
+    """Boolean per scan: True when pose samples do not bracket [t_start, t_end] densely
     (a sample at or before the start, one at or after the end, no gap above ``max_gap_ns``
     in between), i.e. deskew could not interpolate a pose for every point."""
     bad = np.ones(t_start.size, dtype=bool)
@@ -105,7 +165,6 @@ def ins_uncovered(ins_t: np.ndarray, t_start: np.ndarray, t_end: np.ndarray,
     hi = np.searchsorted(ins_t, t_end, side="left")
     ok = (lo >= 0) & (hi < ins_t.size)
     gaps = np.diff(ins_t)
-    # largest gap between samples lo..hi (gaps index lo..hi-1); prefix trick via reduceat
     for i in np.flatnonzero(ok):
         a, b = int(lo[i]), int(hi[i])
         bad[i] = b > a and bool(gaps[a:b].max() > max_gap_ns)
@@ -125,17 +184,27 @@ def spans(mask: np.ndarray, t_start: np.ndarray, t_end: np.ndarray) -> list[tupl
 
 
 # --------------------------------------------------------------------------- checks
+def pose_time_base(agent: AgentConfig) -> SensorConfig | None:
+    """The sensor whose stamps the agent's pose track has (None: derived or fixed times)."""
+    p = agent.effective_pose
+    if isinstance(p, InsPose | OdometryPose):
+        return agent.sensor(p.sensor)
+    if isinstance(p, SplitPose):
+        return agent.sensor(p.attitude if p.sample_at == "attitude" else p.position)
+    return None
+
+
 class _Qa:
     def __init__(self, lake: Lake, cfg: ClipConfig, config: QaConfig) -> None:
         self.lake, self.cfg, self.c = lake, cfg, config
         self.cid = cfg.clip_id
         self.rows: list[QaCheckRow] = []
-        t = {name: lake.read_table("raw", name, clip_id=self.cid)
-             for name in ("sensors", "lidar_frames", "camera_frames", "ins", "agents")}
-        self.t = t
+        self.t = {name: lake.read_table("raw", name, clip_id=self.cid) for name in (
+            "sensors", "lidar_frames", "camera_frames", "ins", "ego_poses", "imu", "gnss",
+            "radar_frames", "agents")}
         starts = [int(np.min(c)) for c in (
-            _col(t["lidar_frames"], "t_start_ns"), _col(t["camera_frames"], "stamp_ns"),
-            _col(t["ins"], "t_ns")) if c.size]
+            _col(self.t["lidar_frames"], "t_start_ns"), _col(self.t["camera_frames"], "stamp_ns"),
+            _col(self.t["ins"], "t_ns"), _col(self.t["ego_poses"], "t_ns")) if c.size]
         self.t0 = min(starts) if starts else 0
 
     def rel(self, t: int) -> str:
@@ -147,154 +216,227 @@ class _Qa:
     def add(self, *a: object, **k: object) -> None:
         self.rows.append(_row(self.cid, *a, **k))  # type: ignore[arg-type]
 
-    def frames(self, table: str, agent: str, sensor: str, col: str) -> pa.Table:
+    def _of(self, table: str, agent: str, sensor: str | None = None) -> pa.Table:
+        """Rows of one agent (and sensor), in the order ingest wrote them (bag order)."""
         t = self.t[table]
         if t.num_rows == 0:
             return t
-        m = np.asarray(t.column("agent_id").to_numpy(zero_copy_only=False) == agent) & \
-            np.asarray(t.column("sensor").to_numpy(zero_copy_only=False) == sensor)
-        return t.filter(pa.array(m)).sort_by(col)
+        m = np.asarray(t.column("agent_id").to_numpy(zero_copy_only=False) == agent)
+        if sensor is not None and "sensor" in t.column_names:
+            m &= np.asarray(t.column("sensor").to_numpy(zero_copy_only=False) == sensor)
+        return t.filter(pa.array(m))
+
+    def frames(self, table: str, agent: str, sensor: str, col: str) -> pa.Table:
+        f = self._of(table, agent, sensor)
+        return f.sort_by(col) if f.num_rows else f
+
+    def pose_times(self, aid: str) -> np.ndarray:
+        """The agent's pose track stamps (raw ``ins`` or, in a local map, ``ego_poses``)."""
+        for table in ("ins", "ego_poses"):
+            t = _col(self._of(table, aid), "t_ns")
+            if t.size:
+                return t
+        return np.zeros(0, np.int64)
+
+    def stamps(self, agent: AgentConfig, s: SensorConfig) -> np.ndarray | None:
+        """The sensor's stamps in bag order, where a table holds them per sensor."""
+        aid = agent.agent_id
+        if s.modality is Modality.LIDAR:
+            return _col(self.frames("lidar_frames", aid, s.name, "frame_idx"), "stamp_ns")
+        if s.modality is Modality.CAMERA:
+            return _col(self.frames("camera_frames", aid, s.name, "frame_idx"), "stamp_ns")
+        if s.modality is Modality.RADAR:
+            return _col(self.frames("radar_frames", aid, s.name, "frame_idx"), "stamp_ns")
+        if s.modality is Modality.IMU:
+            return _col(self._of("imu", aid, s.name), "t_ns")
+        if s.modality is Modality.GNSS and len(agent.sensors_of(Modality.GNSS)) == 1:
+            return _col(self._of("gnss", aid), "t_ns")
+        base = pose_time_base(agent)
+        if base is not None and base.name == s.name:
+            return self.pose_times(aid)
+        return None
 
     def run(self) -> list[QaCheckRow]:
-        counts = {(r["agent_id"], r["sensor"]): r["n_messages"]
-                  for r in self.t["sensors"].to_pylist()}
+        info = {(r["agent_id"], r["sensor"]): r for r in self.t["sensors"].to_pylist()}
         for agent in self.cfg.agents:
-            has_ins = bool(agent.sensors_of(Modality.INS)) or (
-                agent.pose is not None and agent.pose.kind != "none")
+            pps = (not isinstance(agent.effective_pose, NoPose)
+                   or bool(agent.sensors_of(Modality.GNSS)))
             for s in agent.sensors:
-                n = counts.get((agent.agent_id, s.name), 0)
+                row = info.get((agent.agent_id, s.name), {})
+                n = int(row.get("n_messages") or 0)
                 self.add("messages_present", n > 0, "error",
                          f"{n} messages on {s.topic}" if n else f"no message on {s.topic}",
                          agent=agent.agent_id, sensor=s.name, value=float(n), threshold=1.0)
                 if not n:
                     continue
+                self.order(agent, s, int(row.get("n_backwards") or 0),
+                           int(row.get("n_duplicates") or 0), n)
+                t = self.stamps(agent, s)
+                if t is not None and t.size:
+                    self.timing(agent, s, t, pps)
                 if s.modality is Modality.LIDAR:
-                    self.lidar(agent, s, has_ins)
-                elif s.modality is Modality.CAMERA:
-                    self.camera(agent, s, has_ins)
-            self.ins(agent)
+                    self.lidar(agent, s)
+            self.pose(agent)
         return self.rows
 
-    def rate(self, s: SensorConfig) -> float:
-        return float(s.rate_hz or DEFAULT_RATE_HZ[s.modality])
+    def order(self, agent: AgentConfig, s: SensorConfig, n_back: int, n_dup: int,
+              n: int) -> None:
+        """Time order as the bag delivered it (counted at ingest, before any sorting)."""
+        aid = agent.agent_id
+        self.add("stamps_increasing", n_back == 0, "error",
+                 f"{n_back} of {n} header stamps on {s.topic} go back in time (bag order)"
+                 if n_back else f"header stamps on {s.topic} increase",
+                 agent=aid, sensor=s.name, value=float(n_back), threshold=0.0)
+        if n_dup:
+            dropped = s.modality in (Modality.INS, Modality.IMU, Modality.GNSS)
+            self.add("duplicate_messages", False, "warning",
+                     f"{n_dup} message(s) on {s.topic} repeat an earlier stamp"
+                     + (" (dropped at ingest)" if dropped else ""),
+                     agent=aid, sensor=s.name, value=float(n_dup), threshold=0.0)
 
-    def grid_check(self, name: str, agent: AgentConfig, s: SensorConfig, t: np.ndarray,
-                   off: np.ndarray, tol_ms: float, has_pps: bool, what: str) -> None:
-        worst = float(np.abs(off).max()) / MS
-        n_bad = int(np.count_nonzero(np.abs(off) > tol_ms * MS))
-        sev = "error" if has_pps else "warning"
-        why = "" if has_pps else " (agent has no INS/PPS source: free-running clock, warning only)"
-        i = int(np.argmax(np.abs(off)))
-        self.add(name, n_bad == 0, sev,
-                 f"{n_bad}/{t.size} stamps of {s.topic} off the {what} by more than {tol_ms} ms; "
-                 f"worst {worst:.3f} ms at {self.rel(int(t[i]))}{why}",
-                 agent=agent.agent_id, sensor=s.name, value=worst, threshold=tol_ms)
+    def tolerance_ms(self, s: SensorConfig) -> float:
+        if s.sync is not None and s.sync.tolerance_ms is not None:
+            return s.sync.tolerance_ms
+        return {Modality.LIDAR: self.c.lidar_tolerance_ms,
+                Modality.CAMERA: self.c.camera_tolerance_ms,
+                Modality.INS: self.c.ins_tolerance_ms, Modality.IMU: self.c.imu_tolerance_ms,
+                Modality.GNSS: self.c.gnss_tolerance_ms,
+                Modality.RADAR: self.c.radar_tolerance_ms}[s.modality]
 
-    def drop_check(self, agent: AgentConfig, s: SensorConfig, t: np.ndarray) -> None:
-        period = NS / self.rate(s)
-        n_drop, gaps = dropped_frames(t, period)
+    def rate(self, agent: AgentConfig, s: SensorConfig, t: np.ndarray) -> float | None:
+        """The sensor's rate: declared (and checked against the stamps) or measured."""
+        aid = agent.agent_id
+        got = measured_rate_hz(t)
+        if s.rate_hz is None:
+            if got is None:
+                return None
+            rate = float(round(got)) if got >= 1.5 else got
+            self.add("rate", True, "warning",
+                     f"{s.topic} declares no rate_hz: measured {got:.3f} Hz, checked as "
+                     f"{rate:g} Hz", agent=aid, sensor=s.name, value=got)
+            return rate
+        if got is not None:
+            off = abs(got / s.rate_hz - 1.0)
+            self.add("rate", off <= self.c.rate_mismatch_fraction, "error",
+                     f"{s.topic}: declared {s.rate_hz:g} Hz, stamps show {got:.3f} Hz",
+                     agent=aid, sensor=s.name, value=got, threshold=s.rate_hz)
+        return float(s.rate_hz)
+
+    def timing(self, agent: AgentConfig, s: SensorConfig, t: np.ndarray, pps: bool) -> None:
+        aid = agent.agent_id
+        rate = self.rate(agent, s, t)
+        if rate is None:
+            return
+        period = NS / rate
+        ts = np.sort(t)  # order was checked above, in bag order
+        mode = s.sync.mode if s.sync is not None else SyncMode.PPS
+        tol_ms = self.tolerance_ms(s)
+        if mode is SyncMode.PPS:
+            phase = round((s.sync.phase_ms if s.sync else 0.0) * MS)
+            off = pps_offsets_ns(ts, rate, phase)
+            locked = s.sync is not None or pps
+            worst = float(np.abs(off).max()) / MS
+            n_bad = int(np.count_nonzero(np.abs(off) > tol_ms * MS))
+            i = int(np.argmax(np.abs(off)))
+            why = "" if locked else (" (agent has no pose/GNSS source and the sensor declares "
+                                     "no sync: free-running clock, warning only)")
+            grid = (f"PPS + {s.sync.phase_ms:g} ms + k x {1000 / rate:.3f} ms grid"
+                    if s.sync and s.sync.phase_ms else f"PPS + k x {1000 / rate:.3f} ms grid")
+            self.add(f"pps_{s.modality.value}", n_bad == 0, "error" if locked else "warning",
+                     f"{n_bad}/{ts.size} stamps of {s.topic} off the {grid} by more than "
+                     f"{tol_ms:g} ms; worst {worst:.3f} ms at {self.rel(int(ts[i]))}{why}",
+                     agent=aid, sensor=s.name, value=worst, threshold=tol_ms)
+        else:
+            tol = (s.sync.tolerance_ms if s.sync and s.sync.tolerance_ms
+                   else self.c.free_jitter_fraction * period / MS)
+            jit = interval_jitter_ns(ts, period)
+            worst = float(np.abs(jit).max()) / MS if jit.size else 0.0
+            n_bad = int(np.count_nonzero(np.abs(jit) > tol * MS))
+            self.add("jitter", n_bad == 0, "error",
+                     f"free-running {s.topic} at {rate:g} Hz: {n_bad} of {jit.size} intervals "
+                     f"deviate from whole periods by more than {tol:.3f} ms; worst "
+                     f"{worst:.3f} ms", agent=aid, sensor=s.name, value=worst, threshold=tol)
+        self.drop_check(agent, s, ts, rate)
+
+    def drop_check(self, agent: AgentConfig, s: SensorConfig, t: np.ndarray,
+                   rate: float) -> None:
+        n_drop, gaps = dropped_frames(t, NS / rate)
         expected = t.size + n_drop
         frac = n_drop / expected if expected else 0.0
         sev = "error" if frac > self.c.max_dropped_fraction else "warning"
         where = ", ".join(self.span_txt(a, b) for a, b in gaps[:5]) + (" ..." if len(gaps) > 5
                                                                       else "")
         self.add("dropped_frames", n_drop == 0, sev,
-                 f"{n_drop} of {expected} expected frames at {self.rate(s):g} Hz missing on "
+                 f"{n_drop} of {expected} expected frames at {rate:g} Hz missing on "
                  f"{s.topic}" + (f": gaps {where}" if gaps else ""),
                  agent=agent.agent_id, sensor=s.name, value=frac,
                  threshold=self.c.max_dropped_fraction)
-        nonmono = int(np.count_nonzero(np.diff(t) <= 0)) if t.size > 1 else 0
-        if nonmono:
-            self.add("stamps_increasing", False, "error",
-                     f"{nonmono} non-increasing header stamps on {s.topic}",
-                     agent=agent.agent_id, sensor=s.name, value=float(nonmono), threshold=0.0)
 
-    def lidar(self, agent: AgentConfig, s: SensorConfig, has_ins: bool) -> None:
+    def lidar(self, agent: AgentConfig, s: SensorConfig) -> None:
         f = self.frames("lidar_frames", agent.agent_id, s.name, "frame_idx")
-        stamp = _col(f, "stamp_ns")
-        self.grid_check("pps_lidar", agent, s, stamp,
-                        grid_offsets_ns(stamp, int(self.c.lidar_grid_ms * MS)),
-                        self.c.lidar_tolerance_ms, has_ins, f"{self.c.lidar_grid_ms:g} ms grid")
-        self.drop_check(agent, s, np.sort(stamp))
         n_pts = _col(f, "n_points")
         empty = np.flatnonzero(n_pts == 0)
         self.add("lidar_empty_frames", empty.size == 0, "warning",
-                 f"{empty.size} frames of {s.topic} without a finite point"
+                 f"{empty.size} frames of {s.topic} without a point with a return"
                  + (f" (frames {empty[:10].tolist()})" if empty.size else ""),
                  agent=agent.agent_id, sensor=s.name, value=float(empty.size), threshold=0.0)
+        rate = s.rate_hz or measured_rate_hz(_col(f, "stamp_ns"))
+        if not rate:
+            return
         ok = n_pts > 0
         span = (_col(f, "t_end_ns") - _col(f, "t_start_ns"))[ok] / MS
-        period = 1000.0 / self.rate(s)
-        lo, hi = self.c.scan_span_min * period, self.c.scan_span_max * period
+        expect = 1000.0 / rate * s.scan_fov_deg / 360.0
+        lo, hi = self.c.scan_span_min * expect, self.c.scan_span_max * expect
         bad = np.flatnonzero((span < lo) | (span > hi))
         med = float(np.median(span)) if span.size else 0.0
+        fov = f", {s.scan_fov_deg:g} deg FOV" if s.scan_fov_deg < 360 else ""
         self.add("scan_time_span", bad.size == 0, "error",
                  f"per-point time span of {s.topic} scans: median {med:.2f} ms, expected "
-                 f"{lo:.1f}..{hi:.1f} ms; {bad.size} scans outside"
+                 f"{lo:.1f}..{hi:.1f} ms (at {rate:g} Hz{fov}); {bad.size} scans outside"
                  + (f" (frames {np.flatnonzero(ok)[bad][:10].tolist()})" if bad.size else ""),
                  agent=agent.agent_id, sensor=s.name, value=med, threshold=hi)
 
-    def camera(self, agent: AgentConfig, s: SensorConfig, has_ins: bool) -> None:
-        f = self.frames("camera_frames", agent.agent_id, s.name, "frame_idx")
-        stamp = _col(f, "stamp_ns")
-        self.grid_check("pps_camera", agent, s, stamp, camera_offsets_ns(stamp, self.c.camera_fps),
-                        self.c.camera_tolerance_ms, has_ins,
-                        f"PPS + k x {1000 / self.c.camera_fps:.3f} ms grid")
-        self.drop_check(agent, s, np.sort(stamp))
-
-    def ins(self, agent: AgentConfig) -> None:
-        """The pose track's timing and coverage. A PPS-locked INS sensor (the simulator's
-        and CATS-V2V's layout) is checked against its grid; a ``pose:`` source (Odometry,
-        NavSatFix + Imu, a vendor INS, a fixed pose) keeps its own rate and is checked for
-        covering every scan."""
+    def pose(self, agent: AgentConfig) -> None:
         aid = agent.agent_id
-        ins_sensors = agent.sensors_of(Modality.INS)
-        pose = agent.pose
-        if (pose is not None and pose.kind == "none") or (pose is None and not ins_sensors):
-            why = "pose: none" if pose is not None else "no INS topic configured"
+        p = agent.effective_pose
+        if isinstance(p, NoPose):
+            why = "pose: none" if agent.pose is not None else "no pose block and no INS topic"
             self.add("ins_coverage", False, "warning",
-                     f"agent {aid}: {why}: deskew/registration impossible", agent=aid)
+                     f"agent {aid}: no pose source ({why} configured): deskew/registration "
+                     "impossible", agent=aid)
             return
-        s = ins_sensors[0] if pose is None else None
-        label = s.name if s is not None else "POSE"
-        topic = s.topic if s is not None else (pose.topic if pose and pose.topic
-                                               else f"pose ({pose.kind if pose else ''})")
-        t = self.t["ins"]
-        ins_t = np.sort(_col(t.filter(pa.array(
-            np.asarray(t.column("agent_id").to_numpy(zero_copy_only=False) == aid)))
-            if t.num_rows else t, "t_ns"))
+        base = pose_time_base(agent)
+        label = base.name if base is not None else None
+        topic = base.topic if base is not None else f"pose ({p.kind})"
+        ins_t = np.unique(self.pose_times(aid))
         if ins_t.size == 0:
-            if s is None:
-                self.add("ins_coverage", False, "error",
-                         f"pose source {topic} of agent {aid} gave no pose", agent=aid,
-                         sensor=label)
-            return  # an INS sensor: messages_present already failed with an error
-        if s is not None:
-            self.grid_check("pps_ins", agent, s, ins_t,
-                            grid_offsets_ns(ins_t, int(self.c.ins_grid_ms * MS)),
-                            self.c.ins_tolerance_ms, True, f"{self.c.ins_grid_ms:g} ms grid")
-            self.drop_check(agent, s, ins_t)
-        if s is not None or (pose is not None and pose.kind == "ins"):
-            rtk = _col(t.filter(pa.array(np.asarray(
-                t.column("agent_id").to_numpy(zero_copy_only=False) == aid))), "rtk_status")
-            fixed = float(np.mean(rtk == self.c.rtk_fixed_status))
+            self.add("ins_coverage", False, "error",
+                     f"pose source {topic} ({p.kind}) of agent {aid} gave no pose",
+                     agent=aid, sensor=label)
+            return
+        t_ins = self._of("ins", aid)
+        status = _col(t_ins if t_ins.num_rows else self._of("ego_poses", aid), "rtk_status")
+        known = status[status != STATUS_UNKNOWN]
+        if known.size:
+            fixed = float(np.mean(known == self.c.rtk_fixed_status))
             self.add("rtk_fixed", fixed >= self.c.min_rtk_fixed_fraction, "warning",
-                     f"{fixed:.1%} of INS samples on {topic} have RTK fixed "
+                     f"{fixed:.1%} of pose samples from {topic} have RTK fixed "
                      f"(status {self.c.rtk_fixed_status})", agent=aid, sensor=label,
                      value=fixed, threshold=self.c.min_rtk_fixed_fraction)
-        # a pose source keeps its own rate (a 20 Hz fix, a fixed pose at 10 Hz): a gap is
-        # 2.5 of its median sample interval, never less than the configured INS gap
-        max_gap = int(self.c.ins_max_gap_ms * MS)
-        if s is None and ins_t.size > 1:
-            max_gap = max(max_gap, int(2.5 * float(np.median(np.diff(ins_t)))))
+        if isinstance(p, FixedPose):
+            max_gap = np.iinfo(np.int64).max  # constant: two samples span the recording
+        else:
+            rate = base.rate_hz if base is not None and base.rate_hz else measured_rate_hz(ins_t)
+            max_gap = int(max(self.c.ins_max_gap_ms * MS,
+                              self.c.pose_gap_periods * NS / (rate or 1.0)))
         for lid in agent.sensors_of(Modality.LIDAR):
             f = self.frames("lidar_frames", aid, lid.name, "frame_idx")
             if f.num_rows == 0:
                 continue
             ts, te = _col(f, "t_start_ns"), _col(f, "t_end_ns")
             bad = ins_uncovered(ins_t, ts, te, max_gap)
-            # scans reaching past the INS recording at the clip's two ends (bags are cut
-            # independently per topic) vs. scans inside the INS time range
+            # scans reaching past the pose recording at the clip's two ends (bags are cut
+            # independently per topic) vs. scans inside the pose time range
             head = bad & (ts < ins_t[0])
             tail = bad & (te > ins_t[-1])
             inner = bad & ~head & ~tail
@@ -302,13 +444,14 @@ class _Qa:
                        and int(tail.sum()) <= self.c.ins_edge_scans)
             sev = "error" if inner.any() or not edge_ok else "warning"
             where = "; ".join(self.span_txt(a, b) for a, b in spans(bad, ts, te))
-            what = (f"{int(inner.sum())} inside the INS time range (gap > "
-                    f"{max_gap / MS:g} ms), {int(head.sum())} before its first and "
-                    f"{int(tail.sum())} after its last sample")
+            gap_txt = "" if isinstance(p, FixedPose) else f" (gap > {max_gap / MS:g} ms)"
+            what = (f"{int(inner.sum())} inside the pose time range{gap_txt}, "
+                    f"{int(head.sum())} before its first and {int(tail.sum())} after its last "
+                    "sample")
             self.add("ins_coverage", not bad.any(), sev,
-                     f"INS {topic} of agent {aid} does not cover {int(bad.sum())} of "
+                     f"pose {topic} of agent {aid} does not cover {int(bad.sum())} of "
                      f"{bad.size} {lid.name} scans ({what}): uncovered {where}" if bad.any() else
-                     f"INS {topic} brackets all {bad.size} {lid.name} scans",
+                     f"pose {topic} brackets all {bad.size} {lid.name} scans",
                      agent=aid, sensor=label, value=float(bad.sum()), threshold=0.0)
 
 
@@ -347,9 +490,8 @@ def run_qa(lake: Lake, clip_id: str, config: QaConfig | None = None) -> StageRep
         first = failed[0]
         topic = None
         if first.agent_id and first.sensor:
-            agent = cfg.agent(first.agent_id)
-            named = [x for x in agent.sensors if x.name == first.sensor]
-            topic = named[0].topic if named else (agent.pose.topic if agent.pose else None)
+            named = [x for x in cfg.agent(first.agent_id).sensors if x.name == first.sensor]
+            topic = named[0].topic if named else None
         raise ClipError(clip_id, "; ".join(f"{r.check}: {r.detail}" for r in failed),
                         agent_id=first.agent_id, topic=topic, stage=STAGE, checks=rows)
     return StageReport(
