@@ -185,12 +185,13 @@ def check_time_reference(tf: PointTimeField, stamp_ns: int, t0: int, t1: int,
     if worst <= max_offset_ns:
         return
     rel = (t0 - stamp_ns) / 1e9, (t1 - stamp_ns) / 1e9
-    if tf.reference is TimeReference.ABSOLUTE:
-        hint = ("its values look relative to the header stamp: set reference: header"
-                if abs(t1 - stamp_ns) > 1e9 * 3600 * 24 * 365 else "check the unit")
+    day = 86_400 * 1_000_000_000
+    if tf.reference is TimeReference.ABSOLUTE and abs(t1) < day:  # values near zero
+        hint = "its values look relative to the header stamp: set reference: header"
+    elif tf.reference is TimeReference.HEADER and abs(t1 - 2 * stamp_ns) < day:
+        hint = "its values look like absolute epoch times: set reference: absolute"
     else:
-        hint = ("its values look like absolute epoch times: set reference: absolute"
-                if abs(t1 - stamp_ns) > 1e9 * 3600 * 24 * 365 else "check the unit")
+        hint = "check the unit"
     raise ValueError(
         f"per-point time field {tf.field!r} (declared {tf.reference.value}, unit "
         f"{tf.unit.value}) puts the points {rel[0]:.6g}..{rel[1]:.6g} s from the header stamp "

@@ -167,13 +167,12 @@ def explain_invalid(data: Any, e: ValidationError) -> tuple[str | None, str | No
                 where.append(f"[{named}]" if isinstance(named, str) else f"[{key}]")
                 if i > 0 and loc[i - 1] == "agents" and isinstance(named, str):
                     agents.add(named)
-            elif isinstance(node, dict) and key in node:
+            elif isinstance(node, dict) and key in node and not (
+                    err["type"] == "extra_forbidden" and i == len(loc) - 1):
                 node = node[key]
                 where.append(f".{key}")
-            elif err["type"] != "extra_forbidden" or i < len(loc) - 1:
-                continue  # a union member's tag (pose kinds): not a key of the file
             else:
-                where.append(f".{key}")
+                continue  # a union member's tag (pose kinds), or the unknown key itself
         place = "".join(where).lstrip(".") or "(top level)"
         if err["type"] == "extra_forbidden":
             key = str(loc[-1])
@@ -660,12 +659,14 @@ class _AgentIngest:
             "lidar_frames": _frame_table(LidarFrameRow, self.lidar_rows, cid, aid),
             "camera_frames": _frame_table(CameraFrameRow, self.cam_rows, cid, aid),
             "ins": _cols_table(InsRow, ins_cols, cid, aid),
-            "ego_poses": _cols_table(EgoPoseRow, map_cols, cid, aid),
             "gnss": _cols_table(GnssRow, self.gnss.cols, cid, aid),
             "imu": pa.concat_tables([
                 _cols_table(ImuRow, {**d.cols, "sensor": [n] * len(d.cols["t_ns"])}, cid, aid)
                 for n, d in self.imu.items()]) if self.imu else arrow_schema(ImuRow).empty_table(),
         }
+        if len(map_cols["t_ns"]):  # only a track in a local map (the catalog's ego_poses
+            # name reads raw until anonymize has written the clean one)
+            tables["ego_poses"] = _cols_table(EgoPoseRow, map_cols, cid, aid)
         for name, t in tables.items():
             st.write_table("raw", name, t, clip_id=cid, agent_id=aid)
 
