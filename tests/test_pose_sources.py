@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 from tests.test_deskew import scipy_reference
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import read_extrinsics
 from v2xlake.tasks.anonymize.run import run_anonymize
 from v2xlake.tasks.deskew.stage import run_deskew
 from v2xlake.tasks.geodesy import (
@@ -50,7 +51,6 @@ from v2xlake.tasks.geodesy import (
 )
 from v2xlake.tasks.ingest import run_ingest
 from v2xlake.tasks.qa.core import run_qa
-from v2xlake.storage.reader import read_extrinsics
 from v2xlake.tasks.reader import load_pose_track
 
 T0 = 1_700_000_000 * 1_000_000_000
