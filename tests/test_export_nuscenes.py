@@ -79,6 +79,9 @@ def test_boxes_points_and_attributes(nusc) -> None:
     assert anns and all(a["num_lidar_pts"] > 0 for a in anns)
     attrs = {nusc.get("attribute", a["attribute_tokens"][0])["name"] for a in anns}
     assert {"vehicle.parked", "vehicle.moving", "pedestrian.moving"} <= attrs
+    # global = clip world - the map origin (so that the map raster covers the clip)
+    origin = np.array([*json.loads((Path(nusc.dataroot) / VERSION / "map_origins.json")
+                                   .read_text())["clip-a"]["origin_xy"], 0.0])
     for a in anns:
         s = nusc.get("sample", a["sample_token"])
         inst = nusc.get("instance", a["instance_token"])
@@ -86,7 +89,7 @@ def test_boxes_points_and_attributes(nusc) -> None:
         gid = json.loads((Path(nusc.dataroot) / VERSION / "instance_global_ids.json")
                          .read_text())[inst["token"]]["instance_id"]
         W = world_box_at(gid, s["timestamp"] * 1000)
-        assert np.allclose(a["translation"], W[:3, 3], atol=1e-4)
+        assert np.allclose(a["translation"], W[:3, 3] - origin, atol=1e-4)
     # the devkit's own points_in_box on the loaded .pcd.bin agrees with num_lidar_pts
     s = nusc.sample[0]
     pc = LidarPointCloud.from_file(nusc.get_sample_data_path(s["data"]["LIDAR_TOP"]))
@@ -102,15 +105,44 @@ def test_render_sample_data(nusc, tmp_path: Path) -> None:
     s = nusc.sample[1]
     for ch in ("LIDAR_TOP", "CAM_FRONT"):
         out = tmp_path / f"{ch}.png"
-        # underlay_map=False: devkit 1.2.0's render_ego_centric_map calls int() on a 1-element
-        # array, which NumPy >= 2.x rejects (a devkit bug, same on the real nuScenes)
         nusc.render_sample_data(s["data"][ch], out_path=str(out), verbose=False,
                                 underlay_map=False)
         assert out.stat().st_size > 1000
-    # the map mask is loadable and marks where the LiDAR saw the street
+
+
+def test_render_sample_with_the_map(nusc, tmp_path: Path) -> None:
+    """The devkit's most used call, map underlay included, in the shipped NumPy."""
+    import matplotlib.pyplot as plt
+    from nuscenes.nuscenes import NuScenesExplorer
+
+    from v2xlake.tasks.export.nuscenes_devkit import fix_render_for_numpy2
+
+    if int(np.__version__.split(".")[0]) >= 2 and not getattr(
+            NuScenesExplorer.render_ego_centric_map, "_v2xlake_numpy2_fix", False):
+        with pytest.raises(TypeError, match="0-dimensional"):  # the devkit bug, unpatched
+            nusc.render_sample(nusc.sample[0]["token"], out_path=str(tmp_path / "x.png"))
+    assert fix_render_for_numpy2() == (int(np.__version__.split(".")[0]) >= 2)
+    for scene in nusc.scene:
+        s = nusc.get("sample", scene["first_sample_token"])
+        out = tmp_path / f"{scene['name']}.png"
+        nusc.render_sample(s["token"], out_path=str(out), verbose=False)
+        assert out.stat().st_size > 10_000
+        plt.close("all")
+    # the map covers the whole clip (the fixture drives through negative x and y): around
+    # every ego pose the devkit crops a full 80 m window with street in it
+    for sd in nusc.sample_data:
+        if sd["channel"] != "LIDAR_TOP":
+            continue
+        fig, ax = plt.subplots()
+        nusc.explorer.render_ego_centric_map(sd["token"], axes_limit=40, ax=ax)
+        img = np.asarray(ax.images[0].get_array())
+        plt.close(fig)
+        assert img.shape == (800, 800), sd["filename"]
+        assert (img == 125).mean() > 0.01  # foreground: where the LiDAR saw the ground
     log = nusc.get("log", nusc.scene[0]["log_token"])
     mask = nusc.get("map", log["map_token"])["mask"]
-    pose = nusc.get("ego_pose", nusc.get("sample_data", s["data"]["LIDAR_TOP"])["ego_pose_token"])
+    pose = nusc.get("ego_pose", nusc.get("sample_data", nusc.sample[1]["data"]["LIDAR_TOP"])
+                    ["ego_pose_token"])
     assert mask.is_on_mask(pose["translation"][0] + 5.0, pose["translation"][1], dilation=1.0)
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 from collections import defaultdict
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -74,6 +75,8 @@ class NuScenesExportConfig(BaseModel):
     undistort_images: bool = True
     map_resolution_m: float = Field(0.1, ge=0.1)
     map_max_px: int = 8192
+    map_margin_m: float = Field(60.0, ge=0.0, description=(
+        "map raster margin around every ego pose (the devkit renders 40 m around the ego)"))
     write_lake_tables: bool = True
     scene_offset_us: int = Field(1, ge=0, description=(
         "scene k's timestamps are shifted by k * this many microseconds: the devkit's "
@@ -149,21 +152,30 @@ def _keyframe_times(clip: ClipData, cfg: NuScenesExportConfig) -> np.ndarray:
     return lf.points_t_ns[::cfg.keyframe_every]
 
 
-def _map_grids(clips: list[ClipData], cfg: NuScenesExportConfig) -> dict[str, BevGrid]:
-    """One map raster per location, anchored at the world origin as the devkit's MapMask is."""
-    grids: dict[str, BevGrid] = {}
-    ext: dict[str, np.ndarray] = {}
-    for c in clips:
-        loc = str(c.info.get("location", "unknown"))
-        xy = np.concatenate([a.poses.xyz[:, :2] for a in c.agents.values()])
-        hi = xy.max(0) + 60.0
-        ext[loc] = np.maximum(ext.get(loc, hi), hi)
-    for loc, hi in ext.items():
-        res = cfg.map_resolution_m
-        w = int(min(max(np.ceil(hi[0] / res), 1), cfg.map_max_px))
-        h = int(min(max(np.ceil(hi[1] / res), 1), cfg.map_max_px))
-        grids[loc] = BevGrid(0.0, h * res, res, w, h)
-    return grids
+@dataclass(frozen=True)
+class ClipMap:
+    """A clip's nuScenes map: ``global = clip world - origin_xy`` (xy only), so that the whole
+    clip, with ``margin`` metres around every pose, lies at x, y >= 0, where the devkit's
+    ``MapMask`` (anchored at global 0, 0; pixel = x / res, H - y / res) can show it."""
+
+    origin_xy: tuple[float, float]
+    grid: BevGrid
+
+    @property
+    def T_global_world(self) -> np.ndarray:
+        T = np.eye(4)
+        T[0, 3], T[1, 3] = -self.origin_xy[0], -self.origin_xy[1]
+        return T
+
+
+def clip_map(clip: ClipData, cfg: NuScenesExportConfig) -> ClipMap:
+    res = cfg.map_resolution_m
+    xy = np.concatenate([a.poses.xyz[:, :2] for a in clip.agents.values()])
+    lo = np.floor((xy.min(0) - cfg.map_margin_m) / res) * res
+    size = xy.max(0) + cfg.map_margin_m - lo
+    w = int(min(max(np.ceil(size[0] / res), 1), cfg.map_max_px))
+    h = int(min(max(np.ceil(size[1] / res), 1), cfg.map_max_px))
+    return ClipMap((float(lo[0]), float(lo[1])), BevGrid(0.0, h * res, res, w, h))
 
 
 def _counted(row: dict[str, Any], clip_id: str, agent_id: str) -> int:
@@ -185,7 +197,7 @@ def export_nuscenes(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
     (root / cfg.version).mkdir(parents=True, exist_ok=True)
     clips = [load_clip(lake, c) for c in clip_ids]
     tabs = _Tables()
-    grids = _map_grids(clips, cfg)
+    maps = {c.clip_id: clip_map(c, cfg) for c in clips}
     map_logs: dict[str, list[str]] = defaultdict(list)
     notes: list[str] = []
     global_ids: dict[str, dict[str, Any]] = {}
@@ -199,21 +211,23 @@ def export_nuscenes(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                                   description=f"nuScenes category {name}", index=i))
     scene_idx = 0
     for clip in clips:
-        loc = str(clip.info.get("location", "unknown"))
         kf_times = _keyframe_times(clip, cfg)
         for aid, agent in clip.agents.items():
-            n_files += _export_scene(lake, clip, agent, kf_times, root, cfg, tabs, grids[loc],
-                                     notes, global_ids, scene_idx * cfg.scene_offset_us)
+            n_files += _export_scene(lake, clip, agent, kf_times, root, cfg, tabs,
+                                     maps[clip.clip_id], notes, global_ids,
+                                     scene_idx * cfg.scene_offset_us)
             scene_idx += 1
-            map_logs[loc].append(token("log", clip.clip_id, aid))
-    for loc, logs in map_logs.items():
-        mtok = token("map", loc)
+            map_logs[clip.clip_id].append(token("log", clip.clip_id, aid))
+    # one map per clip: each clip has its own local ENU frame (DESIGN.md), so two clips at
+    # one location do not share coordinates
+    for cid, logs in map_logs.items():
+        mtok = token("map", cid)
         fn = f"maps/{mtok}.png"
         (root / "maps").mkdir(exist_ok=True)
-        occ = grids[loc].layers()["occupancy"]
+        occ = maps[cid].grid.layers()["occupancy"]
         cv2.imwrite(str(root / fn), occ.astype(np.uint8) * 255)
         tabs.add("map", dict(token=mtok, log_tokens=logs, category="semantic_prior",
-                             filename=fn))
+                             filename=fn), cid)
     report = StageReport(stage="export_nuscenes", clip_id=",".join(clip_ids))
     for t, model in NUSCENES_TABLES.items():
         rows = [model.model_validate(r).model_dump() for r in tabs.rows[t].values()]
@@ -227,6 +241,11 @@ def export_nuscenes(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
     sp = root / cfg.version / "splits.json"
     sp.write_text(json.dumps(splits, indent=1))
     report.outputs.append(file_output(sp))
+    mp = root / cfg.version / "map_origins.json"
+    mp.write_text(json.dumps({cid: {"origin_xy": list(m.origin_xy),
+                                    "note": "global = clip world - origin_xy (metres)"}
+                              for cid, m in maps.items()}, indent=1, sort_keys=True))
+    report.outputs.append(file_output(mp))
     gp = root / cfg.version / "instance_global_ids.json"
     gp.write_text(json.dumps(global_ids, indent=1, sort_keys=True))
     report.outputs.append(file_output(gp))
@@ -280,7 +299,7 @@ def _following(sample_times: np.ndarray, t: int) -> int:
 
 
 def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.ndarray,
-                  root: Path, cfg: NuScenesExportConfig, tabs: _Tables, grid: BevGrid,
+                  root: Path, cfg: NuScenesExportConfig, tabs: _Tables, cmap: ClipMap,
                   notes: list[str], global_ids: dict[str, dict[str, Any]],
                   offset_us: int = 0) -> int:
     cid, aid = clip.clip_id, agent.agent_id
@@ -325,10 +344,13 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
         first_sample_token=sample_tok[0], last_sample_token=sample_tok[-1], name=name,
         description=(f"weather={info.get('weather')}, lighting={info.get('lighting')}, "
                      f"road_type={info.get('road_type')}, work_zone={info.get('work_zone')}, "
-                     f"agent={aid}, time_offset_us={offset_us}")), cid)
+                     f"agent={aid}, time_offset_us={offset_us}, "
+                     f"map_origin_xy={cmap.origin_xy}")), cid)
     tabs.add("log", dict(token=log_tok, logfile=name, vehicle=aid,
                          date_captured="1970-01-01",  # relative time only leaves the raw zone
                          location=str(info.get("location", "unknown"))), cid)
+
+    T_gw = cmap.T_global_world  # every global pose and box goes through the map's origin
 
     def calib_token(channel: str) -> str:
         return token("calibrated_sensor", cid, aid, channel)
@@ -346,7 +368,7 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
                   fileformat: str, wh: tuple[int, int], frame_ids: np.ndarray) -> None:
         """sample_data + ego_pose rows; key_sample[k] = sample index of a keyframe, else -1."""
         toks = [token("sample_data", cid, aid, channel, int(f)) for f in frame_ids]
-        T = agent.T_world_ego(times, clip_id=cid)
+        T = T_gw @ agent.T_world_ego(times, clip_id=cid)
         for k, tok in enumerate(toks):
             t = int(times[k])
             si = int(key_sample[k]) if key_sample[k] >= 0 else _following(sample_times, t)
@@ -410,7 +432,7 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
             ann_by_frame[int(f)] = ann.filter(pa.compute.equal(ann["frame_idx"], int(f)))
     pos_of = {int(f): k for k, f in enumerate(lf.frame_idx[li])}
     T_el = agent.sensors[sensor].T_ego_sensor
-    T_wl_all = agent.T_world_ego(t_lidar, clip_id=cid) @ T_el
+    T_wl_all = T_gw @ agent.T_world_ego(t_lidar, clip_id=cid) @ T_el  # global <- LiDAR
     key_frames = {int(f) for f in sample_frames}
     boxes: dict[str, list[tuple[int, dict[str, Any]]]] = defaultdict(list)
     centers: dict[str, list[tuple[int, np.ndarray]]] = defaultdict(list)
@@ -420,7 +442,7 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
         k = pos_of[fr.frame_idx]
         write_pcd_bin(root / lfiles[k], fr.xyz, fr.intensity, fr.ring)
         T_wl = T_wl_all[k]
-        grid.add(apply(T_wl, fr.xyz), fr.intensity)
+        cmap.grid.add(apply(T_wl, fr.xyz), fr.intensity)
         a = ann_by_frame.get(fr.frame_idx)
         if a is None or a.num_rows == 0:
             continue
