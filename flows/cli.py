@@ -421,6 +421,33 @@ def export(
     return 0
 
 
+@app.command()
+def view(
+    clip: Annotated[str, typer.Argument(help="clip id")],
+    out: Annotated[Path, typer.Option(help="output folder")] = Path("view"),
+    lake: LakeOpt = DEFAULT_LAKE,
+    png: Annotated[bool, typer.Option(help="bird's-eye picture + camera images")] = True,
+    mcap: Annotated[bool, typer.Option(help="one MCAP with every agent, for Foxglove")] = True,
+    sample: Annotated[int | None, typer.Option(help="cooperative sample (default: middle)")]
+    = None,
+) -> int:
+    """Look at a clip: a PNG of one cooperative sample and an MCAP that Foxglove opens."""
+    from v2xlake.storage.lake import checked_clip_id
+    from v2xlake.tasks.export.view import ViewConfig, view_clip
+
+    the_lake = open_lake(lake)
+    try:
+        checked_clip_id(the_lake, clip)
+    except ValueError as e:
+        raise UserError(str(e)) from e
+    if not the_lake.exists(the_lake.table_dir("clean", "clips", clip)):
+        raise UserError(f"unknown clip {clip!r} in {lake}")
+    paths = view_clip(the_lake, clip, out, ViewConfig(png=png, mcap=mcap, sample=sample))
+    for p in paths:
+        _console().print(str(p))
+    return 0
+
+
 @app.command("convert-bag")
 def convert_bag(
     src: Path, dst: Path,
