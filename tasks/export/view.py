@@ -115,8 +115,9 @@ def render_png(lake: Lake, clip_id: str, out: Path, config: ViewConfig = ViewCon
     ax.set_title(f"{clip_id}: t = {t_ref / 1e9:.3f} s, reference frame {int(lf.frame_idx[k])}")
     leg = ax.legend(loc="upper right", fontsize=8)
     for h in leg.legend_handles:
-        if hasattr(h, "set_sizes"):
-            h.set_sizes([30.0])
+        sizes = getattr(h, "set_sizes", None)
+        if sizes is not None:
+            sizes([30.0])
     for r, (aid, ch) in enumerate(cams):
         import cv2
 
