@@ -373,6 +373,7 @@ def test_jpeg_is_stored_as_delivered_and_read_by_anonymize(tmp_path: Path) -> No
     assert decode_image(blob).shape == (48, 64, 3)  # the one reader anonymize uses
     run_anonymize(lake, "jpg")
     clean = lake.read_table("clean", "camera_frames", clip_id="jpg").to_pylist()[0]
+    assert clean["blob"] == row["blob"][:-4] + ".png"  # named by what anonymize wrote
     assert decode_image(lake.read_blob("clean", clean["blob"])).shape == (48, 64, 3)
 
 

@@ -314,7 +314,7 @@ def _anonymize_images(
 
     def one(
         key: str, agent: str | None
-    ) -> tuple[str, int, list[tuple[str, tuple[float, ...], float, str]]]:
+    ) -> tuple[str, int, list[tuple[str, tuple[float, ...], float, str]], str]:
         try:
             data = lake.read_blob("raw", key)
         except (FileNotFoundError, OSError) as e:
@@ -331,12 +331,16 @@ def _anonymize_images(
                 path=key,
                 stage=STAGE,
             ) from e
-        stage.write_blob("clean", key, res.png)
+        # the raw blob may be a JPEG as delivered (key ``.jpg``); the clean one is named by
+        # what is written into it
+        clean_key = f"{key.rsplit('.', 1)[0]}.png"
+        stage.write_blob("clean", clean_key, res.png)
         sha = hashlib.sha256(res.png).hexdigest()
         return (
             sha,
             len(res.detections),
             [(d.kind, d.box, d.score, d.detector) for d in res.detections],
+            clean_key,
         )
 
     det_versions = {
@@ -360,7 +364,7 @@ def _anonymize_images(
             audit = []
             sensors = table.column("sensor").to_pylist()
             frames = table.column("frame_idx").to_pylist()
-            for (_sha, _n, dets), sensor, fidx, ag in zip(
+            for (_sha, _n, dets, _key), sensor, fidx, ag in zip(
                 results, sensors, frames, agent_col, strict=True
             ):
                 for kind, box, score, dname in dets:
@@ -383,6 +387,7 @@ def _anonymize_images(
                     )
             clean = shift_times(table, "camera_frames", t0)
             for col, values, typ in (
+                ("blob", [r[3] for r in results], pa.string()),
                 ("sha256", [r[0] for r in results], pa.string()),
                 ("anonymizer", [anonymizer] * len(results), pa.string()),
                 ("n_blurred", [r[1] for r in results], pa.int64()),
