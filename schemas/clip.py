@@ -158,6 +158,10 @@ class SensorConfig(_Strict):
             raise ValueError(
                 f"lidar sensor {self.name!r} needs a 'fields' mapping with a time field"
             )
+        if self.modality is Modality.RADAR and (self.fields is None
+                                                or self.fields.velocity is None):
+            raise ValueError(f"radar sensor {self.name!r} needs a 'fields' mapping with its "
+                             "radial velocity field (velocity: ...)")
         return self
 
 

@@ -200,6 +200,37 @@ class LidarPointRow(_Row):
     return_id: U8
 
 
+class RadarFrameRow(_Row):
+    """One radar scan (``sensor_msgs/PointCloud2`` from a 4D imaging radar)."""
+
+    clip_id: str
+    agent_id: str
+    sensor: str
+    frame_idx: I32
+    stamp_ns: I64
+    t_start_ns: I64
+    t_end_ns: I64
+    n_points: I64
+    n_nan: I64
+
+
+class RadarPointRow(_Row):
+    """One radar detection: position in the radar frame, radial (Doppler) velocity along the
+    line of sight (m/s, positive away from the sensor), radar cross-section (dBsm; NaN when
+    the radar gives none), time (per point, or the scan's stamp)."""
+
+    clip_id: str
+    agent_id: str
+    sensor: DictStr
+    frame_idx: I32
+    t_ns: I64
+    x: F32
+    y: F32
+    z: F32
+    velocity: F32
+    rcs: F32
+
+
 class CameraFrameRow(_Row):
     clip_id: str
     agent_id: str
@@ -353,6 +384,8 @@ LAKE_TABLES: dict[str, type[_Row]] = {
     "lidar_frames": LidarFrameRow,
     "deskew_frames": DeskewFrameRow,
     "lidar_points": LidarPointRow,
+    "radar_frames": RadarFrameRow,
+    "radar_points": RadarPointRow,
     "camera_frames": CameraFrameRow,
     "annotations": AnnotationRow,
     "annotations_world": AnnotationWorldRow,

@@ -396,3 +396,71 @@ def test_real_vlp16_pointcloud2_float_second_time(tmp_path: Path) -> None:
     qa = run_qa(lake, "velodyne-vlp16-real")
     assert qa.metrics["errors"] == 0
     assert any("free-running clock" in n for n in qa.notes)  # stamps are not PPS-locked
+
+
+# --------------------------------------------------------------------------- radar
+RADAR_DT = np.dtype({"names": ["x", "y", "z", "v_r", "rcs", "snr"],
+                     "formats": ["<f4"] * 6, "offsets": [0, 4, 8, 12, 16, 20], "itemsize": 24})
+
+
+def radar_scan(ts: Any, t: int, n: int = 300, seed: int = 0) -> Any:
+    """A 4D imaging radar scan in a Continental ARS548-like layout: one time per scan."""
+    rng = np.random.default_rng(seed)
+    a = np.zeros(n, RADAR_DT)
+    az = rng.uniform(-1.0, 1.0, n)
+    r = rng.uniform(2.0, 150.0, n)
+    a["x"], a["y"], a["z"] = r * np.cos(az), r * np.sin(az), rng.uniform(-1, 3, n)
+    a["v_r"], a["rcs"], a["snr"] = rng.uniform(-20, 20, n), rng.uniform(-10, 30, n), 12.0
+    a["x"][:5] = np.nan  # invalid detections: dropped and counted
+    PF = ts.types["sensor_msgs/msg/PointField"]
+    return ts.types["sensor_msgs/msg/PointCloud2"](
+        header=_hdr(ts, t, "radar"), height=1, width=n,
+        fields=[PF(name=k, offset=4 * i, datatype=7, count=1) for i, k in enumerate(
+            RADAR_DT.names)], is_bigendian=False, point_step=24, row_step=24 * n,
+        data=a.view(np.uint8), is_dense=False)
+
+
+def radar_sensor() -> dict[str, Any]:
+    return {"name": "RADAR_FRONT", "modality": "radar", "topic": "/radar/points",
+            "msg_type": "sensor_msgs/msg/PointCloud2", "rate_hz": 20,
+            "extrinsic": {"translation": [3.6, 0.0, 0.5], "rotation": [1.0, 0.0, 0.0, 0.0]},
+            "fields": {"velocity": "v_r", "rcs": "rcs", "intensity": None, "ring": None}}
+
+
+def test_radar_points_and_a_radar_only_agent(tmp_path: Path) -> None:
+    """A vehicle with LiDAR + radar and a roadside agent with only a radar: radar scans land
+    in radar_frames / radar_points (raw, then clean with relative time)."""
+    from v2xlake.tasks.anonymize.run import run_anonymize
+
+    ts = _ts()
+    radar = [("/radar/points", "sensor_msgs/msg/PointCloud2", t + 30_000_000,
+              radar_scan(ts, t, seed=k)) for k, t in enumerate(range(T0, T0 + 400_000_000,
+                                                                      50_000_000))]
+    d = write(tmp_path / "radar", [
+        agent(sensors=[lidar_sensor(), radar_sensor()]),
+        agent("rsu", sensors=[radar_sensor()], role="cooperative", kind="roadside")],
+        {"bag_car": [*scans(ts, 4), *radar], "bag_rsu": radar})
+    lake = Lake(tmp_path / "lake")
+    rep = run_ingest(lake, d)
+    assert not [n for n in rep.notes if "radar" in n]
+    frames = lake.read_table("raw", "radar_frames", clip_id="radar")
+    assert frames.num_rows == 16 and set(frames["n_nan"].to_pylist()) == {5}
+    pts = lake.read_table("raw", "radar_points", clip_id="radar", agent_id="rsu")
+    assert pts.num_rows == 8 * 295 and pts.schema.field("velocity").type == "float"
+    first = pts.filter(pts["frame_idx"].to_numpy() == 0)
+    assert set(first["t_ns"].to_pylist()) == {T0}  # one time per scan: its stamp
+    want = np.frombuffer(radar[0][3].data, RADAR_DT)[5:]
+    assert np.array_equal(first["velocity"].to_numpy(), want["v_r"])
+    assert np.array_equal(first["rcs"].to_numpy(), want["rcs"])
+    assert run_qa(lake, "radar").metrics["errors"] == 0
+    run_anonymize(lake, "radar")
+    clean = Catalog(lake).query("SELECT min(t_ns) AS t FROM radar_points").to_pylist()
+    assert clean[0]["t"] == 100_000_000  # the clip's relative axis
+
+
+def test_radar_without_a_velocity_field_is_refused(tmp_path: Path) -> None:
+    s = radar_sensor()
+    s["fields"].pop("velocity")
+    d = write(tmp_path / "nov", [agent(sensors=[lidar_sensor(), s])], {"bag_car": scans(_ts())})
+    assert "radar sensor 'RADAR_FRONT' needs a 'fields' mapping with its radial velocity" in \
+        ingest_error(d).reason

@@ -59,7 +59,8 @@ STAGE = "anonymize"
 Progress = Callable[[int, int], None]
 
 COPY_TABLES = ("clips", "agents", "sensors", "calibrated_sensors", "qa_checks")
-SHIFT_TABLES = ("imu", "lidar_frames", "lidar_points", "annotations")
+SHIFT_TABLES = ("imu", "lidar_frames", "lidar_points", "radar_frames", "radar_points",
+                "annotations")
 NEVER_CLEAN = ("ins",)  # WGS84: replaced by ego_poses
 CLEAN_TABLES = (
     *COPY_TABLES,
@@ -148,7 +149,8 @@ def run_anonymize(
 
     raw = {
         n: lake.read_table("raw", n, clip_id=clip_id)
-        for n in ("clips", "lidar_frames", "camera_frames", "ins", "imu", "gnss", "ego_poses")
+        for n in ("clips", "lidar_frames", "camera_frames", "radar_frames", "ins", "imu", "gnss",
+                  "ego_poses")
     }
     if raw["clips"].num_rows == 0:
         raise fail("no raw 'clips' row: run ingest first")

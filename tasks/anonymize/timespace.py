@@ -38,6 +38,8 @@ TIME_COLUMNS: dict[str, tuple[str, ...]] = {
     "gnss": ("t_ns",),
     "lidar_frames": ("stamp_ns", "t_start_ns", "t_end_ns", "deskew_ref_ns"),
     "lidar_points": ("t_ns",),
+    "radar_frames": ("stamp_ns", "t_start_ns", "t_end_ns"),
+    "radar_points": ("t_ns",),
     "camera_frames": ("stamp_ns",),
     "annotations": ("t_ns",),
     "instances": ("first_t_ns", "last_t_ns"),
@@ -49,9 +51,11 @@ TIME_COLUMNS: dict[str, tuple[str, ...]] = {
 T0_SOURCES: dict[str, tuple[str, ...]] = {
     "lidar_frames": ("t_start_ns", "stamp_ns"),
     "camera_frames": ("stamp_ns",),
+    "radar_frames": ("t_start_ns", "stamp_ns"),
     "ins": ("t_ns",),
     "imu": ("t_ns",),
     "gnss": ("t_ns",),
+    "ego_poses": ("t_ns",),
 }
 
 

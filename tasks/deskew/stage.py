@@ -230,8 +230,11 @@ def deskew_chunk(lake: Lake, clip_id: str, cfg: DeskewConfig, chunk: DeskewChunk
     if pending:
         data = pa.concat_tables(pending)
         first = int(_col(data, "frame_idx").min())
+        # one points file per LiDAR of the agent: its name keeps the chunks of several
+        # LiDARs (each starting at frame 0) apart
+        source = chunk.path.rsplit("/", 1)[-1].removesuffix(".parquet")
         path, rows_n = lake.write_table("clean", OUT_TABLE, data, clip_id=clip_id,
-                                        agent_id=agent, name=f"frames-{first:06d}",
+                                        agent_id=agent, name=f"{source}-frames-{first:06d}",
                                         row_group_by="frame_idx")
         part.outputs.append(OutputFile(path=path, rows=rows_n))
     return part

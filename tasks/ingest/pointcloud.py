@@ -241,3 +241,54 @@ def decode_cloud(msg: Any, fields: LidarFields, stamp_ns: int, *, min_range_m: f
         ring=oring[:k], return_id=oret[:k], n_nan=n - k - n_zero, t_start_ns=int(t0),
         t_end_ns=int(t1), n_zero=n_zero,
     )
+
+
+@dataclass
+class DecodedRadar:
+    """One radar scan as columns; non-finite detections dropped and counted."""
+
+    t_ns: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    velocity: np.ndarray
+    rcs: np.ndarray
+    n_nan: int
+    t_start_ns: int
+    t_end_ns: int
+
+    @property
+    def n_points(self) -> int:
+        return int(self.x.size)
+
+
+def decode_radar(msg: Any, fields: LidarFields, stamp_ns: int, *,
+                 max_time_offset_ns: int | None = None) -> DecodedRadar:
+    """A 4D radar's ``PointCloud2`` (x, y, z, radial velocity, RCS, per-point time or one
+    time per scan) -> columns. Radar scans are small (hundreds to a few thousand
+    detections): plain NumPy on the structured view."""
+    arr = cloud_array(msg)
+    if not arr.dtype.isnative:
+        arr = arr.astype(arr.dtype.newbyteorder("="))
+    n = arr.size
+    cols = {}
+    for what, name in (("x", fields.x), ("y", fields.y), ("z", fields.z),
+                       ("velocity", fields.velocity), ("rcs", fields.rcs)):
+        col = _source(arr, name, what)
+        cols[what] = (np.asarray(col, np.float64) if col is not None
+                      else np.full(n, np.nan if what == "rcs" else 0.0))
+    if fields.time is not None:
+        t_src = _source(arr, fields.time.field, "time")
+        assert t_src is not None
+        t = point_times_ns(np.asarray(t_src), fields.time, stamp_ns)
+    else:
+        t = np.full(n, stamp_ns, np.int64)
+    ok = np.isfinite(cols["x"]) & np.isfinite(cols["y"]) & np.isfinite(cols["z"]) & \
+        np.isfinite(cols["velocity"])
+    t0, t1 = (int(t.min()), int(t.max())) if n else (stamp_ns, stamp_ns)
+    if max_time_offset_ns is not None and fields.time is not None and n:
+        check_time_reference(fields.time, stamp_ns, t0, t1, max_time_offset_ns)
+    f32 = {k: v[ok].astype(np.float32) for k, v in cols.items()}
+    return DecodedRadar(t_ns=t[ok], x=f32["x"], y=f32["y"], z=f32["z"],
+                        velocity=f32["velocity"], rcs=f32["rcs"], n_nan=int(n - ok.sum()),
+                        t_start_ns=t0, t_end_ns=t1)

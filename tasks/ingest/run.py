@@ -50,6 +50,8 @@ from v2xlake.schemas.tables import (
     InsRow,
     LidarFrameRow,
     LidarPointRow,
+    RadarFrameRow,
+    RadarPointRow,
     SensorRow,
 )
 from v2xlake.storage.lake import Lake, TableWriter
@@ -67,7 +69,7 @@ from v2xlake.tasks.ingest.calibration import TfTree, intrinsics_from_camera_info
 from v2xlake.tasks.ingest.images import JPEG_MAGIC, compressed_image, image_to_png
 from v2xlake.tasks.ingest.ins import GnssDecoder, ImuDecoder
 from v2xlake.tasks.ingest.payloads import messages as in_place_messages
-from v2xlake.tasks.ingest.pointcloud import DecodedCloud, decode_cloud
+from v2xlake.tasks.ingest.pointcloud import DecodedCloud, decode_cloud, decode_radar
 from v2xlake.tasks.ingest.pose import (
     PoseCollector,
     PoseError,
@@ -81,6 +83,7 @@ from v2xlake.tasks.ingest.rows import table_of
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 ACCEPTED: dict[Modality, tuple[str, ...]] = {
     Modality.LIDAR: (POINTCLOUD2,),
+    Modality.RADAR: (POINTCLOUD2,),
     Modality.CAMERA: ("sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/Image"),
     Modality.IMU: ("sensor_msgs/msg/Imu",),
     Modality.GNSS: ("sensor_msgs/msg/NavSatFix",),
@@ -363,6 +366,8 @@ class _AgentIngest:
         self.counts: dict[str, int] = {s.name: 0 for s in agent.sensors}
         self.frame_ids: dict[str, str] = {}
         self.lidar_rows: list[dict[str, Any]] = []
+        self.radar_rows: list[dict[str, Any]] = []
+        self.radar_parts: dict[str, list[pa.Table]] = {}
         self.cam_rows: list[dict[str, Any]] = []
         self.png_pool: ThreadPoolExecutor | None = None
         # camera frames being encoded: (sensor, frame index, stamp, blob key, (w, h, sha256))
@@ -413,9 +418,6 @@ class _AgentIngest:
                 raise self.err(f"{s.modality.value} sensor {s.name} carries {have}, which "
                                f"ingest cannot read; expected one of {list(accepted)}{extra}",
                                topic=s.topic)
-            if s.modality is Modality.RADAR:
-                self.notes.append(f"{self.aid}/{s.name}: radar is not ingested (no table)")
-                continue
             handlers[s.topic] = self._handler(s)
             if (s.modality is Modality.INS and s.name not in self.pose.sensors):
                 self.notes.append(f"{self.aid}/{s.name}: INS sensor not used by the agent's "
@@ -460,6 +462,8 @@ class _AgentIngest:
             return lambda msg, _c: self._lidar(s, msg)
         if s.modality is Modality.CAMERA:
             return lambda msg, _c: self._camera(s, msg)
+        if s.modality is Modality.RADAR:
+            return lambda msg, _c: self._radar(s, msg)
         if s.modality is Modality.INS:
             return lambda msg, _c: self._simple(s, msg, None)
         if s.modality is Modality.IMU:
@@ -532,6 +536,27 @@ class _AgentIngest:
             t_end_ns=cloud.t_end_ns, n_points=cloud.n_points, n_nan=cloud.n_nan,
             n_zero=cloud.n_zero))
         self.res.stamp(min(stamp, cloud.t_start_ns), max(stamp, cloud.t_end_ns))
+
+    def _radar(self, s: SensorConfig, msg: Any) -> None:
+        idx = self._first(s, msg)
+        stamp = header_stamp_ns(msg)
+        self._order(s, stamp, drop_duplicates=False)
+        assert s.fields is not None
+        try:
+            r = decode_radar(msg, s.fields, stamp, max_time_offset_ns=int(
+                self.config.max_point_time_offset_s * 1e9))
+        except (KeyError, ValueError) as e:
+            raise self.err(f"radar frame {idx}: {e}", topic=s.topic) from e
+        n = r.n_points
+        self.radar_parts.setdefault(s.name, []).append(pa.Table.from_arrays([
+            pa.DictionaryArray.from_arrays(pa.array(np.zeros(n, np.int32)), pa.array([s.name])),
+            pa.array(np.full(n, idx, np.int32)), pa.array(r.t_ns), pa.array(r.x),
+            pa.array(r.y), pa.array(r.z), pa.array(r.velocity), pa.array(r.rcs)],
+            schema=RADAR_FILE_SCHEMA))
+        self.radar_rows.append(dict(sensor=s.name, frame_idx=idx, stamp_ns=stamp,
+                                    t_start_ns=r.t_start_ns, t_end_ns=r.t_end_ns,
+                                    n_points=n, n_nan=r.n_nan))
+        self.res.stamp(min(stamp, r.t_start_ns), max(stamp, r.t_end_ns))
 
     def _camera(self, s: SensorConfig, msg: Any) -> None:
         """Hand the frame to the PNG pool: encoding is most of a camera's ingest time
@@ -658,12 +683,16 @@ class _AgentIngest:
             "calibrated_sensors": table_of(CalibratedSensorRow, self.res.calib),
             "lidar_frames": _frame_table(LidarFrameRow, self.lidar_rows, cid, aid),
             "camera_frames": _frame_table(CameraFrameRow, self.cam_rows, cid, aid),
+            "radar_frames": _frame_table(RadarFrameRow, self.radar_rows, cid, aid),
             "ins": _cols_table(InsRow, ins_cols, cid, aid),
             "gnss": _cols_table(GnssRow, self.gnss.cols, cid, aid),
             "imu": pa.concat_tables([
                 _cols_table(ImuRow, {**d.cols, "sensor": [n] * len(d.cols["t_ns"])}, cid, aid)
                 for n, d in self.imu.items()]) if self.imu else arrow_schema(ImuRow).empty_table(),
         }
+        for name, parts in self.radar_parts.items():  # one file per radar, like LiDARs
+            st.write_table("raw", "radar_points", pa.concat_tables(parts).unify_dictionaries(),
+                           clip_id=cid, agent_id=aid, name=name, row_group_by="frame_idx")
         if len(map_cols["t_ns"]):  # only a track in a local map (the catalog's ego_poses
             # name reads raw until anonymize has written the clean one)
             tables["ego_poses"] = _cols_table(EgoPoseRow, map_cols, cid, aid)
@@ -759,6 +788,7 @@ _MAP_COLS = ("t_ns", "x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "r
 
 
 POINT_FILE_SCHEMA = arrow_schema(LidarPointRow).remove(0).remove(0)  # minus clip_id, agent_id
+RADAR_FILE_SCHEMA = arrow_schema(RadarPointRow).remove(0).remove(0)
 _ZEROS = np.zeros(0, np.int32)
 
 
