@@ -1,8 +1,9 @@
 """The Python API over a processed lake: ``v2xlake.open(path)``.
 
-Lazy and read-only. Opening a lake reads nothing but the list of files; lake-wide
-questions (which clips, which samples) are one SQL query each on the DuckDB catalog
-(in-memory views over the Parquet files, locked down so that it can only read the lake);
+Lazy and read-only. Opening a lake reads nothing; lake-wide questions (which clips, which
+frames) are one SQL query each on DuckDB views over just the tables they read, and
+``Lake.sql`` runs user SELECTs on the full catalog (both in memory and locked down so that
+they can only read the lake's files);
 a clip's small tables are read when the clip is first touched (one clip, not the lake), and
 points, images and boxes when a frame asks for them (points: only the Parquet row groups that
 hold that frame). Only the clean zone is read: anonymized images, relative time, local ENU.
@@ -454,6 +455,7 @@ class Lake:
         self._cache: OrderedDict[str, Clip] = OrderedDict()
         self._cache_size = cache_clips
         self._catalog: Catalog | None = None
+        self._con: Any = None  # the lean connection of ``_query``
         self._lock = threading.Lock()
 
     def __repr__(self) -> str:
@@ -477,6 +479,33 @@ class Lake:
                 self._catalog = cat
             return self._catalog
 
+    def _query(self, sql: str, params: list[object] | None = None) -> pa.Table:
+        """The API's own fixed queries over ``clips`` and ``frames`` (clean zone), on a lean
+        connection: the full catalog binds every table's view at start (reading every
+        file's footer: ~1 s on a nuScenes-sized lake), these two bind only what they read.
+        Locked down like the catalog: it reads the lake's files and nothing else."""
+        import duckdb
+
+        with self._lock:
+            if self._con is None:
+                if not self.io.is_local:
+                    self._con = self.catalog.con  # S3 settings and the same clean.* names
+                else:
+                    con = duckdb.connect()
+                    con.execute("CREATE SCHEMA clean")
+                    for table in ("clips", "lidar_frames", "deskew_frames"):
+                        glob = self.io.table_glob("clean", table).replace("'", "''")
+                        con.execute(f"CREATE VIEW clean.{table} AS SELECT * FROM read_parquet("
+                                    f"'{glob}', hive_partitioning=true, "
+                                    "hive_types_autocast=false, union_by_name=true)")
+                    root = self.io.base.replace("'", "''")
+                    for stmt in (f"SET allowed_directories = ['{root}/']",
+                                 "SET enable_external_access = false",
+                                 "SET lock_configuration = true"):
+                        con.execute(stmt)
+                    self._con = con
+        return self._con.execute(sql, params or []).fetch_arrow_table()
+
     def sql(self, query: str) -> pa.Table:
         """One SELECT over the catalog's views (``clean.<table>``, ``clips``, ...)."""
         return self.catalog.user_query(query)
@@ -484,8 +513,7 @@ class Lake:
     @property
     def clips(self) -> list[str]:
         """Clip ids with status ok, sorted."""
-        t = self.catalog.query("SELECT clip_id FROM clean.clips WHERE status = 'ok' "
-                               "ORDER BY clip_id")
+        t = self._query("SELECT clip_id FROM clean.clips WHERE status = 'ok' ORDER BY clip_id")
         return [str(c) for c in t["clip_id"].to_pylist()]
 
     def clip(self, clip_id: str) -> Clip:
@@ -513,17 +541,22 @@ class Lake:
     def frame_index(self, clips: Sequence[str] | None = None) -> pa.Table:
         """Every reference-agent LiDAR frame with deskewed points, lake-wide, from one
         query: clip_id, frame_idx, t_ns. What a sampler or dataset indexes."""
-        q = ("SELECT f.clip_id, f.frame_idx, f.deskew_ref_ns AS t_ns "
-             "FROM lidar_frames f JOIN clean.clips c ON c.clip_id = f.clip_id "
-             "AND f.agent_id = c.reference_agent "
-             "WHERE c.status = 'ok' AND f.sensor = ? AND f.deskew_ref_ns IS NOT NULL ")
+        q = ("SELECT f.clip_id, f.frame_idx, d.deskew_ref_ns AS t_ns "
+             "FROM clean.lidar_frames f JOIN clean.clips c ON c.clip_id = f.clip_id "
+             "AND f.agent_id = c.reference_agent JOIN clean.deskew_frames d "
+             "ON d.clip_id = f.clip_id AND d.agent_id = f.agent_id AND d.sensor = f.sensor "
+             "AND d.frame_idx = f.frame_idx "
+             "WHERE c.status = 'ok' AND f.sensor = ? AND d.deskew_ref_ns IS NOT NULL ")
         params: list[object] = [self._opts["sensor"]]
         if clips is not None:
             q += "AND f.clip_id IN (SELECT unnest(?)) "
             params.append(list(clips))
-        return self.catalog.query(q + "ORDER BY f.clip_id, f.frame_idx", params)
+        return self._query(q + "ORDER BY f.clip_id, f.frame_idx", params)
 
     def close(self) -> None:
+        if self._con is not None and self._catalog is None:
+            self._con.close()
+        self._con = None
         if self._catalog is not None:
             self._catalog.close()
             self._catalog = None

@@ -220,8 +220,12 @@ def write_nuscenes(root: Path, version: str, n_scenes: int) -> dict[str, int]:
     return {k: len(v) for k, v in tabs.items()}
 
 
+# peak RSS of this process: VmHWM (Linux keeps ru_maxrss across exec, so a child would
+# report its parent's peak)
+PEAK = "int(open('/proc/self/status').read().split('VmHWM:')[1].split()[0]) / 1024"
+
 V2X_PROBE = """
-import resource, sys, time
+import sys, time
 t0 = time.perf_counter()
 import v2xlake
 lake = v2xlake.open(sys.argv[1])
@@ -233,11 +237,11 @@ t1 = time.perf_counter()
 idx = lake.frame_index()
 t2 = time.perf_counter()
 print(len(clips), len(boxes["a0"]), idx.num_rows, t1 - t0, t2 - t1,
-      resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+      PEAK)
 """
 
 DEVKIT_PROBE = """
-import resource, sys, time
+import sys, time
 t0 = time.perf_counter()
 from nuscenes.nuscenes import NuScenes
 nusc = NuScenes(sys.argv[2], sys.argv[1], verbose=False)
@@ -245,18 +249,19 @@ s = nusc.sample[0]
 boxes = nusc.get_boxes(s["data"]["LIDAR_TOP"])
 t1 = time.perf_counter()
 print(len(nusc.scene), len(boxes), len(nusc.sample), t1 - t0,
-      resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+      PEAK)
 """
 
 IMPORT_PROBE = """
-import resource, time
+import time
 t0 = time.perf_counter()
 import {mod}
-print(time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+print(time.perf_counter() - t0, PEAK)
 """
 
 
 def _run(code: str, *args: str) -> list[float]:
+    code = code.replace("PEAK", PEAK)
     out = subprocess.run([sys.executable, "-c", code, *args], check=True, capture_output=True,
                          text=True, cwd=REPO).stdout.split()
     return [float(x) for x in out]
