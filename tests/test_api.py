@@ -200,3 +200,21 @@ def test_dataset_in_worker_processes(lake_dir: Path) -> None:
     with mp.get_context("spawn").Pool(2) as pool:
         got = pool.map(partial(_len_points, ds), range(len(ds)))
     assert got == [_len_points(ds, i) for i in range(len(ds))] and min(got) > 500
+
+
+def test_samples_with_a_missing_agent(tmp_path: Path) -> None:
+    """A reference frame another agent cannot fill (deskew skipped its scan): ``sample_at``
+    gives the agents present; the all-agents index leaves the frame out."""
+    root = tmp_path / "lake"
+    build_clean_clip(Lake(root), CLIP, seconds=0.5, n_ground=300, with_cameras=False,
+                     skip_deskewed_frames=(2,), skip_deskewed_agent="black")
+    clip = v2xlake.open(root).clip(CLIP)
+    assert clip.sample_frames.tolist() == [0, 1, 3, 4] and len(clip) == 4
+    assert clip.sample_at(2).agents == ["red"] and clip.sample_at(3).agents == ["red", "black"]
+    with pytest.raises(KeyError):
+        clip.sample_at(99)
+    loose = v2xlake.CoopDataset(root)
+    strict = v2xlake.CoopDataset(root, require_all_agents=True)
+    assert [k for _, k in loose.index] == [0, 1, 2, 3, 4] and len(strict) == 4
+    assert loose[2]["agents"] == ["red"] and set(loose[2]["points"]) == {"red"}
+    assert strict[2]["frame_idx"] == 3

@@ -363,9 +363,34 @@ class Clip:
         if not -len(rows) <= i < len(rows):
             raise IndexError(f"clip {self.clip_id} has {len(rows)} samples, not {i}")
         i %= len(rows)
+        return self._build(i, {a: int(n[i]) for a, n in nears.items()})
+
+    def sample_at(self, frame_idx: int) -> CoopSample:
+        """The sample at one reference LiDAR frame, with the agents that can fill it (a scan
+        within the tolerance, deskewed, inside its pose coverage): cooperative datasets have
+        a varying number of agents, and this needs no look at the clip's other frames."""
+        ref = self.data.agents[self.reference_agent]
+        lf = ref.lidar[ref.lidar_sensor(self.sensor)]
+        pos = np.flatnonzero(lf.frame_idx == frame_idx)
+        if len(pos) == 0:
+            raise KeyError(f"clip {self.clip_id}: no reference LiDAR frame {frame_idx}")
+        t = int(lf.points_t_ns[pos[0]])
+        picks = {self.reference_agent: int(pos[0])}
+        for aid, agent in self.data.agents.items():
+            if aid == self.reference_agent:
+                continue
+            alf = agent.lidar[agent.lidar_sensor(self.sensor)]
+            j = int(nearest_index(alf.points_t_ns, t)[0])
+            tj = int(alf.points_t_ns[j])
+            if abs(tj - t) <= self.tolerance_ns and alf.deskewed[j] and \
+                    bool(agent.poses.covers(tj)):
+                picks[aid] = j
+        return self._build(-1, picks)
+
+    def _build(self, index: int, picks: dict[str, int]) -> CoopSample:
         ref = self.reference_agent
-        frames = {ref: AgentFrame(self, ref, int(nears[ref][i]), sensor=self.sensor)}
-        for aid in self.agents:
+        frames = {ref: AgentFrame(self, ref, picks[ref], sensor=self.sensor)}
+        for aid, j in picks.items():
             if aid == ref:
                 continue
             T = None
@@ -373,9 +398,8 @@ class Clip:
                 reg = registered_T(self.data, aid, frames[ref].frame_idx)
                 if reg is not None:
                     T = frames[ref].T_world_lidar @ reg
-            frames[aid] = AgentFrame(self, aid, int(nears[aid][i]), sensor=self.sensor,
-                                     T_world_lidar=T)
-        s = CoopSample(self, i, frames)
+            frames[aid] = AgentFrame(self, aid, j, sensor=self.sensor, T_world_lidar=T)
+        s = CoopSample(self, index, frames)
         for f in frames.values():
             f.sample = s
         return s
@@ -586,22 +610,36 @@ class CoopDataset:
     ``images=True``, ``images`` {agent: [{"camera", "rgb", "K", "T_frame_cam"}]}.
     ``transform(item) -> item`` runs last (augmentation, voxelisation, target encoding).
 
-    The index is built from the catalog's frame index plus each clip's pose coverage and
-    frame matching (clips are read once each); a worker process re-opens the lake lazily.
+    The index is every deskewed reference frame (``stride``: every n-th per clip), from the
+    lake-wide frame index in one query; an item holds the agents that can fill that frame
+    (``Clip.sample_at``). ``require_all_agents=True`` keeps only frames every agent fills
+    (``Clip.sample``), which reads each clip's tables once while building the index. A worker
+    process re-opens the lake lazily.
     """
 
     def __init__(self, lake: Lake | str | PathLike[str], clips: Sequence[str] | None = None,
                  *, frame: str = "reference", stride: int = 1, images: bool = False,
+                 require_all_agents: bool = False,
                  transform: Callable[[dict[str, Any]], Any] | None = None) -> None:
         self.lake = lake if isinstance(lake, Lake) else open(lake)
         self.frame = frame
         self.images = images
         self.transform = transform
-        ids = list(clips) if clips is not None else self.lake.clips
+        self.require_all = require_all_agents
+        step = max(1, stride)
         index: list[tuple[str, int]] = []
-        for cid in ids:
-            n = len(self.lake.clip(cid))
-            index.extend((cid, i) for i in range(0, n, max(1, stride)))
+        if require_all_agents:
+            for cid in list(clips) if clips is not None else self.lake.clips:
+                index.extend((cid, i) for i in range(0, len(self.lake.clip(cid)), step))
+        else:
+            t = self.lake.frame_index(clips)
+            ids, fis = t["clip_id"].to_pylist(), t["frame_idx"].to_pylist()
+            k, last = 0, None
+            for cid, fi in zip(ids, fis, strict=True):
+                k = 0 if cid != last else k + 1
+                last = cid
+                if k % step == 0:
+                    index.append((str(cid), int(fi)))
         self.index = index
 
     def __len__(self) -> int:
@@ -609,7 +647,8 @@ class CoopDataset:
 
     def __getitem__(self, i: int) -> Any:
         cid, k = self.index[i]
-        s = self.lake.clip(cid).sample(k)
+        clip = self.lake.clip(cid)
+        s = clip.sample(k) if self.require_all else clip.sample_at(k)
         f = s.reference_agent if self.frame == "reference" else self.frame
         item: dict[str, Any] = {
             "clip_id": cid, "frame_idx": s[s.reference_agent].frame_idx, "t_ns": s.t_ns,
