@@ -55,6 +55,13 @@ class Preset(StrEnum):
     cats = "cats"
 
 
+class PoseFormat(StrEnum):
+    inspva = "inspva"
+    odometry = "odometry"
+    navsat_imu = "navsat-imu"
+    tf = "tf"
+
+
 class BagVersion(StrEnum):
     ros1 = "ros1"
     ros2 = "ros2"
@@ -132,11 +139,12 @@ def _root(
 
 # ---------------------------------------------------------------- simulate / demo
 def sim_config(preset: str, seconds: float | None, storage: str | None, seed: int | None,
-               agents: str | None, cameras: str | None, clip_id: str | None = None) -> Any:
+               agents: str | None, cameras: str | None, clip_id: str | None = None,
+               pose_format: str | None = None) -> Any:
     from v2xlake.tasks.simulate import SimConfig
 
     return SimConfig.preset(preset, seconds=seconds, storage=storage, seed=seed, agents=agents,
-                            cameras=cameras, clip_id=clip_id)
+                            cameras=cameras, clip_id=clip_id, pose_format=pose_format)
 
 
 @app.command()
@@ -162,12 +170,15 @@ def simulate(
     cameras: Annotated[str | None, typer.Option(
         help="how many cameras (N) or a comma list of names")] = None,
     clip_id: str | None = None,
+    pose_format: Annotated[PoseFormat | None, typer.Option(
+        help="how the vehicles' poses are recorded: vendor InsPva, nav_msgs/Odometry in a "
+             "UTM map, NavSatFix + Imu, or /tf")] = None,
 ) -> int:
     """Write a simulated multi-agent clip folder."""
     from v2xlake.tasks.simulate import simulate as run_simulate
 
     cfg = sim_config(preset.value, seconds, storage.value if storage else None, seed, agents,
-                     cameras, clip_id)
+                     cameras, clip_id, pose_format.value if pose_format else None)
     t0 = time.perf_counter()
     path = run_simulate(out, cfg)
     _console().print(f"simulated clip [bold]{cfg.name}[/] ({preset.value}, {cfg.seconds:g} s, "

@@ -358,8 +358,11 @@ def test_dual_return_and_roadside_unit(tmp_path: Path) -> None:
     assert np.linalg.norm(world - world_true, axis=1).max() < 1e-3
     fence = np.char.startswith(np.asarray(lt["obj"])[sel].astype(str), "fence")
     assert fence[first].any() and (~fence[first]).any()  # fence echoes and edge echoes
-    rsu = _read(clip, "rsu", {"/rsu/ins"})["/rsu/ins"]
-    assert len({(m.latitude, m.longitude) for m in rsu}) == 1  # static unit
+    # the roadside unit is a fixed-pose agent: a surveyed pose in clip.yaml, no INS topic
+    pose = conf.agent("rsu").pose
+    assert pose is not None and pose.kind == "fixed" and pose.geodetic is not None
+    assert not [s for s in conf.agent("rsu").sensors if s.modality.value in ("ins", "gnss")]
+    assert "/rsu/ins" not in _read(clip, "rsu", {"/rsu/ins"})
 
 
 def test_module_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -24,9 +24,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--agents", help="comma list from red,black,rsu (red required)")
     ap.add_argument("--cameras", help="how many cameras (N) or a comma list of names")
     ap.add_argument("--camera-hz", type=float)
+    ap.add_argument("--pose-format", choices=["inspva", "odometry", "navsat-imu", "tf"])
     a = ap.parse_args(argv)
     cfg = SimConfig.preset(a.preset, seconds=a.seconds, storage=a.storage, seed=a.seed,
-                           agents=a.agents, cameras=a.cameras, camera_hz=a.camera_hz)
+                           agents=a.agents, cameras=a.cameras, camera_hz=a.camera_hz,
+                           pose_format=a.pose_format)
     t = time.perf_counter()
     out = simulate(a.out, cfg)
     stats = json.loads((out / "truth" / "stats.json").read_text())

@@ -13,17 +13,21 @@ from v2xlake.schemas.clip import (
     AgentKind,
     AgentRole,
     ClipConfig,
+    FixedPose,
     LidarFields,
     Lighting,
     Modality,
+    NoPose,
     PointTimeField,
+    PoseConfig,
     RoadType,
     SensorConfig,
     TimeReference,
     TimeUnit,
     Weather,
 )
-from v2xlake.tasks.simulate.bagwrite import INS_MSG_TEXT, INS_MSG_TYPE
+from v2xlake.tasks.simulate import navformats
+from v2xlake.tasks.simulate.bagwrite import INS_MSG_TEXT
 from v2xlake.tasks.simulate.config import SimConfig
 from v2xlake.tasks.simulate.rig import AgentRig, frame_name
 
@@ -47,7 +51,11 @@ def bag_name(agent: str, storage: str) -> str:
     return f"{agent}.bag" if storage == "ros1" else agent
 
 
-def build_clip_config(cfg: SimConfig, rigs: dict[str, AgentRig]) -> ClipConfig:
+def build_clip_config(cfg: SimConfig, rigs: dict[str, AgentRig],
+                      fixed: dict[str, FixedPose] | None = None) -> ClipConfig:
+    """clip.yaml of a simulated clip: vehicles read their pose in ``cfg.pose_format``
+    (``navformats``), a roadside unit has its surveyed pose in ``fixed``."""
+    fixed = fixed or {}
     agents = []
     for agent in cfg.agents:
         rig = rigs[agent]
@@ -63,19 +71,24 @@ def build_clip_config(cfg: SimConfig, rigs: dict[str, AgentRig]) -> ClipConfig:
                 name=cam, modality=Modality.CAMERA, topic=image_topic(agent, cam),
                 msg_type="sensor_msgs/msg/CompressedImage", frame_id=frame_name(agent, cam),
                 camera_info_topic=info_topic(agent, cam), rate_hz=cfg.camera_hz))
-        sensors += [
-            SensorConfig(name="INS", modality=Modality.INS, topic=f"/{agent}/ins",
-                         msg_type=INS_MSG_TYPE, frame_id=EGO_FRAME, rate_hz=125.0),
-            SensorConfig(name="IMU", modality=Modality.IMU, topic=f"/{agent}/imu",
-                         msg_type="sensor_msgs/msg/Imu", frame_id=EGO_FRAME, rate_hz=125.0),
-            SensorConfig(name="GNSS", modality=Modality.GNSS, topic=f"/{agent}/gnss",
-                         msg_type="sensor_msgs/msg/NavSatFix", frame_id=EGO_FRAME, rate_hz=10.0),
-        ]
+        pose: PoseConfig
+        if agent == "rsu":
+            pose = fixed.get(agent) or NoPose()
+        else:
+            pose_sensors, pose = navformats.pose_config(cfg, agent)
+            sensors += [
+                *pose_sensors,
+                SensorConfig(name="IMU", modality=Modality.IMU, topic=f"/{agent}/imu",
+                             msg_type="sensor_msgs/msg/Imu", frame_id=EGO_FRAME, rate_hz=125.0),
+                SensorConfig(name="GNSS", modality=Modality.GNSS, topic=f"/{agent}/gnss",
+                             msg_type="sensor_msgs/msg/NavSatFix", frame_id=EGO_FRAME,
+                             rate_hz=10.0),
+            ]
         agents.append(AgentConfig(
             agent_id=agent, kind=AgentKind.ROADSIDE if agent == "rsu" else AgentKind.VEHICLE,
             role=AgentRole.REFERENCE if agent == "red" else AgentRole.COOPERATIVE,
             bag=bag_name(agent, cfg.storage), ego_frame=EGO_FRAME, tf_static_topic="/tf_static",
-            sensors=sensors))
+            sensors=sensors, pose=pose))
     return ClipConfig(clip_id=cfg.name, location="simtown", road_type=RoadType.ARTERIAL,
                       weather=Weather.CLEAR, lighting=Lighting.DAY, work_zone=False,
                       agents=agents, message_definitions=[MSG_REL],

@@ -86,6 +86,8 @@ class SimConfig(BaseModel):
     imu_gyro_noise: float = 1e-4
     imu_accel_noise: float = 0.01
     write_lidar_truth: bool = True
+    pose_format: Literal["inspva", "odometry", "navsat-imu", "tf"] = Field(
+        "inspva", description="how the vehicles' INS solution is written (simulate.navformats)")
     speed_mps: float = Field(18.0, description="nominal speed of the red agent")
 
     @field_validator("agents")

@@ -29,10 +29,12 @@ from typing import Any
 import numpy as np
 
 from v2xlake.schemas.annotation import AnnotationFile, Box3D, BoxAnnotation
+from v2xlake.schemas.clip import FixedPose
 from v2xlake.tasks.geodesy import LocalFrame
 from v2xlake.tasks.geometry import compose, invert, matrix_to_quat, rigid, rotation_angle
 from v2xlake.tasks.pngcodec import encode_png
-from v2xlake.tasks.simulate.bagwrite import INS_MSG_TYPE, POINT_DTYPE, BagSink
+from v2xlake.tasks.simulate import navformats
+from v2xlake.tasks.simulate.bagwrite import POINT_DTYPE, BagSink
 from v2xlake.tasks.simulate.camera import CameraRenderer
 from v2xlake.tasks.simulate.clipmeta import (
     EGO_FRAME,
@@ -140,6 +142,7 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
     casters: dict[str, LidarCaster] = {}
     renderers: dict[str, dict[str, CameraRenderer]] = {}
     errs = {a: ins_error(cfg, a) for a in cfg.agents}
+    fixed: dict[str, FixedPose] = {}
     for agent in cfg.agents:
         rig = rigs[agent]
         sink = BagSink(out / bag_name(agent, cfg.storage), cfg.storage)
@@ -149,9 +152,10 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
         for cam in rig.cameras:
             sink.topic(image_topic(agent, cam), "sensor_msgs/msg/CompressedImage")
             sink.topic(info_topic(agent, cam), "sensor_msgs/msg/CameraInfo")
-        sink.topic(f"/{agent}/ins", INS_MSG_TYPE)
-        sink.topic(f"/{agent}/imu", "sensor_msgs/msg/Imu")
-        sink.topic(f"/{agent}/gnss", "sensor_msgs/msg/NavSatFix")
+        if agent != "rsu":  # a roadside unit has a surveyed pose, no navigation topics
+            navformats.declare(sink, agent, cfg.pose_format)
+            sink.topic(f"/{agent}/imu", "sensor_msgs/msg/Imu")
+            sink.topic(f"/{agent}/gnss", "sensor_msgs/msg/NavSatFix")
         f = sink.f
         children = [(frame_name(agent, "LIDAR_TOP"), rig.T_ego_lidar_pub)]
         children += [(frame_name(agent, c), cr.T_ego_cam_pub) for c, cr in rig.cameras.items()]
@@ -160,21 +164,18 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
         rng = np.random.default_rng([cfg.seed, 555, AGENT_NAMES.index(agent)])
         traj = world.agents[agent]
         ins = ins_samples(cfg, traj, errs[agent], frame, ins_t, rng)
-        for i, t in enumerate(ins_t.tolist()):
-            vals = {"latitude": float(ins.lat[i]), "longitude": float(ins.lon[i]),
-                    "altitude": float(ins.alt[i]), "roll": float(ins.roll[i]),
-                    "pitch": float(ins.pitch[i]), "azimuth": float(ins.azimuth[i]),
-                    "east_velocity": float(ins.vel_enu[i, 0]),
-                    "north_velocity": float(ins.vel_enu[i, 1]),
-                    "up_velocity": float(ins.vel_enu[i, 2]), "rtk_status": 2}
-            sink.put(f"/{agent}/ins", t + LAT_INS_NS, f.ins(t, EGO_FRAME, vals, f"/{agent}/ins"))
-            sink.put(f"/{agent}/imu", t + LAT_INS_NS, f.imu(
-                t, EGO_FRAME, ins.quat_enu_xyzw[i], ins.gyro[i], ins.accel[i], f"/{agent}/imu",
-                cfg.imu_gyro_noise ** 2, cfg.imu_accel_noise ** 2))
-        lat, lon, alt = gnss_fixes(cfg, traj, errs[agent], frame, gnss_t, rng)
-        for i, t in enumerate(gnss_t.tolist()):
-            sink.put(f"/{agent}/gnss", t + LAT_GNSS_NS, f.navsatfix(
-                t, EGO_FRAME, lat[i], lon[i], alt[i], cfg.gnss_noise_m, f"/{agent}/gnss"))
+        if agent == "rsu":
+            fixed[agent] = navformats.fixed_pose(ins)
+        else:
+            navformats.put_poses(sink, cfg, agent, ins, frame)
+            for i, t in enumerate(ins_t.tolist()):
+                sink.put(f"/{agent}/imu", t + LAT_INS_NS, f.imu(
+                    t, EGO_FRAME, ins.quat_enu_xyzw[i], ins.gyro[i], ins.accel[i],
+                    f"/{agent}/imu", cfg.imu_gyro_noise ** 2, cfg.imu_accel_noise ** 2))
+            lat, lon, alt = gnss_fixes(cfg, traj, errs[agent], frame, gnss_t, rng)
+            for i, t in enumerate(gnss_t.tolist()):
+                sink.put(f"/{agent}/gnss", t + LAT_GNSS_NS, f.navsatfix(
+                    t, EGO_FRAME, lat[i], lon[i], alt[i], cfg.gnss_noise_m, f"/{agent}/gnss"))
         casters[agent] = LidarCaster(world, agent, rig.T_ego_lidar_true, cfg.lidar, start_ns,
                                      cfg.seed)
         renderers[agent] = {c: CameraRenderer(world, agent, cr) for c, cr in rig.cameras.items()}
@@ -252,7 +253,7 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
         counts[agent] = dict(sink.counts)
 
     # ---- metadata, annotations, truth
-    clip = build_clip_config(cfg, rigs)
+    clip = build_clip_config(cfg, rigs, fixed)
     clip.dump(out)
     write_msg_definition(out)
     af = AnnotationFile(clip_id=cfg.name, annotations=annotations)
