@@ -95,9 +95,9 @@ def _check_name(name: str) -> None:
 
 # ---------------------------------------------------------------- steps
 def select_scenes(lake: Lake, where: str) -> list[SceneKey]:
-    """The clips a user predicate selects. The predicate is parsed as one expression over
-    ``clips`` on a locked-down connection (``Catalog.select_clips``), and every clip id that
-    comes back is checked before a path is built from it."""
+    """The clips a user predicate selects. The predicate is checked to be one expression over
+    ``clips`` and runs on a read-only, locked-down connection (``Catalog.select_clips``);
+    every clip id that comes back is checked before a path is built from it."""
     from v2xlake.storage.catalog import Catalog
 
     with Catalog(lake, read_only=True) as cat:

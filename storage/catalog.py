@@ -24,10 +24,14 @@ Names:
 from __future__ import annotations
 
 import contextlib
+import json
 import os
+import shutil
+import tempfile
 import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 from urllib.parse import urlparse
 
 import duckdb
@@ -63,6 +67,54 @@ QUARANTINE_COLUMNS = {"clip_id": "VARCHAR", "stage": "VARCHAR", "reason": "VARCH
 
 class QueryRefused(ValueError):
     """User SQL that is not allowed (not one SELECT, not one expression, not the lake's)."""
+
+
+# the newlines: a trailing "-- comment" in the predicate cannot swallow the closing ")"
+PREDICATE_WRAPPER = "SELECT clip_id FROM clips WHERE (\n{}\n)"
+# expression classes a --where predicate may not contain (DuckDB's syntax tree names)
+FORBIDDEN_CLASSES = {"SUBQUERY": "a subquery", "WINDOW": "a window function",
+                     "STAR": "a star or COLUMNS(...)", "PARAMETER": "a parameter"}
+# scalar functions whose value is not a function of the row (state, settings, variables)
+FORBIDDEN_FUNCTIONS = frozenset({"getvariable", "current_setting", "getenv", "nextval",
+                                 "currval", "setseed", "current_query", "query",
+                                 "query_table", "current_database", "current_schema",
+                                 "current_schemas"})
+
+
+def _first_line(e: BaseException) -> str:
+    return (str(e).splitlines() or [type(e).__name__])[0]
+
+
+def _strip_locations(tree: Any) -> Any:
+    """A syntax tree without source positions (two texts with the same structure compare
+    equal)."""
+    if isinstance(tree, dict):
+        return {k: _strip_locations(v) for k, v in tree.items() if k != "query_location"}
+    if isinstance(tree, list):
+        return [_strip_locations(v) for v in tree]
+    return tree
+
+
+def _predicate_problem(tree: Any) -> str | None:
+    """Why a WHERE clause's syntax tree is not a plain expression over one row of clips."""
+    if isinstance(tree, list):
+        return next((p for p in map(_predicate_problem, tree) if p), None)
+    if not isinstance(tree, dict):
+        return None
+    cls = tree.get("class")
+    if cls in FORBIDDEN_CLASSES:
+        return f"{FORBIDDEN_CLASSES[cls]} is not allowed"
+    if "node" in tree or "from_table" in tree or "subquery" in tree:
+        return "a query inside the predicate is not allowed"
+    if cls == "FUNCTION" and str(tree.get("function_name", "")).lower() in FORBIDDEN_FUNCTIONS:
+        return f"function {tree['function_name']}() is not allowed"
+    if cls == "FUNCTION" and (tree.get("schema") or tree.get("catalog")):
+        return "qualified function names are not allowed"
+    if cls == "COLUMN_REF":
+        names = list(tree.get("column_names", []))
+        if len(names) > 2 or (len(names) == 2 and names[0] != "clips"):
+            return f"column {'.'.join(names)} is not a column of clips"
+    return next((p for p in map(_predicate_problem, tree.values()) if p), None)
 
 
 def duck_type(t: pa.DataType) -> str:
@@ -116,6 +168,8 @@ class Catalog:
         if not lake.is_local:
             self._setup_s3(self.con)
         self.views: list[ViewInfo] = []
+        self._locked = False
+        self._tmpdir: str | None = None  # the read-only copy of a locked-down catalog
         self.refresh()
 
     # ------------------------------------------------------------------ setup
@@ -211,10 +265,16 @@ class Catalog:
         return views
 
     def _apply(self, con: duckdb.DuckDBPyConnection, views: list[ViewInfo]) -> None:
-        con.execute("CREATE SCHEMA IF NOT EXISTS raw")
-        con.execute("CREATE SCHEMA IF NOT EXISTS clean")
-        for v in views:
-            con.execute(f'CREATE OR REPLACE VIEW {v.schema}."{v.name}" AS {v.sql}')
+        con.execute("BEGIN TRANSACTION")  # one commit (a file database syncs per commit)
+        try:
+            con.execute("CREATE SCHEMA IF NOT EXISTS raw")
+            con.execute("CREATE SCHEMA IF NOT EXISTS clean")
+            for v in views:
+                con.execute(f'CREATE OR REPLACE VIEW {v.schema}."{v.name}" AS {v.sql}')
+        except BaseException:
+            con.execute("ROLLBACK")
+            raise
+        con.execute("COMMIT")
 
     def refresh(self) -> dict[str, str]:
         """Re-scan the lake and rebuild every view; returns {main view name: backing zone}."""
@@ -260,60 +320,121 @@ class Catalog:
         return self.con.execute(sql, params or []).fetch_arrow_table()
 
     def lock_down(self) -> None:
-        """Make this connection safe for user SQL, for good: it may read the lake's own
-        files (the views) and nothing else — no other file, no network, no ATTACH, no
-        extension install or load — and the settings cannot be changed back."""
+        """Make this catalog safe for user SQL, for good: its connection becomes a READ-ONLY
+        one (the same views, in a private database file opened with ``read_only=True``) that
+        may read the lake's own files and nothing else — no other file, no network, no
+        ATTACH, no extension install or load — and whose settings cannot be changed back.
+
+        Why a file: an in-memory database is always writable, so a statement-type check
+        would be the only guard; a read-only database refuses CREATE / INSERT / COPY FROM
+        by itself. The file lives in a private temporary folder (never in the lake, which
+        may itself be read-only) and is removed by ``close``. Why ``allowed_directories``
+        before ``enable_external_access = false``: with external access off DuckDB reads
+        no file at all, views over the lake included (NOTES.md "DuckDB as a read-only
+        surface"); the lake root is the one folder it may still read."""
+        if self._locked:
+            return
+        self._tmpdir = tempfile.mkdtemp(prefix="v2xlake-catalog-")
+        path = os.path.join(self._tmpdir, "catalog.duckdb")
+        build = duckdb.connect(path)
+        try:
+            if not self.lake.is_local:
+                self._setup_s3(build)  # creating a view binds it: s3:// needs httpfs
+            self._apply(build, self.views)
+        finally:
+            build.close()
+        con = duckdb.connect(path, read_only=True)
+        if not self.lake.is_local:
+            self._setup_s3(con)
         root = self.lake.base if self.lake.is_local else f"s3://{self.lake.base}"
         for stmt in (f"SET allowed_directories = [{_q(root + '/')}]",
+                     f"SET temp_directory = {_q(os.path.join(self._tmpdir, 'spill'))}",
                      "SET autoinstall_known_extensions = false",
                      "SET autoload_known_extensions = false",
                      "SET enable_external_access = false",
                      "SET lock_configuration = true"):
-            self.con.execute(stmt)
+            con.execute(stmt)
+        self.con.close()
+        self.con = con
         self._locked = True
 
-    def user_query(self, sql: str) -> pa.Table:
-        """One SELECT statement of user text on a locked-down connection (``lock_down``):
-        COPY, ATTACH, INSTALL, PRAGMA, SET, a second statement... are refused before
-        anything runs."""
-        if not getattr(self, "_locked", False):
-            self.lock_down()
+    @property
+    def locked(self) -> bool:
+        return self._locked
+
+    def _one_select(self, sql: str, what: str) -> duckdb.Statement:
         try:
             statements = self.con.extract_statements(sql)
         except duckdb.Error as e:
-            raise QueryRefused(f"cannot parse the query: {e}") from e
+            raise QueryRefused(f"cannot parse the {what}: {_first_line(e)}") from e
         if len(statements) != 1:
             raise QueryRefused(f"exactly one statement, please (got {len(statements)})")
         kind = statements[0].type
         if kind.name != "SELECT":
             raise QueryRefused(f"only SELECT queries are allowed here (got {kind.name})")
-        return self.con.execute(sql).fetch_arrow_table()
+        return statements[0]
+
+    def user_query(self, sql: str) -> pa.Table:
+        """One SELECT statement of user text on the locked-down, read-only connection
+        (``lock_down``): COPY, ATTACH, INSTALL, PRAGMA, SET, a second statement... are
+        refused before anything runs, and the connection could not do them anyway."""
+        self.lock_down()
+        statement = self._one_select(sql, "query")
+        return self.con.execute(statement).fetch_arrow_table()
+
+    def parse_predicate(self, where: str) -> duckdb.Statement:
+        """The statement ``SELECT clip_id FROM clips WHERE (<where>)``, once it is proven
+        to be exactly that: DuckDB's own parser (``json_serialize_sql``) gives its syntax
+        tree, which must equal the tree of ``... WHERE (true)`` everywhere but the WHERE
+        clause (no UNION, ORDER, LIMIT, GROUP BY, CTE, other table: a ``)`` in the text
+        cannot escape), and the WHERE clause may not hold a subquery (``IN (SELECT ...)``,
+        ``EXISTS (TABLE raw.ins)``), a window, a star, a parameter, a column of another
+        table or a function that reads state outside the row. Text is never pasted into
+        SQL that runs without this check."""
+        self.lock_down()
+        wrapped = PREDICATE_WRAPPER.format(where)
+        statement = self._one_select(wrapped, "--where predicate")
+        tree = self._syntax_tree(wrapped)
+        if tree.get("error"):
+            raise QueryRefused(f"--where is not one SQL expression: "
+                               f"{tree.get('error_message', 'parse error')}")
+        (node,) = [s["node"] for s in tree["statements"]]
+        predicate = node.pop("where_clause", None)
+        reference = self._syntax_tree(PREDICATE_WRAPPER.format("true"))["statements"][0]["node"]
+        reference.pop("where_clause", None)
+        if predicate is None or _strip_locations(node) != _strip_locations(reference):
+            raise QueryRefused(f"--where must be one boolean expression over clips columns: "
+                               f"{where!r}")
+        if problem := _predicate_problem(predicate):
+            raise QueryRefused(f"--where {where!r}: {problem}; it must be one boolean "
+                               "expression over clips columns, without subqueries")
+        return statement
+
+    def _syntax_tree(self, sql: str) -> dict[str, Any]:
+        row = self.con.execute("SELECT json_serialize_sql(?)", [sql]).fetchone()
+        assert row is not None
+        tree: dict[str, Any] = json.loads(row[0])
+        return tree
 
     def select_clips(self, where: str, columns: Sequence[str]) -> pa.Table:
-        """Rows of ``clips`` (status ok) matching a user predicate, which must be ONE boolean
-        expression over the clips view: it is parsed as an expression (never pasted into
-        SQL text), and subqueries are refused, so it can only filter clips."""
-        if not getattr(self, "_locked", False):
-            self.lock_down()
-        tokens = duckdb.tokenize(where)
-        words = [where[a:b].strip().upper() for (a, _), (b, _) in
-                 zip(tokens, [*tokens[1:], (len(where), None)], strict=True)]
-        if any(w in ("SELECT", "FROM", "UNION", "COPY", "ATTACH", "PRAGMA") or ";" in w
-               for w in words):
-            raise QueryRefused(f"--where must be one boolean expression over clips columns, "
-                               f"without subqueries: {where!r}")
+        """Rows of ``clips`` (status ok) matching a user predicate (``parse_predicate``),
+        ordered by clip id. The predicate runs as the parsed statement on the read-only
+        connection; the columns and the status filter are the project's own."""
+        statement = self.parse_predicate(where)
         try:
-            expr = duckdb.SQLExpression(where)
+            ids = [r[0] for r in self.con.execute(statement).fetchall()]
         except duckdb.Error as e:
-            raise QueryRefused(f"--where is not one SQL expression: {e}") from e
-        rel = self.con.table("clips").filter(duckdb.SQLExpression("status = 'ok'"))
-        try:
-            return rel.filter(expr).select(*columns).order("clip_id").fetch_arrow_table()
-        except duckdb.Error as e:
-            raise QueryRefused(f"--where {where!r}: {e}") from e
+            raise QueryRefused(f"--where {where!r}: {_first_line(e)}") from e
+        cols = ", ".join('"' + c.replace('"', '""') + '"' for c in columns)
+        return self.con.execute(
+            f"SELECT {cols} FROM clips WHERE status = 'ok' AND list_contains(?, clip_id) "
+            "ORDER BY clip_id", [ids]).fetch_arrow_table()
 
     def close(self) -> None:
         self.con.close()
+        if self._tmpdir is not None:
+            shutil.rmtree(self._tmpdir, ignore_errors=True)
+            self._tmpdir = None
 
     def __enter__(self) -> Catalog:
         return self

@@ -16,8 +16,10 @@ from v2xlake.storage.catalog import QueryRefused
 from v2xlake.storage.lake import Lake, checked_clip_id
 
 
-@pytest.fixture
-def lake(tmp_path: Path) -> Lake:
+@pytest.fixture(scope="module")
+def lake(tmp_path_factory: pytest.TempPathFactory) -> Lake:
+    """One lake for the module: every case here must leave it as it was (each checks)."""
+    tmp_path = tmp_path_factory.mktemp("hostile")
     lake = Lake(tmp_path / "lake")
     for i, w in enumerate(("clear", "rain")):
         rep = fakes.fake_ingest(lake, fakes.make_fake_clip(tmp_path / "in", f"c{i}", weather=w))
@@ -42,6 +44,16 @@ HOSTILE_QUERIES = [
     "CREATE TABLE t AS SELECT 1",
     "COPY (SELECT 'x' AS clip_id) TO '{lake}/clean/clips/clip_id=forged/part.parquet'",
     "SELECT * FROM read_parquet('{lake}/../outside.parquet')",
+    # a table function that runs SQL text: only a SELECT, and on a read-only database
+    "SELECT * FROM query('COPY (SELECT 1) TO ''{lake}/clean/clips/clip_id=forged/p.parquet''')",
+    "SELECT * FROM query('CREATE TABLE t AS SELECT 1')",
+    "SELECT getenv('HOME')",
+    "SELECT * FROM glob('{tmp}/*')",
+    "SELECT * FROM read_text('/proc/self/environ')",
+    "DETACH memory",
+    "USE raw",
+    "CALL pragma_version()",
+    "EXPLAIN ANALYZE SELECT 1",
 ]
 
 
@@ -58,6 +70,23 @@ def test_query_is_read_only_and_lake_only(lake: Lake, tmp_path: Path, sql: str) 
     assert ids == ["c0", "c1"]  # nothing forged; the lake's own views still answer
 
 
+def test_user_sql_runs_on_a_read_only_database(lake: Lake) -> None:
+    from v2xlake.storage.catalog import Catalog
+
+    with Catalog(lake, read_only=True) as cat:
+        cat.lock_down()
+        assert cat.con.execute("SELECT current_setting('access_mode')").fetchone() == (
+            "read_only",)
+        with pytest.raises(Exception, match="read-only"):
+            cat.con.execute("CREATE VIEW v AS SELECT 1")  # even the trusted side cannot
+        with pytest.raises(Exception, match="lock"):
+            cat.con.execute("SET enable_external_access = true")
+        tmpdir = cat._tmpdir
+        assert tmpdir and not tmpdir.startswith(lake.base)  # the copy is never in the lake
+        assert cat.user_query("SELECT count(*) AS n FROM clips").to_pylist() == [{"n": 2}]
+    assert not Path(tmpdir).exists()  # removed on close
+
+
 def test_query_cli_refuses_with_one_line(lake: Lake, tmp_path: Path,
                                         capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["query", f"COPY (SELECT 1) TO '{tmp_path}/x.csv'", "--lake", lake.uri]) == 2
@@ -72,6 +101,25 @@ HOSTILE_WHERE = [
     "clip_id IN (SELECT clip_id FROM raw.ins)",
     "clip_id = (SELECT '../../raw')",
     "length(read_text('/etc/passwd')) > 0",
+    # subqueries without SELECT or FROM: TABLE, VALUES, SUMMARIZE, PIVOT
+    "EXISTS (TABLE raw.ins)",
+    "clip_id IN (VALUES ('c0'))",
+    "clip_id = ANY((VALUES ('c0')))",
+    "clip_id IN (SUMMARIZE raw.ins)",
+    "(PIVOT clips ON weather) IS NULL",
+    "clip_id IN (FROM raw.ins SELECT clip_id)",
+    # not one expression over one row of clips
+    "true ORDER BY 1",
+    "true GROUP BY clip_id",
+    "true) UNION (SELECT '../../raw'",
+    "true LIMIT 1",
+    "COLUMNS(*) IS NOT NULL",
+    "row_number() OVER () = 1",
+    "clip_id = $1",
+    "clip_id = getvariable('x')",
+    "current_setting('allowed_directories') IS NOT NULL",
+    "raw.clips.weather = 'rain'",
+    "weather = 'rain' /* unclosed",
 ]
 
 
