@@ -15,6 +15,7 @@ from v2xlake.tasks.anonymize.detectors import (
 )
 from v2xlake.tasks.anonymize.images import anonymize_png, encode_png, png_chunks, strip_png_metadata
 from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
+from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
 
 __all__ = [
     "AnonymizeConfig",
@@ -28,6 +29,8 @@ __all__ = [
     "HaarPlateConfig",
     "HaarPlateDetector",
     "ScanConfig",
+    "TextPlateConfig",
+    "TextPlateDetector",
     "UnionDetector",
     "anonymize_png",
     "blur_boxes",

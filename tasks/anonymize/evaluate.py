@@ -13,7 +13,7 @@ from __future__ import annotations
 import itertools
 import os
 import string
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -343,3 +343,103 @@ def audit_detections(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], lis
         box = (au["x0"][i], au["y0"][i], au["x1"][i], au["y1"][i])
         out[k].append(Detection(str(au["kind"][i]), box, float(au["score"][i])))
     return out
+
+
+# ------------------------------------------------------------------ real labelled images
+@dataclass(frozen=True)
+class LabelledImage:
+    """A real photo with hand-labelled faces / plates (every other blur on it is false)."""
+
+    path: str
+    truth: tuple[tuple[str, Box], ...]
+
+
+def plates_eu(folder: str | os.PathLike[str]) -> list[LabelledImage]:
+    """openalpr's ``endtoend/eu`` benchmark as found in ``folder``: ``NAME.txt`` holds
+    ``file x y width height text`` for one plate of ``file`` (others may be unlabelled, so
+    only recall is measured on this set). Read in place: the set is AGPL test data."""
+    out = []
+    for name in sorted(os.listdir(folder)):
+        if not name.endswith(".txt"):
+            continue
+        with open(os.path.join(folder, name)) as f:
+            fields = f.read().split()
+        if len(fields) < 5:
+            continue
+        x, y, w, h = (float(v) for v in fields[1:5])
+        box = (x, y, x + w, y + h)
+        out.append(LabelledImage(os.path.join(folder, fields[0]), (("plate", box),)))
+    return out
+
+
+def street_images(folder: str | os.PathLike[str]) -> list[LabelledImage]:
+    """The real street images of ``folder/labels.json`` ({name: {faces: [{box}], plates: [...]}}),
+    boxes x0, y0, x1, y1."""
+    import json
+
+    with open(os.path.join(folder, "labels.json")) as f:
+        labels = json.load(f)
+    out = []
+    for name, lab in sorted(labels.items()):
+        if not isinstance(lab, dict):
+            continue
+        truth = tuple(
+            (kind, tuple(float(v) for v in item["box"]))
+            for kind, key in (("face", "faces"), ("plate", "plates"))
+            for item in lab.get(key, [])
+        )
+        out.append(LabelledImage(os.path.join(folder, name), truth))  # type: ignore[arg-type]
+    return out
+
+
+@dataclass(frozen=True)
+class RealScore:
+    """Recall and false blurs of one detector on a labelled set."""
+
+    n_true: int
+    n_found: int
+    n_images: int
+    n_false: int
+    false_area: list[float]  # per image: share of the image area under false boxes (union)
+    missed: list[str]
+
+    @property
+    def recall(self) -> float:
+        return self.n_found / self.n_true if self.n_true else 1.0
+
+    @property
+    def false_per_image(self) -> float:
+        return self.n_false / max(self.n_images, 1)
+
+
+def score_real(
+    images: Sequence[LabelledImage], detect: Callable[[np.ndarray], Sequence[Detection]],
+    kinds: tuple[str, ...] = ("face", "plate"), iou: float = 0.3,
+) -> RealScore:
+    """Run ``detect`` on every image; a detection of a kind in ``kinds`` that matches no true
+    box of its kind is a false blur; its area (union of false boxes) is measured too."""
+    n_true = n_found = n_false = 0
+    areas: list[float] = []
+    missed: list[str] = []
+    for item in images:
+        img = cv2.imread(item.path, cv2.IMREAD_COLOR)
+        if img is None:
+            raise FileNotFoundError(item.path)
+        dets = [d for d in detect(img) if d.kind in kinds]
+        truth = [t for t in item.truth if t[0] in kinds]
+        found, _ = match(truth, dets, iou)
+        n_true += len(truth)
+        n_found += int(found.sum())
+        name = os.path.basename(item.path)
+        missed += [f"{name}:{t[0]}" for t, f in zip(truth, found, strict=True) if not f]
+        tb = np.array([t[1] for t in truth], float).reshape(-1, 4)
+        mask = np.zeros(img.shape[:2], bool)
+        for d in dets:
+            same = [i for i, t in enumerate(truth) if t[0] == d.kind]
+            if same and (iou_xyxy(np.asarray(d.box), tb[same]) >= iou).any():
+                continue
+            n_false += 1
+            x0, y0, x1, y1 = (round(v) for v in d.box)
+            mask[max(y0, 0) : y1, max(x0, 0) : x1] = True
+        areas.append(float(mask.mean()))
+    return RealScore(n_true, n_found, len(images), n_false, areas, missed)

@@ -104,6 +104,39 @@ def real_images(detectors: dict) -> None:
         print(f"  {name}: " + "; ".join(cells))
 
 
+REAL = REPO.parent / "shared" / "data" / "real"
+
+
+def real_plates() -> None:
+    """Plate detectors on real photos: plates_eu (108 labelled plates; other plates in a photo
+    may be unlabelled, so only recall counts) and the labelled street images (recall, false
+    plate blurs per image and as a share of the image area)."""
+    from v2xlake.tasks.anonymize.evaluate import plates_eu, score_real, street_images
+    from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
+
+    variants: dict[str, Detector] = {
+        "text-plate (PP-OCRv4 DB, native; default)": TextPlateDetector(),
+        "text-plate, min aspect 1.3 (two-row plates)": TextPlateDetector(
+            TextPlateConfig(min_aspect=1.3)
+        ),
+        "classic-plate": ClassicPlateDetector(),
+    }
+    sets = {"plates_eu": plates_eu(REAL / "plates_eu") if (REAL / "plates_eu").is_dir() else [],
+            "street": street_images(REAL / "images") if (REAL / "images").is_dir() else []}
+    print("\nPlates on real photos (IoU >= 0.3)")
+    for name, det in variants.items():
+        for sname, items in sets.items():
+            if not items:
+                continue
+            t = time.perf_counter()
+            s = score_real(items, det.detect, kinds=("plate",))
+            ms = (time.perf_counter() - t) / len(items) * 1000
+            print(f"  {name} on {sname}: recall {s.recall:.3f} ({s.n_found}/{s.n_true}), "
+                  f"{s.false_per_image:.2f} {'extra' if sname == 'plates_eu' else 'false'} "
+                  f"boxes/image, false area mean {100 * np.mean(s.false_area):.2f} % "
+                  f"max {100 * max(s.false_area):.2f} %, {ms:.0f} ms/image; missed {s.missed[:6]}")
+
+
 def _iou(a, b) -> float:
     from v2xlake.tasks.geometry import iou_xyxy as iou_matrix
 
@@ -199,7 +232,12 @@ def main() -> None:
     ap.add_argument("--sim", type=Path, help="only: recall on this simulated clip folder")
     ap.add_argument("--every", type=int, default=1, help="with --sim: every n-th image")
     ap.add_argument("--speed", action="store_true", help="only the speed comparison")
+    ap.add_argument("--real", action="store_true", help="only the real labelled photos")
     args = ap.parse_args()
+    if args.real:
+        cv2.setNumThreads(1)
+        real_plates()
+        return
     if args.sim:
         sim_recall(args.sim, args.every)
         return

@@ -1,0 +1,70 @@
+"""The learned plate detector (PP-OCRv4 DB text lines + plate geometry) on real photos.
+
+* ``plates_eu/``: 108 real photos of European cars, one labelled plate each (openalpr's
+  benchmark, AGPL test data read in place: skipped when the folder is absent). Recall at IoU
+  >= 0.3 must be >= 0.95 (the issue's target; 107/108 measured).
+* the real street images of ``images/labels.json``: at most 0.5 false plate blurs per image
+  and 0.5 % of the image area (the classic detector made 82 on one of them).
+* the DB post-processing (probability map -> text lines) is a pure function, tested on a map
+  with known lines; the model comes from the installed wheel, identified by its hash.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from v2xlake.tasks.anonymize.evaluate import plates_eu, score_real, street_images
+from v2xlake.tasks.anonymize.textplate import TextPlateDetector, db_lines, text_det_onnx_path
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+EU = REAL / "plates_eu"
+STREETS = REAL / "images"
+
+
+@pytest.fixture(scope="module")
+def detector() -> TextPlateDetector:
+    return TextPlateDetector()
+
+
+def test_model_ships_in_the_wheel(detector: TextPlateDetector) -> None:
+    p = text_det_onnx_path()
+    assert p.name == "ch_PP-OCRv4_det_infer.onnx" and "rapidocr_onnxruntime" in str(p)
+    assert "onnx-sha256:" in detector.version and "rapidocr_onnxruntime-1.4.4" in detector.version
+
+
+def test_db_lines_recovers_rectangles() -> None:
+    """A 200 x 40 band and a tilted 120 x 24 band of probability 0.9: two lines, unclipped
+    by d = area x 1.6 / perimeter on every side, the tilt recovered, nothing else."""
+    import cv2
+
+    prob = np.zeros((300, 400), np.float32)
+    prob[50:90, 100:300] = 0.9
+    box = cv2.boxPoints(((200.0, 200.0), (120.0, 24.0), 20.0)).astype(np.int32)
+    cv2.fillPoly(prob, [box], 0.9)
+    prob[250:252, 10:12] = 0.9  # 2 px speck: too thin for a line
+    lines = sorted(db_lines(prob, 0.3, 0.5, 1.6), key=lambda r: r[1])
+    assert len(lines) == 2
+    cx, cy, a, b, ang, score = lines[0]
+    d = 200 * 40 * 1.6 / (2 * 240)
+    assert abs(cx - 199.5) < 1.5 and abs(cy - 69.5) < 1.5 and abs(ang) < 1
+    assert abs(a - (200 + 2 * d)) < 3 and abs(b - (40 + 2 * d)) < 3 and score > 0.85
+    assert abs(abs(lines[1][4]) - 20.0) < 2.0
+
+
+@pytest.mark.skipif(not EU.is_dir(), reason="plates_eu test data not present")
+def test_plates_eu_recall(detector: TextPlateDetector) -> None:
+    images = plates_eu(EU)
+    assert len(images) >= 100
+    s = score_real(images, detector.detect, kinds=("plate",))
+    assert s.recall >= 0.95, (s.recall, s.missed)
+
+
+@pytest.mark.skipif(not STREETS.is_dir(), reason="real street images not present")
+def test_few_false_plates_on_real_streets(detector: TextPlateDetector) -> None:
+    s = score_real(street_images(STREETS), detector.detect, kinds=("plate",))
+    assert s.n_images >= 3
+    assert s.false_per_image <= 0.5, s
+    assert max(s.false_area) <= 0.005, s
