@@ -264,6 +264,8 @@ class GeoFields(_Strict):
     latitude: str = "latitude"
     longitude: str = "longitude"
     height: str = "altitude"
+    undulation: str | None = Field(default=None, description="geoid undulation field added "
+                                   "to height when height is above mean sea level (SBG)")
 
 
 class EulerFields(_Strict):
@@ -278,6 +280,8 @@ class InsFields(_Strict):
     latitude: str = "latitude"
     longitude: str = "longitude"
     height: str = "altitude"
+    undulation: str | None = Field(default=None, description="geoid undulation field added "
+                                   "to height when height is above mean sea level")
     roll: str = "roll"
     pitch: str = "pitch"
     heading: str = "azimuth"

@@ -377,6 +377,8 @@ class PoseCollector:
             assert f is not None
             vals = {k: float(get_path(msg, getattr(f, k))) for k in
                     ("latitude", "longitude", "height", "roll", "pitch", "heading")}
+            if f.undulation:  # height above mean sea level + undulation = ellipsoidal
+                vals["height"] += float(get_path(msg, f.undulation))
             if f.velocity is not None:
                 v = f.velocity
                 vals.update(v0=float(get_path(msg, v.x)), v1=float(get_path(msg, v.y)),
@@ -506,6 +508,8 @@ def _geo_extractor(fields: Any, msg_type: str, name: str) -> Extractor:
         else:
             vals = {k: float(get_path(msg, getattr(fields, k)))
                     for k in ("latitude", "longitude", "height")}
+            if fields.undulation:
+                vals["height"] += float(get_path(msg, fields.undulation))
             vals["status"] = STATUS_UNKNOWN
         for k, v in vals.items():
             out.cols.setdefault(k, []).append(v)
