@@ -26,7 +26,7 @@ from v2xlake.tasks.ingest import run_ingest
 from v2xlake.tasks.ingest.images import jpeg_size
 from v2xlake.tasks.qa.core import QaConfig, run_qa
 
-FIXTURES = Path(__file__).resolve().parent / "fixtures"
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 Q_LIDAR = Rotation.from_matrix(T_EGO_LIDAR[:3, :3]).as_quat(scalar_first=True).tolist()
 
 
@@ -464,3 +464,35 @@ def test_radar_without_a_velocity_field_is_refused(tmp_path: Path) -> None:
     d = write(tmp_path / "nov", [agent(sensors=[lidar_sensor(), s])], {"bag_car": scans(_ts())})
     assert "radar sensor 'RADAR_FRONT' needs a 'fields' mapping with its radial velocity" in \
         ingest_error(d).reason
+
+
+def test_no_pose_clip_keeps_its_anonymized_images(tmp_path: Path) -> None:
+    """No pose at all: ingest, QA (a warning) and anonymize run, the anonymized images are
+    in the clean zone; the absence is agents.has_ins false / pose_source 'none' / no
+    ego_poses, and deskew and register say "not applicable"."""
+    from v2xlake.tasks.anonymize.run import run_anonymize
+    from v2xlake.tasks.deskew.stage import run_deskew
+    from v2xlake.tasks.register.stage import run_register
+
+    ts = _ts()
+    jpg = _jpeg(64, 48)
+    bag = [*scans(ts, 4), _static(ts)]
+    for k in range(8):
+        bag += _camera(ts, T0 + k * 50_000_000, jpg, (64, 48))
+    d = write(tmp_path / "nopose", [agent(sensors=[lidar_sensor(), _cam_sensor(20)],
+                                          tf_static_topic="/tf_static", pose={"kind": "none"})],
+              {"bag_car": bag})
+    lake = Lake(tmp_path / "lake")
+    run_ingest(lake, d)
+    qa = run_qa(lake, "nopose")
+    assert qa.metrics["errors"] == 0 and qa.metrics["warnings"] >= 1
+    run_anonymize(lake, "nopose")
+    frames = lake.read_table("clean", "camera_frames", clip_id="nopose").to_pylist()
+    assert len(frames) == 8
+    assert all(decode_image(lake.read_blob("clean", f["blob"])).shape == (48, 64, 3)
+               for f in frames)
+    a = lake.read_table("clean", "agents", clip_id="nopose").to_pylist()[0]
+    assert (a["has_ins"], a["pose_source"], a["pose_frame"]) == (False, "none", None)
+    assert lake.read_table("clean", "ego_poses", clip_id="nopose").num_rows == 0
+    assert run_deskew(lake, "nopose").status == "not_applicable"
+    assert run_register(lake, "nopose").status == "not_applicable"
