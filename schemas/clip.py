@@ -393,6 +393,17 @@ PoseConfig = Annotated[InsPose | OdometryPose | SplitPose | TfPose | FixedPose |
                        Field(discriminator="kind")]
 
 
+class AgentDimensions(_Strict):
+    """The agent's body as a box (ground to roof, nuScenes-style), for removing it from the
+    other agents' scans before registration: size and the box centre in the ego frame."""
+
+    length_m: float = Field(gt=0, le=30)
+    width_m: float = Field(gt=0, le=5)
+    height_m: float = Field(gt=0, le=10)
+    center_in_ego: tuple[float, float, float] = Field(
+        default=(0.0, 0.0, 0.0), description="box centre in the ego (INS) frame, metres")
+
+
 class AgentConfig(_Strict):
     agent_id: str = Field(pattern=ID_PATTERN)
     kind: AgentKind
@@ -403,6 +414,8 @@ class AgentConfig(_Strict):
     sensors: list[SensorConfig] = Field(min_length=1)
     pose: PoseConfig | None = Field(default=None, description="where the agent's pose comes "
                                     "from; default: its ins-modality sensor, else none")
+    dimensions: AgentDimensions | None = Field(
+        default=None, description="body box; registration removes it from the others' scans")
 
     @model_validator(mode="after")
     def _unique_sensors(self) -> Self:

@@ -50,6 +50,13 @@ class AgentRow(_Row):
     has_ins: bool
     pose_source: str | None = None
     pose_frame: str | None = None
+    # declared body box (clip.yaml ``dimensions``), centre in the ego frame
+    length_m: F64 | None = None
+    width_m: F64 | None = None
+    height_m: F64 | None = None
+    body_dx: F64 | None = None
+    body_dy: F64 | None = None
+    body_dz: F64 | None = None
 
 
 class SensorRow(_Row):
@@ -315,6 +322,14 @@ class RegistrationRow(_Row):
     accepted: bool
     method: str
     reason: str
+    # static-scene filtering (issue #13): voxel centroids GICP saw, and what was removed from
+    # both scans as annotated moving boxes, other agents' bodies, or inconsistent with the
+    # neighbouring scans of the same agent
+    n_points_ref: I64 | None = None
+    n_points_other: I64 | None = None
+    removed_boxes: I64 | None = None
+    removed_bodies: I64 | None = None
+    removed_dynamic: I64 | None = None
 
 
 class AlignmentRow(_Row):

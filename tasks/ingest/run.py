@@ -893,11 +893,15 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
                                 stage=STAGE) from e
         for aid, r in results.items():
             a = cfg.agent(aid)
+            dims = a.dimensions
             staging.write_table("raw", "agents", table_of(AgentRow, [AgentRow(
                 clip_id=cid, agent_id=aid, kind=a.kind.value, role=a.role.value,
                 has_ins=r.has_ins, pose_source=a.effective_pose.kind,
-                pose_frame={"ecef": "wgs84", "map": "map"}.get(r.pose_frame or ""))]),
-                clip_id=cid, agent_id=aid)
+                pose_frame={"ecef": "wgs84", "map": "map"}.get(r.pose_frame or ""),
+                **({} if dims is None else dict(
+                    length_m=dims.length_m, width_m=dims.width_m, height_m=dims.height_m,
+                    body_dx=dims.center_in_ego[0], body_dy=dims.center_in_ego[1],
+                    body_dz=dims.center_in_ego[2])))]), clip_id=cid, agent_id=aid)
         tmins = [r.t_min for r in results.values() if r.t_min is not None]
         tmaxs = [r.t_max for r in results.values() if r.t_max is not None]
         if not tmins:

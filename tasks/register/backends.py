@@ -7,7 +7,14 @@ the target of every other agent's scan in the same frame, and small_gicp's one-c
 ``align`` on NumPy arrays would redo that work every time (60-75 % of its cost).
 Both report the same quality figures, computed the same way (nearest neighbour of each
 transformed source point in the target within a distance), so thresholds mean the same
-whichever backend ran.
+whichever backend ran, and the same information matrix: the GICP Hessian with plane-
+regularised covariances (eigenvalues 1e-3, 1, 1 as small_gicp sets them), for a LEFT
+perturbation ``exp(xi) T`` of ``T_target_source`` in the target frame, ``xi = [rot, trans]``
+(small_gicp's own Hessian is for a right perturbation and is converted; Open3D exposes none,
+so it is computed from its covariances at the solution).
+
+Only finite points reach a backend (voxel downsampling drops NaN and inf; ``prepare_points``
+refuses anything else), so a backend never sees the NaN that crashed Open3D's GICP.
 """
 
 from __future__ import annotations
@@ -57,8 +64,11 @@ class AlignOutcome:
 
 class RegistrationBackend(Protocol):
     name: str
+    params: GicpParams
 
     def prepare(self, xyz: np.ndarray, *, as_target: bool = True) -> Prepared: ...
+
+    def prepare_points(self, pts: np.ndarray) -> Prepared: ...
 
     def align(self, target: Prepared, source: Prepared, init: np.ndarray) -> AlignOutcome: ...
 
@@ -67,6 +77,56 @@ class RegistrationBackend(Protocol):
 
 def _downsample(xyz: np.ndarray, p: GicpParams, as_target: bool) -> np.ndarray:
     return voxel_downsample(xyz, p.voxel_m if as_target else p.source_voxel_m, p.max_range_m)
+
+
+def _finite(pts: np.ndarray) -> np.ndarray:
+    p = np.ascontiguousarray(np.asarray(pts, dtype=np.float64).reshape(-1, 3))
+    if not np.isfinite(p).all():
+        raise ValueError("non-finite points must not reach a GICP backend")
+    return p
+
+
+def right_to_left_information(H: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """A Hessian for ``T exp(d)`` ([rot, trans], source frame) as one for ``exp(xi) T``:
+    ``xi = Ad_T d``, so ``H_left = Ad_T^-T H Ad_T^-1``."""
+    R, t = T[:3, :3], T[:3, 3]
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    ad = np.zeros((6, 6))
+    ad[:3, :3] = R
+    ad[3:, 3:] = R
+    ad[3:, :3] = tx @ R
+    inv = np.linalg.inv(ad)
+    out = inv.T @ H @ inv
+    return np.asarray(0.5 * (out + out.T))
+
+
+def _plane_cov(cov: np.ndarray) -> np.ndarray:
+    """Covariances with eigenvalues replaced by (1e-3, 1, 1) (small_gicp's regularisation)."""
+    w, v = np.linalg.eigh(cov)
+    del w
+    return np.einsum("nij,j,nkj->nik", v, np.array([1e-3, 1.0, 1.0]), v)
+
+
+def gicp_information(target_pts: np.ndarray, target_cov: np.ndarray, source_pts: np.ndarray,
+                     source_cov: np.ndarray, nn_idx: np.ndarray, nn_d2: np.ndarray,
+                     T: np.ndarray, max_dist_m: float) -> np.ndarray:
+    """GICP Hessian at ``T`` for a left perturbation, from per-point covariances (plane-
+    regularised here) and each source point's nearest target point (``nn_idx``, squared
+    distance ``nn_d2`` after moving by ``T``); pairs farther than ``max_dist_m`` left out."""
+    ok = nn_d2 <= max_dist_m * max_dist_m
+    if not ok.any():
+        return np.zeros((6, 6))
+    R = T[:3, :3]
+    q = source_pts[ok] @ R.T + T[:3, 3]
+    c = _plane_cov(target_cov[nn_idx[ok]]) + R @ _plane_cov(source_cov[ok]) @ R.T
+    W = np.linalg.inv(c)
+    J = np.zeros((len(q), 3, 6))
+    J[:, 0, 1], J[:, 0, 2] = q[:, 2], -q[:, 1]
+    J[:, 1, 0], J[:, 1, 2] = -q[:, 2], q[:, 0]
+    J[:, 2, 0], J[:, 2, 1] = q[:, 1], -q[:, 0]
+    J[:, :, 3:] = np.eye(3)
+    H = np.einsum("nai,nab,nbj->ij", J, W, J)
+    return np.asarray(0.5 * (H + H.T))
 
 
 class SmallGicpBackend:
@@ -79,11 +139,15 @@ class SmallGicpBackend:
         self.params = params
 
     def prepare(self, xyz: np.ndarray, *, as_target: bool = True) -> Prepared:
+        return self.prepare_points(_downsample(xyz, self.params, as_target))
+
+    def prepare_points(self, pts: np.ndarray) -> Prepared:
         sg, p = self._sg, self.params
-        pts = _downsample(xyz, p, as_target)
+        pts = _finite(pts)
         cloud = sg.PointCloud(pts)
         tree = sg.KdTree(cloud, num_threads=p.num_threads)
-        sg.estimate_covariances(cloud, tree, p.num_neighbors, num_threads=p.num_threads)
+        if len(pts) > p.num_neighbors:
+            sg.estimate_covariances(cloud, tree, p.num_neighbors, num_threads=p.num_threads)
         return Prepared(pts, cloud, tree)
 
     def align(self, target: Prepared, source: Prepared, init: np.ndarray) -> AlignOutcome:
@@ -93,8 +157,10 @@ class SmallGicpBackend:
                            registration_type="GICP",
                            max_correspondence_distance=p.max_correspondence_m,
                            num_threads=p.num_threads, max_iterations=p.max_iterations)
-        return AlignOutcome(np.asarray(r.T_target_source), bool(r.converged), int(r.iterations),
-                            np.asarray(r.H, dtype=np.float64))
+        T = np.asarray(r.T_target_source)
+        H = np.asarray(r.H, dtype=np.float64)
+        H_left = right_to_left_information(H, T) if np.isfinite(T).all() else None
+        return AlignOutcome(T, bool(r.converged), int(r.iterations), H_left)
 
     def nearest_sq_dist(self, target: Prepared, query: np.ndarray) -> np.ndarray:
         _, d2 = target.tree.batch_nearest_neighbor_search(
@@ -112,10 +178,14 @@ class Open3dBackend:
         self.params = params
 
     def prepare(self, xyz: np.ndarray, *, as_target: bool = True) -> Prepared:
+        return self.prepare_points(_downsample(xyz, self.params, as_target))
+
+    def prepare_points(self, pts: np.ndarray) -> Prepared:
         o3d, p = self._o3d, self.params
-        pts = _downsample(xyz, p, as_target)
+        pts = _finite(pts)
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-        pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamKNN(p.num_neighbors))
+        if len(pts) > p.num_neighbors:
+            pcd.estimate_covariances(o3d.geometry.KDTreeSearchParamKNN(p.num_neighbors))
         return Prepared(pts, pcd, None)
 
     def align(self, target: Prepared, source: Prepared, init: np.ndarray) -> AlignOutcome:
@@ -126,16 +196,28 @@ class Open3dBackend:
             reg.TransformationEstimationForGeneralizedICP(),
             reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
                                        max_iteration=p.max_iterations))
-        return AlignOutcome(np.asarray(r.transformation).copy(), True, -1)
+        T = np.asarray(r.transformation).copy()
+        H = None
+        if np.isfinite(T).all() and len(source.points) and len(target.points):
+            tc = np.asarray(target.handle.covariances)
+            sc = np.asarray(source.handle.covariances)
+            if len(tc) == len(target.points) and len(sc) == len(source.points):
+                idx, d2 = self._nearest(target, source.points @ T[:3, :3].T + T[:3, 3])
+                H = gicp_information(target.points, tc, source.points, sc, idx, d2, T,
+                                     p.max_correspondence_m)
+        return AlignOutcome(T, True, -1, H)
 
-    def nearest_sq_dist(self, target: Prepared, query: np.ndarray) -> np.ndarray:
+    def _nearest(self, target: Prepared, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # the same exact nearest-neighbour figure as small_gicp (SciPy k-d tree, built lazily)
         from scipy.spatial import cKDTree
 
         if target.tree is None:
             target.tree = cKDTree(target.points)
-        d, _ = target.tree.query(query, k=1)
-        return np.asarray(d, dtype=np.float64) ** 2
+        d, i = target.tree.query(query, k=1)
+        return np.asarray(i, dtype=np.int64), np.asarray(d, dtype=np.float64) ** 2
+
+    def nearest_sq_dist(self, target: Prepared, query: np.ndarray) -> np.ndarray:
+        return self._nearest(target, query)[1]
 
 
 def make_backend(name: BackendName,

@@ -137,15 +137,19 @@ def _attempt(backend: RegistrationBackend, target: Prepared, source: Prepared,
         return PairResult(T_init, start, T_init.copy(), T_init, 0.0, 0.0, 0, 0.0, 0.0, False,
                           f"too few points after downsampling (source {len(source.points)}, "
                           f"target {len(target.points)}; need {limits.min_inliers})", 0, 0.0)
-    out = backend.align(target, source, start)
+    try:
+        out = backend.align(target, source, start)
+    except Exception as e:  # a backend failure is this frame's reason, never the clip's end
+        return failed_pair(T_init, f"{backend.name} GICP failed: {type(e).__name__}: {e}",
+                           start)
     T = out.T
+    if not np.all(np.isfinite(T)):
+        return failed_pair(T_init, "GICP returned a non-finite transform", start)
     fit, rmse, k = evaluate(backend, target, source, T, limits.fitness_distance_m)
     obs = observability(out.H)
     dm, ddeg = transform_delta(T_init, T)
     reason = "ok"
-    if not np.all(np.isfinite(T)):
-        reason = "GICP returned a non-finite transform"
-    elif k < limits.min_inliers:
+    if k < limits.min_inliers:
         reason = f"too little overlap: {k} inliers < {limits.min_inliers}"
     elif fit < limits.min_fitness:
         reason = f"too little overlap: fitness {fit:.3f} < {limits.min_fitness}"
@@ -159,6 +163,13 @@ def _attempt(backend: RegistrationBackend, target: Prepared, source: Prepared,
     ok = reason == "ok"
     return PairResult(T_init, start, T, T if ok else T_init, fit, rmse, k, dm, ddeg, ok, reason,
                       out.iterations, 0.0, obs)
+
+
+def failed_pair(T_init: np.ndarray, reason: str, start: np.ndarray | None = None
+                ) -> PairResult:
+    """A frame pair with no usable GICP result: the eq. 1a estimate is kept, with the reason."""
+    return PairResult(T_init, T_init if start is None else start, T_init.copy(), T_init, 0.0,
+                      0.0, 0, 0.0, 0.0, False, reason, 0, 0.0)
 
 
 def _with_seconds(r: PairResult, s: float) -> PairResult:

@@ -17,24 +17,31 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.compute as pc
-import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.arrow import rows_to_table
-from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import RegistrationRow
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import pose_missing, read_extrinsics
-from v2xlake.tasks.deskew.stage import OUT_TABLE as DESKEWED
+from v2xlake.storage.reader import pose_missing
 from v2xlake.tasks.geometry import matrix_to_quat, transform
-from v2xlake.tasks.interpolate import PoseTrack
-from v2xlake.tasks.reader import load_pose_track
 from v2xlake.tasks.register.backends import GicpParams, Prepared, RegistrationBackend, make_backend
 from v2xlake.tasks.register.bev import render_registration_bev
-from v2xlake.tasks.register.core import PairResult, QualityLimits, initial_transform_at, refine
+from v2xlake.tasks.register.core import (
+    PairResult,
+    QualityLimits,
+    failed_pair,
+    initial_transform_at,
+    refine,
+)
+from v2xlake.tasks.register.scans import (
+    AgentScans,
+    Body,
+    StaticScans,
+    StaticSettings,
+    _fail,
+)
+from v2xlake.tasks.register.static import RemovalCounts
 
 log = logging.getLogger(__name__)
 
@@ -70,12 +77,38 @@ class RegisterConfig(BaseModel):
     bev_frame: int | None = Field(None, description="reference frame of the BEV picture "
                                                     "(default: the middle pair)")
     write_bev: bool = True
+    # static scene only (issue #13): what moves is removed before GICP
+    static_only: bool = Field(True, description="remove moving things before GICP")
+    use_annotations: bool = Field(True, description="remove the scan's annotated boxes")
+    box_margin_m: float = Field(0.3, ge=0, description="annotated boxes are grown by this")
+    body_margin_m: float = Field(0.6, ge=0, description="other agents' declared bodies, placed "
+                                 "by their INS poses, are grown by this")
+    dynamic_filter: Literal["auto", "on", "off"] = Field(
+        "auto", description="remove points inconsistent with the neighbouring scans of the same "
+                            "agent; auto: in frames without annotations")
+    dynamic_residual_m: float = Field(0.5, gt=0, description="a point farther than this from "
+                                      "the earlier AND the later neighbouring scans is moving")
+    dynamic_neighbours: int = Field(2, ge=1, description="scans on each side compared")
+    dynamic_voxel_m: float = Field(0.25, gt=0, description="voxel of the neighbouring scans")
+    dynamic_object_fraction: float = Field(
+        0.25, gt=0, le=1, description="an above-ground object (connected in bird's-eye view) "
+        "with this fraction of moving points is removed whole (1: per point only)")
 
     def gicp(self) -> GicpParams:
         return GicpParams(voxel_m=self.voxel_m, source_voxel_m=self.source_voxel_m,
                           max_range_m=self.max_range_m, num_neighbors=self.num_neighbors,
                           max_correspondence_m=self.max_correspondence_m,
                           max_iterations=self.max_iterations, num_threads=1)
+
+    def static(self) -> StaticSettings:
+        return StaticSettings(enabled=self.static_only, use_annotations=self.use_annotations,
+                              box_margin_m=self.box_margin_m, body_margin_m=self.body_margin_m,
+                              dynamic=self.dynamic_filter,
+                              dynamic_residual_m=self.dynamic_residual_m,
+                              dynamic_neighbours=self.dynamic_neighbours,
+                              dynamic_voxel_m=self.dynamic_voxel_m,
+                              dynamic_object_fraction=self.dynamic_object_fraction,
+                              max_range_m=self.max_range_m)
 
     def limits(self) -> QualityLimits:
         return QualityLimits(fitness_distance_m=self.fitness_distance_m,
@@ -85,69 +118,7 @@ class RegisterConfig(BaseModel):
                              min_observability=self.min_observability)
 
 
-def _fail(clip_id: str, reason: str, agent_id: str | None = None) -> ClipError:
-    return ClipError(clip_id, reason, agent_id=agent_id, stage=STAGE)
-
-
-class _AgentScans:
-    """One agent's deskewed scans, poses and extrinsic; reads one frame (row group) at a time."""
-
-    def __init__(self, lake: Lake, clip_id: str, agent: str, sensor: str | None) -> None:
-        self.agent = agent
-        self.track: PoseTrack = load_pose_track(lake, clip_id, agent)
-        extr = read_extrinsics(lake, clip_id, agent)
-        if not extr:
-            raise _fail(clip_id, "no LiDAR in calibrated_sensors", agent)
-        if sensor is None:
-            sensor = "LIDAR_TOP" if "LIDAR_TOP" in extr else sorted(extr)[0]
-        if sensor not in extr:
-            raise _fail(clip_id, f"LiDAR {sensor} has no calibrated_sensors row", agent)
-        self.sensor, self.T_ego_lidar = sensor, extr[sensor]
-        frames = lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent)
-        desk = lake.read_table("clean", "deskew_frames", clip_id=clip_id, agent_id=agent)
-        if frames.num_rows and not desk.num_rows:
-            raise _fail(clip_id, "no deskew_frames: run deskew first", agent)
-        ref_of = {(str(s), int(f)): r for s, f, r in zip(
-            desk.column("sensor").to_pylist(), desk.column("frame_idx").to_pylist(),
-            desk.column("deskew_ref_ns").to_pylist(), strict=True)} if desk.num_rows else {}
-        # frame_idx -> (scan start, deskew reference time); frames deskew skipped are left out
-        self.frames: dict[int, tuple[int, int]] = {}
-        if frames.num_rows:
-            for s, f, t0 in zip(frames.column("sensor").to_pylist(),
-                                frames.column("frame_idx").to_pylist(),
-                                frames.column("t_start_ns").to_pylist(), strict=True):
-                tr = ref_of.get((str(s), int(f)))
-                if s == sensor and tr is not None:
-                    self.frames[int(f)] = (int(t0), int(tr))
-        self._lake = lake
-        self._groups: dict[int, list[tuple[str, int]]] = {}
-        for path in lake.list_files(lake.table_dir("clean", DESKEWED, clip_id, agent), ".parquet"):
-            pf = pq.ParquetFile(path, filesystem=lake.fs)
-            col = pf.schema_arrow.get_field_index("frame_idx")
-            for rg in range(pf.num_row_groups):
-                st = pf.metadata.row_group(rg).column(col).statistics
-                if st is not None and st.has_min_max and st.min == st.max:
-                    self._groups.setdefault(int(st.min), []).append((path, rg))
-                else:
-                    for f in np.unique(pf.read_row_group(rg, columns=["frame_idx"])
-                                       .column(0).to_numpy()):
-                        self._groups.setdefault(int(f), []).append((path, rg))
-        if not self._groups:
-            raise _fail(clip_id, f"no {DESKEWED} rows: run deskew first", agent)
-
-    def points(self, frame_idx: int) -> np.ndarray:
-        parts = []
-        for path, rg in self._groups.get(frame_idx, []):
-            t = pq.ParquetFile(path, filesystem=self._lake.fs).read_row_group(
-                rg, columns=["sensor", "frame_idx", "x", "y", "z"])
-            keep = pc.and_(pc.equal(t.column("frame_idx"), frame_idx),
-                           pc.equal(t.column("sensor").cast(pa.string()), self.sensor))
-            t = t.filter(keep)
-            parts.append(np.stack([t.column(c).to_numpy() for c in ("x", "y", "z")], axis=1))
-        return np.concatenate(parts) if parts else np.zeros((0, 3), np.float32)
-
-
-def _pairs(ref: _AgentScans, other: _AgentScans, tol: int) -> list[tuple[int, int]]:
+def _pairs(ref: AgentScans, other: AgentScans, tol: int) -> list[tuple[int, int]]:
     """(ref frame, other frame) with scan starts within ``tol`` (PPS: equal)."""
     if not other.frames:
         return []
@@ -164,7 +135,8 @@ def _pairs(ref: _AgentScans, other: _AgentScans, tol: int) -> list[tuple[int, in
 
 
 def _row(clip_id: str, ref: str, other: str, frame: int, t_ns: int, r: PairResult,
-         method: str) -> RegistrationRow:
+         method: str, n_ref: int, n_oth: int, c_ref: RemovalCounts, c_oth: RemovalCounts
+         ) -> RegistrationRow:
     qi, qf = matrix_to_quat(r.T_init[:3, :3]), matrix_to_quat(r.T_final[:3, :3])
     ti, tf = r.T_init[:3, 3], r.T_final[:3, 3]
     return RegistrationRow(
@@ -173,7 +145,26 @@ def _row(clip_id: str, ref: str, other: str, frame: int, t_ns: int, r: PairResul
         init_qy=qi[2], init_qz=qi[3], tx=tf[0], ty=tf[1], tz=tf[2], qw=qf[0], qx=qf[1],
         qy=qf[2], qz=qf[3], fitness=r.fitness, inlier_rmse=r.inlier_rmse,
         correction_m=r.correction_m, correction_deg=r.correction_deg, accepted=r.accepted,
-        method=method, reason=r.reason)
+        method=method, reason=r.reason, n_points_ref=n_ref, n_points_other=n_oth,
+        removed_boxes=c_ref.boxes + c_oth.boxes, removed_bodies=c_ref.bodies + c_oth.bodies,
+        removed_dynamic=c_ref.dynamic + c_oth.dynamic)
+
+
+def _bodies(lake: Lake, clip_id: str, agents: list[AgentScans], cfg: RegisterConfig
+            ) -> dict[str, Body]:
+    """Declared footprints of the agents (clean ``agents``: length, width, height and the box
+    centre in the ego frame); agents without one are not removed from the others' scans."""
+    t = lake.read_table("clean", "agents", clip_id=clip_id)
+    out: dict[str, Body] = {}
+    if not cfg.static_only or t.num_rows == 0 or "length_m" not in t.column_names:
+        return out
+    ids = {a.agent for a in agents}
+    for r in t.to_pylist():
+        if r["agent_id"] in ids and r.get("length_m") and r.get("width_m") and r.get("height_m"):
+            c = tuple(float(r.get(k) or 0.0) for k in ("body_dx", "body_dy", "body_dz"))
+            out[r["agent_id"]] = Body(float(r["length_m"]), float(r["width_m"]),
+                                      float(r["height_m"]), (c[0], c[1], c[2]))
+    return out
 
 
 def _reference_agent(lake: Lake, clip_id: str) -> tuple[str, list[str]]:
@@ -210,8 +201,8 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     if not other_ids:
         report.notes.append(f"single agent ({ref_id}): nothing to register")
         return report
-    ref = _AgentScans(lake, clip_id, ref_id, cfg.sensor)
-    others = [_AgentScans(lake, clip_id, a, cfg.sensor) for a in other_ids]
+    ref = AgentScans(lake, clip_id, ref_id, cfg.sensor)
+    others = [AgentScans(lake, clip_id, a, cfg.sensor) for a in other_ids]
     backend: RegistrationBackend = make_backend(cfg.backend, cfg.gicp())
     method = f"{cfg.backend}:GICP"
     pairs = {o.agent: dict(_pairs(ref, o, cfg.pair_tolerance_ns)) for o in others}
@@ -219,27 +210,51 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     if not ref_frames:
         raise _fail(clip_id, "no frame pairs: no scans of the other agents start within "
                              f"{cfg.pair_tolerance_ns} ns of the reference agent's scans")
+    static = cfg.static()
+    bodies = _bodies(lake, clip_id, [ref, *others], cfg)
+    ref_static = StaticScans(ref, static, [(o, bodies[o.agent]) for o in others
+                                           if o.agent in bodies])
+    oth_static = {o.agent: StaticScans(o, static, [(a, bodies[a.agent]) for a in (ref, *others)
+                                                   if a is not o and a.agent in bodies])
+                  for o in others}
     bev_frame = cfg.bev_frame if cfg.bev_frame is not None else ref_frames[len(ref_frames) // 2]
     warm: dict[str, np.ndarray | None] = {o.agent: None for o in others}
     rows: list[BaseModel] = []
     results: list[PairResult] = []
     pair_s: list[float] = []
+    removed = RemovalCounts()
     for f in ref_frames:
         t0 = time.perf_counter()
-        ref_xyz = ref.points(f)
-        target: Prepared = backend.prepare(ref_xyz, as_target=True)
+        target: Prepared | None = None
+        target_error = ""
+        ref_scan = ref_static.filtered(f, cfg.voxel_m)
+        try:
+            target = backend.prepare_points(ref_scan.points)
+        except Exception as e:  # per frame, never the clip's end
+            target_error = f"{backend.name} could not prepare the reference scan: {e}"
         for o in others:
             if f not in pairs[o.agent]:
                 continue
             fo = pairs[o.agent][f]
-            oth_xyz = o.points(fo)
-            source = backend.prepare(oth_xyz, as_target=False)
             T_init = initial_transform_at(ref.track, o.track, ref.T_ego_lidar, o.T_ego_lidar,
                                           ref.frames[f][1], o.frames[fo][1])
-            res = refine(backend, target, source, T_init, cfg.limits(),
-                         warm[o.agent] if cfg.warm_start else None)
+            oth_scan = oth_static[o.agent].filtered(fo, cfg.source_voxel_m)
+            if target is None:
+                res = failed_pair(T_init, target_error)
+            else:
+                try:
+                    source = backend.prepare_points(oth_scan.points)
+                    res = refine(backend, target, source, T_init, cfg.limits(),
+                                 warm[o.agent] if cfg.warm_start else None)
+                except Exception as e:
+                    res = failed_pair(T_init, f"{backend.name} failed on the pair: "
+                                              f"{type(e).__name__}: {e}")
             warm[o.agent] = res.correction if res.accepted else warm[o.agent]
-            rows.append(_row(clip_id, ref_id, o.agent, f, ref.frames[f][0], res, method))
+            c_ref, c_oth = ref_scan.counts, oth_scan.counts
+            for k in ("boxes", "bodies", "dynamic"):
+                setattr(removed, k, getattr(removed, k) + getattr(c_ref, k) + getattr(c_oth, k))
+            rows.append(_row(clip_id, ref_id, o.agent, f, ref.frames[f][0], res, method,
+                             len(ref_scan.points), len(oth_scan.points), c_ref, c_oth))
             results.append(res)
             pair_s.append(time.perf_counter() - t0)
             t0 = time.perf_counter()  # the target's preparation is charged to the first pair
@@ -249,7 +264,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
             if cfg.write_bev and f == bev_frame and o is others[0]:
                 key = lake.path("clean", "images", clip_id, "registration_bev.png")
                 lake.write_bytes(key, render_registration_bev(
-                    ref_xyz, oth_xyz, res.T_init, res.T_final,
+                    ref.points(f), o.points(fo), res.T_init, res.T_final,
                     title=f"{clip_id} frame {f}: {o.agent} -> {ref_id} ({res.reason}, fitness "
                           f"{res.fitness:.2f}, correction {res.correction_m:.2f} m / "
                           f"{res.correction_deg:.2f} deg)"))
@@ -266,6 +281,8 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
         mean_correction_m=float(np.mean([r.correction_m for r in acc])) if acc else 0.0,
         mean_correction_deg=float(np.mean([r.correction_deg for r in acc])) if acc else 0.0,
         median_pair_s=float(np.median(pair_s)) if pair_s else 0.0,
+        removed_boxes=float(removed.boxes), removed_bodies=float(removed.bodies),
+        removed_dynamic=float(removed.dynamic),
         min_observability=float(np.nanmin([r.observability for r in results]))
         if results and not np.all(np.isnan([r.observability for r in results])) else 0.0,
         seconds=time.perf_counter() - wall0,
@@ -294,8 +311,8 @@ def plot_registration(lake: Lake, clip_id: str, frame_idx: int, out_png: str | P
         return transform(np.array([r[f"{prefix}tx"], r[f"{prefix}ty"], r[f"{prefix}tz"]]),
                          q / np.linalg.norm(q))
 
-    ref = _AgentScans(lake, clip_id, r["agent_ref"], cfg.sensor)
-    oth = _AgentScans(lake, clip_id, r["agent_other"], cfg.sensor)
+    ref = AgentScans(lake, clip_id, r["agent_ref"], cfg.sensor)
+    oth = AgentScans(lake, clip_id, r["agent_other"], cfg.sensor)
     fo = dict(_pairs(ref, oth, cfg.pair_tolerance_ns)).get(frame_idx, frame_idx)
     out = Path(out_png)
     render_registration_bev(ref.points(frame_idx), oth.points(fo), mat("init_"), mat(""), out,

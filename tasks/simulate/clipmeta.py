@@ -10,6 +10,7 @@ from pathlib import Path
 
 from v2xlake.schemas.clip import (
     AgentConfig,
+    AgentDimensions,
     AgentKind,
     AgentRole,
     ClipConfig,
@@ -30,6 +31,7 @@ from v2xlake.tasks.simulate import navformats
 from v2xlake.tasks.simulate.bagwrite import INS_MSG_TEXT
 from v2xlake.tasks.simulate.config import SimConfig
 from v2xlake.tasks.simulate.rig import AgentRig, frame_name
+from v2xlake.tasks.simulate.scene import AGENT_SIZE, EGO_HEIGHT
 
 MSG_REL = "msgs/v2xlake_msgs/msg/InsPva.msg"
 EGO_FRAME = "base_link"
@@ -84,11 +86,14 @@ def build_clip_config(cfg: SimConfig, rigs: dict[str, AgentRig],
                              msg_type="sensor_msgs/msg/NavSatFix", frame_id=EGO_FRAME,
                              rate_hz=10.0),
             ]
+        dims = None if agent == "rsu" else AgentDimensions(
+            length_m=AGENT_SIZE[0], width_m=AGENT_SIZE[1], height_m=AGENT_SIZE[2],
+            center_in_ego=(0.0, 0.0, AGENT_SIZE[2] / 2 - EGO_HEIGHT))
         agents.append(AgentConfig(
             agent_id=agent, kind=AgentKind.ROADSIDE if agent == "rsu" else AgentKind.VEHICLE,
             role=AgentRole.REFERENCE if agent == "red" else AgentRole.COOPERATIVE,
             bag=bag_name(agent, cfg.storage), ego_frame=EGO_FRAME, tf_static_topic="/tf_static",
-            sensors=sensors, pose=pose))
+            sensors=sensors, pose=pose, dimensions=dims))
     return ClipConfig(clip_id=cfg.name, location="simtown", road_type=RoadType.ARTERIAL,
                       weather=Weather.CLEAR, lighting=Lighting.DAY, work_zone=False,
                       agents=agents, message_definitions=[MSG_REL],

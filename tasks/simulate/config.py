@@ -10,6 +10,12 @@ Presets (``SimConfig.preset(name, **overrides)``):
   120 m range, all seven cameras scaled to 640 px wide (aspect kept: 640x360 front/back,
   640x360 / 640x512 sides). Tests should pass ``cameras=("CAM_FRONT", "CAM_BACK")`` and/or a
   lower ``camera_hz`` (stamps stay on the 30 Hz trigger grid, every n-th trigger is rendered).
+* ``street`` is the hard street of issue #13 on the ``small`` rig (pass ``lidar=`` for full
+  size): ``street="corridor"`` (a long straight street between continuous parallel facades,
+  sparse poles, dense moving traffic in both directions, one 90 deg turn at an intersection
+  with corner buildings, the other agent 5..25 m ahead in the next lane), only ``black``'s
+  published LiDAR extrinsic wrong (15 cm / 0.4 deg), the reference agent's exact, and an INS
+  drift of 3 cm/s per agent (a few cm/s between the agents), 10 m/s city speed.
 
 Every number that tests relate to (extrinsic errors, INS bias, noise) is a field here, so a
 test can switch an error source off and check the geometry exactly. The whole config is
@@ -85,10 +91,20 @@ class SimConfig(BaseModel):
     gnss_noise_m: float = 0.02
     imu_gyro_noise: float = 1e-4
     imu_accel_noise: float = 0.01
+    lidar_ext_err_agents: tuple[str, ...] | None = Field(
+        None, description="agents whose published LiDAR extrinsic carries the error above "
+                          "(None: every agent; the others publish the true one)")
+    ins_drift_mps: float = Field(0.0, ge=0.0, description="INS position drift rate per agent "
+                                 "(m/s, a seeded horizontal direction): b(t) += v_d * t")
     write_lidar_truth: bool = True
     pose_format: Literal["inspva", "odometry", "navsat-imu", "tf"] = Field(
         "inspva", description="how the vehicles' INS solution is written (simulate.navformats)")
     speed_mps: float = Field(18.0, description="nominal speed of the red agent")
+    street: Literal["town", "corridor"] = Field(
+        "town", description="town: mixed buildings, fences, parked cars, a few road users; "
+                            "corridor: the hard street of issue #13 (see the module doc)")
+    turn_at_s: float | None = Field(None, description="corridor: clip time (s) of the middle of "
+                                                      "the 90 deg turn (default: mid-clip)")
 
     @field_validator("agents")
     @classmethod
@@ -148,7 +164,16 @@ class SimConfig(BaseModel):
                 "cameras": CAMERA_NAMES, "image_width": 640,
                 "write_lidar_truth": True,
             }
+        elif name == "street":
+            base = {
+                "preset_name": "street",
+                "lidar": LidarSpec(beams=32, columns=360, dual_return=False, max_range_m=120.0),
+                "cameras": (), "image_width": 640, "write_lidar_truth": True,
+                "street": "corridor", "speed_mps": 10.0, "lidar_ext_trans_err_m": 0.15,
+                "lidar_ext_rot_err_deg": 0.4, "lidar_ext_err_agents": ("black",),
+                "ins_drift_mps": 0.03,
+            }
         else:
-            raise ValueError(f"unknown preset {name!r}; choose 'small' or 'cats'")
+            raise ValueError(f"unknown preset {name!r}; choose 'small', 'street' or 'cats'")
         base.update(over)
         return cls(**base)

@@ -8,7 +8,8 @@ What the INS reports (its error model, per agent, seeded):
   constant bias of norm ``ins_bias_m`` (mostly horizontal) plus a slow wander of amplitude
   ``ins_bias_drift_m`` and period ``ins_bias_period_s`` (default 300 s, i.e. < 0.1 mm change
   within one LiDAR sweep; none for the static roadside unit, whose "INS" is a surveyed pose),
-  plus optional white noise ``ins_noise_m``;
+  plus an optional linear drift ``v_d * t`` (``ins_drift_mps``, a seeded horizontal direction;
+  none for the roadside unit), plus optional white noise ``ins_noise_m``;
 * attitude: ``R_ins = R_bias @ R_true`` with a constant world-frame rotation ``R_bias``
   (roll, pitch, yaw each +-``ins_att_bias_deg``);
 * velocity: the true world velocity (central differences of the analytic path).
@@ -25,7 +26,7 @@ attitude as a quaternion of ``R_enu_body``. GNSS: the INS position error plus wh
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -46,10 +47,12 @@ class InsError:
     period_s: float
     R_bias: np.ndarray  # (3, 3) world-frame attitude bias
     att_bias_rpy: np.ndarray  # (3,) rad
+    drift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) m/s
 
     def bias(self, tau: np.ndarray) -> np.ndarray:
         tau = np.asarray(tau, float)
-        return self.b0 + self.b1 * np.sin(2 * np.pi * tau / self.period_s + self.phase)[..., None]
+        return (self.b0 + self.b1 * np.sin(2 * np.pi * tau / self.period_s + self.phase)[..., None]
+                + self.drift * tau[..., None])
 
 
 def ins_error(cfg: SimConfig, agent: str) -> InsError:
@@ -61,8 +64,12 @@ def ins_error(cfg: SimConfig, agent: str) -> InsError:
     rpy = rng.choice([-1.0, 1.0], 3) * np.radians(cfg.ins_att_bias_deg)
     rb = Rotation.from_euler("ZYX", rpy[::-1]).as_matrix()
     drift = 0.0 if agent == "rsu" else cfg.ins_bias_drift_m  # a surveyed mast does not wander
-    return InsError(d * cfg.ins_bias_m, d1 * drift, float(rng.uniform(0, 2 * np.pi)),
-                    cfg.ins_bias_period_s, rb, rpy)
+    phase = float(rng.uniform(0, 2 * np.pi))
+    rate = np.zeros(3)
+    if cfg.ins_drift_mps > 0 and agent != "rsu":  # drawn last: other errors keep their values
+        a = rng.uniform(0, 2 * np.pi)
+        rate = cfg.ins_drift_mps * np.array([np.cos(a), np.sin(a), 0.0])
+    return InsError(d * cfg.ins_bias_m, d1 * drift, phase, cfg.ins_bias_period_s, rb, rpy, rate)
 
 
 @dataclass

@@ -9,7 +9,8 @@ clockwise seen from above (front -> right -> back -> left), as in CATS-V2V Fig. 
 ``T_ego_sensor`` maps points from the sensor frame into base_link. The TRUE extrinsic is the
 nominal mount plus a small seeded mounting deviation; ``/tf_static`` publishes the true one
 composed with a calibration error ``T_pub = T_true @ T_err`` whose translation has norm
-``lidar_ext_trans_err_m`` and rotation angle ``lidar_ext_rot_err_deg`` (random directions).
+``lidar_ext_trans_err_m`` and rotation angle ``lidar_ext_rot_err_deg`` (random directions), on
+every agent or only on those named in ``lidar_ext_err_agents``.
 """
 
 from __future__ import annotations
@@ -88,7 +89,10 @@ def build_rigs(cfg: SimConfig) -> dict[str, AgentRig]:
         mount = rigid(Rotation.from_rotvec(rng.normal(size=3) * np.radians(0.3)).as_matrix(),
                      rng.normal(size=3) * 0.02)
         lid_true = lid_nom @ mount
-        lid_pub = lid_true @ _error(rng, cfg.lidar_ext_trans_err_m, cfg.lidar_ext_rot_err_deg)
+        wrong = cfg.lidar_ext_err_agents is None or agent in cfg.lidar_ext_err_agents
+        # the error is drawn for every agent (same random stream), applied to the chosen ones
+        err = _error(rng, cfg.lidar_ext_trans_err_m, cfg.lidar_ext_rot_err_deg)
+        lid_pub = lid_true @ err if wrong else lid_true.copy()
         cams: dict[str, CameraRig] = {}
         for name in cams_for:
             yaw, hfov, bw, bh_red, bh_black, x, y, z = _CAMS[name]

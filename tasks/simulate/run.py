@@ -309,8 +309,10 @@ def _write_truth(tdir: Path, cfg: SimConfig, world: World, rigs: dict, errs: dic
                             "intrinsics": cr.intrinsics.model_dump(mode="json")}
                         for c, cr in rig.cameras.items()},
             "ins_error": {"b0": e.b0.tolist(), "b1": e.b1.tolist(), "phase": e.phase,
+                          "drift_mps": e.drift.tolist(),
                           "period_s": e.period_s, "att_bias_rpy_rad": e.att_bias_rpy.tolist(),
-                          "model": "p_ins = p_true + b0 + b1 sin(2 pi tau / period + phase); "
+                          "model": "p_ins = p_true + b0 + b1 sin(2 pi tau / period + phase) "
+                                   "+ drift_mps tau; "
                                    "R_ins = Rz(yaw) Ry(pitch) Rx(roll) @ R_true"},
         }
     (tdir / "extrinsics.json").write_text(json.dumps(ext, indent=1))

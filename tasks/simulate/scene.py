@@ -27,6 +27,7 @@ Objects:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -162,18 +163,124 @@ def _plate_text(rng: np.random.Generator) -> str:
     return "".join(rng.choice(list(letters), 3)) + " " + "".join(rng.choice(list("0123456789"), 4))
 
 
+
+def _town_traffic(cfg: SimConfig, rng: np.random.Generator,
+                  road: Callable[..., Actor]) -> list[Actor]:
+    """The town street's road users: a car ahead and behind, an oncoming van and truck, a
+    pickup towing a trailer (linked)."""
+    actors: list[Actor] = []
+    actors.append(road("car_ahead", ObjectClass.CAR, (4.6, 1.85, 1.5), 47.0, 0.0, 1.0))
+    actors.append(road("car_behind", ObjectClass.CAR, (4.5, 1.8, 1.45), -24.0, 3.5, 1.0))
+    actors.append(road("van_oncoming", ObjectClass.VAN, (5.2, 2.0, 2.1), 90.0, 7.0, -0.95))
+    actors.append(road("truck_oncoming", ObjectClass.TRUCK, (8.5, 2.5, 3.4), 150.0, 10.5, -0.8))
+    pick_l, trail_l = 5.5, 4.0
+    pickup = road("pickup_towing", ObjectClass.CAR, (pick_l, 2.0, 1.9), 105.0, 7.0, -0.85,
+                  links=("trailer_towed",))
+    actors.append(pickup)
+    gap_t = (pick_l / 2 + 1.2 + trail_l / 2) / cfg.speed_mps
+    actors.append(road("trailer_towed", ObjectClass.TRAILER, (trail_l, 2.1, 1.9), 0.0, 7.0,
+                       -0.85, links=("pickup_towing",), front=False,
+                       shift=pickup.traj.shift + gap_t))
+
+    return actors
+
+
+def _corridor_profile(cfg: SimConfig, rng: np.random.Generator) -> KinematicProfile:
+    """Straight, one 90 deg turn (0.4 rad/s, about 4 s) centred at ``turn_at_s``, straight."""
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    mid = cfg.turn_at_s if cfg.turn_at_s is not None else cfg.seconds / 2
+    rate = 0.4
+    dur = (np.pi / 2) / rate  # the logistic window integrates to exactly dur
+    return KinematicProfile(
+        x0=0.0, y0=0.0, yaw0=float(rng.uniform(-np.pi, np.pi)), v0=cfg.speed_mps, dv=0.3,
+        v_period=9.0, v_phase=float(rng.uniform(0, 2 * np.pi)),
+        turns=(Turn(mid - dur / 2, mid + dur / 2, rate * sign, 0.3),),
+        t_min=-150.0, t_max=float(cfg.seconds) + 150.0)
+
+
+def _corridor_facades(cfg: SimConfig, rng: np.random.Generator, prof: KinematicProfile,
+                      s: np.ndarray, ts: np.ndarray, s_min: float, s_max: float,
+                      building: Callable[..., None]) -> None:
+    """Continuous terraced facades flush with both sidewalks (no gaps, setbacks under 0.1 m:
+    nothing but the poles and the far ends fixes a scan along the street), a cross street
+    every 150-250 m, shorter blocks around the turn (whose walls turn with it) and none on the
+    inside of it where the curve is too tight for a block."""
+    w = prof.yaw_rate(ts)
+    in_turn = np.abs(w) > 0.05
+    s_turn = (float(s[in_turn].min()), float(s[in_turn].max())) if in_turn.any() else None
+    left_turn = bool(in_turn.any() and w[in_turn].mean() > 0)
+    for side, base in ((-1, 9.0), (1, 17.5)):
+        inner = (side > 0) == left_turn
+        sk, i = s_min, 0
+        next_cross = rng.uniform(120, 200)
+        while sk < s_max:
+            turning = s_turn is not None and s_turn[0] - 8 < sk < s_turn[1] + 8
+            if turning and inner:
+                sk += 2.0
+                continue
+            if sk > next_cross and not turning:  # a cross street: one 14 m gap
+                sk += 14.0
+                next_cross = sk + rng.uniform(150, 250)
+                continue
+            length = rng.uniform(3.0, 5.0) if turning else rng.uniform(14, 30)
+            depth, height = rng.uniform(8, 14), rng.uniform(8, 22)
+            d = side * (base + depth / 2 + rng.uniform(0, 0.1))
+            building(sk, length, d, depth, height,
+                     f"building_{'L' if side > 0 else 'R'}{i:03d}")
+            sk += length  # terraced: block meets block
+            i += 1
+
+
+def _corridor_traffic(cfg: SimConfig, rng: np.random.Generator, prof: KinematicProfile,
+                      gz: float, t_of_s: Callable[[float], float],
+                      plates: Callable[..., tuple[tuple[str, str, int], ...]]) -> list[Actor]:
+    """Dense traffic both ways: two oncoming lanes with a vehicle every 18-40 m (cars, vans,
+    trucks) meeting the agents throughout the clip, a car ahead and behind in each
+    same-direction lane, moving with them."""
+    out: list[Actor] = []
+    v = cfg.speed_mps
+    kinds = ((ObjectClass.CAR, (4.6, 1.85, 1.5)), (ObjectClass.CAR, (4.4, 1.8, 1.45)),
+             (ObjectClass.VAN, (5.2, 2.0, 2.1)), (ObjectClass.TRUCK, (8.5, 2.5, 3.4)))
+
+    def vehicle(name: str, shift: float, rate: float, lateral: float) -> Actor:
+        cat, size = kinds[int(rng.choice(len(kinds), p=[0.4, 0.3, 0.18, 0.12]))]
+        tr = Trajectory(prof, gz, 0.0, shift, rate, lateral)
+        return Actor(name, cat, size, tr, _color(rng, 30, 230), float(rng.uniform(0.2, 0.5)),
+                     (), plates())
+
+    k = 0
+    for lateral in (7.0, 10.5):
+        rate = -float(rng.uniform(0.8, 1.1))
+        # meets red at tau_m when shift + rate tau_m = tau_m: shift = (1 - rate) tau_m
+        tau_m = -8.0 + rng.uniform(0, 1.5)
+        while tau_m < cfg.seconds + 8.0:
+            out.append(vehicle(f"oncoming_{k:02d}", (1 - rate) * tau_m, rate, lateral))
+            tau_m += rng.uniform(18, 40) / (v * (1 - rate))
+            k += 1
+    for j, (lateral, s0, rate) in enumerate(((0.0, 28.0, 1.0), (0.0, -14.0, 1.0),
+                                             (3.5, -16.0, 1.0), (3.5, 60.0, 1.6))):
+        out.append(vehicle(f"same_way_{j:02d}", t_of_s(s0), rate, lateral))
+    return out
+
+
 def build_world(cfg: SimConfig) -> World:
     """Deterministic world for ``cfg`` (seeded by ``cfg.seed``)."""
     rng = np.random.default_rng([cfg.seed, 20240601])
     gz = cfg.ground_alt_m
-    prof = _red_profile(cfg, rng)
+    corridor = cfg.street == "corridor"
+    prof = _corridor_profile(cfg, rng) if corridor else _red_profile(cfg, rng)
     rg, pg = 0.004, 0.003  # roll / pitch gains (rad per m/s^2)
     agents: dict[str, Trajectory] = {
         "red": Trajectory(prof, gz, EGO_HEIGHT, 0.0, 1.0, 0.0, roll_gain=rg, pitch_gain=pg),
     }
     if "black" in cfg.agents:
-        agents["black"] = Trajectory(prof, gz, EGO_HEIGHT, 0.8, 1.005, 3.5, roll_gain=rg,
-                                     pitch_gain=pg)
+        if corridor:  # next lane, 6 m ahead at the start, 24 m at the end (rate <= 1.5)
+            gain = min(18.0 / (cfg.speed_mps * cfg.seconds), 0.5)
+            agents["black"] = Trajectory(prof, gz, EGO_HEIGHT, 6.0 / cfg.speed_mps, 1.0 + gain,
+                                         3.5, roll_gain=rg, pitch_gain=pg)
+        else:
+            agents["black"] = Trajectory(prof, gz, EGO_HEIGHT, 0.8, 1.005, 3.5, roll_gain=rg,
+                                         pitch_gain=pg)
 
     # dense samples of the red path: arc length <-> profile time
     t_lo, t_hi = -6.0, cfg.seconds * 1.01 + 12.0
@@ -205,23 +312,30 @@ def build_world(cfg: SimConfig) -> World:
 
     # ---- static boxes: buildings and fences
     c_l, h_l, yaw_l, refl_l, tr_l, col_l, name_l = [], [], [], [], [], [], []
-    for side, base in ((-1, 10.0), (1, 18.0)):
+
+    def building(sk: float, length: float, d: float, depth: float, height: float,
+                 name: str) -> None:
+        p, yw = at(sk + length / 2, d)
+        c_l.append([p[0, 0], p[0, 1], gz + height / 2])
+        h_l.append([length / 2, depth / 2, height / 2])
+        yaw_l.append(yw[0])
+        refl_l.append(rng.uniform(0.3, 0.7))
+        tr_l.append(False)
+        col_l.append(rng.integers(80, 200, 3))
+        name_l.append(name)
+
+    if corridor:
+        _corridor_facades(cfg, rng, prof, s, ts, s_min, s_max, building)
+    for side, base in (() if corridor else ((-1, 10.0), (1, 18.0))):
         sk = s_min + rng.uniform(0, 10)
         i = 0
         while sk < s_max:
             length, depth, height = rng.uniform(10, 24), rng.uniform(8, 15), rng.uniform(5, 22)
             d = side * (base + depth / 2 + rng.uniform(0, 4))
-            p, yw = at(sk + length / 2, d)
-            c_l.append([p[0, 0], p[0, 1], gz + height / 2])
-            h_l.append([length / 2, depth / 2, height / 2])
-            yaw_l.append(yw[0])
-            refl_l.append(rng.uniform(0.3, 0.7))
-            tr_l.append(False)
-            col_l.append(rng.integers(80, 200, 3))
-            name_l.append(f"building_{'L' if side > 0 else 'R'}{i:03d}")
+            building(sk, length, d, depth, height, f"building_{'L' if side > 0 else 'R'}{i:03d}")
             sk += length + rng.uniform(2, 8)
             i += 1
-    sk, i = s_min + rng.uniform(0, 20), 0
+    sk, i = (s_max if corridor else s_min + rng.uniform(0, 20)), 0
     while sk < s_max:
         length = rng.uniform(8, 16)
         for side, d in ((-1, -7.9), (1, 16.9)):
@@ -247,7 +361,7 @@ def build_world(cfg: SimConfig) -> World:
             cy_r.append(0.12)
             cy_z.append([gz, gz + 7.0])
             cy_name.append(f"pole_{'L' if side > 0 else 'R'}{i:03d}")
-            sk += rng.uniform(25, 35)
+            sk += rng.uniform(30, 45) if corridor else rng.uniform(25, 35)
             i += 1
     if "rsu" in cfg.agents:
         prsu = agents["rsu"].pose2d(np.zeros(1))[0][0]
@@ -281,21 +395,12 @@ def build_world(cfg: SimConfig) -> World:
         return Actor(inst, cat, size, tr, col, float(rng.uniform(0.2, 0.5)), links,
                      plates(front))
 
-    actors.append(road("car_ahead", ObjectClass.CAR, (4.6, 1.85, 1.5), 47.0, 0.0, 1.0))
-    actors.append(road("car_behind", ObjectClass.CAR, (4.5, 1.8, 1.45), -24.0, 3.5, 1.0))
-    actors.append(road("van_oncoming", ObjectClass.VAN, (5.2, 2.0, 2.1), 90.0, 7.0, -0.95))
-    actors.append(road("truck_oncoming", ObjectClass.TRUCK, (8.5, 2.5, 3.4), 150.0, 10.5, -0.8))
-    pick_l, trail_l = 5.5, 4.0
-    pickup = road("pickup_towing", ObjectClass.CAR, (pick_l, 2.0, 1.9), 105.0, 7.0, -0.85,
-                  links=("trailer_towed",))
-    actors.append(pickup)
-    gap_t = (pick_l / 2 + 1.2 + trail_l / 2) / cfg.speed_mps
-    actors.append(road("trailer_towed", ObjectClass.TRAILER, (trail_l, 2.1, 1.9), 0.0, 7.0,
-                       -0.85, links=("pickup_towing",), front=False,
-                       shift=pickup.traj.shift + gap_t))
-
+    if corridor:
+        actors += _corridor_traffic(cfg, rng, prof, gz, t_of_s, plates)
+    else:
+        actors += _town_traffic(cfg, rng, road)
     # parked cars (static)
-    sk, i = s_min + rng.uniform(5, 15), 0
+    sk, i = (s_max if corridor else s_min + rng.uniform(5, 15)), 0
     while sk < s_max:
         if rng.random() < 0.55:
             p, yw = at(sk, -3.3)

@@ -1,0 +1,286 @@
+"""One agent's deskewed scans as registration reads them: frame by frame (one Parquet row
+group per frame), voxel-downsampled with each voxel's capture time, and reduced to the
+static scene (``static.py``) with counts of what was removed.
+
+Lake reading lives here so that ``stage.py`` stays a thin pipeline; the numeric work is in
+``voxel.py`` and ``static.py``.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
+
+from v2xlake.schemas.errors import ClipError
+from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import read_extrinsics
+from v2xlake.tasks.deskew.stage import OUT_TABLE as DESKEWED
+from v2xlake.tasks.geometry import apply, invert
+from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.reader import load_pose_track
+from v2xlake.tasks.register.static import (
+    MovingBoxes,
+    RemovalCounts,
+    above_ground,
+    annotation_boxes,
+    body_box,
+    box_of_point,
+    dynamic_mask,
+    grow_to_objects,
+)
+from v2xlake.tasks.register.voxel import voxel_downsample_t
+
+STAGE = "register"
+
+
+def _fail(clip_id: str, reason: str, agent_id: str | None = None) -> ClipError:
+    return ClipError(clip_id, reason, agent_id=agent_id, stage=STAGE)
+
+
+@dataclass(frozen=True)
+class StaticSettings:
+    """What static-scene filtering does (from ``RegisterConfig``)."""
+
+    enabled: bool = True
+    use_annotations: bool = True
+    box_margin_m: float = 0.3
+    body_margin_m: float = 0.6
+    dynamic: str = "auto"  # auto | on | off
+    dynamic_residual_m: float = 0.5
+    dynamic_neighbours: int = 2
+    dynamic_voxel_m: float = 0.25
+    dynamic_object_fraction: float = 0.25
+    max_range_m: float = 80.0
+
+
+@dataclass(frozen=True)
+class Body:
+    """An agent's declared footprint: box size and its centre in the ego frame."""
+
+    length: float
+    width: float
+    height: float
+    center_ego: tuple[float, float, float]
+
+
+@dataclass
+class FilteredScan:
+    points: np.ndarray  # (M, 3) float64 voxel centroids of the static scene
+    counts: RemovalCounts
+
+
+class AgentScans:
+    """One agent's deskewed scans, poses and extrinsic; reads one frame (row group) at a time."""
+
+    def __init__(self, lake: Lake, clip_id: str, agent: str, sensor: str | None) -> None:
+        self.agent, self.clip_id = agent, clip_id
+        self.track: PoseTrack = load_pose_track(lake, clip_id, agent)
+        extr = read_extrinsics(lake, clip_id, agent)
+        if not extr:
+            raise _fail(clip_id, "no LiDAR in calibrated_sensors", agent)
+        if sensor is None:
+            sensor = "LIDAR_TOP" if "LIDAR_TOP" in extr else sorted(extr)[0]
+        if sensor not in extr:
+            raise _fail(clip_id, f"LiDAR {sensor} has no calibrated_sensors row", agent)
+        self.sensor, self.T_ego_lidar = sensor, extr[sensor]
+        frames = lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent)
+        desk = lake.read_table("clean", "deskew_frames", clip_id=clip_id, agent_id=agent)
+        if frames.num_rows and not desk.num_rows:
+            raise _fail(clip_id, "no deskew_frames: run deskew first", agent)
+        ref_of = {(str(s), int(f)): r for s, f, r in zip(
+            desk.column("sensor").to_pylist(), desk.column("frame_idx").to_pylist(),
+            desk.column("deskew_ref_ns").to_pylist(), strict=True)} if desk.num_rows else {}
+        # frame_idx -> (scan start, deskew reference time); frames deskew skipped are left out
+        self.frames: dict[int, tuple[int, int]] = {}
+        if frames.num_rows:
+            for s, f, t0 in zip(frames.column("sensor").to_pylist(),
+                                frames.column("frame_idx").to_pylist(),
+                                frames.column("t_start_ns").to_pylist(), strict=True):
+                tr = ref_of.get((str(s), int(f)))
+                if s == sensor and tr is not None:
+                    self.frames[int(f)] = (int(t0), int(tr))
+        self._lake = lake
+        self._groups: dict[int, list[tuple[str, int]]] = {}
+        for path in lake.list_files(lake.table_dir("clean", DESKEWED, clip_id, agent), ".parquet"):
+            pf = pq.ParquetFile(path, filesystem=lake.fs)
+            col = pf.schema_arrow.get_field_index("frame_idx")
+            for rg in range(pf.num_row_groups):
+                st = pf.metadata.row_group(rg).column(col).statistics
+                if st is not None and st.has_min_max and st.min == st.max:
+                    self._groups.setdefault(int(st.min), []).append((path, rg))
+                else:
+                    for f in np.unique(pf.read_row_group(rg, columns=["frame_idx"])
+                                       .column(0).to_numpy()):
+                        self._groups.setdefault(int(f), []).append((path, rg))
+        if not self._groups:
+            raise _fail(clip_id, f"no {DESKEWED} rows: run deskew first", agent)
+        self._boxes = self._read_annotations(lake)
+
+    def _read_annotations(self, lake: Lake) -> dict[int, MovingBoxes]:
+        """Annotated boxes per frame of this LiDAR, centre times relative to the frame's
+        deskew reference time (seconds)."""
+        ann = lake.read_table("clean", "annotations", clip_id=self.clip_id, agent_id=self.agent)
+        out: dict[int, MovingBoxes] = {}
+        if ann.num_rows == 0:
+            return out
+        ann = ann.filter(pc.equal(ann["sensor"].cast(pa.string()), self.sensor))
+
+        def col(name: str) -> np.ndarray:
+            return np.asarray(ann[name].to_numpy(zero_copy_only=False), dtype=np.float64)
+
+        fr = np.asarray(ann["frame_idx"].to_numpy(), dtype=np.int64)
+        t = np.asarray(ann["t_ns"].to_numpy(), dtype=np.int64)
+        c = np.stack([col("cx"), col("cy"), col("cz")], 1)
+        size = np.stack([col("w"), col("l"), col("h")], 1)
+        q = np.stack([col("qw"), col("qx"), col("qy"), col("qz")], 1)
+        v = np.stack([col(k) if k in ann.column_names else np.zeros(len(fr))
+                      for k in ("vx", "vy", "vz")], 1)
+        for f in np.unique(fr):
+            if int(f) not in self.frames:
+                continue
+            m = fr == f
+            ref = self.frames[int(f)][1]
+            out[int(f)] = annotation_boxes(c[m], size[m], q[m], v[m], (t[m] - ref) * 1e-9, 0.0)
+        return out
+
+    def has_annotations(self, frame_idx: int) -> bool:
+        return frame_idx in self._boxes
+
+    def annotated(self) -> bool:
+        return bool(self._boxes)
+
+    def points(self, frame_idx: int) -> np.ndarray:
+        return self.points_t(frame_idx)[0]
+
+    def points_t(self, frame_idx: int) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) float32 points and (N,) int64 capture times of one deskewed frame."""
+        parts, times = [], []
+        for path, rg in self._groups.get(frame_idx, []):
+            t = pq.ParquetFile(path, filesystem=self._lake.fs).read_row_group(
+                rg, columns=["sensor", "frame_idx", "t_ns", "x", "y", "z"])
+            keep = pc.and_(pc.equal(t.column("frame_idx"), frame_idx),
+                           pc.equal(t.column("sensor").cast(pa.string()), self.sensor))
+            t = t.filter(keep)
+            parts.append(np.stack([t.column(c).to_numpy() for c in ("x", "y", "z")], axis=1))
+            times.append(np.asarray(t.column("t_ns").to_numpy(), dtype=np.int64))
+        if not parts:
+            return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+        return np.concatenate(parts), np.concatenate(times)
+
+    def T_world_lidar(self, frame_idx: int) -> np.ndarray:
+        """Where the frame's deskewed points live: ``T_world_ego(t_ref) T_ego_lidar``."""
+        return self.track.matrices(self.frames[frame_idx][1])[0] @ self.T_ego_lidar
+
+
+class StaticScans:
+    """An agent's scans reduced to the static scene, one voxel size per use (target/source).
+
+    Keeps a small window of fine clouds (``dynamic_voxel_m``) of neighbouring frames for the
+    consistency test; frames are expected roughly in order (each is read once then)."""
+
+    def __init__(self, scans: AgentScans, settings: StaticSettings,
+                 bodies: list[tuple[AgentScans, Body]]) -> None:
+        self.scans, self.s = scans, settings
+        self.bodies = bodies
+        self._fine: OrderedDict[int, tuple[np.ndarray, object]] = OrderedDict()
+        self._raw: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        frames = sorted(scans.frames)
+        self._order = {f: i for i, f in enumerate(frames)}
+        self._frames = frames
+
+    def _points(self, f: int) -> tuple[np.ndarray, np.ndarray]:
+        if f not in self._raw:
+            self._raw[f] = self.scans.points_t(f)
+            while len(self._raw) > 2:
+                self._raw.popitem(last=False)
+        return self._raw[f]
+
+    def _fine_tree(self, f: int) -> tuple[np.ndarray, object]:
+        if f not in self._fine:
+            from scipy.spatial import cKDTree
+
+            xyz, _ = self._points(f)
+            pts = voxel_downsample_t(xyz, None, self.s.dynamic_voxel_m,
+                                     self.s.max_range_m + 10.0)[0]
+            self._fine[f] = (pts, cKDTree(pts, balanced_tree=False, compact_nodes=False))
+            while len(self._fine) > 2 * self.s.dynamic_neighbours + 2:
+                self._fine.popitem(last=False)
+        return self._fine[f]
+
+    def _use_dynamic(self, f: int) -> bool:
+        if not self.s.enabled or self.s.dynamic == "off":
+            return False
+        if self.s.dynamic == "on":
+            return True
+        return not (self.s.use_annotations and self.scans.has_annotations(f))
+
+    def _nearest(self, f: int, pts_f: np.ndarray, g: int) -> np.ndarray:
+        fine, tree = self._fine_tree(g)
+        if len(fine) == 0:
+            return np.full(len(pts_f), np.inf)
+        T_g_f = invert(self.scans.T_world_lidar(g)) @ self.scans.T_world_lidar(f)
+        d, _ = tree.query(apply(T_g_f, pts_f), k=1, distance_upper_bound=4.0 *  # type: ignore[attr-defined]
+                          self.s.dynamic_residual_m, workers=1)
+        return np.asarray(d, dtype=np.float64) ** 2
+
+    def filtered(self, f: int, voxel_m: float) -> FilteredScan:
+        xyz, t_ns = self._points(f)
+        ref_ns = self.scans.frames[f][1]
+        pts, t_s = voxel_downsample_t(xyz, (t_ns - ref_ns) * 1e-9 if len(t_ns) else None,
+                                      voxel_m, self.s.max_range_m)
+        counts = RemovalCounts(n_in=len(pts))
+        if not self.s.enabled or len(pts) == 0:
+            return FilteredScan(pts, counts)
+        keep = np.ones(len(pts), bool)
+        if self.s.use_annotations and self.scans.has_annotations(f):
+            b = self.scans._boxes[f]
+            grown = MovingBoxes(b.center, b.half, b.R, b.velocity, b.t_s,
+                                np.full(len(b), self.s.box_margin_m))
+            hit = box_of_point(pts, t_s, grown) >= 0
+            counts.boxes = int(hit.sum())
+            keep &= ~hit
+        if self.bodies:
+            boxes = MovingBoxes.concat([self._body(f, o, body) for o, body in self.bodies])
+            hit = keep & (box_of_point(pts, t_s, boxes) >= 0)
+            counts.bodies = int(hit.sum())
+            keep &= ~hit
+        if self._use_dynamic(f):
+            i = self._order[f]
+            n = self.s.dynamic_neighbours
+            before = [g for g in self._frames[max(0, i - n):i]]
+            after = [g for g in self._frames[i + 1:i + 1 + n]]
+            q = pts[keep]
+            up = above_ground(q)
+            sides = [np.min([self._nearest(f, q[up], g) for g in side], axis=0) if side
+                     else None for side in (before, after)]
+            if up.any() and (sides[0] is not None or sides[1] is not None):
+                moving = np.zeros(len(q), bool)
+                moving[up] = dynamic_mask(sides[0], sides[1], self.s.dynamic_residual_m)
+                if self.s.dynamic_object_fraction < 1.0:
+                    moving = grow_to_objects(q, moving, up, max(voxel_m, 0.5),
+                                             self.s.dynamic_object_fraction)
+                idx = np.flatnonzero(keep)[moving]
+                counts.dynamic = len(idx)
+                keep[idx] = False
+        return FilteredScan(pts[keep], counts)
+
+    def _body(self, f: int, other: AgentScans, body: Body) -> MovingBoxes:
+        """The other agent's body in this frame, placed by both INS tracks at this frame's
+        reference time and moving with the other agent's INS velocity."""
+        ref_ns = self.scans.frames[f][1]
+        W_L = self.scans.T_world_lidar(f)
+        try:
+            W_e = other.track.matrices(ref_ns)[0]
+            W_e2 = other.track.matrices(ref_ns + 20_000_000)[0]
+        except Exception:  # the other agent's INS does not cover this time
+            return MovingBoxes.empty()
+        T = invert(W_L) @ W_e
+        v_world = (W_e2[:3, 3] - W_e[:3, 3]) / 0.02
+        v = W_L[:3, :3].T @ v_world
+        return body_box(T, v, 0.0, body.length, body.width, body.height,
+                        np.array(body.center_ego), self.s.body_margin_m)
