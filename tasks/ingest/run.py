@@ -184,6 +184,8 @@ def explain_invalid(data: Any, e: ValidationError) -> tuple[str | None, str | No
             hint = f" (did you mean {near[0]!r}?)" if near else (
                 f" (known keys: {', '.join(sorted(known))})" if known else "")
             parts.append(f"{place}: unknown key {key!r}{hint}")
+        elif err["type"] == "missing":
+            parts.append(f"{place}: missing key {str(loc[-1])!r}")
         else:
             parts.append(f"{place}: {err['msg']}")
     agent = next(iter(agents)) if len(agents) == 1 else None

@@ -99,6 +99,10 @@ def test_unknown_key_is_named_with_the_known_one(tmp_path: Path) -> None:
               {"bag_car": scans(ts)})
     assert "agents[car].pose.datum: unknown key 'ofset' (did you mean 'offset'?)" in \
         ingest_error(d).reason
+    # a key that is missing is named too
+    d = write(tmp_path / "typo3", [agent(pose={"kind": "odometry", "datum": {"kind": "local"}})],
+              {"bag_car": scans(ts)})
+    assert "agents[car].pose: missing key 'sensor'" in ingest_error(d).reason
 
 
 def test_empty_sensor_list_names_the_agent(tmp_path: Path) -> None:
