@@ -140,11 +140,12 @@ def _root(
 # ---------------------------------------------------------------- simulate / demo
 def sim_config(preset: str, seconds: float | None, storage: str | None, seed: int | None,
                agents: str | None, cameras: str | None, clip_id: str | None = None,
-               pose_format: str | None = None) -> Any:
+               pose_format: str | None = None, radar: bool | None = None) -> Any:
     from v2xlake.tasks.simulate import SimConfig
 
     return SimConfig.preset(preset, seconds=seconds, storage=storage, seed=seed, agents=agents,
-                            cameras=cameras, clip_id=clip_id, pose_format=pose_format)
+                            cameras=cameras, clip_id=clip_id, pose_format=pose_format,
+                            radar=radar)
 
 
 @app.command()
@@ -173,12 +174,13 @@ def simulate(
     pose_format: Annotated[PoseFormat | None, typer.Option(
         help="how the vehicles' poses are recorded: vendor InsPva, nav_msgs/Odometry in a "
              "UTM map, NavSatFix + Imu, or /tf")] = None,
+    radar: Annotated[bool, typer.Option(help="a 20 Hz front 4D radar on each vehicle")] = False,
 ) -> int:
     """Write a simulated multi-agent clip folder."""
     from v2xlake.tasks.simulate import simulate as run_simulate
 
     cfg = sim_config(preset.value, seconds, storage.value if storage else None, seed, agents,
-                     cameras, clip_id, pose_format.value if pose_format else None)
+                     cameras, clip_id, pose_format.value if pose_format else None, radar or None)
     t0 = time.perf_counter()
     path = run_simulate(out, cfg)
     _console().print(f"simulated clip [bold]{cfg.name}[/] ({preset.value}, {cfg.seconds:g} s, "

@@ -25,10 +25,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cameras", help="how many cameras (N) or a comma list of names")
     ap.add_argument("--camera-hz", type=float)
     ap.add_argument("--pose-format", choices=["inspva", "odometry", "navsat-imu", "tf"])
+    ap.add_argument("--radar", action="store_true", help="a front 4D radar per vehicle")
     a = ap.parse_args(argv)
     cfg = SimConfig.preset(a.preset, seconds=a.seconds, storage=a.storage, seed=a.seed,
                            agents=a.agents, cameras=a.cameras, camera_hz=a.camera_hz,
-                           pose_format=a.pose_format)
+                           pose_format=a.pose_format, radar=a.radar or None)
     t = time.perf_counter()
     out = simulate(a.out, cfg)
     stats = json.loads((out / "truth" / "stats.json").read_text())

@@ -84,13 +84,16 @@ class MsgFactory:
             return self.ts.serialize_ros1(msg, typename)
         return self.ts.serialize_cdr(msg, typename)
 
-    def pointcloud2(self, stamp_ns: int, frame_id: str, points: np.ndarray, topic: str) -> Any:
+    def pointcloud2(self, stamp_ns: int, frame_id: str, points: np.ndarray, topic: str,
+                    layout: list[tuple[str, int, int]] | None = None) -> Any:
+        """``points`` (a structured array) as PointCloud2; ``layout`` (name, offset,
+        datatype) defaults to the LiDAR's ``POINT_FIELDS``."""
         pf = self.T["sensor_msgs/msg/PointField"]
-        fields = [pf(name=n, offset=o, datatype=d, count=1) for n, o, d in POINT_FIELDS]
+        fields = [pf(name=n, offset=o, datatype=d, count=1) for n, o, d in layout or POINT_FIELDS]
+        step = points.dtype.itemsize
         return self.T["sensor_msgs/msg/PointCloud2"](
             header=self.header(stamp_ns, frame_id, topic), height=1, width=len(points),
-            fields=fields, is_bigendian=False, point_step=POINT_DTYPE.itemsize,
-            row_step=POINT_DTYPE.itemsize * len(points),
+            fields=fields, is_bigendian=False, point_step=step, row_step=step * len(points),
             data=np.frombuffer(points.tobytes(), np.uint8), is_dense=True)
 
     def compressed_image(self, stamp_ns: int, frame_id: str, png: bytes, topic: str) -> Any:

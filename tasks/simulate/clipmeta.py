@@ -41,6 +41,10 @@ def lidar_topic(agent: str) -> str:
     return f"/{agent}/lidar/points"
 
 
+def radar_topic(agent: str) -> str:
+    return f"/{agent}/radar/points"
+
+
 def image_topic(agent: str, cam: str) -> str:
     return f"/{agent}/camera/{cam}/image"
 
@@ -68,6 +72,12 @@ def build_clip_config(cfg: SimConfig, rigs: dict[str, AgentRig],
                                time=PointTimeField(field="timestamp", unit=TimeUnit.S,
                                                    reference=TimeReference.ABSOLUTE)),
             rate_hz=cfg.lidar.rate_hz)]
+        if cfg.radar and agent != "rsu":
+            sensors.append(SensorConfig(
+                name="RADAR_FRONT", modality=Modality.RADAR, topic=radar_topic(agent),
+                msg_type="sensor_msgs/msg/PointCloud2", frame_id=frame_name(agent, "RADAR_FRONT"),
+                fields=LidarFields(intensity=None, ring=None, velocity="v_r", rcs="rcs"),
+                rate_hz=20.0))
         for cam in rig.cameras:
             sensors.append(SensorConfig(
                 name=cam, modality=Modality.CAMERA, topic=image_topic(agent, cam),

@@ -97,6 +97,8 @@ class SimConfig(BaseModel):
     ins_drift_mps: float = Field(0.0, ge=0.0, description="INS position drift rate per agent "
                                  "(m/s, a seeded horizontal direction): b(t) += v_d * t")
     write_lidar_truth: bool = True
+    radar: bool = Field(False, description="a 20 Hz front 4D radar on each vehicle "
+                        "(simulate.radar)")
     pose_format: Literal["inspva", "odometry", "navsat-imu", "tf"] = Field(
         "inspva", description="how the vehicles' INS solution is written (simulate.navformats)")
     speed_mps: float = Field(18.0, description="nominal speed of the red agent")

@@ -43,6 +43,7 @@ from v2xlake.tasks.simulate.clipmeta import (
     image_topic,
     info_topic,
     lidar_topic,
+    radar_topic,
     write_msg_definition,
 )
 from v2xlake.tasks.simulate.config import AGENT_NAMES, SimConfig
@@ -54,6 +55,7 @@ from v2xlake.tasks.simulate.ins import (
     ins_samples,
 )
 from v2xlake.tasks.simulate.lidar import LidarCaster, Scan
+from v2xlake.tasks.simulate.radar import RADAR_FIELDS, RADAR_SPEC, T_EGO_RADAR, RadarSim
 from v2xlake.tasks.simulate.rig import build_rigs, frame_name
 from v2xlake.tasks.simulate.scene import World, build_world
 from v2xlake.tasks.simulate.truth import ins_matrix, pose_columns, transform_dict, write_parquet
@@ -62,6 +64,7 @@ LAT_LIDAR_NS = 105_000_000
 LAT_CAM_NS = 25_000_000
 LAT_INS_NS = 1_000_000
 LAT_GNSS_NS = 40_000_000
+LAT_RADAR_NS = 30_000_000
 S = 1_000_000_000
 # navigation streams keep recording this long after the last scan's end (> 1 INS period)
 NAV_TAIL_NS = 20_000_000
@@ -140,6 +143,7 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
 
     sinks: dict[str, BagSink] = {}
     casters: dict[str, LidarCaster] = {}
+    radars: dict[str, RadarSim] = {}
     renderers: dict[str, dict[str, CameraRenderer]] = {}
     errs = {a: ins_error(cfg, a) for a in cfg.agents}
     fixed: dict[str, FixedPose] = {}
@@ -158,6 +162,10 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
             sink.topic(f"/{agent}/gnss", "sensor_msgs/msg/NavSatFix")
         f = sink.f
         children = [(frame_name(agent, "LIDAR_TOP"), rig.T_ego_lidar_pub)]
+        if cfg.radar and agent != "rsu":
+            sink.topic(radar_topic(agent), "sensor_msgs/msg/PointCloud2")
+            children.append((frame_name(agent, "RADAR_FRONT"), T_EGO_RADAR))
+            radars[agent] = RadarSim(world, agent, start_ns, cfg.seed)
         children += [(frame_name(agent, c), cr.T_ego_cam_pub) for c, cr in rig.cameras.items()]
         sink.put("/tf_static", start_ns, f.tf_static(start_ns, EGO_FRAME, children))
         # INS / IMU / GNSS for the whole clip (small messages; the heap orders them)
@@ -204,6 +212,13 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
             sink.put(topic, ts + LAT_LIDAR_NS, sink.f.pointcloud2(
                 ts, frame_name(agent, "LIDAR_TOP"), pts, topic))
             annotations += _annotations(world, agent, caster, scan)
+            if agent in radars:  # a 20 Hz radar: two scans per LiDAR period
+                n_r = round(RADAR_SPEC.rate_hz / cfg.lidar.rate_hz)
+                for j in range(k * n_r, (k + 1) * n_r):
+                    rs = radars[agent].scan(j)
+                    sink.put(radar_topic(agent), rs.stamp_ns + LAT_RADAR_NS, sink.f.pointcloud2(
+                        rs.stamp_ns, frame_name(agent, "RADAR_FRONT"), rs.points,
+                        radar_topic(agent), RADAR_FIELDS))
             ids, inv, cnt = np.unique(scan.obj_id, return_inverse=True, return_counts=True)
             mean_t = np.bincount(inv, weights=(scan.t_ns - ts).astype(float)) / cnt + ts
             stats[agent] = {int(i): (int(c), float(m)) for i, c, m in zip(ids, cnt, mean_t,
