@@ -620,8 +620,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _is_user_error(e: Exception) -> bool:
     """Bad input from the user (imported here, after the fact, to keep --help light)."""
     from v2xlake.schemas.errors import ClipError
+    from v2xlake.storage.lake import LakeWriteError
 
-    if isinstance(e, UserError | ClipError | ValueError | FileNotFoundError | PermissionError):
+    if isinstance(e, UserError | ClipError | ValueError | FileNotFoundError | PermissionError
+                  | LakeWriteError):  # a full disk or read-only lake: one clear line
         return True  # ParamsError is a ValueError
     if "duckdb" in type(e).__module__:  # bad SQL: the parser's message, no trace
         return True

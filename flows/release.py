@@ -10,7 +10,9 @@ refused. A local release is assembled under a hidden temporary directory and ren
 place in one step; on S3 (no rename) ``SHA256SUMS`` is written last and a release without
 it is incomplete.
 
-``verify_release`` recomputes every checksum and reports any missing, changed or extra file.
+``verify_release`` recomputes every checksum and reports any missing, changed or extra file
+(hidden ones included). A build killed half-way leaves ``releases/.NAME.building-<owner>-*``,
+which the next build's sweep removes (``Lake.sweep``).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from prefect import flow, get_run_logger
 from pydantic import BaseModel
 
 from v2xlake.flows import bookkeeping
-from v2xlake.storage.lake import Lake, checked_clip_id
+from v2xlake.storage.lake import Lake, checked_clip_id, run_tag
 from v2xlake.tasks.export.exporters import EXPORTERS, FormatExporter
 from v2xlake.tasks.release_split import SPLITS, SceneKey, SplitConfig, assign_splits, split_counts
 
@@ -87,9 +89,10 @@ def release_exists(lake: Lake, name: str) -> bool:
 
 
 def _check_name(name: str) -> None:
+    """A release name is a single folder name: never ``..``, a path or a hidden name."""
     import re
 
-    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._\-]*", name):
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._\-]*", name) or ".." in name:
         raise ReleaseError(f"release name {name!r}: use letters, digits, '.', '_' and '-'")
 
 
@@ -283,6 +286,7 @@ def build_release(lake_uri: str, name: str, where: str,
     """Build release NAME; returns its release.json content. Refuses an existing name."""
     _check_name(name)
     lake = Lake(lake_uri)
+    lake.sweep()  # builds (and staging, temporary files) of killed runs
     if release_exists(lake, name):
         raise ReleaseError(f"release {name!r} already exists in {lake.uri}; releases are "
                            "immutable, pick a new name")
@@ -296,7 +300,8 @@ def build_release(lake_uri: str, name: str, where: str,
     clip_ids = [s.clip_id for s in scenes]
     splits = assign_splits(scenes, SplitConfig(fractions=fractions, seed=seed))
     final_root = _release_root(lake, name)
-    staging = (lake.path("releases", f".{name}.building-{uuid.uuid4().hex[:8]}")
+    # the owner tag lets the next build's sweep remove this folder if this process dies
+    staging = (lake.path("releases", f".{name}.building-{run_tag()}-{uuid.uuid4().hex[:8]}")
                if lake.is_local else final_root)
     writer = ReleaseWriter(lake, staging)
     try:
@@ -359,7 +364,8 @@ class VerifyResult:
 
 def verify_release(lake_uri: str, name: str) -> VerifyResult:
     """Recompute every checksum; list missing, changed, unlisted files (empty list = intact)."""
-    lake = Lake(lake_uri)
+    _check_name(name)
+    lake = Lake(lake_uri, create=False)
     root = _release_root(lake, name)
     if not lake.exists(f"{root}/SHA256SUMS") or not lake.exists(f"{root}/checksums.json"):
         return VerifyResult(name, 0, [f"release {name!r} is missing or incomplete "
@@ -373,7 +379,7 @@ def verify_release(lake_uri: str, name: str) -> VerifyResult:
             sums[rel] = digest
     if sums != {k: v["sha256"] for k, v in listed.items()}:
         problems.append("SHA256SUMS and checksums.json disagree")
-    present = {f[len(root):].strip("/") for f in lake.list_files(root)}
+    present = {f[len(root):].strip("/") for f in lake.list_files(root, hidden=True)}
     for rel in sorted(present - set(listed) - set(SEAL_FILES)):
         problems.append(f"{rel}: not listed in the release (added after build)")
     checked = 0

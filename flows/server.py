@@ -3,7 +3,9 @@
 WHY: schedules only fire on a real server (the temporary one refuses them) and Dask workers
 must all talk to one API. Used by ``v2xlake process --runner dask`` when no
 ``PREFECT_API_URL`` is set, by ``deploy/start_server.py`` and by the tests. Processes are
-started in their own process group and stopped by group, so no child outlives them.
+started in their own process group and stopped by group, so no child outlives them, and
+under ``flows/guard.py``, so none outlives its parent either, even a SIGKILLed one; Prefect's
+own temporary server gets the same guard (``guard_ephemeral_server``).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from v2xlake.flows.settings import configure_prefect
 
@@ -27,6 +30,44 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+GUARD = Path(__file__).resolve().with_name("guard.py")
+
+
+def guarded(cmd: list[str]) -> list[str]:
+    """``cmd`` under ``flows/guard.py``: it stops when this process is gone, SIGKILL
+    included (a killed CLI or test run left its Prefect server running, #16)."""
+    return [sys.executable, str(GUARD), str(os.getpid()), "--", *cmd]
+
+
+def guard_ephemeral_server() -> None:
+    """Make Prefect's temporary server (started for flow runs when no ``PREFECT_API_URL``
+    is set) a guarded process too. Prefect starts it in
+    ``SubprocessASGIServer._run_uvicorn_command`` and stops it only from ``atexit``; this
+    replaces that method by the same command (uvicorn on Prefect's app factory, the same
+    environment: Prefect 3.x's code, Apache-2.0) run under the guard. Idempotent;
+    importing the server module costs nothing extra, the temporary server needs it."""
+    import prefect
+    from prefect.server.api import server as prefect_server
+    from prefect.settings import get_current_settings
+
+    cls = prefect_server.SubprocessASGIServer
+    if getattr(cls, "_v2xlake_guarded", False):
+        return
+
+    def run_guarded(self: Any) -> subprocess.Popen[Any]:
+        cmd = [sys.executable, "-m", "uvicorn", "--app-dir",
+               str(prefect.__module_path__.parent), "--factory",
+               "prefect.server.api.server:create_app", "--host", "127.0.0.1",
+               "--port", str(self.port), "--log-level", "error", "--lifespan", "on"]
+        env = {**os.environ, "PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1",
+               "PREFECT__SERVER_FINAL": "1",
+               **get_current_settings().to_environment_variables(exclude_unset=True)}
+        return subprocess.Popen(guarded(cmd), env=env)
+
+    cls._run_uvicorn_command = run_guarded  # type: ignore[method-assign]
+    cls._v2xlake_guarded = True  # type: ignore[attr-defined]
 
 
 def _prefect_exe() -> list[str]:
@@ -99,7 +140,8 @@ def start_server(home: Path, *, port: int | None = None, timeout: float = 120.0,
     log_path = home / f"server-{port}.log"
     with open(log_path, "wb") as log:
         proc = subprocess.Popen(
-            [*_prefect_exe(), "server", "start", "--host", "127.0.0.1", "--port", str(port)],
+            guarded([*_prefect_exe(), "server", "start", "--host", "127.0.0.1",
+                     "--port", str(port)]),
             env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     server = PrefectServer(port, home, log_path, proc, env)
     deadline = time.monotonic() + timeout
@@ -127,7 +169,7 @@ def start_worker(api_url: str, pool: str, *, home: Path, cwd: Path,
     env.update(extra_env or {})
     log = open(Path(home) / f"worker-{pool}.log", "ab")  # owned by the child process
     return subprocess.Popen(
-        [*_prefect_exe(), "worker", "start", "--pool", pool, "--type", "process"],
+        guarded([*_prefect_exe(), "worker", "start", "--pool", pool, "--type", "process"]),
         env=env, cwd=str(cwd), stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
 

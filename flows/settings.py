@@ -9,7 +9,9 @@ command calls :func:`configure_prefect` first; values the user already exported 
 - ``PREFECT_HOME`` under ``~/.v2xlake/prefect`` (or ``$V2XLAKE_HOME/prefect``) so the
   temporary server's SQLite database never lands in the user's working directory,
 - flow heartbeats off (each flow otherwise waits about 1 s on the heartbeat thread; the
-  environment variable does not remove it, ``temporary_settings`` does, see NOTES.md).
+  environment variable does not remove it, ``temporary_settings`` does, see NOTES.md),
+- Prefect's temporary server runs under ``flows/guard.py`` (``prefect_session``), so a
+  SIGKILLed run does not leave it behind.
 """
 
 from __future__ import annotations
@@ -59,7 +61,16 @@ def configure_prefect(*, quiet: bool = False) -> None:
 def prefect_session() -> Iterator[None]:
     """Context for running flows in this process: heartbeats off (saves ~1 s per flow)."""
     configure_prefect()
-    from prefect.settings import PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
+    from prefect.settings import (
+        PREFECT_API_URL,
+        PREFECT_FLOWS_HEARTBEAT_FREQUENCY,
+        temporary_settings,
+    )
+
+    if not PREFECT_API_URL.value():  # Prefect will start its temporary server: guard it
+        from v2xlake.flows.server import guard_ephemeral_server
+
+        guard_ephemeral_server()
 
     with temporary_settings(updates={PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}):
         yield

@@ -24,6 +24,7 @@ Names:
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import shutil
@@ -39,7 +40,7 @@ import pyarrow as pa
 
 from v2xlake.schemas.arrow import arrow_schema
 from v2xlake.schemas.tables import LAKE_TABLES, LidarPointRow
-from v2xlake.storage.lake import Lake
+from v2xlake.storage.lake import Lake, run_tag
 
 MAIN_NAMES = ("clips", "agents", "sensors", "calibrated_sensors", "ego_poses", "imu", "gnss",
               "lidar_frames", "lidar_points", "lidar_points_deskewed", "camera_frames",
@@ -79,6 +80,17 @@ FORBIDDEN_FUNCTIONS = frozenset({"getvariable", "current_setting", "getenv", "ne
                                  "currval", "setseed", "current_query", "query",
                                  "query_table", "current_database", "current_schema",
                                  "current_schemas"})
+
+
+def _errno_of(e: BaseException) -> int:
+    """The errno behind a DuckDB I/O error (DuckDB only gives the OS's text)."""
+    text = str(e)
+    for code, words in ((errno.EROFS, "Read-only file system"),
+                        (errno.ENOSPC, "No space left"), (errno.EACCES, "Permission denied"),
+                        (errno.EDQUOT, "quota exceeded")):
+        if words in text:
+            return code
+    return errno.EIO
 
 
 def _first_line(e: BaseException) -> str:
@@ -290,21 +302,26 @@ class Catalog:
         own files: ``cd <lake> && duckdb catalog.duckdb`` (or ``SET file_search_path`` to the
         lake root from anywhere); ``v2xlake catalog refresh`` rewrites it."""
         final = self.lake.catalog_path
-        tmp = f"{os.path.dirname(final)}/.catalog-{uuid.uuid4().hex}.duckdb"
+        # the owner tag: a refresh killed half-way leaves a file the next sweep removes
+        tmp = f"{os.path.dirname(final)}/.catalog-{run_tag()}-{uuid.uuid4().hex}.duckdb"
         root = _q(self.lake.base + "/")[:-1]  # the quoted literal's opening: '<root>/
         travelling = [ViewInfo(v.schema, v.name, v.zone, v.files, v.sql.replace(root, "'"))
                       for v in self.views]
         try:
-            con = duckdb.connect(tmp)
-            try:
-                con.execute(f"SET file_search_path = {_q(self.lake.base)}")  # to bind them
-                self._apply(con, travelling)
-            finally:
-                con.close()
-            os.replace(tmp, final)
+            with self.lake.writing(final):
+                try:
+                    con = duckdb.connect(tmp)
+                except duckdb.IOException as e:  # read-only lake, disk full: say which
+                    raise OSError(_errno_of(e), str(e)) from e
+                try:
+                    con.execute(f"SET file_search_path = {_q(self.lake.base)}")  # to bind them
+                    self._apply(con, travelling)
+                finally:
+                    con.close()
+                os.replace(tmp, final)
         finally:
             for p in (tmp, tmp + ".wal"):
-                with contextlib.suppress(FileNotFoundError):
+                with contextlib.suppress(OSError):
                     os.remove(p)
 
     @property

@@ -21,17 +21,21 @@ from __future__ import annotations
 import collections
 import contextlib
 import copy
+import errno
+import hashlib
 import itertools
 import json
 import os
 import queue
 import re
 import shutil
+import socket
 import threading
+import time
 import uuid
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
@@ -139,6 +143,75 @@ RAW_OPTIONS = ParquetOptions(compression="lz4", compression_level=None, byte_str
                              delta_ints=False, float_statistics=False,
                              dictionary_statistics=False, write_batch_size=65_536)
 ZONE_OPTIONS: dict[str, ParquetOptions] = {"raw": RAW_OPTIONS}
+
+
+# ---------------------------------------------------------------- write errors (#16)
+class LakeWriteError(OSError):
+    """A write the lake cannot take (disk full, quota, size limit, read-only, permission),
+    with the lake, the file and the reason in one line. What was being written is removed
+    (temporary names, staging), so nothing half-written stays behind."""
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+WRITE_ERRNOS = {
+    errno.ENOSPC: "no space left on the device (free some space, then re-run: what was "
+                  "being written has been removed)",
+    errno.EDQUOT: "disk quota exceeded (what was being written has been removed)",
+    errno.EFBIG: "file too large for the file system or the process's file size limit",
+    errno.EROFS: "the lake is on a read-only file system (query it; to process or release, "
+                 "use a writable copy)",
+    errno.EACCES: "permission denied (the lake or this folder is not writable for this user)",
+    errno.EPERM: "operation not permitted (the lake or this folder is not writable)",
+}
+
+
+# ---------------------------------------------------------------- run ownership (#16)
+# Every name a run leaves in the lake while it works (staging folders, temporary files,
+# release builds) carries its owner, ``p<pid>.<host>``, so that the next run can tell a
+# dead run's leftovers (swept) from a live run's work (kept) without locks or heartbeats.
+HOST_TAG = hashlib.blake2s(socket.gethostname().encode(), digest_size=3).hexdigest()
+OWNER = re.compile(r"-p(\d+)\.([0-9a-f]{6})-")
+JOURNAL = "PUBLISH.json"
+
+
+def run_tag() -> str:
+    """This process's owner tag (read at call time: a forked worker gets its own pid)."""
+    return f"p{os.getpid()}.{HOST_TAG}"
+
+
+def owner_state(name: str) -> str:
+    """"live", "dead", "foreign" (another host: cannot tell) or "unowned" (no tag)."""
+    m = OWNER.search(name)
+    if m is None:
+        return "unowned"
+    pid, host = int(m.group(1)), m.group(2)
+    if host != HOST_TAG:
+        return "foreign"
+    if pid == os.getpid():
+        return "live"
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return "dead"
+    except PermissionError:  # another user's live process
+        return "live"
+    return "live"
+
+
+@dataclass
+class Sweep:
+    """What ``Lake.sweep`` did: run folders removed (after rolling forward those whose
+    publish had begun), temporary files removed, live or foreign runs kept."""
+
+    runs: list[str] = field(default_factory=list)
+    rolled_forward: list[str] = field(default_factory=list)
+    files: list[str] = field(default_factory=list)
+    kept: list[str] = field(default_factory=list)
+
+    def __bool__(self) -> bool:
+        return bool(self.runs or self.files)
 
 
 class _ChecksumSink:
@@ -264,9 +337,10 @@ class TableWriter:
         self.checksum: str | None = None
 
     def __enter__(self) -> TableWriter:
-        self.lake._mkdir(self.path.rpartition("/")[0])
-        self._sink = _ChecksumSink(self.lake.fs.open_output_stream(self._target),
-                                  threaded=self._background)
+        with self.lake.writing(self.path):
+            self.lake._mkdir(self.path.rpartition("/")[0])
+            stream = self.lake.fs.open_output_stream(self._target)
+        self._sink = _ChecksumSink(stream, threaded=self._background)
         # pyarrow writes a Parquet file in ~10 KiB pieces; buffer them into big chunks before
         # they reach Python (one call per SINK_BUFFER bytes instead of ~200 per LiDAR frame)
         self._out = pa.BufferedOutputStream(pa.PythonFile(self._sink, mode="w"), SINK_BUFFER)
@@ -332,10 +406,16 @@ class TableWriter:
         if failed:
             with contextlib.suppress(Exception):
                 self.lake.fs.delete_file(self._target)
+            cause = error if error is not None else exc
+            if isinstance(cause, OSError) and not isinstance(cause, LakeWriteError):
+                clear = self.lake.write_error(self.path, cause)
+                if clear is not None:  # disk full, read-only...: say so, name the file
+                    raise clear from cause
             if error is not None and exc_type is None:
                 raise error
             return
-        self.lake._commit(self._target, self.path)
+        with self.lake.writing(self.path):
+            self.lake._commit(self._target, self.path)
         self.checksum = self._sink.hexdigest()
         self.lake.written[self.path] = (self.rows, self.checksum)
 
@@ -364,7 +444,14 @@ class Lake:
             self.base = str(Path(s).expanduser().resolve())
             self.is_local = True
             if create:
-                Path(self.base).mkdir(parents=True, exist_ok=True)
+                try:
+                    Path(self.base).mkdir(parents=True, exist_ok=True)
+                except OSError as e:
+                    reason = WRITE_ERRNOS.get(e.errno or 0)
+                    if reason is None:
+                        raise
+                    raise LakeWriteError(e.errno or 0, f"cannot create the lake {self.base}: "
+                                                       f"{reason}") from e
         self.uri = s if not self.is_local else self.base
         # final path -> (rows, checksum) of every Parquet file this instance wrote (TableWriter)
         self.written: dict[str, tuple[int, str]] = {}
@@ -386,8 +473,9 @@ class Lake:
 
         With ``atomic_clip`` the handle is also the stage's output for that clip: reads go
         to the lake, Parquet writes go to a private staging folder
-        (``_staging/<stage>-<clip>-p<pid>-<uuid>``, the pid lets a sweep tell a live run's
-        folder from a dead one's), and deleting a partition only marks it for replacement.
+        (``_staging/<clip>/<stage>-p<pid>.<host>-<uuid>``, the owner lets a sweep tell a live
+        run's folder from a dead one's), and deleting a partition only marks it for
+        replacement.
         ``publish_stage()`` then swaps each written (or deleted) partition into place, so a
         run killed half-way never shows half a stage's output. ``stage_root`` names an
         existing staging folder instead: the handle of a chunk of a stage's work that a
@@ -402,8 +490,8 @@ class Lake:
         if stage_root is not None:
             other._stage_root = stage_root
         elif atomic_clip is not None:
-            other._stage_root = self.path(
-                "_staging", f"{stage}-{atomic_clip}-p{os.getpid()}-{uuid.uuid4().hex[:8]}")
+            self.sweep(atomic_clip)  # a killed earlier run of this clip: finish or drop it
+            other._stage_root = self._run_dir(atomic_clip, stage)
         return other
 
     @property
@@ -421,28 +509,38 @@ class Lake:
 
     def publish_stage(self) -> dict[str, str]:
         """Move a staged stage's partitions into place (see ``for_stage``); returns
-        {staged path prefix: final path prefix} for the caller to rewrite recorded paths."""
+        {staged path prefix: final path prefix} for the caller to rewrite recorded paths.
+
+        The swap is journaled (``_commit_moves``): a run killed half-way through it is
+        rolled forward by the next sweep, so the stage's tables are never left half old,
+        half new."""
         if self._stage_root is None:
             return {}
-        moved: dict[str, str] = {}
         for f in self.list_files(self._stage_root, ".parquet"):  # chunks' writes, too
             zone, table, part = f[len(self._stage_root) + 1:].split("/")[:3]
             self._replaced.add((zone, table, part.removeprefix("clip_id=")))
+        moves: list[tuple[str, str]] = []
+        deletes: list[str] = []
         for zone, table, clip_id in sorted(self._replaced):
             src = "/".join([self._stage_root, zone, table, f"clip_id={clip_id}"])
             dst = self.table_dir(zone, table, clip_id)
-            self.delete_dir(dst)
             if self.exists(src):
-                self._move_tree(self, src, dst)
-                moved[src] = dst
+                moves.append((src, dst))
+            else:
+                deletes.append(dst)
+        self._commit_moves(self._stage_root, moves, deletes)
         self.discard_stage()
-        return moved
+        return dict(moves)
 
     def discard_stage(self) -> None:
         """Drop a staged stage's unpublished output (a failed run)."""
         if self._stage_root is not None:
             self.delete_dir(self._stage_root)
             self._replaced = set()
+            if self.is_local:
+                with contextlib.suppress(OSError):  # the clip's and the shared folder
+                    os.rmdir(os.path.dirname(self._stage_root))
+                    os.rmdir(os.path.dirname(os.path.dirname(self._stage_root)))
 
     def _check_owner(self, zone: str, table: str) -> None:
         if self.writer is None or (zone, table) in self.owns:
@@ -488,7 +586,7 @@ class Lake:
 
     def _tmp(self, final: str) -> str:
         head, _, name = final.rpartition("/")
-        return f"{head}/.{name}.tmp-{uuid.uuid4().hex}"
+        return f"{head}/.{name}.tmp-{run_tag()}-{uuid.uuid4().hex}"
 
     def _commit(self, tmp: str, final: str) -> None:
         if self.is_local:
@@ -496,11 +594,47 @@ class Lake:
 
     def write_bytes(self, path: str, data: bytes) -> None:
         head = path.rpartition("/")[0]
-        self._mkdir(head)
         target = self._tmp(path) if self.is_local else path
-        with self.fs.open_output_stream(target) as f:
-            f.write(data)
-        self._commit(target, path)
+        with self.writing(path):
+            self._mkdir(head)
+            try:
+                with self.fs.open_output_stream(target) as f:
+                    f.write(data)
+                self._commit(target, path)
+            except BaseException:
+                if self.is_local:  # a disk-full write leaves no temporary file behind
+                    with contextlib.suppress(OSError):
+                        os.remove(target)
+                raise
+
+    # ---------------------------------------------------------------- write errors
+    def write_error(self, path: str, error: OSError) -> LakeWriteError | None:
+        """The clear form of an OS error that no retry of this write can fix (disk full,
+        quota, file size limit, read-only file system, permission), or None."""
+        reason = WRITE_ERRNOS.get(error.errno or 0)
+        if reason is None:
+            return None
+        root = self.base.split("/_staging/")[0]  # a staging lake names its lake
+        rel = path[len(root) + 1:] if path.startswith(root + "/") else path
+        if rel.startswith("_staging/"):
+            rel = "/".join(rel.split("/")[3:]) + " (staged)"
+        where = root if self.is_local else f"s3://{root}"
+        return LakeWriteError(error.errno or 0,
+                              f"cannot write {rel} in the lake {where}: {reason}")
+
+    @contextlib.contextmanager
+    def writing(self, path: str) -> Iterator[None]:
+        """Turn an OS error of a write to ``path`` into a ``LakeWriteError`` naming the lake,
+        the file and the reason (``write_error``); other errors pass unchanged."""
+        try:
+            yield
+        except LakeWriteError:
+            raise
+        except OSError as e:
+            clear = self.write_error(path, e)
+            if clear is None:
+                raise
+            raise clear from e
 
     def read_bytes(self, path: str) -> bytes:
         with self.fs.open_input_stream(path) as f:
@@ -513,14 +647,17 @@ class Lake:
         if self.exists(path):
             self.fs.delete_dir(path)
 
-    def list_files(self, path: str, suffix: str = "") -> list[str]:
+    def list_files(self, path: str, suffix: str = "", *, hidden: bool = False) -> list[str]:
+        """Files under ``path`` (recursive), sorted. Hidden names (temporary files in
+        flight) are left out unless ``hidden``: a release check must see every file."""
         if not self.exists(path):
             return []
         sel = pafs.FileSelector(path, recursive=True)
         out = [
             i.path for i in self.fs.get_file_info(sel)
             if i.type == pafs.FileType.File and i.path.endswith(suffix)
-            and not i.base_name.startswith(".")
+            and (hidden or not any(part.startswith(".")
+                                   for part in i.path[len(path):].split("/")))
         ]
         return sorted(out)
 
@@ -661,49 +798,80 @@ class Lake:
             self.delete_dir(self.table_dir(zone, table, clip_id))
         self.delete_dir(self.path(zone, "blobs", clip_id))
 
+    # ---------------------------------------------------------------- staging and sweeping
+    def _run_dir(self, clip_id: str, who: str) -> str:
+        """``_staging/<clip>/<who>-p<pid>.<host>-<uuid>``: one run's private output."""
+        return self.path("_staging", clip_id, f"{who}-{run_tag()}-{uuid.uuid4().hex[:12]}")
+
     def staging(self, clip_id: str) -> Lake:
-        """A private lake for one ingest attempt (``<root>/_staging/<clip>-<uuid>``): a stage
-        writes there, then ``publish`` moves the clip's partitions into place, so a failure
-        half-way leaves nothing in the real zones and concurrent clips never see each other's
-        partial output. ``_staging`` is never globbed by the catalog."""
-        sub = self.path("_staging", f"{clip_id}-{uuid.uuid4().hex[:12]}")
+        """A private lake for one attempt at a clip (``<root>/_staging/<clip>/<who>-<owner>-
+        <uuid>``, ``who`` the writing stage): a stage writes there, then ``publish`` moves the
+        clip's partitions into place, so a failure half-way leaves nothing in the real zones
+        and concurrent clips never see each other's partial output. ``_staging`` is never
+        globbed by the catalog. Folders of dead earlier runs of the clip are swept first."""
+        self.sweep(clip_id)
+        sub = self._run_dir(clip_id, self.writer or "stage")
         staged = Lake(sub if self.is_local else f"s3://{sub}")
         staged.writer, staged.owns = self.writer, self.owns  # ownership, not the redirect
         return staged
 
     def discard_staging(self, clip_id: str) -> int:
-        """Remove staging folders left by killed runs of ``clip_id`` (one clip is processed by
-        one task at a time, so any such folder is stale). Returns how many were removed."""
-        root = self.path("_staging")
-        if not self.exists(root):
-            return 0
-        infos = self.fs.get_file_info(pafs.FileSelector(root, recursive=False))
-        stale = [i.path for i in infos if i.type == pafs.FileType.Directory
-                 and i.base_name.rpartition("-")[0] == clip_id]
-        for path in stale:
-            self.delete_dir(path)
-        return len(stale)
+        """Finish or drop what killed runs of ``clip_id`` left in ``_staging`` (``sweep``);
+        returns how many run folders that was. A live run's folder is kept."""
+        return len(self.sweep(clip_id).runs)
 
-    def publish(self, staging: Lake, zone: str, clip_id: str) -> list[str]:
+    def publish(self, staging: Lake, zone: str, clip_id: str, *,
+                clear: Iterable[str] = ()) -> list[str]:
         """Move one clip's partitions (and blobs) from ``staging`` into this lake's ``zone``,
-        replacing what the clip had there. Locally each ``table/clip_id=X`` folder is one
-        rename; on S3 objects are copied then the staging copy deleted. Returns final paths
-        of the parquet files."""
+        replacing what the clip had there; the clip's partitions of the tables in ``clear``
+        (``"blobs"`` for its blobs) that ``staging`` does not have are removed in the same
+        step. Locally each ``table/clip_id=X`` folder is one rename; on S3 objects are copied
+        then the staging copy deleted. The swap is journaled in the staging folder
+        (``_commit_moves``), so a run killed during it is rolled forward by the next sweep.
+        Returns final paths of the parquet files."""
         moved: list[str] = []
+        moves: list[tuple[str, str]] = []
+        staged = set()
         for table in staging.tables(zone):
             src = staging.table_dir(zone, table, clip_id)
             if not staging.exists(src):
                 continue
+            staged.add(table)
             dst = self.table_dir(zone, table, clip_id)
-            self.delete_dir(dst)
             moved.extend(dst + f[len(src):] for f in staging.list_files(src, ".parquet"))
-            self._move_tree(staging, src, dst)
+            moves.append((src, dst))
         src_b = staging.path(zone, "blobs", clip_id)
         if staging.exists(src_b):
-            dst_b = self.path(zone, "blobs", clip_id)
-            self.delete_dir(dst_b)
-            self._move_tree(staging, src_b, dst_b)
+            staged.add("blobs")
+            moves.append((src_b, self.path(zone, "blobs", clip_id)))
+        deletes = [self.path(zone, "blobs", clip_id) if t == "blobs"
+                   else self.table_dir(zone, t, clip_id) for t in sorted(set(clear) - staged)]
+        self._commit_moves(staging.base, moves, deletes)
         return moved
+
+    def _commit_moves(self, run_dir: str, moves: Sequence[tuple[str, str]],
+                      deletes: Sequence[str]) -> None:
+        """Swap staged folders into place as one commit: the journal ``PUBLISH.json`` (moves
+        and deletions, lake-relative) is written first, atomically, then the old folders
+        are moved aside into the run folder and the new ones renamed in. A run killed after
+        the journal is rolled forward by ``sweep`` (``_roll_forward``: what is still staged
+        is moved in, the deletions repeated), so a clip never keeps half a stage's output."""
+        rel = len(self.base) + 1
+        self.write_json(f"{run_dir}/{JOURNAL}", {
+            "moves": [[a[rel:], b[rel:]] for a, b in moves], "deletes": [d[rel:] for d in deletes]})
+        with self.writing(moves[0][1] if moves else run_dir):
+            self._roll_forward(run_dir)
+
+    def _roll_forward(self, run_dir: str) -> None:
+        """Carry out a run folder's journal (idempotent: a move whose source is gone is done)."""
+        journal = self.read_json(f"{run_dir}/{JOURNAL}")
+        trash = f"{run_dir}/_replaced"
+        for i, dst in enumerate(journal["deletes"]):
+            self._aside(self.path(dst), f"{trash}/d{i}")
+        for i, (src, dst) in enumerate(journal["moves"]):
+            if self.exists(self.path(src)):
+                self._aside(self.path(dst), f"{trash}/m{i}")
+                self._move_tree(self, self.path(src), self.path(dst))
 
     def _move_tree(self, staging: Lake, src: str, dst: str) -> None:
         if self.is_local and staging.is_local:
@@ -714,12 +882,94 @@ class Lake:
             self.write_bytes(dst + f[len(src):], staging.read_bytes(f))
         staging.delete_dir(src)
 
+    def _aside(self, path: str, trash: str) -> None:
+        """Move a folder out of the zones (locally one rename; it goes with the run folder)."""
+        if not self.exists(path):
+            return
+        if self.is_local:
+            self.delete_dir(trash)
+            self._mkdir(trash.rpartition("/")[0])
+            os.replace(path, trash)
+        else:
+            self.delete_dir(path)
+
+    def sweep(self, clip_id: str | None = None, *,
+              foreign_older_than_s: float | None = None) -> Sweep:
+        """Clean up after runs that died (SIGKILL, power loss): every name a run leaves
+        behind carries its owner (``run_tag``: process id and host), so what a live run
+        owns is kept. Dead runs' staging folders are rolled forward when their publish had
+        begun (journal present) and removed otherwise; with ``clip_id=None`` also their
+        release builds in progress (``releases/.NAME.building-...``), hidden temporary files
+        (``.NAME.tmp-...``) and catalog temporaries. Runs of another host are kept unless
+        ``foreign_older_than_s`` is given and their folder is older than that.
+        """
+        out = Sweep()
+        root = self.path("_staging")
+        clips = [clip_id] if clip_id is not None else [
+            i.base_name for i in self._children(root) if i.type == pafs.FileType.Directory]
+        for cid in clips:
+            folder = self.path("_staging", cid)
+            for info in self._children(folder):
+                if not self._dead(info, foreign_older_than_s):
+                    out.kept.append(info.path)
+                    continue
+                if self.exists(f"{info.path}/{JOURNAL}"):
+                    self._roll_forward(info.path)
+                    out.rolled_forward.append(info.path)
+                self.delete_dir(info.path)
+                out.runs.append(info.path)
+            if self.is_local:
+                with contextlib.suppress(OSError):
+                    os.rmdir(folder)
+        if clip_id is None:
+            for info in self._children(self.path("releases")):
+                if ".building-" in info.base_name and self._dead(info, foreign_older_than_s):
+                    self.delete_dir(info.path)
+                    out.runs.append(info.path)
+            if self.is_local:
+                out.files.extend(self._sweep_files(foreign_older_than_s))
+        if self.is_local:
+            with contextlib.suppress(OSError):
+                os.rmdir(root)
+        return out
+
+    def _children(self, path: str) -> list[pafs.FileInfo]:
+        if not self.exists(path):
+            return []
+        return list(self.fs.get_file_info(pafs.FileSelector(path, recursive=False)))
+
+    @staticmethod
+    def _dead(info: pafs.FileInfo, foreign_older_than_s: float | None) -> bool:
+        state = owner_state(info.base_name)
+        if state == "foreign" and foreign_older_than_s is not None and info.mtime is not None:
+            return bool(time.time() - info.mtime.timestamp() > foreign_older_than_s)
+        return state == "dead"
+
+    def _sweep_files(self, foreign_older_than_s: float | None) -> list[str]:
+        """Hidden temporary files of dead runs (a writer killed between write and rename)
+        anywhere in a local lake (``_staging`` is swept by folder, blob folders only ever
+        arrive by rename, so neither is walked)."""
+        gone = []
+        for top, dirs, files in os.walk(self.base):
+            dirs[:] = [d for d in dirs if d not in ("_staging", "blobs")]
+            for name in files:
+                if name.startswith(".") and (".tmp-" in name or name.startswith(".catalog-")):
+                    path = os.path.join(top, name)
+                    info = self.fs.get_file_info(path)
+                    if self._dead(info, foreign_older_than_s):
+                        with contextlib.suppress(FileNotFoundError):
+                            os.remove(path)
+                        gone.append(path)
+        return gone
+
     def discard(self) -> None:
-        """Delete this (staging) lake entirely."""
+        """Delete this (staging) lake entirely (and its clip's ``_staging`` folders, once
+        empty)."""
         if self.is_local:
             shutil.rmtree(self.base, ignore_errors=True)
-            with contextlib.suppress(OSError):  # the shared _staging folder, once empty
+            with contextlib.suppress(OSError):  # the clip's and the shared folder, once empty
                 os.rmdir(os.path.dirname(self.base))
+                os.rmdir(os.path.dirname(os.path.dirname(self.base)))
         else:
             self.delete_dir(self.base)
 
@@ -732,9 +982,13 @@ class Lake:
         keeps them even if the delivery folder is deleted); otherwise, or where links are not
         allowed, a real copy (``shutil.copyfile``: in-kernel ``sendfile`` on Linux)."""
         head = dest.rpartition("/")[0]
-        self._mkdir(head)
         size = os.path.getsize(src)
-        if self.is_local:
+        with self.writing(dest):
+            self._mkdir(head)
+            if not self.is_local:
+                pafs.copy_files(str(src), dest, source_filesystem=pafs.LocalFileSystem(),
+                                destination_filesystem=self.fs)
+                return size
             tmp = self._tmp(dest)
             linked = False
             if link:
@@ -743,12 +997,14 @@ class Lake:
                     linked = True
                 except OSError:  # other filesystem (EXDEV), no permission, no link support
                     pass
-            if not linked:
-                shutil.copyfile(src, tmp)
-            os.replace(tmp, dest)
-        else:
-            pafs.copy_files(str(src), dest, source_filesystem=pafs.LocalFileSystem(),
-                            destination_filesystem=self.fs)
+            try:
+                if not linked:
+                    shutil.copyfile(src, tmp)
+                os.replace(tmp, dest)
+            except BaseException:  # disk full half-way: no temporary copy stays behind
+                with contextlib.suppress(OSError):
+                    os.remove(tmp)
+                raise
         return size
 
 

@@ -228,7 +228,7 @@ def test_a_stage_output_becomes_visible_together(tmp_path: Path) -> None:
     report = DESKEW.run(staged, CLIP, DESKEW.config())
     # mid-run (a kill here): the old output is intact and complete, nothing new is visible
     assert {f: lake.read_bytes(f) for f in lake.list_files(root, ".parquet")} == before
-    assert all("/_staging/deskew-clipA-p" in o.path for o in report.outputs)
+    assert all("/_staging/clipA/deskew-p" in o.path for o in report.outputs)
     moved = staged.publish_stage()
     after = {f: lake.read_bytes(f) for f in lake.list_files(root, ".parquet")}
     assert after == before and moved  # same result, but the files were swapped in

@@ -207,9 +207,8 @@ def run_anonymize(
     stage = lake.staging(clip_id)
     try:
         _write_clean(lake, stage, clip_id, cfg, t0, frame, report, progress, map_xy)
-        for table in CLEAN_TABLES:
-            lake.delete_partition("clean", table, clip_id)
-        lake.publish(stage, "clean", clip_id)
+        # one journaled swap (a kill mid-way is rolled forward by the next run's sweep)
+        lake.publish(stage, "clean", clip_id, clear=[*CLEAN_TABLES, "blobs"])
     finally:
         stage.discard()
     dt = time.perf_counter() - t_start

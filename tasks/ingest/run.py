@@ -920,8 +920,9 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
         outputs = [(f, *staging.written[f]) if f in staging.written else (f, pq_rows(staging, f),
                                                                           None)
                    for f in staging.list_files(staging.path("raw"), ".parquet")]
-        lake.delete_clip("raw", cid)
-        lake.publish(staging, "raw", cid)
+        # one journaled swap replaces everything the clip had in raw (a kill mid-way is
+        # rolled forward by the next run's sweep)
+        lake.publish(staging, "raw", cid, clear=[*lake.tables("raw"), "blobs"])
     finally:
         staging.discard()
     elapsed = time.perf_counter() - t0
