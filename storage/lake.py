@@ -645,7 +645,8 @@ class Lake:
 
     def delete_dir(self, path: str) -> None:
         if self.exists(path):
-            self.fs.delete_dir(path)
+            with self.writing(path):
+                self.fs.delete_dir(path)
 
     def list_files(self, path: str, suffix: str = "", *, hidden: bool = False) -> list[str]:
         """Files under ``path`` (recursive), sorted. Hidden names (temporary files in
