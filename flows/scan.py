@@ -4,7 +4,9 @@ New clips are delivered as folders ``<inbox>/<name>/clip.yaml`` (+ bags); the de
 is ``<lake>/landing/incoming`` for a local lake (an S3 lake needs a local ``inbox``: bags are
 read through rosbags from a file system). A folder is new when its clip id has neither flow
 records nor a quarantine report in the lake, and complete when it has not changed for
-``settle_seconds`` (a copy still in progress is left for the next scan).
+``settle_seconds`` (a copy still in progress is left for the next scan). Each scan first
+sweeps what killed runs left in the lake (``Lake.sweep``: staging of dead runs finished or
+dropped, their temporary files and release builds removed; live runs' work kept).
 """
 
 from __future__ import annotations
@@ -50,6 +52,11 @@ def scan_landing(lake: str, inbox: str | None = None, stages: list[str] | None =
     """Process every newly arrived clip folder in the inbox; returns their summaries."""
     logger = get_run_logger()
     the_lake = Lake(lake)
+    swept = the_lake.sweep()  # what runs killed since the last scan left behind
+    if swept:
+        logger.info("swept %d run folder(s) (%d rolled forward) and %d temporary file(s) "
+                    "of dead runs", len(swept.runs), len(swept.rolled_forward),
+                    len(swept.files))
     box = Path(inbox) if inbox else default_inbox(the_lake)
     box.mkdir(parents=True, exist_ok=True)
     new = find_new_clips(the_lake, box, settle_seconds)
