@@ -330,6 +330,58 @@ class RegistrationRow(_Row):
     removed_boxes: I64 | None = None
     removed_bodies: I64 | None = None
     removed_dynamic: I64 | None = None
+    # the clip-level solve (issue #13): the frame's own GICP result is a measurement; the
+    # final estimate (tx..qz) is the clip solution at this frame, with its 1-sigma
+    gicp_tx: F64 | None = None
+    gicp_ty: F64 | None = None
+    gicp_tz: F64 | None = None
+    gicp_qw: F64 | None = None
+    gicp_qx: F64 | None = None
+    gicp_qy: F64 | None = None
+    gicp_qz: F64 | None = None
+    information: list[float] | None = None  # 6x6 row-major, [rot rad, trans m], left, L1
+    observability: F64 | None = None
+    weight: F64 | None = None  # robust weight in the clip solve (0: not used)
+    loo_chi2: F64 | None = None  # leave-one-out test statistic (chi^2, 6 dof)
+    outlier: bool | None = None
+    std_m: F64 | None = None  # final estimate, largest 1-sigma translation
+    std_deg: F64 | None = None  # final estimate, largest 1-sigma rotation
+
+
+class CalibrationRefinedRow(_Row):
+    """A LiDAR extrinsic refined by the register stage's clip-level solve (issue #13), beside
+    the published one; ``calibrated_sensors`` (ingest's) is never rewritten. The correction is
+    applied only in the components the clip determined (``refined_components``); the others
+    keep the published value. ``cov``: 6x6 row-major covariance of the correction
+    ``[rot rad, trans m]`` in the LiDAR frame (``T_ego_lidar = published @ exp(correction)``)."""
+
+    clip_id: str
+    agent_id: str
+    sensor: str
+    tx: F64
+    ty: F64
+    tz: F64
+    qw: F64
+    qx: F64
+    qy: F64
+    qz: F64
+    pub_tx: F64
+    pub_ty: F64
+    pub_tz: F64
+    pub_qw: F64
+    pub_qx: F64
+    pub_qy: F64
+    pub_qz: F64
+    correction_m: F64
+    correction_deg: F64
+    cov: list[float]
+    std_m: F64  # largest 1-sigma over the refined translation components
+    std_deg: F64  # largest 1-sigma over the refined rotation components
+    refined_components: str  # e.g. "rx ry rz tx ty": the determined ones
+    usable: bool  # register's own threshold (RegisterConfig.refined_max_std_*)
+    n_frames: I64
+    source: str  # "refined"
+    method: str
 
 
 class AlignmentRow(_Row):
@@ -406,6 +458,7 @@ LAKE_TABLES: dict[str, type[_Row]] = {
     "annotations_world": AnnotationWorldRow,
     "instances": InstanceRow,
     "registrations": RegistrationRow,
+    "calibration_refined": CalibrationRefinedRow,
     "alignments": AlignmentRow,
     "qa_checks": QaCheckRow,
     "anonymization_audit": AnonymizationAuditRow,

@@ -45,7 +45,7 @@ from v2xlake.storage.lake import Lake, run_tag
 MAIN_NAMES = ("clips", "agents", "sensors", "calibrated_sensors", "ego_poses", "imu", "gnss",
               "lidar_frames", "lidar_points", "lidar_points_deskewed", "camera_frames",
               "radar_frames", "radar_points",
-              "annotations", "instances", "registrations", "alignments",
+              "annotations", "instances", "registrations", "calibration_refined", "alignments",
               "anonymization_audit", "qa_checks", "deskew_frames")
 # Each table has one writer. What a later stage adds about another stage's rows lives in its
 # own table and the main view joins it in: deskew's per-frame figures (``deskew_frames``)

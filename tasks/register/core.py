@@ -76,6 +76,7 @@ class PairResult:
     iterations: int
     seconds: float  # GICP + quality (preparation of the clouds not included)
     observability: float = float("nan")
+    H: np.ndarray | None = None  # GICP information at T_refined (left perturbation, target)
 
     @property
     def correction(self) -> np.ndarray:
@@ -162,7 +163,7 @@ def _attempt(backend: RegistrationBackend, target: Prepared, source: Prepared,
                   f"{limits.min_observability} (surfaces do not constrain every direction)")
     ok = reason == "ok"
     return PairResult(T_init, start, T, T if ok else T_init, fit, rmse, k, dm, ddeg, ok, reason,
-                      out.iterations, 0.0, obs)
+                      out.iterations, 0.0, obs, out.H)
 
 
 def failed_pair(T_init: np.ndarray, reason: str, start: np.ndarray | None = None

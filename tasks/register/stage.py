@@ -13,18 +13,19 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
-from v2xlake.schemas.tables import RegistrationRow
+from v2xlake.schemas.tables import CalibrationRefinedRow, RegistrationRow
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import pose_missing
-from v2xlake.tasks.geometry import matrix_to_quat, transform
+from v2xlake.tasks.geometry import invert, matrix_to_quat, transform
 from v2xlake.tasks.register.backends import GicpParams, Prepared, RegistrationBackend, make_backend
 from v2xlake.tasks.register.bev import render_registration_bev
 from v2xlake.tasks.register.core import (
@@ -33,6 +34,7 @@ from v2xlake.tasks.register.core import (
     failed_pair,
     initial_transform_at,
     refine,
+    transform_delta,
 )
 from v2xlake.tasks.register.scans import (
     AgentScans,
@@ -40,6 +42,14 @@ from v2xlake.tasks.register.scans import (
     StaticScans,
     StaticSettings,
     _fail,
+)
+from v2xlake.tasks.register.solve import (
+    ClipSolution,
+    CrossMeasurement,
+    OdoMeasurement,
+    SolveSettings,
+    se3_exp,
+    solve_clip,
 )
 from v2xlake.tasks.register.static import RemovalCounts
 
@@ -69,8 +79,9 @@ class RegisterConfig(BaseModel):
     max_correction_m: float = Field(1.5, gt=0)
     max_correction_deg: float = Field(5.0, gt=0)
     min_observability: float = Field(
-        0.02, ge=0, le=1, description="reject when the overlapping surfaces leave a translation "
-                                      "direction unconstrained (corridor, open road)")
+        0.02, ge=0, le=1, description="per-frame mode (clip_solve off): reject when the "
+        "overlapping surfaces leave a translation direction unconstrained (corridor, open "
+        "road); with the clip solve the information matrix weighs it instead")
     warm_start: bool = True
     pair_tolerance_ns: int = Field(1_000_000, ge=0,
                                    description="scan starts closer than this are one pair")
@@ -94,6 +105,52 @@ class RegisterConfig(BaseModel):
         0.25, gt=0, le=1, description="an above-ground object (connected in bird's-eye view) "
         "with this fraction of moving points is removed whole (1: per point only)")
 
+    # the clip-level solve (issue #13)
+    clip_solve: bool = Field(True, description="fuse the frames (constant extrinsic "
+                             "corrections + smooth INS error); off: frame by frame with a gate")
+    odometry_every: int = Field(5, ge=0, description="an agent's own scan-to-scan GICP every "
+                                "n frames (hand-eye: separates extrinsic from INS error; 0 off)")
+    odometry_gap: int = Field(5, ge=1, description="frames between the two scans of odometry")
+    knot_s: float = Field(1.0, gt=0, description="INS error knots (piecewise linear) every")
+    prior_ext_m: float = Field(0.3, gt=0, description="extrinsic correction prior, 1-sigma")
+    prior_ext_deg: float = Field(2.0, gt=0, description="extrinsic correction prior, 1-sigma")
+    prior_att_deg: float = Field(0.05, gt=0, description="INS attitude bias prior, 1-sigma")
+    prior_pos_m: float = Field(2.0, gt=0, description="INS position error prior, 1-sigma")
+    prior_drift_mps: float = Field(0.2, gt=0, description="INS drift rate prior, 1-sigma")
+    prior_drift_accel: float = Field(
+        0.01, gt=0, description="INS drift rate change (m/s^2), 1-sigma: an INS velocity error "
+        "changes by about a centimetre per second per second")
+    robust_scale: float = Field(3.0, gt=0, description="Cauchy scale of a frame's whitened "
+                                "residual (standard deviations)")
+    outlier_p: float = Field(1e-3, gt=0, lt=1, description="leave-one-out test: a frame is an "
+                             "outlier above the chi^2(6) quantile 1 - p")
+    irls_iterations: int = Field(4, ge=1)
+    gicp_floor_m: float = Field(0.01, gt=0, description="a GICP result's error floor, whatever "
+                                "its Hessian says (voxels, deskew residuals, what filtering left)")
+    gicp_floor_deg: float = Field(0.02, gt=0, description="... and its rotation floor")
+    degenerate_ratio: float = Field(
+        0.02, ge=0, lt=1, description="clip solve: a GICP result carries no information in "
+        "directions weaker than this fraction of its strongest (the slide along a street)")
+    final_max_std_m: float = Field(0.02, gt=0, description="a frame's final estimate is "
+                                   "accepted when its 1-sigma (translation) is below this")
+    final_max_std_deg: float = Field(0.05, gt=0, description="... and its rotation 1-sigma")
+    refined_determined_fraction: float = Field(
+        0.3, gt=0, le=1, description="an extrinsic component is refined when the clip reduced "
+        "its 1-sigma below this fraction of the prior; the others keep the published value")
+    refined_max_std_m: float = Field(0.01, gt=0, description="refined calibration usable when "
+                                     "its refined translation components' 1-sigma are below")
+    refined_max_std_deg: float = Field(0.05, gt=0, description="... and rotation components'")
+
+    def solve_settings(self) -> SolveSettings:
+        return SolveSettings(knot_s=self.knot_s, prior_ext_m=self.prior_ext_m,
+                             prior_ext_deg=self.prior_ext_deg, prior_att_deg=self.prior_att_deg,
+                             prior_pos_m=self.prior_pos_m, prior_drift_mps=self.prior_drift_mps,
+                             prior_drift_accel=self.prior_drift_accel,
+                             robust_scale=self.robust_scale, outlier_p=self.outlier_p,
+                             irls_iterations=self.irls_iterations, floor_m=self.gicp_floor_m,
+                             floor_deg=self.gicp_floor_deg,
+                             degenerate_ratio=self.degenerate_ratio)
+
     def gicp(self) -> GicpParams:
         return GicpParams(voxel_m=self.voxel_m, source_voxel_m=self.source_voxel_m,
                           max_range_m=self.max_range_m, num_neighbors=self.num_neighbors,
@@ -110,12 +167,14 @@ class RegisterConfig(BaseModel):
                               dynamic_object_fraction=self.dynamic_object_fraction,
                               max_range_m=self.max_range_m)
 
-    def limits(self) -> QualityLimits:
+    def limits(self, gate: bool = True) -> QualityLimits:
+        """Quality limits of one GICP result; without ``gate`` degeneracy does not reject
+        (the clip solve weighs each direction by the information instead)."""
         return QualityLimits(fitness_distance_m=self.fitness_distance_m,
                              min_fitness=self.min_fitness, min_inliers=self.min_inliers,
                              max_correction_m=self.max_correction_m,
                              max_correction_deg=self.max_correction_deg,
-                             min_observability=self.min_observability)
+                             min_observability=self.min_observability if gate else 0.0)
 
 
 def _pairs(ref: AgentScans, other: AgentScans, tol: int) -> list[tuple[int, int]]:
@@ -134,20 +193,86 @@ def _pairs(ref: AgentScans, other: AgentScans, tol: int) -> list[tuple[int, int]
     return out
 
 
-def _row(clip_id: str, ref: str, other: str, frame: int, t_ns: int, r: PairResult,
-         method: str, n_ref: int, n_oth: int, c_ref: RemovalCounts, c_oth: RemovalCounts
-         ) -> RegistrationRow:
-    qi, qf = matrix_to_quat(r.T_init[:3, :3]), matrix_to_quat(r.T_final[:3, :3])
-    ti, tf = r.T_init[:3, 3], r.T_final[:3, 3]
+def _row(clip_id: str, ref: str, p: _Pair, k: int, sol: ClipSolution | None,
+         cfg: RegisterConfig, method: str) -> RegistrationRow:
+    r = p.res
+    meas = p.measurement
+    extra: dict[str, Any] = {}
+    if meas.usable and meas.Z is not None:
+        qg = matrix_to_quat(meas.Z[:3, :3])
+        extra.update(gicp_tx=meas.Z[0, 3], gicp_ty=meas.Z[1, 3], gicp_tz=meas.Z[2, 3],
+                     gicp_qw=qg[0], gicp_qx=qg[1], gicp_qy=qg[2], gicp_qz=qg[3])
+    if sol is None:  # frame by frame, the gate decides
+        T_final, accepted, reason = r.T_final, r.accepted, r.reason
+        if r.H is not None:
+            extra["information"] = [float(x) for x in r.H.ravel()]
+    else:
+        T_final = sol.T_cross[k]
+        cov = sol.cross_cov[k]
+        std_m = float(np.sqrt(max(np.max(np.diag(cov)[3:]), 0.0)))
+        std_deg = float(np.degrees(np.sqrt(max(np.max(np.diag(cov)[:3]), 0.0))))
+        outlier = bool(sol.outlier[k])
+        extra.update(weight=float(sol.weight[k]), outlier=outlier, std_m=std_m, std_deg=std_deg,
+                     loo_chi2=None if np.isnan(sol.loo_chi2[k]) else float(sol.loo_chi2[k]))
+        if sol.information is not None and np.isfinite(sol.information[k]).all():
+            extra["information"] = [float(x) for x in sol.information[k].ravel()]
+        if outlier:
+            accepted, reason = False, (
+                f"outlier: its GICP result disagrees with the clip solution of the other frames "
+                f"(leave-one-out chi2 {sol.loo_chi2[k]:.0f} > {sol.loo_limit:.0f}); clip "
+                "estimate kept, not exported")
+        elif std_m > cfg.final_max_std_m or std_deg > cfg.final_max_std_deg:
+            accepted, reason = False, (
+                f"uncertain: clip estimate 1-sigma {std_m * 100:.1f} cm / {std_deg:.3f} deg > "
+                f"{cfg.final_max_std_m * 100:.1f} cm / {cfg.final_max_std_deg} deg")
+        elif not meas.usable:
+            accepted, reason = True, f"clip estimate (no GICP measurement: {r.reason})"
+        else:
+            accepted, reason = True, "ok"
+    qi, qf = matrix_to_quat(r.T_init[:3, :3]), matrix_to_quat(T_final[:3, :3])
+    ti, tf = r.T_init[:3, 3], T_final[:3, 3]
+    dm, ddeg = transform_delta(r.T_init, T_final)
     return RegistrationRow(
-        clip_id=clip_id, agent_ref=ref, agent_other=other, frame_idx=frame, t_ns=t_ns,
-        init_tx=ti[0], init_ty=ti[1], init_tz=ti[2], init_qw=qi[0], init_qx=qi[1],
+        clip_id=clip_id, agent_ref=ref, agent_other=p.other, frame_idx=p.ref_frame,
+        t_ns=p.t_ns, init_tx=ti[0], init_ty=ti[1], init_tz=ti[2], init_qw=qi[0], init_qx=qi[1],
         init_qy=qi[2], init_qz=qi[3], tx=tf[0], ty=tf[1], tz=tf[2], qw=qf[0], qx=qf[1],
-        qy=qf[2], qz=qf[3], fitness=r.fitness, inlier_rmse=r.inlier_rmse,
-        correction_m=r.correction_m, correction_deg=r.correction_deg, accepted=r.accepted,
-        method=method, reason=r.reason, n_points_ref=n_ref, n_points_other=n_oth,
-        removed_boxes=c_ref.boxes + c_oth.boxes, removed_bodies=c_ref.bodies + c_oth.bodies,
-        removed_dynamic=c_ref.dynamic + c_oth.dynamic)
+        qy=qf[2], qz=qf[3], fitness=r.fitness, inlier_rmse=r.inlier_rmse, correction_m=dm,
+        correction_deg=ddeg, accepted=accepted, method=method, reason=reason,
+        n_points_ref=p.n_ref, n_points_other=p.n_oth,
+        removed_boxes=p.c_ref.boxes + p.c_oth.boxes,
+        removed_bodies=p.c_ref.bodies + p.c_oth.bodies,
+        removed_dynamic=p.c_ref.dynamic + p.c_oth.dynamic,
+        observability=None if np.isnan(r.observability) else float(r.observability), **extra)
+
+
+def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
+                      cfg: RegisterConfig, n_frames: int, method: str
+                      ) -> list[CalibrationRefinedRow]:
+    """The clip's extrinsic corrections, applied in the components it determined."""
+    rows = []
+    prior = np.array([np.radians(cfg.prior_ext_deg)] * 3 + [cfg.prior_ext_m] * 3)
+    names = ("rx", "ry", "rz", "tx", "ty", "tz")
+    for a in agents:
+        eps, cov = sol.eps[a.agent], sol.eps_cov[a.agent]
+        std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        det = std < cfg.refined_determined_fraction * prior
+        applied = np.where(det, eps, 0.0)
+        T = a.T_ego_lidar @ se3_exp(applied)
+        q, qp = matrix_to_quat(T[:3, :3]), matrix_to_quat(a.T_ego_lidar[:3, :3])
+        std_m = float(std[3:][det[3:]].max()) if det[3:].any() else 0.0
+        std_deg = float(np.degrees(std[:3][det[:3]].max())) if det[:3].any() else 0.0
+        dm, ddeg = transform_delta(a.T_ego_lidar, T)
+        rows.append(CalibrationRefinedRow(
+            clip_id=clip_id, agent_id=a.agent, sensor=a.sensor, tx=T[0, 3], ty=T[1, 3],
+            tz=T[2, 3], qw=q[0], qx=q[1], qy=q[2], qz=q[3], pub_tx=a.T_ego_lidar[0, 3],
+            pub_ty=a.T_ego_lidar[1, 3], pub_tz=a.T_ego_lidar[2, 3], pub_qw=qp[0], pub_qx=qp[1],
+            pub_qy=qp[2], pub_qz=qp[3], correction_m=dm, correction_deg=ddeg,
+            cov=[float(x) for x in cov.ravel()], std_m=std_m, std_deg=std_deg,
+            refined_components=" ".join(n for n, d in zip(names, det, strict=True) if d),
+            usable=bool(det.any() and std_m <= cfg.refined_max_std_m
+                        and std_deg <= cfg.refined_max_std_deg),
+            n_frames=n_frames, source="refined", method=method))
+    return rows
 
 
 def _bodies(lake: Lake, clip_id: str, agents: list[AgentScans], cfg: RegisterConfig
@@ -183,13 +308,31 @@ def _reference_agent(lake: Lake, clip_id: str) -> tuple[str, list[str]]:
     return ref, sorted(a for a in ids if a != ref)
 
 
+@dataclass
+class _Pair:
+    """One cross-agent frame pair as measured (before the clip solve)."""
+
+    ref_frame: int
+    other: str
+    other_frame: int
+    t_ns: int  # the reference scan's start
+    res: PairResult
+    n_ref: int
+    n_oth: int
+    c_ref: RemovalCounts
+    c_oth: RemovalCounts
+    measurement: CrossMeasurement
+
+
 def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None) -> StageReport:
-    """Register every other agent's deskewed scans to the reference agent's, frame by frame."""
+    """Register every other agent's deskewed scans to the reference agent's: per-frame GICP
+    on the static scene as measurements, fused by the clip-level solve (see the module doc)."""
     cfg = config or RegisterConfig()
     wall0 = time.perf_counter()
     report = StageReport(stage=STAGE, clip_id=clip_id)
     ref_id, other_ids = _reference_agent(lake, clip_id)
     lake.delete_partition("clean", "registrations", clip_id)
+    lake.delete_partition("clean", "calibration_refined", clip_id)
     missing = {a: why for a in (ref_id, *other_ids) if (why := pose_missing(lake, clip_id, a))}
     if ref_id in missing or len(missing) == len(other_ids):
         return StageReport.not_applicable(
@@ -204,93 +347,183 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     ref = AgentScans(lake, clip_id, ref_id, cfg.sensor)
     others = [AgentScans(lake, clip_id, a, cfg.sensor) for a in other_ids]
     backend: RegistrationBackend = make_backend(cfg.backend, cfg.gicp())
-    method = f"{cfg.backend}:GICP"
+    method = f"{cfg.backend}:GICP" + ("+clip" if cfg.clip_solve else "")
     pairs = {o.agent: dict(_pairs(ref, o, cfg.pair_tolerance_ns)) for o in others}
     ref_frames = sorted({f for p in pairs.values() for f in p})
     if not ref_frames:
         raise _fail(clip_id, "no frame pairs: no scans of the other agents start within "
                              f"{cfg.pair_tolerance_ns} ns of the reference agent's scans")
-    static = cfg.static()
-    bodies = _bodies(lake, clip_id, [ref, *others], cfg)
-    ref_static = StaticScans(ref, static, [(o, bodies[o.agent]) for o in others
-                                           if o.agent in bodies])
-    oth_static = {o.agent: StaticScans(o, static, [(a, bodies[a.agent]) for a in (ref, *others)
-                                                   if a is not o and a.agent in bodies])
-                  for o in others}
+    t0_ns = ref.frames[ref_frames[0]][1]
+    measured, odo, timing = _measure(cfg, backend, ref, others, pairs, ref_frames,
+                                     _bodies(lake, clip_id, [ref, *others], cfg), t0_ns)
+    sol: ClipSolution | None = None
+    if cfg.clip_solve:
+        t_solve = time.perf_counter()
+        sol = solve_clip([ref.agent, *(o.agent for o in others)], ref.agent,
+                         {a.agent: a.T_ego_lidar for a in (ref, *others)},
+                         [p.measurement for p in measured], odo, cfg.solve_settings())
+        timing["solve_s"] = time.perf_counter() - t_solve
+    rows = [_row(clip_id, ref_id, p, k, sol, cfg, method) for k, p in enumerate(measured)]
+    path, n = lake.write_table("clean", "registrations", rows_to_table(RegistrationRow, rows),
+                               clip_id=clip_id, name="registrations")
+    report.outputs.append(OutputFile(path=path, rows=n))
+    if sol is not None:
+        cal = _calibration_rows(clip_id, sol, [ref, *others], cfg, len(measured), method)
+        path, n = lake.write_table("clean", "calibration_refined",
+                                   rows_to_table(CalibrationRefinedRow, cal), clip_id=clip_id,
+                                   name="calibration_refined")
+        report.outputs.append(OutputFile(path=path, rows=n))
     bev_frame = cfg.bev_frame if cfg.bev_frame is not None else ref_frames[len(ref_frames) // 2]
-    warm: dict[str, np.ndarray | None] = {o.agent: None for o in others}
-    rows: list[BaseModel] = []
-    results: list[PairResult] = []
-    pair_s: list[float] = []
+    if cfg.write_bev:
+        for p, r in zip(measured, rows, strict=True):
+            if p.ref_frame == bev_frame and p.other == others[0].agent:
+                key = lake.path("clean", "images", clip_id, "registration_bev.png")
+                o = next(a for a in others if a.agent == p.other)
+                lake.write_bytes(key, render_registration_bev(
+                    ref.points(p.ref_frame), o.points(p.other_frame), p.res.T_init,
+                    _matrix(r, ""), title=f"{clip_id} frame {p.ref_frame}: {p.other} -> "
+                    f"{ref_id} ({r.reason[:60]})"))
+                report.images.append(key)
+                break
+    acc = [r for r in rows if r.accepted]
+    res = [p.res for p in measured]
     removed = RemovalCounts()
+    for p in measured:
+        for k in ("boxes", "bodies", "dynamic"):
+            setattr(removed, k, getattr(removed, k) + getattr(p.c_ref, k) + getattr(p.c_oth, k))
+    n_frames = max(len(measured), 1)
+    report.metrics.update(
+        n_pairs=float(len(rows)), n_accepted=float(len(acc)),
+        n_rejected=float(len(rows) - len(acc)),
+        n_outliers=float(sum(bool(r.outlier) for r in rows)),
+        mean_fitness=float(np.mean([r.fitness for r in res])) if res else 0.0,
+        mean_correction_m=float(np.mean([r.correction_m for r in acc])) if acc else 0.0,
+        mean_correction_deg=float(np.mean([r.correction_deg for r in acc])) if acc else 0.0,
+        median_pair_s=float(np.median(timing["pair_s"])) if timing["pair_s"] else 0.0,
+        gicp_s_per_frame=float(timing["gicp_s"]) / n_frames,
+        filter_s_per_frame=float(timing["filter_s"]) / n_frames,
+        odometry_s_per_frame=float(timing["odometry_s"]) / n_frames,
+        solve_s_per_frame=float(timing.get("solve_s", 0.0)) / n_frames,
+        removed_boxes=float(removed.boxes), removed_bodies=float(removed.bodies),
+        removed_dynamic=float(removed.dynamic),
+        n_odometry=float(len(odo)),
+        variance_factor=float(sol.variance_factor) if sol is not None else 0.0,
+        seconds=time.perf_counter() - wall0,
+    )
+    if sol is not None:
+        for a in sol.agents:
+            e = sol.eps[a]
+            report.metrics[f"extrinsic_correction_m_{a}"] = float(np.linalg.norm(e[3:]))
+            report.metrics[f"extrinsic_correction_deg_{a}"] = float(np.degrees(
+                np.linalg.norm(e[:3])))
+    for r in rows:
+        if not r.accepted:
+            report.notes.append(f"frame {r.frame_idx} {r.agent_other}: {r.reason}")
+            log.warning("register %s frame %d %s->%s not accepted: %s", clip_id, r.frame_idx,
+                        r.agent_other, ref_id, r.reason)
+    return report
+
+
+def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
+             others: list[AgentScans], pairs: dict[str, dict[int, int]], ref_frames: list[int],
+             bodies: dict[str, Body], t0_ns: int
+             ) -> tuple[list[_Pair], list[OdoMeasurement], dict[str, Any]]:
+    """Per-frame GICP of every pair on the static scene, and the agents' own scan-to-scan
+    GICP (odometry, every ``odometry_every`` frames over ``odometry_gap`` frames)."""
+    static = cfg.static()
+    scans = {a.agent: a for a in (ref, *others)}
+    filt = {a.agent: StaticScans(a, static, [(b, bodies[b.agent]) for b in (ref, *others)
+                                             if b is not a and b.agent in bodies])
+            for a in (ref, *others)}
+    limits = cfg.limits(gate=not cfg.clip_solve)
+    # recent prepared clouds per agent, for odometry: frame -> Prepared
+    recent: dict[str, dict[int, Prepared]] = {a: {} for a in scans}
+    odo: list[OdoMeasurement] = []
+    warm: dict[str, np.ndarray | None] = {o.agent: None for o in others}
+    out: list[_Pair] = []
+    timing: dict[str, Any] = {"pair_s": [], "gicp_s": 0.0, "filter_s": 0.0, "odometry_s": 0.0}
+
+    def secs(agent: str, f: int) -> float:
+        return (scans[agent].frames[f][1] - t0_ns) * 1e-9
+
+    def M(agent: str, f: int) -> np.ndarray:
+        a = scans[agent]
+        return a.track.matrices(a.frames[f][1])[0]
+
+    def prepare(agent: str, f: int, voxel: float) -> tuple[Prepared | None, str, int,
+                                                          RemovalCounts]:
+        t = time.perf_counter()
+        sc = filt[agent].filtered(f, voxel)
+        timing["filter_s"] += time.perf_counter() - t
+        t = time.perf_counter()
+        try:
+            prep = backend.prepare_points(sc.points)
+        except Exception as e:  # per frame, never the clip's end
+            timing["gicp_s"] += time.perf_counter() - t
+            return None, f"{backend.name} could not prepare the scan: {e}", len(sc.points), \
+                sc.counts
+        timing["gicp_s"] += time.perf_counter() - t
+        if cfg.odometry_every > 0:
+            recent[agent][f] = prep
+            for old in [g for g in recent[agent] if g < f - cfg.odometry_gap]:
+                del recent[agent][old]
+            _odometry(agent, f)
+        return prep, "", len(sc.points), sc.counts
+
+    def _odometry(agent: str, f: int) -> None:
+        a = scans[agent]
+        frames = sorted(a.frames)
+        i = frames.index(f)
+        if i < cfg.odometry_gap:
+            return
+        g = frames[i - cfg.odometry_gap]
+        if g not in recent[agent] or (i - cfg.odometry_gap) % cfg.odometry_every:
+            return
+        t = time.perf_counter()
+        M0, M1 = M(agent, g), M(agent, f)
+        T_ins = invert(M0 @ a.T_ego_lidar) @ (M1 @ a.T_ego_lidar)
+        r = refine(backend, recent[agent][g], recent[agent][f], T_ins, cfg.limits(gate=False))
+        if r.accepted and r.H is not None and np.isfinite(r.H).all():
+            odo.append(OdoMeasurement(agent, secs(agent, g), secs(agent, f), M0, M1,
+                                      r.T_refined, r.H))
+        timing["odometry_s"] += time.perf_counter() - t
+
     for f in ref_frames:
         t0 = time.perf_counter()
-        target: Prepared | None = None
-        target_error = ""
-        ref_scan = ref_static.filtered(f, cfg.voxel_m)
-        try:
-            target = backend.prepare_points(ref_scan.points)
-        except Exception as e:  # per frame, never the clip's end
-            target_error = f"{backend.name} could not prepare the reference scan: {e}"
+        target, why_t, n_ref, c_ref = prepare(ref.agent, f, cfg.voxel_m)
         for o in others:
             if f not in pairs[o.agent]:
                 continue
             fo = pairs[o.agent][f]
             T_init = initial_transform_at(ref.track, o.track, ref.T_ego_lidar, o.T_ego_lidar,
                                           ref.frames[f][1], o.frames[fo][1])
-            oth_scan = oth_static[o.agent].filtered(fo, cfg.source_voxel_m)
-            if target is None:
-                res = failed_pair(T_init, target_error)
+            source, why_s, n_oth, c_oth = prepare(o.agent, fo, cfg.source_voxel_m)
+            t = time.perf_counter()
+            if target is None or source is None:
+                res = failed_pair(T_init, why_t or why_s)
             else:
-                try:
-                    source = backend.prepare_points(oth_scan.points)
-                    res = refine(backend, target, source, T_init, cfg.limits(),
-                                 warm[o.agent] if cfg.warm_start else None)
-                except Exception as e:
-                    res = failed_pair(T_init, f"{backend.name} failed on the pair: "
-                                              f"{type(e).__name__}: {e}")
-            warm[o.agent] = res.correction if res.accepted else warm[o.agent]
-            c_ref, c_oth = ref_scan.counts, oth_scan.counts
-            for k in ("boxes", "bodies", "dynamic"):
-                setattr(removed, k, getattr(removed, k) + getattr(c_ref, k) + getattr(c_oth, k))
-            rows.append(_row(clip_id, ref_id, o.agent, f, ref.frames[f][0], res, method,
-                             len(ref_scan.points), len(oth_scan.points), c_ref, c_oth))
-            results.append(res)
-            pair_s.append(time.perf_counter() - t0)
+                res = refine(backend, target, source, T_init, limits,
+                             warm[o.agent] if cfg.warm_start else None)
+            timing["gicp_s"] += time.perf_counter() - t
+            if res.accepted and res.observability >= cfg.min_observability:
+                warm[o.agent] = res.correction
+            usable = res.accepted and res.H is not None and bool(np.isfinite(res.H).all())
+            meas = CrossMeasurement(f, o.agent, secs(ref.agent, f), M(ref.agent, f),
+                                    M(o.agent, fo), res.T_refined if usable else None,
+                                    res.H if usable else None, secs(o.agent, fo))
+            out.append(_Pair(f, o.agent, fo, ref.frames[f][0], res, n_ref, n_oth, c_ref, c_oth,
+                             meas))
+            timing["pair_s"].append(time.perf_counter() - t0)
             t0 = time.perf_counter()  # the target's preparation is charged to the first pair
-            if not res.accepted:
-                log.warning("register %s frame %d %s->%s rejected: %s", clip_id, f, o.agent,
-                            ref_id, res.reason)
-            if cfg.write_bev and f == bev_frame and o is others[0]:
-                key = lake.path("clean", "images", clip_id, "registration_bev.png")
-                lake.write_bytes(key, render_registration_bev(
-                    ref.points(f), o.points(fo), res.T_init, res.T_final,
-                    title=f"{clip_id} frame {f}: {o.agent} -> {ref_id} ({res.reason}, fitness "
-                          f"{res.fitness:.2f}, correction {res.correction_m:.2f} m / "
-                          f"{res.correction_deg:.2f} deg)"))
-                report.images.append(key)
-    path, n = lake.write_table("clean", "registrations", rows_to_table(RegistrationRow, rows),
-                               clip_id=clip_id, name="registrations")
-    report.outputs.append(OutputFile(path=path, rows=n))
-    acc = [r for r in results if r.accepted]
-    report.metrics.update(
-        n_pairs=float(len(results)), n_accepted=float(len(acc)),
-        n_rejected=float(len(results) - len(acc)),
-        mean_fitness=float(np.mean([r.fitness for r in acc])) if acc else 0.0,
-        mean_inlier_rmse_m=float(np.mean([r.inlier_rmse for r in acc])) if acc else 0.0,
-        mean_correction_m=float(np.mean([r.correction_m for r in acc])) if acc else 0.0,
-        mean_correction_deg=float(np.mean([r.correction_deg for r in acc])) if acc else 0.0,
-        median_pair_s=float(np.median(pair_s)) if pair_s else 0.0,
-        removed_boxes=float(removed.boxes), removed_bodies=float(removed.bodies),
-        removed_dynamic=float(removed.dynamic),
-        min_observability=float(np.nanmin([r.observability for r in results]))
-        if results and not np.all(np.isnan([r.observability for r in results])) else 0.0,
-        seconds=time.perf_counter() - wall0,
-    )
-    for r in results:
-        if not r.accepted:
-            report.notes.append(f"rejected: {r.reason}")
-    return report
+    return out, odo, timing
+
+
+def _matrix(r: RegistrationRow, p: str) -> np.ndarray:
+    q = np.array([getattr(r, f"{p}qw"), getattr(r, f"{p}qx"), getattr(r, f"{p}qy"),
+                  getattr(r, f"{p}qz")], dtype=np.float64)
+    t = np.array([getattr(r, f"{p}tx"), getattr(r, f"{p}ty"), getattr(r, f"{p}tz")],
+                 dtype=np.float64)
+    return transform(t, q / np.linalg.norm(q))
 
 
 def plot_registration(lake: Lake, clip_id: str, frame_idx: int, out_png: str | Path,

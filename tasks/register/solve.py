@@ -1,0 +1,511 @@
+"""Clip-level registration solve (issue #13): per-frame GICP results are measurements, not
+answers.
+
+Why: on a street of parallel walls one frame's GICP is blind along the street (its
+information matrix says so), and a wrong LiDAR extrinsic is the same error in every frame.
+Frame by frame, eq. 1b can only reject such frames (and keep eq. 1a's decimetres) or accept a
+slide. What is constant or slow over a clip is estimated once, from all frames, each weighted
+by what it actually constrains.
+
+Model. Every agent ``a``'s LiDAR pose in the world is
+
+    T_W_La(t) = C_a(t) M_a(t) E_a exp(eps_a),     C_a(t) M = [Exp(omega_a) R_M, p_M + v_a(t)]
+
+with ``M_a`` its INS pose (eq. 1a's ``T_W_Ia``), ``E_a`` its published extrinsic, ``eps_a`` a
+constant extrinsic correction (LiDAR frame, 6), ``omega_a`` a constant INS attitude bias
+(world axes, 3) and ``v_a(t)`` the INS position error (world, piecewise linear over knots
+``knot_s`` apart: INS drift of a few cm/s is smooth). ``exp([w, t]) := [Exp(w), t]``.
+
+Measurements (each a 6-vector residual ``[rotvec, trans]`` of ``Z T_model^-1``, whitened by
+its GICP information ``W`` (left perturbation in the target frame, see ``backends``)):
+
+* cross-agent, frame k: ``Z = T_L1_Lj`` from GICP; model ``T_W_L1(t_k)^-1 T_W_Lj(t_k)``;
+* odometry of agent a over (t0, t1) (hand-eye): ``Z = T_La(t0)_La(t1)`` from GICP between the
+  agent's own scans; model ``T_W_La(t0)^-1 T_W_La(t1)``. This is what separates a wrong
+  extrinsic from INS drift: the INS says how the body moved, the scans how the LiDAR moved;
+  a turn makes every direction of the extrinsic but its height observable (planar motion
+  leaves the extrinsic's z and the INS height bias indistinguishable: the prior decides and
+  the covariance says so).
+
+Priors (metric, ``SolveSettings``): extrinsic corrections, attitude bias, the drift's level,
+rate and acceleration between knots. A degenerate frame (blind along the street) contributes
+nothing in its blind direction, which the smooth ``v_a`` and the constant ``eps_a`` carry over
+from frames that see it (turns, intersections, poles).
+
+Robustness. GICP's Hessian has no absolute scale (plane-regularised covariances, correlated
+points), so a variance factor is estimated from the residuals (median chi^2, 6 dof), and each
+frame gets a Cauchy weight on its whitened residual norm (iteratively reweighted least
+squares): the binary accept/reject gate becomes a weight. Afterwards every cross-agent frame
+is tested against the solution of all OTHER frames (leave-one-out, closed form on the
+linearised problem): a frame whose own GICP result disagrees beyond the ``outlier_p`` chi^2
+quantile is an outlier, flagged with its reason.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.stats import chi2
+
+from v2xlake.tasks.geometry import compose, invert
+
+
+# ------------------------------------------------------------------ small SO(3) / SE(3) kit
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices (Rodrigues)."""
+    w = np.asarray(w, np.float64)
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = np.zeros((*w.shape[:-1], 3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -w[..., 2], w[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = w[..., 2], -w[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -w[..., 1], w[..., 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(th > 1e-8, np.sin(th) / th, 1.0 - th**2 / 6.0)
+        b = np.where(th > 1e-8, (1.0 - np.cos(th)) / th**2, 0.5 - th**2 / 24.0)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) -> (..., 3) rotation vectors; exact to the last digit at small angles
+    (atan2 of sin and cos, not arccos of the trace)."""
+    R = np.asarray(R, np.float64)
+    v = 0.5 * np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                        R[..., 1, 0] - R[..., 0, 1]], -1)
+    s = np.linalg.norm(v, axis=-1)
+    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    th = np.arctan2(s, c)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.where(s > 1e-12, th / s, 1.0)
+    return v * f[..., None]
+
+
+def se3_exp(x: np.ndarray) -> np.ndarray:
+    """``exp([w, t]) = [Exp(w), t]`` (the perturbation the GICP information is for)."""
+    x = np.asarray(x, np.float64)
+    out = np.zeros((*x.shape[:-1], 4, 4))
+    out[..., :3, :3] = so3_exp(x[..., :3])
+    out[..., :3, 3] = x[..., 3:]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def se3_left_residual(Z: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """``[rotvec, trans]`` of ``Z T^-1``: the left perturbation taking ``T`` to ``Z``."""
+    E = Z @ invert(T)
+    return np.concatenate([so3_log(E[..., :3, :3]), E[..., :3, 3]], -1)
+
+
+# ------------------------------------------------------------------ inputs and settings
+@dataclass(frozen=True)
+class CrossMeasurement:
+    """Frame k: GICP's ``T_L1_Lj`` (None when GICP gave nothing) and its information."""
+
+    key: int  # the caller's frame id
+    other: str
+    t_s: float
+    M_ref: np.ndarray  # INS T_W_I1 at the reference scan's time
+    M_oth: np.ndarray  # INS T_W_Ij at the other scan's time
+    Z: np.ndarray | None
+    W: np.ndarray | None
+    t_oth_s: float | None = None
+
+    @property
+    def usable(self) -> bool:
+        return self.Z is not None and self.W is not None and bool(np.isfinite(self.W).all())
+
+
+@dataclass(frozen=True)
+class OdoMeasurement:
+    """An agent's own scans at t0 and t1: GICP's ``T_La(t0)_La(t1)`` and its information."""
+
+    agent: str
+    t0_s: float
+    t1_s: float
+    M0: np.ndarray
+    M1: np.ndarray
+    Z: np.ndarray
+    W: np.ndarray
+
+
+@dataclass(frozen=True)
+class SolveSettings:
+    knot_s: float = 1.0
+    prior_ext_m: float = 0.3
+    prior_ext_deg: float = 2.0
+    prior_att_deg: float = 0.05
+    prior_pos_m: float = 2.0
+    prior_drift_mps: float = 0.2
+    prior_drift_accel: float = 0.01  # m/s^2
+    robust_scale: float = 3.0  # Cauchy scale, in standard deviations of a frame's residual
+    outlier_p: float = 1e-3
+    irls_iterations: int = 4
+    # initial scale of GICP information: the median frame's best-constrained translation
+    # direction gets this standard deviation (re-estimated from the residuals afterwards)
+    initial_sigma_m: float = 0.01
+    odometry_weight: float = 1.0
+    # what a GICP result is never better than, whatever its Hessian says (systematic error)
+    floor_m: float = 0.01
+    floor_deg: float = 0.02
+    degenerate_ratio: float = 0.02
+
+
+@dataclass
+class ClipSolution:
+    agents: list[str]
+    eps: dict[str, np.ndarray]  # agent -> (6,) extrinsic correction [rot, trans]
+    eps_cov: dict[str, np.ndarray]  # agent -> (6, 6)
+    omega: dict[str, np.ndarray]
+    T_cross: np.ndarray  # (N, 4, 4) model T_L1_Lj per cross measurement
+    cross_cov: np.ndarray  # (N, 6, 6) covariance of each model T_L1_Lj (left, L1 frame)
+    weight: np.ndarray  # (N,) robust weight of each cross measurement (0: unusable)
+    chi2: np.ndarray  # (N,) whitened residual^2 / variance factor (NaN: unusable)
+    loo_chi2: np.ndarray  # (N,) leave-one-out statistic (NaN: unusable)
+    outlier: np.ndarray  # (N,) bool
+    variance_factor: float
+    odo_weight: np.ndarray
+    information: np.ndarray | None = None  # (N, 6, 6) metric information used (rad, m)
+    loo_limit: float = float("inf")
+    seconds: float = 0.0
+    n_params: int = 0
+    notes: list[str] = field(default_factory=list)
+
+
+# ------------------------------------------------------------------ the problem
+def _adjoint(T: np.ndarray) -> np.ndarray:
+    """(N, 6, 6) adjoint of (N, 4, 4) transforms for ``[rot, trans]`` twists:
+    ``T exp(d) T^-1 = exp(Ad_T d)``, ``Ad = [[R, 0], [p^ R, R]]``."""
+    R, p = T[:, :3, :3], T[:, :3, 3]
+    out = np.zeros((len(T), 6, 6))
+    out[:, :3, :3] = R
+    out[:, 3:, 3:] = R
+    out[:, 3:, :3] = _hat(p) @ R
+    return out
+
+
+def _hat(p: np.ndarray) -> np.ndarray:
+    K = np.zeros((len(p), 3, 3))
+    K[:, 0, 1], K[:, 0, 2] = -p[:, 2], p[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = p[:, 2], -p[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -p[:, 1], p[:, 0]
+    return K
+
+
+class _Problem:
+    """Parameters per agent: ``[eps (6), omega (3), v at each knot (3 n_k)]``."""
+
+    def __init__(self, agents: list[str], extr: dict[str, np.ndarray],
+                 cross: list[CrossMeasurement], odo: list[OdoMeasurement],
+                 s: SolveSettings, ref: str) -> None:
+        self.agents, self.s, self.ref = agents, s, ref
+        times = [c.t_s for c in cross] + [c.t_oth_s or c.t_s for c in cross]
+        times += [o.t0_s for o in odo] + [o.t1_s for o in odo]
+        t0, t1 = (min(times), max(times)) if times else (0.0, 1.0)
+        self.n_k = max(2, int(np.ceil((t1 - t0) / s.knot_s - 1e-9)) + 1)
+        self.knots = t0 + s.knot_s * np.arange(self.n_k)
+        self.per_agent = 9 + 3 * self.n_k
+        self.n = self.per_agent * len(agents)
+        self.idx = {a: i * self.per_agent for i, a in enumerate(agents)}
+        self.E = {a: extr[a] for a in agents}
+        self.P = self._prior_matrix()
+
+    def eps(self, th: np.ndarray, a: str) -> np.ndarray:
+        return th[self.idx[a]:self.idx[a] + 6]
+
+    def omega(self, th: np.ndarray, a: str) -> np.ndarray:
+        return th[self.idx[a] + 6:self.idx[a] + 9]
+
+    def knots_v(self, th: np.ndarray, a: str) -> np.ndarray:
+        i = self.idx[a] + 9
+        return th[i:i + 3 * self.n_k].reshape(self.n_k, 3)
+
+    def interp_w(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Knot indices i, i+1 and the weight of i+1 for each time (linear, clamped)."""
+        u = np.clip((np.asarray(t, np.float64) - self.knots[0]) / self.s.knot_s, 0.0,
+                    self.n_k - 1 - 1e-9)
+        i = np.floor(u).astype(np.int64)
+        return i, i + 1, u - i
+
+    def world_lidar(self, th: np.ndarray, a: str, M: np.ndarray, t: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Corrected ``T_W_La`` (N, 4, 4) and, for the Jacobian, the d(world-left twist)/d
+        (agent's parameters) (N, 6, per_agent) and the corrected ego positions."""
+        i0, i1, w = self.interp_w(t)
+        V = self.knots_v(th, a)
+        v = V[i0] * (1 - w)[:, None] + V[i1] * w[:, None]
+        C = M.copy()
+        C[:, :3, :3] = so3_exp(self.omega(th, a)) @ M[:, :3, :3]
+        C[:, :3, 3] = M[:, :3, 3] + v
+        L = C @ (self.E[a] @ se3_exp(self.eps(th, a)))
+        n = len(M)
+        D = np.zeros((n, 6, self.per_agent))
+        D[:, :, :6] = _adjoint(L)  # eps: L exp(d) = exp(Ad_L d) L
+        D[:, :3, 6:9] = np.eye(3)  # omega: a world rotation about the ego position
+        D[:, 3:, 6:9] = _hat(C[:, :3, 3])
+        r = np.arange(n)
+        for k in range(3):
+            D[r, 3 + k, 9 + 3 * i0 + k] = 1 - w
+            D[r, 3 + k, 9 + 3 * i1 + k] += w
+        return L, D, C[:, :3, 3]
+
+    def _pairs(self, th: np.ndarray, a1: list[str], M1: np.ndarray, t1: np.ndarray,
+               a2: list[str], M2: np.ndarray, t2: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """``T = L_a1^-1 L_a2`` per row and d(left perturbation of T)/d(theta) (N, 6, n)."""
+        n = len(M1)
+        T = np.zeros((n, 4, 4))
+        G = np.zeros((n, 6, self.n))
+        L1 = np.zeros((n, 4, 4))
+        D1 = np.zeros((n, 6, self.per_agent))
+        L2 = np.zeros((n, 4, 4))
+        D2 = np.zeros((n, 6, self.per_agent))
+        for a in set(a1):
+            m = np.array([x == a for x in a1])
+            L1[m], D1[m], _ = self.world_lidar(th, a, M1[m], t1[m])
+        for a in set(a2):
+            m = np.array([x == a for x in a2])
+            L2[m], D2[m], _ = self.world_lidar(th, a, M2[m], t2[m])
+        L1i = invert(L1)
+        T = L1i @ L2
+        Ad = _adjoint(L1i)
+        g1 = -Ad @ D1  # a world twist on L1 moves T by -Ad(L1^-1) xi
+        g2 = Ad @ D2
+        r = np.arange(n)
+        for a in set(a1) | set(a2):
+            b = self.idx[a]
+            sl = slice(b, b + self.per_agent)
+            m1 = np.array([x == a for x in a1])
+            m2 = np.array([x == a for x in a2])
+            G[r[m1], :, sl] += g1[m1]
+            G[r[m2], :, sl] += g2[m2]
+        return T, G
+
+    def cross_model(self, th: np.ndarray, cross: list[CrossMeasurement]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        if not cross:
+            return np.zeros((0, 4, 4)), np.zeros((0, 6, self.n))
+        return self._pairs(
+            th, [self.ref] * len(cross), np.stack([c.M_ref for c in cross]),
+            np.array([c.t_s for c in cross]), [c.other for c in cross],
+            np.stack([c.M_oth for c in cross]),
+            np.array([c.t_oth_s if c.t_oth_s is not None else c.t_s for c in cross]))
+
+    def odo_model(self, th: np.ndarray, odo: list[OdoMeasurement]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        if not odo:
+            return np.zeros((0, 4, 4)), np.zeros((0, 6, self.n))
+        ag = [o.agent for o in odo]
+        return self._pairs(th, ag, np.stack([o.M0 for o in odo]), np.array([o.t0_s for o in odo]),
+                           ag, np.stack([o.M1 for o in odo]), np.array([o.t1_s for o in odo]))
+
+    def _prior_matrix(self) -> np.ndarray:
+        """Priors are linear in theta: rows of ``P theta`` (metric, in standard deviations)."""
+        s, dt, nk = self.s, self.s.knot_s, self.n_k
+        rows: list[np.ndarray] = []
+        for a in self.agents:
+            b = self.idx[a]
+
+            def row(cols: dict[int, float], b: int = b) -> None:
+                r = np.zeros(self.n)
+                for c, v in cols.items():
+                    r[b + c] = v
+                rows.append(r)
+
+            for k in range(3):
+                row({k: 1 / np.radians(s.prior_ext_deg)})
+                row({3 + k: 1 / s.prior_ext_m})
+                row({6 + k: 1 / np.radians(s.prior_att_deg)})
+                row({9 + 3 * i + k: 1 / (nk * s.prior_pos_m) for i in range(nk)})
+                for i in range(nk - 1):
+                    row({9 + 3 * (i + 1) + k: 1 / (s.prior_drift_mps * dt),
+                         9 + 3 * i + k: -1 / (s.prior_drift_mps * dt)})
+                for i in range(nk - 2):
+                    q = 1 / (s.prior_drift_accel * dt * dt)
+                    row({9 + 3 * i + k: q, 9 + 3 * (i + 1) + k: -2 * q, 9 + 3 * (i + 2) + k: q})
+        return np.array(rows)
+
+
+def weak_directions(H: np.ndarray, ratio: float) -> list[np.ndarray]:
+    """Translation directions (unit 3-vectors) a GICP Hessian barely constrains: the
+    eigen-directions of its translation block after eliminating rotation (the
+    ``observability`` of ``core``) below ``ratio`` of the strongest."""
+    if ratio <= 0:
+        return []
+    H = 0.5 * (H + H.T)
+    try:
+        S = H[3:, 3:] - H[3:, :3] @ np.linalg.solve(H[:3, :3], H[:3, 3:])
+    except np.linalg.LinAlgError:
+        return []
+    lam, V = np.linalg.eigh(0.5 * (S + S.T))
+    return [V[:, i] for i in range(3) if lam[i] < ratio * max(lam[-1], 0.0)]
+
+
+def _drop_weak(W: np.ndarray, directions: list[np.ndarray]) -> np.ndarray:
+    """``W`` with the translation along each direction marginalised out. Along a street of
+    parallel walls GICP's Hessian still claims a little (poles, what filtering left) and the
+    scan slides exactly there: trusting that little is how a slide enters a fused solution;
+    marginalising it lets the other frames decide."""
+    W = 0.5 * (W + W.T)
+    for u in directions:
+        e = np.concatenate([np.zeros(3), u])
+        We = W @ e
+        d = float(e @ We)
+        if d > 0:
+            W = W - np.outer(We, We) / d
+    return np.asarray(0.5 * (W + W.T))
+
+
+def _chol_upper(W: np.ndarray) -> np.ndarray:
+    """U with U^T U = W (W symmetric PSD; a tiny ridge keeps rank-deficient ones usable)."""
+    W = 0.5 * (W + W.T)
+    ridge = 1e-12 * max(float(np.trace(W)), 1e-30)
+    return np.linalg.cholesky(W + ridge * np.eye(6)).T
+
+
+def _cauchy_weight(chi: np.ndarray, c: float) -> np.ndarray:
+    return 1.0 / (1.0 + (chi / c) ** 2)
+
+
+def solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
+               cross: list[CrossMeasurement], odo: list[OdoMeasurement],
+               settings: SolveSettings = SolveSettings()) -> ClipSolution:
+    """Fuse a clip's per-frame GICP measurements (see the module doc). The dense algebra is
+    small (hundreds of rows, about a hundred parameters): one BLAS thread."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        return _solve_clip(agents, ref, extrinsics, cross, odo, settings)
+
+
+def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
+                cross: list[CrossMeasurement], odo: list[OdoMeasurement],
+                settings: SolveSettings) -> ClipSolution:
+    t_start = time.perf_counter()
+    s = settings
+    P = _Problem(agents, extrinsics, cross, odo, s, ref)
+    usable = [k for k, c in enumerate(cross) if c.usable]
+    uc = [cross[k] for k in usable]
+    n_c, n_o = len(uc), len(odo)
+
+    # scale GICP information to metric: the median measurement's best translation direction
+    # gets initial_sigma_m; the variance factor below corrects it from the residuals
+    def top_trans(W: np.ndarray) -> float:
+        return float(np.linalg.eigvalsh(0.5 * (W[3:, 3:] + W[3:, 3:].T))[-1])
+
+    pool = [top_trans(c.W) for c in uc if c.W is not None] + [top_trans(o.W) for o in odo]
+    base = float(np.median(pool)) * s.initial_sigma_m**2 if pool else 1.0
+    floor = np.diag([np.radians(s.floor_deg) ** 2] * 3 + [s.floor_m**2] * 3)
+    Ws = [c.W for c in uc if c.W is not None] + [o.W for o in odo]
+    # GICP's own covariance at the base scale, and its whitening (for the variance factor)
+    Cw = np.stack([np.linalg.pinv(0.5 * (W + W.T) / base, rcond=1e-12, hermitian=True)
+                   for W in Ws]) if Ws else np.zeros((0, 6, 6))
+    Uh = np.stack([_chol_upper(W / base) for W in Ws]) if Ws else np.zeros((0, 6, 6))
+    weak_dirs = [weak_directions(W, s.degenerate_ratio) for W in Ws]
+
+    def effective(vf: float) -> np.ndarray:
+        """Whitening of each measurement: GICP's covariance (scaled by the variance factor)
+        plus the floor of what its Hessian cannot see (voxel centroids, deskew residuals,
+        what static filtering left): ``chol((vf W^+ + F)^-1)``."""
+        if not len(Cw):
+            return np.zeros((0, 6, 6))
+        return np.stack([_chol_upper(_drop_weak(np.linalg.inv(vf * C + floor), weak))
+                         for C, weak in zip(Cw, weak_dirs, strict=True)])
+
+    Z = np.stack([c.Z for c in uc if c.Z is not None] + [o.Z for o in odo]) \
+        if n_c + n_o else np.zeros((0, 4, 4))
+    w = np.concatenate([np.ones(n_c), np.full(n_o, s.odometry_weight)])
+    vf = 1.0
+    U = effective(vf)
+    th = np.zeros(P.n)
+
+    def model(th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        Tc, Gc = P.cross_model(th, uc)
+        To, Go = P.odo_model(th, odo)
+        return np.concatenate([Tc, To]), np.concatenate([Gc, Go])
+
+    def residuals(th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        T, G = model(th)
+        return se3_left_residual(Z, T), G
+
+    def fun_jac(th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, G = residuals(th)
+        f = np.sqrt(np.maximum(w, 0.0))[:, None]
+        rw = np.einsum("nij,nj->ni", U, r) * f
+        Jw = -np.einsum("nij,njk->nik", U, G) * f[:, :, None]
+        return (np.concatenate([rw.ravel(), P.P @ th]),
+                np.concatenate([Jw.reshape(-1, P.n), P.P]))
+
+    cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+    def fun(th: np.ndarray) -> np.ndarray:
+        key = th.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = fun_jac(th)
+        return cache[key][0]
+
+    def jac(th: np.ndarray) -> np.ndarray:
+        fun(th)
+        return cache[th.tobytes()][1]
+
+    med6 = chi2.median(6)
+    for it in range(max(1, s.irls_iterations) + 1):
+        cache.clear()
+        th = least_squares(fun, th, jac=jac, method="trf", x_scale="jac", xtol=1e-12,
+                           ftol=1e-12, gtol=1e-12, max_nfev=30).x
+        if it == max(1, s.irls_iterations):
+            break
+        r, _ = residuals(th)
+        rh = np.einsum("nij,nj->ni", Uh, r)
+        chi_h = np.einsum("ni,ni->n", rh, rh)
+        if len(chi_h) >= 6:  # the scale of GICP's Hessians, from the median measurement
+            vf = max(float(np.median(chi_h)) / med6, 1e-12)
+        U = effective(vf)
+        re = np.einsum("nij,nj->ni", U, r)
+        w = _cauchy_weight(np.sqrt(np.einsum("ni,ni->n", re, re)), s.robust_scale)
+        w[n_c:] *= s.odometry_weight
+    cache.clear()
+    _, J_all = fun_jac(th)
+    A = J_all.T @ J_all
+    A_inv = np.linalg.pinv(A, rcond=1e-13, hermitian=True)
+    r, G = residuals(th)
+    rw = np.einsum("nij,nj->ni", U, r)  # unweighted, whitened: unit variance for an inlier
+    Jw = -np.einsum("nij,njk->nik", U, G)
+    chi = np.einsum("ni,ni->n", rw, rw)
+
+    N = len(cross)
+    T_all, G_all = P.cross_model(th, cross)
+    cov_all = np.einsum("nai,ij,nbj->nab", G_all, A_inv, G_all)
+    weight, chi_all, loo = np.zeros(N), np.full(N, np.nan), np.full(N, np.nan)
+    limit = chi2.isf(s.outlier_p, 6)
+    for j, k in enumerate(usable):
+        weight[k], chi_all[k] = w[j], chi[j]
+        # leave-one-out: take this frame's rows (as weighted in the solve) out of the normal
+        # equations, predict its residual from the rest, compare with its own measurement
+        sw = np.sqrt(max(w[j], 0.0))
+        Ak = A - (sw * Jw[j]).T @ (sw * Jw[j])
+        Ak_inv = np.linalg.pinv(Ak, rcond=1e-13, hermitian=True)
+        r_loo = rw[j] + Jw[j] @ (Ak_inv @ (w[j] * Jw[j].T @ rw[j]))
+        Ck = np.eye(6) + Jw[j] @ Ak_inv @ Jw[j].T
+        loo[k] = float(r_loo @ np.linalg.solve(Ck, r_loo))
+    outlier = np.where(np.isfinite(loo), loo > limit, False)
+    info = np.full((N, 6, 6), np.nan)
+    for j, k in enumerate(usable):
+        info[k] = _drop_weak(np.linalg.inv(vf * Cw[j] + floor), weak_dirs[j])
+    return ClipSolution(
+        agents=agents, eps={a: P.eps(th, a).copy() for a in agents},
+        eps_cov={a: A_inv[P.idx[a]:P.idx[a] + 6, P.idx[a]:P.idx[a] + 6].copy() for a in agents},
+        omega={a: P.omega(th, a).copy() for a in agents}, T_cross=T_all, cross_cov=cov_all,
+        weight=weight, chi2=chi_all, loo_chi2=loo, outlier=outlier, variance_factor=vf,
+        odo_weight=w[n_c:].copy(), information=info, loo_limit=float(limit),
+        seconds=time.perf_counter() - t_start, n_params=P.n)
+
+
+def relative_truth_check(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
+    """(N, 2) metres / degrees between estimated and true transforms (for tests, benches)."""
+    d = compose(T_true, invert(T_est)) if T_est.ndim == 2 else T_true @ invert(T_est)
+    r = so3_log(d[..., :3, :3])
+    return np.stack([np.linalg.norm(T_est[..., :3, 3] - T_true[..., :3, 3], axis=-1),
+                     np.degrees(np.linalg.norm(r, axis=-1))], -1)
