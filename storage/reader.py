@@ -22,7 +22,7 @@ from ``deskew_frames``, and a box's ``num_lidar_pts`` is annotate's count
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -124,6 +124,8 @@ class AgentRecord:
     lidar: dict[str, LidarFrames]
     cameras: dict[str, CameraFrames]
     annotations: pa.Table  # clean ``annotations`` rows of this agent (may be empty)
+    # per sensor: "published" (calibrated_sensors) or "refined" (calibration_refined)
+    calibration_source: dict[str, str]
 
     def cameras_calib(self) -> dict[str, CameraCalib]:
         return {k: v for k, v in self.sensors.items() if isinstance(v, CameraCalib)}
@@ -229,6 +231,58 @@ def calibrations(calib: pa.Table, clip_id: str, agent_id: str) -> dict[str, Sens
     return sensors
 
 
+@dataclass(frozen=True)
+class CalibrationChoice:
+    """When a refined calibration replaces the published one: register's own decision
+    (``usable``, from ``RegisterConfig.refined_max_std_*``) unless thresholds are given here;
+    ``use_refined=False`` always keeps the published one."""
+
+    use_refined: bool = True
+    max_std_m: float | None = None
+    max_std_deg: float | None = None
+
+    def accepts(self, row: dict[str, Any]) -> bool:
+        if not self.use_refined or not row.get("refined_components"):
+            return False
+        if self.max_std_m is None and self.max_std_deg is None:
+            return bool(row.get("usable"))
+        return (row["std_m"] <= (self.max_std_m if self.max_std_m is not None else np.inf)
+                and row["std_deg"] <= (self.max_std_deg if self.max_std_deg is not None
+                                       else np.inf))
+
+
+def effective_calibration(published: dict[str, SensorCalib], refined: pa.Table,
+                          choice: CalibrationChoice = CalibrationChoice()
+                          ) -> tuple[dict[str, SensorCalib], dict[str, str]]:
+    """One agent's sensors with the register stage's refined LiDAR extrinsic
+    (``calibration_refined``) where ``choice`` accepts it, else the published one
+    (``calibrated_sensors``); and per sensor which one it is ("refined" | "published").
+
+    The one place that decides: every consumer after register (annotate, align, the
+    exports) reads calibration through ``read_clip``, which calls this."""
+    out = dict(published)
+    source = {s: "published" for s in published}
+    for r in _rows(refined):
+        s = r["sensor"]
+        if s not in published or not choice.accepts(r):
+            continue
+        q = np.array([r["qw"], r["qx"], r["qy"], r["qz"]], dtype=np.float64)
+        T = transform(np.array([r["tx"], r["ty"], r["tz"]], dtype=np.float64),
+                      q / np.linalg.norm(q))
+        out[s] = replace(published[s], T_ego_sensor=T)
+        source[s] = "refined"
+    return out, source
+
+
+def read_calibration(lake: Lake, clip_id: str, agent_id: str,
+                     choice: CalibrationChoice = CalibrationChoice()
+                     ) -> tuple[dict[str, SensorCalib], dict[str, str]]:
+    """One agent's effective calibration (see ``effective_calibration``)."""
+    return effective_calibration(
+        calibrations(read(lake, "calibrated_sensors", clip_id, agent_id), clip_id, agent_id),
+        read(lake, "calibration_refined", clip_id, agent_id), choice)
+
+
 def lidar_frames(frames: pa.Table, deskew: pa.Table) -> dict[str, LidarFrames]:
     """One agent's ``lidar_frames`` per sensor, with deskew's reference time joined in."""
     ref_of: dict[tuple[str, int], int] = {}
@@ -261,14 +315,17 @@ def camera_frames(frames: pa.Table) -> dict[str, CameraFrames]:
     return out
 
 
-def read_clip(lake: Lake, clip_id: str) -> ClipRecord:
-    """Everything but the points of one clip, from the clean zone only."""
+def read_clip(lake: Lake, clip_id: str,
+              calibration: CalibrationChoice = CalibrationChoice()) -> ClipRecord:
+    """Everything but the points of one clip, from the clean zone only; each agent's
+    sensors carry the effective calibration (``effective_calibration``)."""
     info = _require(lake, "clips", clip_id).to_pylist()[0]
     agents_t = _require(lake, "agents", clip_id)
     poses_t = _require(lake, "ego_poses", clip_id)
     calib_t = _require(lake, "calibrated_sensors", clip_id)
     lidar_t = _require(lake, "lidar_frames", clip_id)
     desk_t = read(lake, "deskew_frames", clip_id)
+    refined_t = read(lake, "calibration_refined", clip_id)
     cam_t = read(lake, "camera_frames", clip_id)
     ann_t = with_point_counts(read(lake, "annotations", clip_id),
                               read(lake, "annotations_world", clip_id))
@@ -283,11 +340,13 @@ def read_clip(lake: Lake, clip_id: str) -> ClipRecord:
             poses = pose_samples(_of(poses_t, "agent_id", aid), clip_id, aid)
         except ClipError as e:
             raise ClipError(clip_id, e.reason, agent_id=aid, stage="export") from e
-        agents[aid] = AgentRecord(
-            aid, row.get("kind") or "vehicle", row.get("role") or "", poses,
+        sensors, source = effective_calibration(
             calibrations(_of(calib_t, "agent_id", aid), clip_id, aid),
+            _of(refined_t, "agent_id", aid), calibration)
+        agents[aid] = AgentRecord(
+            aid, row.get("kind") or "vehicle", row.get("role") or "", poses, sensors,
             lidar_frames(_of(lidar_t, "agent_id", aid), _of(desk_t, "agent_id", aid)),
-            camera_frames(_of(cam_t, "agent_id", aid)), _of(ann_t, "agent_id", aid))
+            camera_frames(_of(cam_t, "agent_id", aid)), _of(ann_t, "agent_id", aid), source)
     return ClipRecord(clip_id, info, agents, read(lake, "instances", clip_id),
                       read(lake, "registrations", clip_id))
 

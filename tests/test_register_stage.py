@@ -137,7 +137,7 @@ def test_deskew_then_register_recovers_true_transform(tmp_path: Path, backend: s
     regs = lake.read_table("clean", "registrations", clip_id=CLIP).to_pylist()
     assert len(regs) == 3 and rep.metrics["n_accepted"] == 3
     for r in regs:
-        assert r["accepted"] and r["reason"] == "ok" and r["method"] == f"{backend}:GICP"
+        assert r["accepted"] and r["reason"] == "ok" and r["method"] == f"{backend}:GICP+clip"
         truth = true_T(r["t_ns"])
         T = np.eye(4)
         T[:3, :3] = Rotation.from_quat([r["qw"], r["qx"], r["qy"], r["qz"]],

@@ -456,6 +456,6 @@ ALIGN = Stage(
     name=STAGE, config_model=AlignConfig,
     reads=tables("clean", "clips", "agents", "ego_poses", "calibrated_sensors", "lidar_frames",
                  "camera_frames", "annotations", "lidar_points_deskewed", "deskew_frames",
-                 "registrations"),
+                 "registrations", "calibration_refined"),
     owns=tables("clean", "alignments"), run=run_align,
     doc="stamp-, frame- and target-based LiDAR-camera temporal alignment (Sec. 5)")

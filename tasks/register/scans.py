@@ -31,6 +31,7 @@ from v2xlake.tasks.register.static import (
     body_box,
     box_of_point,
     dynamic_mask,
+    ground_distance,
     grow_to_objects,
 )
 from v2xlake.tasks.register.voxel import voxel_downsample_t
@@ -72,6 +73,7 @@ class Body:
 class FilteredScan:
     points: np.ndarray  # (M, 3) float64 voxel centroids of the static scene
     counts: RemovalCounts
+    ground_m: float = float("nan")  # LiDAR origin to the ground plane around it
 
 
 class AgentScans:
@@ -267,7 +269,7 @@ class StaticScans:
                 idx = np.flatnonzero(keep)[moving]
                 counts.dynamic = len(idx)
                 keep[idx] = False
-        return FilteredScan(pts[keep], counts)
+        return FilteredScan(pts[keep], counts, ground_distance(pts[keep]))
 
     def _body(self, f: int, other: AgentScans, body: Body) -> MovingBoxes:
         """The other agent's body in this frame, placed by both INS tracks at this frame's

@@ -191,6 +191,29 @@ def grow_to_objects(pts: np.ndarray, moving: np.ndarray, above: np.ndarray, cell
     return out
 
 
+def ground_distance(pts: np.ndarray, min_range_m: float = 3.0, max_range_m: float = 15.0,
+                    trim_m: float = 0.05, min_points: int = 30) -> float:
+    """Distance (m) from the sensor origin to the ground plane around it: a least-squares
+    plane through the ground points (``above_ground`` false) between ``min_range_m`` and
+    ``max_range_m`` horizontally, refitted twice without points farther than ``trim_m``.
+    NaN when there are fewer than ``min_points``. With the agent's declared body (ground to
+    roof) this is the LiDAR's height in its ego frame: the extrinsic's z, which driving on a
+    plane never shows otherwise."""
+    if len(pts) == 0:
+        return float("nan")
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    g = pts[~above_ground(pts) & (r >= min_range_m) & (r <= max_range_m)]
+    for _ in range(3):
+        if len(g) < min_points:
+            return float("nan")
+        A = np.column_stack([g[:, 0], g[:, 1], np.ones(len(g))])
+        coef, *_ = np.linalg.lstsq(A, g[:, 2], rcond=None)
+        res = g[:, 2] - A @ coef
+        g = g[np.abs(res) <= trim_m]
+    a, b, c = coef
+    return float(abs(c) / np.sqrt(a * a + b * b + 1.0))
+
+
 @dataclass
 class RemovalCounts:
     """What static-scene filtering took out of one scan (voxel centroids)."""
