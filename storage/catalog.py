@@ -2,11 +2,17 @@
 
 Why views over hive-partitioned Parquet and not DuckLake (full reasoning in
 ``docs/architecture-catalog.md``): each clip's stage writes its own files with an atomic rename
-(or a single S3 PUT), so there is no shared commit that concurrent writers could lose; a view's
-glob is evaluated at query time, so a clip becomes visible the moment its files land, with no
-catalog write at all. A ``catalog.duckdb`` file holding the same views is (re)written by
-``refresh()`` for external tools (the ``duckdb`` CLI, BI tools); it is replaced atomically,
-so two processes refreshing at once cannot corrupt it.
+(or a single S3 PUT), so there is no shared commit that concurrent writers could lose, and
+publishing a clip needs no catalog write at all. A ``catalog.duckdb`` file holding the same
+views as globs is (re)written by ``refresh()`` for external tools (the ``duckdb`` CLI, BI
+tools); it is replaced atomically, so two processes refreshing at once cannot corrupt it.
+
+At scale (``tests/bench/bench_scale.py``, ``docs/scale.md``): a ``Catalog`` creates a view
+only when a query first names it (binding a view over a table reads its files' footers;
+binding all ~70 on a 1,000-clip lake took 12-17 s and 1.4 GiB before the first answer), over
+the explicit list of the table's files from one listing, without ``union_by_name`` when the
+first and the newest file share a schema (``union_by_name`` reads every footer at bind time);
+a query that meets a file of another schema is re-run with ``union_by_name``.
 
 Names:
 
@@ -30,13 +36,14 @@ import os
 import shutil
 import tempfile
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 from urllib.parse import urlparse
 
 import duckdb
 import pyarrow as pa
+import pyarrow.fs as pafs
 
 from v2xlake.schemas.arrow import arrow_schema
 from v2xlake.schemas.tables import LAKE_TABLES, LidarPointRow
@@ -57,6 +64,14 @@ JOINED: dict[str, tuple[str, tuple[str, ...], tuple[str, ...] | None]] = {
                     ("num_lidar_pts",)),
 }
 EXTRA_SCHEMAS = {"lidar_points_deskewed": LidarPointRow}
+# Per-table snapshots (``Catalog.write_snapshots``): one Parquet file per table under
+# ``_catalog/<zone>/`` with the lake-relative source path of each row and, in its metadata,
+# (size, mtime_ns) of every file it holds. Tables above the size limit (points) get none.
+SNAPSHOT_DIR = "_catalog"
+SNAPSHOT_KEY = b"v2xlake_sources"
+SNAPSHOT_MAX_BYTES = 256 * 2**20
+SNAPSHOT_MIN_FILES = 64
+SOURCE = "_source"
 MANIFEST_COLUMNS = {
     "clip_id": "VARCHAR", "stage": "VARCHAR", "status": "VARCHAR", "code_version": "VARCHAR",
     "params_hash": "VARCHAR", "inputs_hash": "VARCHAR", "outputs": "JSON", "error": "VARCHAR",
@@ -162,15 +177,57 @@ class ViewInfo:
     zone: str  # raw | clean | manifests | quarantine | empty
     files: int
     sql: str
+    deps: tuple[str, ...] = ()  # qualified views this one selects from (created first)
+
+    @property
+    def qualified(self) -> str:
+        return f"{self.schema}.{self.name}"
+
+
+def _scan(root: str) -> list[pafs.FileInfo]:
+    """Visible ``*.parquet`` files under a local folder, with size and mtime (what the
+    lake's ``list_files`` shows: hidden names are writers' temporaries)."""
+    out: list[pafs.FileInfo] = []
+    todo = [root]
+    while todo:
+        try:
+            entries = list(os.scandir(todo.pop()))
+        except (FileNotFoundError, NotADirectoryError):
+            continue
+        for e in entries:
+            if e.name.startswith("."):
+                continue
+            if e.is_dir(follow_symlinks=False):
+                todo.append(e.path)
+            elif e.name.endswith(".parquet") and e.is_file():
+                st = e.stat()
+                out.append(pafs.FileInfo(e.path, pafs.FileType.File, size=st.st_size,
+                                         mtime_ns=st.st_mtime_ns))
+    return out
+
+
+def _base_tables(tree: Any, out: set[tuple[str, str]]) -> set[tuple[str, str]]:
+    """(schema, table) of every table reference in a serialized syntax tree."""
+    if isinstance(tree, dict):
+        if tree.get("type") == "BASE_TABLE" and tree.get("table_name"):
+            out.add((str(tree.get("schema_name") or "main").lower(),
+                     str(tree["table_name"]).lower()))
+        for v in tree.values():
+            _base_tables(v, out)
+    elif isinstance(tree, list):
+        for v in tree:
+            _base_tables(v, out)
+    return out
 
 
 class Catalog:
     """DuckDB over one lake. ``Catalog(lake).query("SELECT ...")`` -> ``pyarrow.Table``.
 
-    The live connection is in memory (any number of processes can hold one); ``refresh()``
-    re-scans which tables exist and, for local lakes unless ``read_only``, rewrites
-    ``<root>/catalog.duckdb``. Call ``refresh()`` after a table appears for the first time
-    (new files of an existing table are visible without it).
+    The live connection is in memory (any number of processes can hold one). A view is
+    created when a query first names it (``query``, ``user_query``: the names come from
+    DuckDB's parser), over the files its table has at that moment; ``refresh()`` lists the
+    lake again (new clips become visible to this instance) and, for local lakes unless
+    ``read_only``, rewrites ``<root>/catalog.duckdb``, whose glob views see new files at once.
     """
 
     def __init__(self, lake: Lake, read_only: bool = False) -> None:
@@ -179,10 +236,24 @@ class Catalog:
         self.con = duckdb.connect()
         if not lake.is_local:
             self._setup_s3(self.con)
-        self.views: list[ViewInfo] = []
         self._locked = False
         self._tmpdir: str | None = None  # the read-only copy of a locked-down catalog
-        self.refresh()
+        self._lockfile: str | None = None
+        self._union = False  # a file of another schema was met: every table view unions
+        self._bound: dict[str, ViewInfo] = {}  # views created on self.con, in creation order
+        self._reset()
+        if not self.read_only:
+            self.write_snapshots()
+            if self.lake.is_local:
+                self._persist()
+
+    def _reset(self) -> None:
+        """Forget every listing and plan (the next view lists its table again)."""
+        self._tables: dict[str, set[str]] = {}
+        self._files: dict[tuple[str, str], list[pafs.FileInfo]] = {}
+        self._planned: dict[tuple[str, bool], ViewInfo | None] = {}
+        self._views: list[ViewInfo] | None = None
+        self._snaps: dict[str, set[str]] = {}
 
     # ------------------------------------------------------------------ setup
     @staticmethod
@@ -211,12 +282,71 @@ class Catalog:
     def _uri(self, path: str) -> str:
         return path if self.lake.is_local else f"s3://{path}"
 
-    def _table_view(self, zone: str, table: str) -> ViewInfo:
-        files = self.lake.list_files(self.lake.table_dir(zone, table), ".parquet")
-        if files:
-            sql = (f"SELECT * FROM read_parquet({_q(self.lake.table_glob(zone, table))}, "
-                   "hive_partitioning=true, hive_types_autocast=false, union_by_name=true)")
-            return ViewInfo(zone, table, zone, len(files), sql)
+    def _zone_tables(self, zone: str) -> set[str]:
+        """Table folders that exist in a zone (one listing of the zone, remembered)."""
+        if zone not in self._tables:
+            self._tables[zone] = set(self.lake.tables(zone))
+        return self._tables[zone]
+
+    def _listing(self, zone: str, table: str) -> list[pafs.FileInfo]:
+        """The table's visible Parquet files, by path (one recursive listing, remembered)."""
+        key = (zone, table)
+        if key not in self._files:
+            infos: list[pafs.FileInfo] = []
+            if table not in self._zone_tables(zone):
+                pass
+            elif self.lake.is_local:  # os.scandir: 3-4x faster than pyarrow's listing here
+                infos = _scan(self.lake.table_dir(zone, table))
+            else:
+                sel = pafs.FileSelector(self.lake.table_dir(zone, table), recursive=True,
+                                        allow_not_found=True)
+                infos = [i for i in self.lake.fs.get_file_info(sel)
+                         if i.type == pafs.FileType.File and i.path.endswith(".parquet")
+                         and not i.base_name.startswith(".")]
+            self._files[key] = sorted(infos, key=lambda i: i.path)
+        return self._files[key]
+
+    def _one_schema(self, infos: list[pafs.FileInfo]) -> bool:
+        """Whether the first file (whose schema DuckDB takes without ``union_by_name``) has
+        the newest file's schema: two footers instead of all of them. Files in between with
+        fewer columns make the query fail, and it is re-run with ``union_by_name``
+        (``_guarded``); columns only older files have are not the contract's any more."""
+        import pyarrow.parquet as pq
+
+        newest = max(infos, key=lambda i: (i.mtime_ns or 0, i.path))
+        if newest.path == infos[0].path:
+            return True
+        a, b = (pq.read_schema(i.path, filesystem=self.lake.fs) for i in (infos[0], newest))
+        return bool(a.equals(b))
+
+    def _files_sql(self, infos: list[pafs.FileInfo]) -> str:
+        """A SELECT over exactly these files (hive partition columns from their paths)."""
+        src = "[" + ", ".join(_q(self._uri(i.path)) for i in infos) + "]"
+        union = self._union or not self._one_schema(infos)
+        return (f"SELECT * FROM read_parquet({src}, hive_partitioning=true, "
+                f"hive_types_autocast=false{', union_by_name=true' if union else ''})")
+
+    def _table_view(self, zone: str, table: str, glob: bool) -> ViewInfo:
+        """``glob``: over ``<table>/**/*.parquet`` with ``union_by_name`` (catalog.duckdb,
+        which must see files published later); else the table's snapshot (its rows from
+        files unchanged since) and the files listed now that it does not hold."""
+        infos = self._listing(zone, table)
+        if infos:
+            if glob:
+                sql = (f"SELECT * FROM read_parquet({_q(self.lake.table_glob(zone, table))}, "
+                       "hive_partitioning=true, hive_types_autocast=false, union_by_name=true)")
+                return ViewInfo(zone, table, zone, len(infos), sql)
+            parts, fresh = [], infos
+            snap = self._snapshot_use(zone, table, infos)
+            if snap is not None:
+                stale, fresh = snap
+                where = (f" WHERE {SOURCE} NOT IN ({', '.join(map(_q, stale))})"
+                         if stale else "")
+                uri = _q(self._uri(self._snapshot_path(zone, table)))
+                parts.append(f"SELECT * EXCLUDE ({SOURCE}) FROM read_parquet({uri}){where}")
+            if fresh:
+                parts.append(self._files_sql(fresh))
+            return ViewInfo(zone, table, zone, len(infos), " UNION ALL BY NAME ".join(parts))
         model = LAKE_TABLES.get(table) or EXTRA_SCHEMAS.get(table)
         if model is None:
             sql = "SELECT NULL AS clip_id WHERE false"
@@ -225,6 +355,143 @@ class Catalog:
                              for f in arrow_schema(model))
             sql = f"SELECT {cols} WHERE false"
         return ViewInfo(zone, table, "empty", 0, sql)
+
+    # ------------------------------------------------------------------ snapshots
+    def _snapshot_path(self, zone: str, table: str) -> str:
+        return self.lake.path(SNAPSHOT_DIR, zone, f"{table}.parquet")
+
+    def _snapshot_tables(self, zone: str) -> set[str]:
+        """Tables of a zone that have a snapshot (one listing, remembered)."""
+        if zone not in self._snaps:
+            folder = self.lake.path(SNAPSHOT_DIR, zone)
+            self._snaps[zone] = {f.rpartition("/")[2].removesuffix(".parquet")
+                                 for f in self.lake.list_files(folder, ".parquet")
+                                 if f.count("/") == folder.count("/") + 1}
+        return self._snaps[zone]
+
+    def _snapshot_use(self, zone: str, table: str, infos: list[pafs.FileInfo]
+                      ) -> tuple[list[str], list[pafs.FileInfo]] | None:
+        """(sources to leave out of the snapshot, files to read directly) when the table has
+        a usable snapshot: its rows are kept for each source file still there with the
+        same size and modification time; a file changed or gone is left out (its rows
+        filtered by ``_source``), a file the snapshot does not hold is read directly. None:
+        no snapshot (or an unreadable one), read every file."""
+        if table not in self._snapshot_tables(zone):
+            return None
+        import pyarrow.parquet as pq
+
+        try:
+            meta = pq.read_metadata(self._snapshot_path(zone, table),
+                                    filesystem=self.lake.fs).metadata or {}
+            sources: dict[str, list[int]] = json.loads(meta[SNAPSHOT_KEY])
+        except (OSError, KeyError, ValueError, pa.ArrowException):
+            return None
+        now = {self._rel(i.path): [i.size, i.mtime_ns] for i in infos}
+        stale = sorted(p for p, sig in sources.items() if now.get(p) != sig)
+        if len(stale) == len(sources):
+            return None
+        fresh = [i for i in infos if sources.get(self._rel(i.path)) != now[self._rel(i.path)]]
+        return stale, fresh
+
+    def _rel(self, path: str) -> str:
+        return path[len(self.lake.base) + 1:]
+
+    def write_snapshots(self, max_bytes: int = SNAPSHOT_MAX_BYTES,
+                        min_files: int = SNAPSHOT_MIN_FILES) -> list[str]:
+        """Write each table's snapshot anew where its files changed since the last one:
+        one Parquet file ``_catalog/<zone>/<table>.parquet`` with every row of the table
+        (partition columns included, in file path order), the lake-relative path of the
+        file each row came from (``_source``), and in its metadata the size and
+        modification time of every file it holds. Tables larger than ``max_bytes`` (the
+        point tables) or with fewer than ``min_files`` files (cheap to open one by one)
+        get none. Returns the tables written.
+
+        Why: a query's cost on a lake of many clips is the number of files it opens
+        (~50-100 us each here, a GET each on S3), not rows; a snapshot turns thousands of
+        small per-clip files into one. It is a cache, never the truth: readers check it
+        against the listing they make anyway (``_snapshot_use``), so a snapshot that is
+        stale, half-old or missing costs time, never a wrong answer, and writers publish
+        clips exactly as before (no shared commit). Written atomically (``write_bytes``),
+        so concurrent refreshes cannot corrupt it; the last one wins."""
+        written = []
+        tmpdir = tempfile.mkdtemp(prefix="v2xlake-snapshot-")
+        con = duckdb.connect()
+        try:
+            if not self.lake.is_local:
+                self._setup_s3(con)
+            for zone in ("raw", "clean"):
+                for table in sorted(self._zone_tables(zone)):
+                    infos = self._listing(zone, table)
+                    if (len(infos) < max(min_files, 1)
+                            or sum(i.size or 0 for i in infos) > max_bytes):
+                        continue
+                    use = self._snapshot_use(zone, table, infos)
+                    if use is not None and not use[0] and not use[1]:
+                        continue  # current
+                    if self._write_snapshot(con, zone, table, infos, use, tmpdir):
+                        written.append(f"{zone}.{table}")
+        finally:
+            con.close()
+            shutil.rmtree(tmpdir, ignore_errors=True)
+        self._snaps = {}
+        return written
+
+    def _write_snapshot(self, con: duckdb.DuckDBPyConnection, zone: str, table: str,
+                        infos: list[pafs.FileInfo],
+                        use: tuple[list[str], list[pafs.FileInfo]] | None, tmpdir: str) -> bool:
+        """One table's new snapshot: the last one's rows of files still unchanged (``use``)
+        plus the rows of the files it lacks, so a refresh reads only what is new."""
+        fresh = infos if use is None else use[1]
+        sig = {self._rel(i.path): [i.size, i.mtime_ns] for i in infos}
+        keep = set(sig) - {self._rel(i.path) for i in fresh}
+        parts = []
+        if use is not None and keep:
+            stale = use[0]
+            where = f" WHERE {SOURCE} NOT IN ({', '.join(map(_q, stale))})" if stale else ""
+            uri = _q(self._uri(self._snapshot_path(zone, table)))
+            parts.append(f"SELECT * FROM read_parquet({uri}){where}")
+        if fresh:
+            src = "[" + ", ".join(_q(self._uri(i.path)) for i in fresh) + "]"
+            cut = len(self._uri(self.lake.base)) + 2  # 1-based start of the relative path
+            parts.append(f"SELECT * EXCLUDE (filename), substr(filename, {cut}) AS {SOURCE} "
+                         f"FROM read_parquet({src}, hive_partitioning=true, "
+                         "hive_types_autocast=false, union_by_name=true, filename=true)")
+        sources = json.dumps({p: sig[p] for p in sorted(keep | {self._rel(i.path)
+                                                                 for i in fresh})},
+                             separators=(",", ":"))
+        tmp = os.path.join(tmpdir, f"{zone}-{table}.parquet")
+        try:
+            con.execute(f"COPY ({' UNION ALL BY NAME '.join(parts)}) TO {_q(tmp)} "
+                        f"(FORMAT parquet, COMPRESSION zstd, "
+                        f"KV_METADATA {{{SNAPSHOT_KEY.decode()}: {_q(sources)}}})")
+        except duckdb.IOException:  # a file went away meanwhile: keep the last snapshot
+            return False
+        with open(tmp, "rb") as f:
+            self.lake.write_bytes(self._snapshot_path(zone, table), f.read())
+        os.remove(tmp)
+        return True
+
+    def _main_view(self, name: str, glob: bool) -> ViewInfo:
+        """An unqualified DESIGN name: the clean table when it has files, else the raw one."""
+        clean = self._view(f"clean.{name}", glob)
+        raw = None if clean and clean.files else self._view(f"raw.{name}", glob)
+        src = clean if clean and clean.files else raw if raw and raw.files else clean or raw
+        assert src is not None
+        zone = src.zone if src.files else "empty"
+        sql = f"SELECT * FROM {src.schema}.{name}"
+        deps: tuple[str, ...] = (src.qualified,)
+        if name in JOINED and src.zone == "clean":
+            other, keys, replaced = JOINED[name]
+            if replaced is None:
+                extra = [f.name for f in arrow_schema(LAKE_TABLES[other]) if f.name not in keys]
+                cols = "t.*, " + ", ".join("j." + c for c in extra)
+            else:
+                cols = "t.* REPLACE (" + ", ".join(
+                    f"COALESCE(j.{c}, t.{c}) AS {c}" for c in replaced) + ")"
+            sql = (f"SELECT {cols} FROM clean.{name} t "
+                   f"LEFT JOIN clean.{other} j USING ({', '.join(keys)})")
+            deps += (f"clean.{other}",)
+        return ViewInfo("main", name, zone, src.files, sql, deps)
 
     def _json_view(self, name: str, folder: str, pattern: str, cols: dict[str, str],
                    select: str) -> ViewInfo:
@@ -238,43 +505,121 @@ class Catalog:
                           for k, t in cols.items())
         return ViewInfo("main", name, "empty", 0, f"SELECT {empty} WHERE false")
 
-    def _plan(self) -> list[ViewInfo]:
-        views: list[ViewInfo] = []
-        by_zone: dict[str, dict[str, ViewInfo]] = {}
-        for zone in ("raw", "clean"):
-            names = sorted({*self.lake.tables(zone), *LAKE_TABLES, *EXTRA_SCHEMAS}
-                           - {"manifests"})
-            by_zone[zone] = {t: self._table_view(zone, t) for t in names}
-            views.extend(by_zone[zone].values())
-        for name in MAIN_NAMES:
-            clean, raw = by_zone["clean"].get(name), by_zone["raw"].get(name)
-            src = clean if clean and clean.files else raw if raw and raw.files else clean or raw
-            assert src is not None
-            zone = src.zone if src.files else "empty"
-            sql = f"SELECT * FROM {src.schema}.{name}"
-            if name in JOINED and src.zone == "clean":
-                other, keys, replaced = JOINED[name]
-                if replaced is None:
-                    extra = [f.name for f in arrow_schema(LAKE_TABLES[other])
-                             if f.name not in keys]
-                    cols = "t.*, " + ", ".join("j." + c for c in extra)
-                else:
-                    cols = "t.* REPLACE (" + ", ".join(
-                        f"COALESCE(j.{c}, t.{c}) AS {c}" for c in replaced) + ")"
-                sql = (f"SELECT {cols} FROM clean.{name} t "
-                       f"LEFT JOIN clean.{other} j USING ({', '.join(keys)})")
-            views.append(ViewInfo("main", name, zone, src.files, sql))
-        outputs = "CAST(outputs AS VARCHAR) AS outputs"
-        mcols = ", ".join(k if k != "outputs" else outputs for k in MANIFEST_COLUMNS)
-        views.append(self._json_view("manifests", "manifests", "/*/*.json", MANIFEST_COLUMNS,
-                                     mcols))
-        views.append(self._json_view("quarantine", "quarantine", "/*/report.json",
-                                     QUARANTINE_COLUMNS, ", ".join(QUARANTINE_COLUMNS)))
-        rows = ", ".join(f"({_q(v.schema)}, {_q(v.name)}, {_q(v.zone)}, {v.files})"
-                         for v in views)
-        views.append(ViewInfo("main", "catalog_tables", "catalog", 0,
-                              f"SELECT * FROM (VALUES {rows}) t(schema, name, zone, files)"))
-        return views
+    def _names(self) -> list[str]:
+        """Every qualified view name, each after the views it selects from."""
+        tables = [f"{z}.{t}" for z in ("raw", "clean")
+                  for t in sorted({*self._zone_tables(z), *LAKE_TABLES, *EXTRA_SCHEMAS}
+                                  - {"manifests"})]
+        return [*tables, *(f"main.{n}" for n in MAIN_NAMES), "main.manifests",
+                "main.quarantine", "main.catalog_tables"]
+
+    def _view(self, qualified: str, glob: bool = False) -> ViewInfo | None:
+        """The plan of one view (None: no such name), listing only the tables it reads."""
+        key = (qualified, glob)
+        if key in self._planned:
+            return self._planned[key]
+        schema, _, name = qualified.partition(".")
+        view: ViewInfo | None = None
+        if schema in ("raw", "clean"):
+            if name in ({*self._zone_tables(schema), *LAKE_TABLES, *EXTRA_SCHEMAS}
+                        - {"manifests"}):
+                view = self._table_view(schema, name, glob)
+        elif schema == "main" and name in MAIN_NAMES:
+            view = self._main_view(name, glob)
+        elif qualified == "main.manifests":
+            outputs = "CAST(outputs AS VARCHAR) AS outputs"
+            mcols = ", ".join(k if k != "outputs" else outputs for k in MANIFEST_COLUMNS)
+            view = self._json_view("manifests", "manifests", "/*/*.json", MANIFEST_COLUMNS,
+                                   mcols)
+        elif qualified == "main.quarantine":
+            view = self._json_view("quarantine", "quarantine", "/*/report.json",
+                                   QUARANTINE_COLUMNS, ", ".join(QUARANTINE_COLUMNS))
+        elif qualified == "main.catalog_tables":
+            rows = ", ".join(f"({_q(v.schema)}, {_q(v.name)}, {_q(v.zone)}, {v.files})"
+                             for v in (self._view(n, glob) for n in self._names()[:-1])
+                             if v is not None)
+            view = ViewInfo("main", "catalog_tables", "catalog", 0,
+                            f"SELECT * FROM (VALUES {rows}) t(schema, name, zone, files)")
+        self._planned[key] = view
+        return view
+
+    def _plan(self, glob: bool = False) -> list[ViewInfo]:
+        """Every view (lists every table of the lake)."""
+        return [v for v in (self._view(n, glob) for n in self._names()) if v is not None]
+
+    @property
+    def views(self) -> list[ViewInfo]:
+        """Every view of the catalog (planned on first use: this lists every table)."""
+        if self._views is None:
+            self._views = self._plan()
+        return self._views
+
+    def _closure(self, names: Iterable[str]) -> list[ViewInfo]:
+        """The views named (qualified; unknown names are skipped) and the views they read,
+        each after its dependencies."""
+        out: dict[str, ViewInfo] = {}
+
+        def visit(qualified: str) -> None:
+            view = self._view(qualified)
+            if view is None or qualified in out:
+                return
+            for dep in view.deps:
+                visit(dep)
+            out[qualified] = view
+
+        for n in names:
+            visit(n)
+        return list(out.values())
+
+    def _ensure(self, names: Iterable[str] | None) -> None:
+        """Create the views that ``names`` (qualified; None: every view) need and this
+        connection lacks. On a locked-down catalog the read-only database is rebuilt with
+        them (``_lock``): the names only select among the catalog's own planned views."""
+        wanted = self._closure(self._names() if names is None else names)
+        missing = [v for v in wanted if v.qualified not in self._bound]
+        if not missing:
+            return
+        if self._locked:
+            self._lock([*self._bound.values(), *missing])
+        else:
+            self._apply(self.con, missing)
+            self._bound.update((v.qualified, v) for v in missing)
+
+    def _references(self, sql: str) -> set[str] | None:
+        """Qualified names of the tables a statement reads, from DuckDB's parser alone
+        (``json_serialize_sql``: nothing is bound or run); None when it cannot say (not a
+        SELECT, a syntax error)."""
+        try:
+            row = self.con.execute("SELECT json_serialize_sql(?)", [sql]).fetchone()
+        except duckdb.Error:
+            return None
+        tree = json.loads(row[0]) if row else {"error": True}
+        if tree.get("error"):
+            return None
+        return {f"{schema}.{name}" for schema, name in _base_tables(tree["statements"], set())}
+
+    def _rebind(self) -> None:
+        """Plan every created view again and recreate them (after ``_reset`` or a schema
+        change), dependencies first."""
+        self._planned = {}
+        views = self._closure(list(self._bound))
+        if self._locked:
+            self._lock(views)
+        else:
+            self._apply(self.con, views)
+            self._bound = {v.qualified: v for v in views}
+
+    def _guarded(self, run: Callable[[], pa.Table]) -> pa.Table:
+        """Run; a table whose files do not all share the first file's schema fails with
+        DuckDB's "schema mismatch": recreate every view with ``union_by_name`` and re-run."""
+        try:
+            return run()
+        except duckdb.Error as e:
+            if self._union or "schema mismatch" not in str(e):
+                raise
+        self._union = True
+        self._rebind()
+        return run()
 
     def _apply(self, con: duckdb.DuckDBPyConnection, views: list[ViewInfo]) -> None:
         con.execute("BEGIN TRANSACTION")  # one commit (a file database syncs per commit)
@@ -289,11 +634,15 @@ class Catalog:
         con.execute("COMMIT")
 
     def refresh(self) -> dict[str, str]:
-        """Re-scan the lake and rebuild every view; returns {main view name: backing zone}."""
-        self.views = self._plan()
-        self._apply(self.con, self.views)
-        if self.lake.is_local and not self.read_only:
-            self._persist()
+        """List the lake again: the views created so far are rebuilt over today's files,
+        catalog.duckdb is rewritten (local, not ``read_only``); returns {main view name:
+        backing zone}."""
+        self._reset()
+        if not self.read_only:
+            self.write_snapshots()
+            if self.lake.is_local:
+                self._persist()
+        self._rebind()
         return self.zones
 
     def _persist(self) -> None:
@@ -306,7 +655,7 @@ class Catalog:
         tmp = f"{os.path.dirname(final)}/.catalog-{run_tag()}-{uuid.uuid4().hex}.duckdb"
         root = _q(self.lake.base + "/")[:-1]  # the quoted literal's opening: '<root>/
         travelling = [ViewInfo(v.schema, v.name, v.zone, v.files, v.sql.replace(root, "'"))
-                      for v in self.views]
+                      for v in self._plan(glob=True)]
         try:
             with self.lake.writing(final):
                 try:
@@ -333,8 +682,10 @@ class Catalog:
 
     # ------------------------------------------------------------------ queries
     def query(self, sql: str, params: list[object] | None = None) -> pa.Table:
-        """Trusted SQL (the project's own); user text goes through ``user_query``."""
-        return self.con.execute(sql, params or []).fetch_arrow_table()
+        """Trusted SQL (the project's own); user text goes through ``user_query``. Creates
+        the views it names first (every view when the parser cannot say which)."""
+        self._ensure(self._references(sql))
+        return self._guarded(lambda: self.con.execute(sql, params or []).fetch_arrow_table())
 
     def lock_down(self) -> None:
         """Make this catalog safe for user SQL, for good: its connection becomes a READ-ONLY
@@ -352,12 +703,19 @@ class Catalog:
         if self._locked:
             return
         self._tmpdir = tempfile.mkdtemp(prefix="v2xlake-catalog-")
-        path = os.path.join(self._tmpdir, "catalog.duckdb")
+        self._lock(list(self._bound.values()))
+
+    def _lock(self, views: list[ViewInfo]) -> None:
+        """(Re)build the private read-only database with ``views`` (only ever the catalog's
+        own planned views: user text never reaches this writable connection), reopen it
+        read-only and locked, and swap it in for the current connection."""
+        assert self._tmpdir is not None
+        path = os.path.join(self._tmpdir, f"catalog-{uuid.uuid4().hex[:8]}.duckdb")
         build = duckdb.connect(path)
         try:
             if not self.lake.is_local:
                 self._setup_s3(build)  # creating a view binds it: s3:// needs httpfs
-            self._apply(build, self.views)
+            self._apply(build, views)
         finally:
             build.close()
         con = duckdb.connect(path, read_only=True)
@@ -373,6 +731,12 @@ class Catalog:
             con.execute(stmt)
         self.con.close()
         self.con = con
+        if self._lockfile is not None:
+            for p in (self._lockfile, self._lockfile + ".wal"):
+                with contextlib.suppress(OSError):
+                    os.remove(p)
+        self._lockfile = path
+        self._bound = {v.qualified: v for v in views}
         self._locked = True
 
     @property
@@ -396,8 +760,13 @@ class Catalog:
         (``lock_down``): COPY, ATTACH, INSTALL, PRAGMA, SET, a second statement... are
         refused before anything runs, and the connection could not do them anyway."""
         self.lock_down()
-        statement = self._one_select(sql, "query")
-        return self.con.execute(statement).fetch_arrow_table()
+        self._one_select(sql, "query")  # refused before any view is built
+        self._ensure(self._references(sql))
+
+        def run() -> pa.Table:  # the statement of the connection it runs on
+            return self.con.execute(self._one_select(sql, "query")).fetch_arrow_table()
+
+        return self._guarded(run)
 
     def parse_predicate(self, where: str) -> duckdb.Statement:
         """The statement ``SELECT clip_id FROM clips WHERE (<where>)``, once it is proven
@@ -409,6 +778,7 @@ class Catalog:
         table or a function that reads state outside the row. Text is never pasted into
         SQL that runs without this check."""
         self.lock_down()
+        self._ensure(["main.clips"])  # before the statement: it belongs to one connection
         wrapped = PREDICATE_WRAPPER.format(where)
         statement = self._one_select(wrapped, "--where predicate")
         tree = self._syntax_tree(wrapped)

@@ -510,24 +510,23 @@ class Lake:
         Locked down like the catalog: it reads the lake's files and nothing else."""
         import duckdb
 
+        if not self.io.is_local:  # S3 settings and the same clean.* names, bound on demand
+            return self.catalog.query(sql, params)
         with self._lock:
             if self._con is None:
-                if not self.io.is_local:
-                    self._con = self.catalog.con  # S3 settings and the same clean.* names
-                else:
-                    con = duckdb.connect()
-                    con.execute("CREATE SCHEMA clean")
-                    for table in ("clips", "lidar_frames", "deskew_frames"):
-                        glob = self.io.table_glob("clean", table).replace("'", "''")
-                        con.execute(f"CREATE VIEW clean.{table} AS SELECT * FROM read_parquet("
-                                    f"'{glob}', hive_partitioning=true, "
-                                    "hive_types_autocast=false, union_by_name=true)")
-                    root = self.io.base.replace("'", "''")
-                    for stmt in (f"SET allowed_directories = ['{root}/']",
-                                 "SET enable_external_access = false",
-                                 "SET lock_configuration = true"):
-                        con.execute(stmt)
-                    self._con = con
+                con = duckdb.connect()
+                con.execute("CREATE SCHEMA clean")
+                for table in ("clips", "lidar_frames", "deskew_frames"):
+                    glob = self.io.table_glob("clean", table).replace("'", "''")
+                    con.execute(f"CREATE VIEW clean.{table} AS SELECT * FROM read_parquet("
+                                f"'{glob}', hive_partitioning=true, "
+                                "hive_types_autocast=false, union_by_name=true)")
+                root = self.io.base.replace("'", "''")
+                for stmt in (f"SET allowed_directories = ['{root}/']",
+                             "SET enable_external_access = false",
+                             "SET lock_configuration = true"):
+                    con.execute(stmt)
+                self._con = con
         return self._con.execute(sql, params or []).fetch_arrow_table()
 
     def sql(self, query: str) -> pa.Table:
