@@ -52,6 +52,7 @@ class Storage(StrEnum):
 
 class Preset(StrEnum):
     small = "small"
+    street = "street"
     cats = "cats"
 
 

@@ -8,6 +8,7 @@ Lake reading lives here so that ``stage.py`` stays a thin pipeline; the numeric 
 
 from __future__ import annotations
 
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -194,10 +195,13 @@ class StaticScans:
         frames = sorted(scans.frames)
         self._order = {f: i for i, f in enumerate(frames)}
         self._frames = frames
+        self.seconds = {"read": 0.0, "voxel": 0.0, "filter": 0.0}  # where the time goes
 
     def _points(self, f: int) -> tuple[np.ndarray, np.ndarray]:
         if f not in self._raw:
+            t = time.perf_counter()
             self._raw[f] = self.scans.points_t(f)
+            self.seconds["read"] += time.perf_counter() - t
             while len(self._raw) > 2:
                 self._raw.popitem(last=False)
         return self._raw[f]
@@ -233,8 +237,18 @@ class StaticScans:
     def filtered(self, f: int, voxel_m: float) -> FilteredScan:
         xyz, t_ns = self._points(f)
         ref_ns = self.scans.frames[f][1]
+        t0 = time.perf_counter()
         pts, t_s = voxel_downsample_t(xyz, (t_ns - ref_ns) * 1e-9 if len(t_ns) else None,
                                       voxel_m, self.s.max_range_m)
+        t1 = time.perf_counter()
+        self.seconds["voxel"] += t1 - t0
+        try:
+            return self._filtered(f, pts, t_s, voxel_m)
+        finally:
+            self.seconds["filter"] += time.perf_counter() - t1
+
+    def _filtered(self, f: int, pts: np.ndarray, t_s: np.ndarray, voxel_m: float
+                  ) -> FilteredScan:
         counts = RemovalCounts(n_in=len(pts))
         if not self.s.enabled or len(pts) == 0:
             return FilteredScan(pts, counts)
