@@ -171,3 +171,12 @@ def test_refined_calibration_is_what_consumers_read(street: tuple[Path, Path],
     print(text)
     assert "black" in text and "refined" in text
     assert rows[0].correction_m > 0.1 and 0.3 < rows[0].correction_deg < 0.5
+
+
+def test_redeskew_with_the_refined_extrinsic(street: tuple[Path, Path], tmp_path: Path) -> None:
+    """``redeskew``: the miscalibrated agent's scans are deskewed again with the refined
+    extrinsic and the clip measured and solved once more; the targets still hold."""
+    lake = _lake(street, tmp_path)
+    rep = run_register(lake, CID, RegisterConfig(redeskew=True))
+    assert any(n.startswith("re-deskewed with the refined extrinsic") for n in rep.notes)
+    _check_clip_solve(lake, street[1])

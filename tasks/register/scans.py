@@ -180,6 +180,20 @@ class AgentScans:
         return self.track.matrices(self.frames[frame_idx][1])[0] @ self.T_ego_lidar
 
 
+def redeskew(xyz: np.ndarray, t_ns: np.ndarray, t_ref_ns: int, track: PoseTrack,
+             T_used: np.ndarray, T_new: np.ndarray) -> np.ndarray:
+    """A scan deskewed with extrinsic ``T_used`` as if deskewed with ``T_new``: deskew's own
+    kernel (eq. 3) run backwards (each point from the reference time to its own time, with
+    the extrinsic that put it there), then forwards with the new one. Points the INS does not
+    cover come back NaN (and are dropped by voxelisation)."""
+    from v2xlake.tasks.deskew.core import deskew_points
+
+    t = np.asarray(t_ns, np.int64)
+    raw = deskew_points(xyz, np.full(len(t), t_ref_ns, np.int64), track, T_used,
+                        t_ref_ns=t).xyz
+    return deskew_points(raw, t, track, T_new, t_ref_ns=t_ref_ns).xyz
+
+
 class StaticScans:
     """An agent's scans reduced to the static scene, one voxel size per use (target/source).
 
@@ -187,9 +201,11 @@ class StaticScans:
     consistency test; frames are expected roughly in order (each is read once then)."""
 
     def __init__(self, scans: AgentScans, settings: StaticSettings,
-                 bodies: list[tuple[AgentScans, Body]]) -> None:
+                 bodies: list[tuple[AgentScans, Body]],
+                 redeskew_with: np.ndarray | None = None) -> None:
         self.scans, self.s = scans, settings
         self.bodies = bodies
+        self.redeskew_with = redeskew_with
         self._fine: OrderedDict[int, tuple[np.ndarray, object]] = OrderedDict()
         self._raw: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         frames = sorted(scans.frames)
@@ -200,7 +216,11 @@ class StaticScans:
     def _points(self, f: int) -> tuple[np.ndarray, np.ndarray]:
         if f not in self._raw:
             t = time.perf_counter()
-            self._raw[f] = self.scans.points_t(f)
+            xyz, t_ns = self.scans.points_t(f)
+            if self.redeskew_with is not None and len(xyz):
+                xyz = redeskew(xyz, t_ns, self.scans.frames[f][1], self.scans.track,
+                               self.scans.T_ego_lidar, self.redeskew_with)
+            self._raw[f] = (xyz, t_ns)
             self.seconds["read"] += time.perf_counter() - t
             while len(self._raw) > 2:
                 self._raw.popitem(last=False)

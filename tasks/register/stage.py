@@ -108,6 +108,9 @@ class RegisterConfig(BaseModel):
     # the clip-level solve (issue #13)
     clip_solve: bool = Field(True, description="fuse the frames (constant extrinsic "
                              "corrections + smooth INS error); off: frame by frame with a gate")
+    redeskew: bool = Field(False, description="when the clip refines an extrinsic, deskew that "
+                           "agent's scans again with it (deskew's kernel, backwards then "
+                           "forwards) and measure and solve once more: twice the GICP time")
     odometry_every: int = Field(5, ge=0, description="an agent's own scan-to-scan GICP every "
                                 "n frames (hand-eye: separates extrinsic from INS error; 0 off)")
     odometry_gap: int = Field(5, ge=1, description="frames between the two scans of odometry")
@@ -376,12 +379,28 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
               for a, b in bodies.items()
               if (h := [x for x in timing["ground"].get(a, []) if np.isfinite(x)])}
     sol: ClipSolution | None = None
+    agents = [ref, *others]
     if cfg.clip_solve:
         t_solve = time.perf_counter()
-        sol = solve_clip([ref.agent, *(o.agent for o in others)], ref.agent,
-                         {a.agent: a.T_ego_lidar for a in (ref, *others)},
+        sol = solve_clip([a.agent for a in agents], ref.agent,
+                         {a.agent: a.T_ego_lidar for a in agents},
                          [p.measurement for p in measured], odo, cfg.solve_settings(), ground)
         timing["solve_s"] = time.perf_counter() - t_solve
+        fix = {c.agent_id: _matrix(c, "") for c in _calibration_rows(
+            clip_id, sol, agents, cfg, len(measured), method) if c.usable}
+        if cfg.redeskew and fix:
+            # the scans of an agent whose extrinsic was wrong were deskewed with it: deskew
+            # them again with the refined one and measure and solve once more
+            report.notes.append("re-deskewed with the refined extrinsic: "
+                                + ", ".join(sorted(fix)))
+            t_solve = time.perf_counter()
+            measured, odo, timing = _measure(cfg, backend, ref, others, pairs, ref_frames,
+                                             bodies, t0_ns, fix)
+            sol = solve_clip([a.agent for a in agents], ref.agent,
+                             {a.agent: a.T_ego_lidar for a in agents},
+                             [p.measurement for p in measured], odo, cfg.solve_settings(),
+                             ground)
+            timing["solve_s"] = time.perf_counter() - t_solve
     rows = [_row(clip_id, ref_id, p, k, sol, cfg, method) for k, p in enumerate(measured)]
     path, n = lake.write_table("clean", "registrations", rows_to_table(RegistrationRow, rows),
                                clip_id=clip_id, name="registrations")
@@ -447,14 +466,16 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
 
 def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
              others: list[AgentScans], pairs: dict[str, dict[int, int]], ref_frames: list[int],
-             bodies: dict[str, Body], t0_ns: int
+             bodies: dict[str, Body], t0_ns: int,
+             redeskew_with: dict[str, np.ndarray] | None = None
              ) -> tuple[list[_Pair], list[OdoMeasurement], dict[str, Any]]:
     """Per-frame GICP of every pair on the static scene, and the agents' own scan-to-scan
     GICP (odometry, every ``odometry_every`` frames over ``odometry_gap`` frames)."""
     static = cfg.static()
     scans = {a.agent: a for a in (ref, *others)}
     filt = {a.agent: StaticScans(a, static, [(b, bodies[b.agent]) for b in (ref, *others)
-                                             if b is not a and b.agent in bodies])
+                                             if b is not a and b.agent in bodies],
+                                 (redeskew_with or {}).get(a.agent))
             for a in (ref, *others)}
     limits = cfg.limits(gate=not cfg.clip_solve)
     # recent prepared clouds per agent, for odometry: frame -> Prepared
@@ -546,7 +567,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     return out, odo, timing
 
 
-def _matrix(r: RegistrationRow, p: str) -> np.ndarray:
+def _matrix(r: RegistrationRow | CalibrationRefinedRow, p: str) -> np.ndarray:
     q = np.array([getattr(r, f"{p}qw"), getattr(r, f"{p}qx"), getattr(r, f"{p}qy"),
                   getattr(r, f"{p}qz")], dtype=np.float64)
     t = np.array([getattr(r, f"{p}tx"), getattr(r, f"{p}ty"), getattr(r, f"{p}tz")],

@@ -1,7 +1,7 @@
 """Registration speed and accuracy of both GICP backends on the same frame pairs, one core.
 
     python tests/bench/bench_register.py [--frames 10] [--voxel 0.3] [--beams 128 --cols 2048]
-    python tests/bench/bench_register.py --street [--seconds 12 --turn-at 8] [--workdir DIR]
+    python tests/bench/bench_register.py --street [--seconds 16 --turn-at 13] [--workdir DIR]
 
 ``--street``: the hard street of issue #13 (simulator preset ``street`` at full size, 128
 beams x 1800 columns, ~225k points per scan) through ingest, anonymize and deskew once
@@ -154,8 +154,8 @@ def street(args: argparse.Namespace) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--street", action="store_true", help="the hard street of issue #13")
-    ap.add_argument("--seconds", type=float, default=12.0)
-    ap.add_argument("--turn-at", type=float, default=8.0)
+    ap.add_argument("--seconds", type=float, default=16.0)
+    ap.add_argument("--turn-at", type=float, default=13.0)
     ap.add_argument("--street-cols", type=int, default=1800)
     ap.add_argument("--direct-pairs", type=int, default=12)
     ap.add_argument("--workdir", default=None)
