@@ -7,8 +7,9 @@ here the same way (``dask scheduler`` / ``dask worker ADDRESS`` command lines, `
 for S3) means a run on one machine exercises exactly what a run across machines does: the
 workers import the code themselves, reach the lake only through its URI and report to the
 Prefect API named by ``PREFECT_API_URL``. Used by ``deploy/start_cluster.py``,
-``tests/test_cluster.py`` and ``tests/bench/bench_scale.py``. Every process is started in
-its own process group and stopped by group (``flows.server.stop_process``).
+``tests/test_cluster.py`` and ``tests/bench/bench_scale.py``. Every process runs under
+``flows/guard.py`` (it dies with the process that started it, SIGKILL included) in its own
+process group, and is stopped by group (``flows.server.stop_process``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from v2xlake.flows.server import free_port, stop_process
+from v2xlake.flows.server import free_port, guarded, stop_process
 
 WEED_PORTS = ("master.port", "master.port.grpc", "volume.port", "volume.port.grpc",
               "filer.port", "filer.port.grpc", "s3.port", "s3.port.grpc", "admin.port",
@@ -64,7 +65,7 @@ def _spawn(cmd: list[str], log_path: Path, env: dict[str, str],
            cwd: Path | None = None) -> subprocess.Popen[bytes]:
     log_path.parent.mkdir(parents=True, exist_ok=True)
     with open(log_path, "wb") as log:  # the child keeps its own descriptor
-        return subprocess.Popen(cmd, env=env, cwd=None if cwd is None else str(cwd),
+        return subprocess.Popen(guarded(cmd), env=env, cwd=None if cwd is None else str(cwd),
                                 stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
 

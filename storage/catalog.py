@@ -420,7 +420,7 @@ class Catalog:
         so concurrent refreshes cannot corrupt it; the last one wins."""
         written = []
         tmpdir = tempfile.mkdtemp(prefix="v2xlake-snapshot-")
-        con = duckdb.connect()
+        con = duckdb.connect(config={"enable_progress_bar": False})
         try:
             if not self.lake.is_local:
                 self._setup_s3(con)
