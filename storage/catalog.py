@@ -420,8 +420,9 @@ class Catalog:
         so concurrent refreshes cannot corrupt it; the last one wins."""
         written = []
         tmpdir = tempfile.mkdtemp(prefix="v2xlake-snapshot-")
-        con = duckdb.connect(config={"enable_progress_bar": False})
+        con = duckdb.connect()
         try:
+            con.execute("SET enable_progress_bar = false")
             if not self.lake.is_local:
                 self._setup_s3(con)
             for zone in ("raw", "clean"):
