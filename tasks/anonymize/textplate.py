@@ -39,6 +39,7 @@ from v2xlake.tasks.anonymize.detectors import (
     _unmap,
     iter_views,
     nms,
+    ort_session,
 )
 
 MODEL_PACKAGE = "rapidocr_onnxruntime"
@@ -140,16 +141,7 @@ class TextPlateDetector:
         self._local = threading.local()
         self._session: Any = None
         if c.backend == "onnxruntime":
-            import onnxruntime as ort
-
-            so = ort.SessionOptions()
-            # one thread per run: the stage parallelises over images, one worker per core
-            so.intra_op_num_threads = 1
-            so.inter_op_num_threads = 1
-            so.log_severity_level = 3
-            self._session = ort.InferenceSession(
-                str(self.onnx_path), so, providers=["CPUExecutionProvider"]
-            )
+            self._session = ort_session(str(self.onnx_path))
             self._input = self._session.get_inputs()[0].name
 
     def _net(self, w: int, h: int) -> cv2.dnn.Net:
@@ -202,9 +194,13 @@ class TextPlateDetector:
         return np.array([cx - hw, cy - hh, cx + hw, cy + hh])
 
     def detect(self, image_bgr: np.ndarray) -> list[Detection]:
+        return self.detect_scan(image_bgr, self.config.scan)
+
+    def detect_scan(self, image_bgr: np.ndarray, scan: ScanConfig) -> list[Detection]:
+        """Plates found by the views of ``scan`` (e.g. a down-scaled safety pass)."""
         h, w = image_bgr.shape[:2]
         dets: list[Detection] = []
-        for view, s, x0, y0 in iter_views(image_bgr, self.config.scan):
+        for view, s, x0, y0 in iter_views(image_bgr, scan):
             for cx, cy, a, b, ang, score in self.lines_view(view):
                 rect = ((cx + x0) / s, (cy + y0) / s, a / s, b / s, ang)
                 if not self.plate_ok(rect, w):

@@ -1,0 +1,167 @@
+"""A clip's guidance for the anonymizer: every agent's object boxes in the clip world and
+every camera's pose, from what ingest wrote (anonymize runs before deskew and registration).
+
+Poses are the clean ``ego_poses`` the stage has just computed from the raw pose source (local
+ENU, relative time); calibration, LiDAR frames and annotations are the raw tables. A box is
+in its LiDAR's frame at the scan start (``lidar_frames.t_start_ns``, the convention of the
+annotate stage) and describes the object at its own ``t_ns``; it is moved to each image's
+time with its velocity. Boxes of other agents fill in objects this agent's LiDAR did not see
+(cooperative perception is what the recording is for), the agent's own boxes win.
+
+Without boxes (no annotation file), the boxes are LiDAR clusters (``clusters.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
+from v2xlake.storage.reader import CameraCalib, calibrations, pose_samples
+from v2xlake.tasks.anonymize.guide import (
+    GuideConfig,
+    Region,
+    WorldBoxes,
+    project_regions,
+    world_boxes_from_sensor,
+)
+from v2xlake.tasks.anonymize.timespace import T0_OFFSET_NS
+from v2xlake.tasks.geometry import invert
+from v2xlake.tasks.interpolate import PoseTrack
+
+
+def _of(t: pa.Table, col: str, value: str) -> pa.Table:
+    return t.filter(pc.equal(t.column(col), value)) if col in t.column_names else t
+
+
+@dataclass
+class ClipGuide:
+    """Pose tracks, cameras and world boxes of one clip; ``regions`` per image."""
+
+    config: GuideConfig
+    tracks: dict[str, PoseTrack] = field(default_factory=dict)
+    cameras: dict[tuple[str, str], tuple[np.ndarray, CameraIntrinsics]] = field(
+        default_factory=dict)  # (agent, sensor) -> T_ego_cam, intrinsics
+    boxes: dict[str, WorldBoxes] = field(default_factory=dict)  # per agent that saw them
+    source: str = "none"  # "annotations" | "lidar clusters" | "none"
+    t0_abs: int = 0
+
+    def rel(self, stamp_abs: int) -> int:
+        return int(stamp_abs) - self.t0_abs + T0_OFFSET_NS
+
+    def regions(self, agent: str, sensor: str, stamp_abs: int) -> list[Region] | None:
+        """Regions of one image; None when this image cannot be guided (no pose at its time,
+        no calibrated camera, no boxes in the clip): it gets the full-frame plan."""
+        track = self.tracks.get(agent)
+        cam = self.cameras.get((agent, sensor))
+        if track is None or cam is None or not self.boxes:
+            return None
+        t = self.rel(stamp_abs)
+        if not bool(track.covers(t)):
+            return None
+        T_ego_cam, intr = cam
+        T_cam_world = invert(track.matrices(t)[0] @ T_ego_cam)
+        own = self.boxes[agent].at(t, self.config.max_age_ns) if agent in self.boxes else None
+        seen = set(own.instance.tolist()) if own is not None else set()
+        parts = [own] if own is not None else []
+        for other, b in self.boxes.items():
+            if other == agent:
+                continue
+            ob = b.at(t, self.config.max_age_ns)
+            keep = ~np.isin(ob.instance, list(seen)) if seen else np.ones(len(ob), bool)
+            parts.append(_take(ob, keep))
+            seen |= set(ob.instance[keep].tolist())
+        return project_regions(WorldBoxes.concat(parts), T_cam_world, intr, self.config)
+
+
+def _take(b: WorldBoxes, m: np.ndarray) -> WorldBoxes:
+    return WorldBoxes(b.t_ns[m], b.center[m], b.size[m], b.quat[m], b.velocity[m],
+                      b.category[m], b.instance[m])
+
+
+def _intrinsics(c: CameraCalib) -> CameraIntrinsics | None:
+    try:
+        model = DistortionModel(c.distortion_model or "none")
+        dist = list(c.distortion) if model is not DistortionModel.NONE else []
+        return CameraIntrinsics(width=c.width, height=c.height, fx=float(c.K[0, 0]),
+                                fy=float(c.K[1, 1]), cx=float(c.K[0, 2]), cy=float(c.K[1, 2]),
+                                distortion_model=model, distortion=dist)
+    except ValueError:
+        return None
+
+
+def build_guide(clip_id: str, t0_abs: int, ego_poses: dict[str, pa.Table], calib: pa.Table,
+                annotations: pa.Table, lidar_frames: pa.Table, config: GuideConfig,
+                clusters: dict[str, WorldBoxes] | None = None) -> ClipGuide:
+    """The guide from the clip's tables (``ego_poses`` clean, the others raw)."""
+    g = ClipGuide(config, t0_abs=int(t0_abs))
+    for agent, ego in ego_poses.items():
+        if ego.num_rows < 2:
+            continue
+        s = pose_samples(ego, clip_id, agent)
+        try:
+            g.tracks[agent] = PoseTrack.create(s.t_ns, s.xyz, s.quat_wxyz)
+        except ValueError:
+            continue
+    sensors: dict[str, dict] = {}
+    for agent in g.tracks:
+        sensors[agent] = calibrations(_of(calib, "agent_id", agent), clip_id, agent) if \
+            calib.num_rows else {}
+        for name, c in sensors[agent].items():
+            if isinstance(c, CameraCalib):
+                intr = _intrinsics(c)
+                if intr is not None:
+                    g.cameras[(agent, name)] = (c.T_ego_sensor, intr)
+    if annotations.num_rows:
+        g.boxes = _annotation_boxes(annotations, lidar_frames, g, sensors, t0_abs)
+        g.source = "annotations"
+    elif clusters:
+        g.boxes = clusters
+        g.source = "lidar clusters"
+    return g
+
+
+def _annotation_boxes(ann: pa.Table, frames: pa.Table, g: ClipGuide,
+                      sensors: dict[str, dict], t0_abs: int) -> dict[str, WorldBoxes]:
+    """Each agent's annotation rows as world boxes (rows outside its pose coverage dropped)."""
+    start: dict[tuple[str, str, int], int] = {}
+    if frames.num_rows:
+        fd = frames.select(["agent_id", "sensor", "frame_idx", "t_start_ns"]).to_pydict()
+        start = {(a, s, int(f)): int(t) for a, s, f, t in zip(
+            fd["agent_id"], fd["sensor"], fd["frame_idx"], fd["t_start_ns"], strict=True)}
+    d = ann.to_pydict()
+    shift = T0_OFFSET_NS - int(t0_abs)
+
+    def col(name: str, rows: np.ndarray) -> np.ndarray:
+        if name not in d:
+            return np.full(len(rows), np.nan)
+        return np.asarray([np.nan if d[name][i] is None else d[name][i] for i in rows], float)
+
+    out: dict[str, WorldBoxes] = {}
+    agent = np.asarray(d["agent_id"]).astype(str)
+    for a in map(str, np.unique(agent)):
+        track, cal = g.tracks.get(a), sensors.get(a, {})
+        if track is None:
+            continue
+        rows = np.flatnonzero(agent == a)
+        rows = rows[[d["sensor"][i] in cal for i in rows]]
+        t_frame = np.array([start.get((a, d["sensor"][i], int(d["frame_idx"][i])),
+                                      int(d["t_ns"][i])) for i in rows], np.int64) + shift
+        ok = np.asarray(track.covers(t_frame), bool)
+        rows, t_frame = rows[ok], t_frame[ok]
+        if not len(rows):
+            continue
+        T_sensor = np.stack([cal[d["sensor"][i]].T_ego_sensor for i in rows])
+        out[a] = world_boxes_from_sensor(
+            np.array([int(d["t_ns"][i]) for i in rows], np.int64) + shift,
+            track.matrices(t_frame) @ T_sensor,
+            np.stack([col("cx", rows), col("cy", rows), col("cz", rows)], 1),
+            np.stack([col("w", rows), col("l", rows), col("h", rows)], 1),
+            np.stack([col(c, rows) for c in ("qw", "qx", "qy", "qz")], 1),
+            np.stack([col("vx", rows), col("vy", rows), col("vz", rows)], 1),
+            np.asarray([d["category"][i] for i in rows]).astype(str),
+            np.asarray([d["instance_id"][i] for i in rows]).astype(str))
+    return out

@@ -1,0 +1,243 @@
+"""Where faces and plates can be: 3D object boxes projected into each image at its own time.
+
+Why: a face detector shown a whole 1080p frame has to find a 16 px face among two million
+pixels, and can only do so by upscaling everything (the x2 fine pass cost ~20x the pixels of
+one native pass at 4K). The recording already knows where every vehicle and person is (the
+annotations, or LiDAR clusters): a plate can only be on the front or rear face of a vehicle,
+near the ground; a face only on a person's head or behind a vehicle's windows. Projecting
+those parts of the 3D boxes into the image at the image's own time gives a few small regions
+and, from the depth, the size a plate or face there must have, so each region is searched at
+the scale that makes its object as big as the detector likes it (small and distant ones
+upsampled) and the size seen can be checked against the size expected.
+
+Pure functions on arrays; the stage reads the tables (``guided.py``). Box convention as in
+``tasks.geometry``: size (w, l, h), the box x-axis is its length / heading, z up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from v2xlake.schemas.calibration import CameraIntrinsics
+from v2xlake.tasks.align.projection import project_boxes_2d, project_points
+from v2xlake.tasks.geometry import apply, invert, quat_to_matrix, transform_boxes
+
+VEHICLES = frozenset({"Car", "Van", "Truck", "Trailer", "Bus", "Others"})
+PEOPLE = frozenset({"Pedestrian", "Scooter", "Bicycle", "Motorcycle"})  # a rider's head on top
+
+
+@dataclass(frozen=True)
+class GuideConfig:
+    """The parts of a box that can hold a plate or a face, and how regions are grown."""
+
+    plate_width_m: float = 0.52  # EU plate; US 0.305: the size prior allows for it
+    face_height_m: float = 0.23
+    plate_z_m: tuple[float, float] = (0.15, 1.4)  # plate height above the box bottom
+    plate_depth_m: float = 0.4  # slab thickness at a vehicle face (bumper curvature)
+    windows: bool = True  # search faces behind vehicle windows
+    window_z_m: float = 0.9  # faces behind windows: above this height over the box bottom
+    window_max_h_m: float = 2.5  # taller vehicles (trucks, buses): the front cab only
+    window_cab_m: float = 2.5
+    head_m: float = 0.5  # a person's head: the top of the box, this tall
+    head_pad_m: float = 0.15  # the head may stick out of a tight box (box edges, arms)
+    margin_frac: float = 0.25  # projected regions grown by this share of their size ...
+    margin_px: float = 12.0  # ... plus this (calibration, time stamp and box errors)
+    max_age_ns: int = 250_000_000  # a box is used this long before / after its own time
+    near_m: float = 0.5
+    # parts whose object would be smaller than this (px: face height, plate width) are not
+    # searched: a 0.23 m face under 8 px or a 0.52 m plate under 12 px identifies no one
+    min_face_px: float = 8.0
+    min_plate_px: float = 12.0
+    face_margin_m: float = 0.3  # a rectified vehicle face is this much wider on each side
+    max_oblique_deg: float = 80.0  # a vehicle face seen more edge-on than this is not rectified
+
+
+@dataclass(frozen=True)
+class Region:
+    """Image region (x0, y0, x1, y1 px) where a ``kind`` object is expected to be
+    ``expected_px`` large (plate width or face height), from box ``instance``.
+
+    A vehicle face also has ``quad``: its corners in the image (top-left, top-right,
+    bottom-right, bottom-left as seen from outside the vehicle) and ``size_m`` (width,
+    height in metres): the face can then be looked at head-on (a homography), where a plate
+    seen obliquely by a side camera is an upright rectangle of known metric size."""
+
+    kind: str
+    box: tuple[float, float, float, float]
+    expected_px: float
+    instance: str = ""
+    quad: tuple[tuple[float, float], ...] | None = None
+    size_m: tuple[float, float] | None = None
+    part: str = ""  # front | rear | window | head
+
+
+@dataclass(frozen=True, eq=False)
+class WorldBoxes:
+    """Object boxes in the clip world at their own times (one row per box and time)."""
+
+    t_ns: np.ndarray  # (M,) int64
+    center: np.ndarray  # (M, 3)
+    size: np.ndarray  # (M, 3) w, l, h
+    quat: np.ndarray  # (M, 4) w, x, y, z
+    velocity: np.ndarray  # (M, 3) world, NaN -> 0
+    category: np.ndarray  # (M,) str
+    instance: np.ndarray  # (M,) str
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    @staticmethod
+    def empty() -> WorldBoxes:
+        z = np.zeros((0, 3))
+        return WorldBoxes(np.zeros(0, np.int64), z, z, np.zeros((0, 4)), z,
+                          np.zeros(0, str), np.zeros(0, str))
+
+    @staticmethod
+    def concat(parts: list[WorldBoxes]) -> WorldBoxes:
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return WorldBoxes.empty()
+        return WorldBoxes(*(np.concatenate([getattr(p, f) for p in parts]) for f in
+                            ("t_ns", "center", "size", "quat", "velocity", "category",
+                             "instance")))
+
+    def at(self, t_ns: int, max_age_ns: int) -> WorldBoxes:
+        """Each instance once, from its box nearest in time to ``t_ns`` (within
+        ``max_age_ns``), moved by its velocity to ``t_ns``."""
+        if not len(self):
+            return self
+        dt = np.abs(self.t_ns - int(t_ns))
+        order = np.lexsort((dt, self.instance))
+        inst = self.instance[order]
+        first = np.concatenate([[True], inst[1:] != inst[:-1]])
+        sel = order[first]
+        sel = sel[dt[sel] <= max_age_ns]
+        step = (int(t_ns) - self.t_ns[sel]).astype(np.float64)[:, None] * 1e-9
+        vel = np.nan_to_num(self.velocity[sel])
+        return WorldBoxes(np.full(len(sel), int(t_ns), np.int64),
+                          self.center[sel] + vel * step, self.size[sel], self.quat[sel],
+                          vel, self.category[sel], self.instance[sel])
+
+
+def _part(boxes: WorldBoxes, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centres and sizes (w, l, h) of the axis-aligned sub-boxes [lo, hi] given in each box's
+    own frame (x length, y width, z up, origin at the centre), placed in the world."""
+    mid = (lo + hi) / 2.0
+    R = quat_to_matrix(boxes.quat)
+    centre = boxes.center + np.einsum("mij,mj->mi", R, mid)
+    ext = hi - lo
+    return centre, np.stack([ext[:, 1], ext[:, 0], ext[:, 2]], 1)
+
+
+Part = tuple[str, str, int, np.ndarray, np.ndarray, np.ndarray]
+
+
+def part_boxes(boxes: WorldBoxes, cfg: GuideConfig) -> list[Part]:
+    """(kind, part, box index, centre, size, outward normal or zeros) of every plate / face
+    part of every box."""
+    out: list[Part] = []
+    R_all = quat_to_matrix(boxes.quat) if len(boxes) else np.zeros((0, 3, 3))
+    zero = np.zeros(3)
+    w, ln, h = boxes.size[:, 0], boxes.size[:, 1], boxes.size[:, 2]
+    veh = np.isin(boxes.category, list(VEHICLES))
+    ppl = np.isin(boxes.category, list(PEOPLE))
+    bottom = -h / 2
+    d = cfg.plate_depth_m
+    ztop = np.minimum(bottom + cfg.plate_z_m[1], h / 2)
+    for part, sign, x0, x1 in (("front", 1.0, ln / 2 - d, ln / 2 + 0.1),
+                               ("rear", -1.0, -ln / 2 - 0.1, -ln / 2 + d)):
+        lo = np.stack([x0, -w / 2, bottom + cfg.plate_z_m[0]], 1)
+        hi = np.stack([x1, w / 2, ztop], 1)
+        c, s = _part(boxes, lo, hi)
+        out += [("plate", part, int(i), c[i], s[i], sign * R_all[i][:, 0])
+                for i in np.flatnonzero(veh)]
+    if cfg.windows:
+        tall = h > cfg.window_max_h_m
+        back = np.where(tall, np.maximum(ln / 2 - cfg.window_cab_m, -ln / 2), -ln / 2)
+        win_lo = np.stack([back, -w / 2, np.minimum(bottom + cfg.window_z_m, h / 2 - 0.2)], 1)
+        win_hi = np.stack([ln / 2, w / 2, np.where(tall, bottom + cfg.window_z_m + 1.6,
+                                                   h / 2)], 1)
+        c, s = _part(boxes, win_lo, win_hi)
+        out += [("face", "window", int(i), c[i], s[i], zero) for i in np.flatnonzero(veh)]
+    r = np.maximum(w, ln) / 2 + cfg.head_pad_m
+    head_lo = np.stack([-r, -r, h / 2 - cfg.head_m], 1)
+    head_hi = np.stack([r, r, h / 2 + cfg.head_pad_m], 1)
+    c, s = _part(boxes, head_lo, head_hi)
+    out += [("face", "head", int(i), c[i], s[i], zero) for i in np.flatnonzero(ppl)]
+    return out
+
+
+def project_regions(boxes: WorldBoxes, T_cam_world: np.ndarray, intr: CameraIntrinsics,
+                    cfg: GuideConfig) -> list[Region]:
+    """Image regions of every plate / face part visible in the camera (grown by the margins),
+    with the object size expected there from the part's depth."""
+    parts = part_boxes(boxes, cfg)
+    if not parts:
+        return []
+    cam = invert(T_cam_world)[:3, 3]
+    # a plate face turned away from the camera cannot show its plate
+    parts = [p for p in parts if float(np.dot(p[5], cam - p[3])) >= 0.0]
+    if not parts:
+        return []
+    centre = np.array([p[3] for p in parts])
+    size = np.array([p[4] for p in parts])
+    quat = boxes.quat[[p[2] for p in parts]]
+    b2d = project_boxes_2d(centre, size, quat, T_cam_world, intr, near=cfg.near_m)
+    depth = apply(T_cam_world, centre)[:, 2]
+    f = 0.5 * (intr.fx + intr.fy)
+    out = []
+    for (kind, name, i, c, sz, n), b, z in zip(parts, b2d, depth, strict=True):
+        if not np.isfinite(b).all() or z < cfg.near_m:
+            continue
+        mw, mh = cfg.margin_frac * (b[2] - b[0]) + cfg.margin_px, cfg.margin_frac * (
+            b[3] - b[1]) + cfg.margin_px
+        grown = (max(0.0, b[0] - mw), max(0.0, b[1] - mh),
+                 min(float(intr.width), b[2] + mw), min(float(intr.height), b[3] + mh))
+        size_m = cfg.plate_width_m if kind == "plate" else cfg.face_height_m
+        if f * size_m / z < (cfg.min_plate_px if kind == "plate" else cfg.min_face_px):
+            continue
+        quad: tuple[tuple[float, float], ...] | None = None
+        metric: tuple[float, float] | None = None
+        if kind == "plate":
+            view = cam - c
+            cos = float(np.dot(n, view) / max(np.linalg.norm(view), 1e-9))
+            if cos >= np.cos(np.radians(cfg.max_oblique_deg)):
+                quad, metric = _face_quad(c, sz, boxes.quat[i], name, T_cam_world, intr, cfg)
+        out.append(Region(kind, grown, float(f * size_m / z), str(boxes.instance[i]), quad,
+                          metric, name))
+    return out
+
+
+def _face_quad(centre: np.ndarray, size: np.ndarray, quat: np.ndarray, name: str,
+               T_cam_world: np.ndarray, intr: CameraIntrinsics, cfg: GuideConfig,
+               ) -> tuple[tuple[tuple[float, float], ...] | None, tuple[float, float] | None]:
+    """Image corners of a vehicle face (the outer side of its plate slab, grown by
+    ``face_margin_m`` left and right) as seen from outside, and its metric size; (None, None)
+    when a corner is behind the camera."""
+    R = quat_to_matrix(quat[None])[0]
+    sign = 1.0 if name == "front" else -1.0
+    w, d, h = size[0] + 2 * cfg.face_margin_m, size[1], size[2]
+    # seen from outside, the viewer's right is +y of the box for the front face, -y for the rear
+    right = sign
+    xo = sign * d / 2  # outer side of the slab
+    local = np.array([[xo, -right * w / 2, h / 2], [xo, right * w / 2, h / 2],
+                      [xo, right * w / 2, -h / 2], [xo, -right * w / 2, -h / 2]])
+    world = centre + local @ R.T
+    cam = apply(T_cam_world, world)
+    if (cam[:, 2] < cfg.near_m).any():
+        return None, None
+    uv, _ = project_points(cam, intr, near=cfg.near_m)
+    if not np.isfinite(uv).all():
+        return None, None
+    return tuple((float(u), float(v)) for u, v in uv), (float(w), float(h))
+
+
+def world_boxes_from_sensor(t_ns: np.ndarray, T_world_sensor: np.ndarray, center: np.ndarray,
+                            size: np.ndarray, quat: np.ndarray, velocity: np.ndarray,
+                            category: np.ndarray, instance: np.ndarray) -> WorldBoxes:
+    """Boxes given in a sensor frame (one ``T_world_sensor`` per row) -> world boxes."""
+    c, q, v = transform_boxes(T_world_sensor, center, quat, np.nan_to_num(velocity))
+    return WorldBoxes(np.asarray(t_ns, np.int64), c, np.asarray(size, float), q, v,
+                      np.asarray(category).astype(str), np.asarray(instance).astype(str))

