@@ -508,9 +508,13 @@ def audit(
     release: Annotated[str | None, typer.Option(help="audit this release instead")] = None,
 ) -> int:
     """Check that nothing identifying leaves the raw zone."""
+    from v2xlake.tasks.anonymize.audit import AuditError
     from v2xlake.tasks.anonymize.audit import audit as run_audit
 
-    report = run_audit(open_lake(lake), release or "clean")
+    try:
+        report = run_audit(open_lake(lake), release or "clean")
+    except AuditError as e:
+        raise UserError(str(e)) from e
     console = _console()
     for f in report.findings:
         console.print(f"[red]{f.kind}[/] {f.location}: {f.detail}")

@@ -215,13 +215,17 @@ def test_free_text_times_become_relative() -> None:
 
 
 def test_scan_plan_scales_with_the_image() -> None:
-    """Small frames get one native pass; large ones a cheap coarse pass + equal x2 tiles."""
+    """The full-frame plan: a cheap coarse pass + equal x2 tiles on every frame size (640 px
+    cameras have 16 px faces too); ``face_upscale_min_side`` can spare small frames."""
     from v2xlake.tasks.anonymize.detectors import scan_plan
     from v2xlake.tasks.anonymize.run import AnonymizeConfig
 
-    scan = AnonymizeConfig().build_detector().detectors[0].config.scan  # type: ignore[attr-defined]
+    scan = AnonymizeConfig().full_face_scan()
     small = scan_plan(360, 640, scan)
-    assert [(p.scale, p.tiles) for p in small] == [(1.0, ((0, 0, 640, 360),))]
+    assert [(p.scale, p.tiles) for p in small] == [
+        (0.5, ((0, 0, 320, 180),)), (2.0, ((0, 0, 1280, 720),))]
+    native = scan_plan(360, 640, AnonymizeConfig(face_upscale_min_side=1280).full_face_scan())
+    assert [(p.scale, p.tiles) for p in native] == [(1.0, ((0, 0, 640, 360),))]
     for h, w, n_tiles in ((1080, 1920, 4), (2160, 3840, 12)):
         coarse, fine = scan_plan(h, w, scan)
         assert coarse.scale == 0.5 and len(coarse.tiles) == 1

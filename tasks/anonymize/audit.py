@@ -28,8 +28,8 @@ import math
 import os
 import re
 import struct
-from collections.abc import Iterator
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -62,12 +62,22 @@ class Finding:
     detail: str
 
 
+class AuditError(ValueError):
+    """The audit could not look at anything (a missing or empty lake, release or folder):
+    an error, never "0 findings"."""
+
+
 @dataclass
 class AuditReport:
     findings: list[Finding] = field(default_factory=list)
     n_files: int = 0
     n_tables: int = 0
     n_images_checked: int = 0
+    # projected head / plate locations (from the clip's boxes) in the checked images: blurred,
+    # or searched by the audit's own detector and found empty (back of a head, occluded)
+    n_regions: int = 0
+    n_regions_blurred: int = 0
+    n_regions_not_visible: int = 0
 
     @property
     def ok(self) -> bool:
@@ -76,7 +86,9 @@ class AuditReport:
     def summary(self) -> str:
         head = (
             f"audit: {self.n_files} files, {self.n_tables} tables, "
-            f"{self.n_images_checked} images re-checked: {len(self.findings)} findings"
+            f"{self.n_images_checked} images re-checked ({self.n_regions} projected head/plate "
+            f"locations: {self.n_regions_blurred} blurred, {self.n_regions_not_visible} with "
+            f"nothing visible): {len(self.findings)} findings"
         )
         return "\n".join([head, *(f"  [{f.kind}] {f.location}: {f.detail}" for f in self.findings)])
 
@@ -91,9 +103,21 @@ class AuditConfig:
     face_min_score: float = 0.6
     plate_min_score: float = 0.5
     text_max_bytes: int = 4 << 20
-    # which images are camera images to re-check with the detector (plots, BEV rasters and
-    # release-note figures carry text that a plate detector would report)
+    # which files of a release folder are camera images to re-check with the detector (in a
+    # lake zone they are exactly the blobs its camera_frames name); plots, BEV rasters, maps,
+    # depth previews and release-note figures are not dataset images
     camera_image_pattern: str = r"(^|/)(blobs|samples|sweeps|images|image_\d+)/|(^|/)CAM_[A-Z_]+/"
+    not_camera_pattern: str = r"(^|/)(maps?|plots?|figures?|depth_preview|bev|preview)(/|_)"
+    # the audit's own scan plan (a different one from the blur's): faces at 1.5x in tiles and
+    # at native size, plates natively and at 2x; projected regions at larger targets
+    audit_face_fine_scale: float = 1.5
+    # plates: natively over the frame (an upscaled text detector reads foliage and facades
+    # as text), and in the projected vehicle faces at their own scale
+    audit_plate_fine_scale: float | None = None
+    region_face_target_px: float = 56.0
+    region_plate_target_px: float = 128.0
+    region_min_face_px: float = 10.0  # projected locations checked from these sizes
+    region_min_plate_px: float = 16.0
 
 
 # ------------------------------------------------------------------------------- rules
@@ -410,6 +434,8 @@ def audit(
     cfg = config or AuditConfig()
     files = _Files(lake, zone)
     paths = files.list()
+    if not paths:
+        raise AuditError(f"nothing to audit: {files.root} does not exist or holds no files")
     report = AuditReport(n_files=len(paths))
     spans = _ego_spans(files, paths)
     value_rule = not spans or max(spans) >= cfg.stationary_span_m
@@ -421,6 +447,7 @@ def audit(
         if value_rule and spans
         else None
     )
+    frames = _lake_frames(lake, zone, files) if lake is not None else None
     images: list[str] = []
     for p in paths:
         rel = files.rel(p)
@@ -439,7 +466,11 @@ def audit(
                     report.findings.append(
                         Finding("image_metadata", rel, "metadata: " + ", ".join(meta))
                     )
-                if re.search(cfg.camera_image_pattern, rel):
+                if frames is not None:
+                    if rel in frames:
+                        images.append(p)
+                elif re.search(cfg.camera_image_pattern, rel) and not re.search(
+                        cfg.not_camera_pattern, rel):
                     images.append(p)
             elif low.endswith((".json", ".yaml", ".yml")):
                 data = files.read(p, cfg.text_max_bytes)
@@ -458,40 +489,160 @@ def audit(
                 report.findings.extend(scan_text(files.read(p, cfg.text_max_bytes), rel))
         except Exception as e:
             report.findings.append(Finding("unreadable", rel, f"{type(e).__name__}: {e}"))
+    if frames is not None and not frames and zone in ("clean", "raw"):
+        report.findings.append(Finding("unreadable", str(zone), "no camera_frames table"))
     if sample_images > 0 and images:
-        report.findings.extend(_recheck_images(files, images, sample_images, cfg, detector, report))
+        report.findings.extend(_recheck_images(files, images, sample_images, cfg, detector,
+                                               report, frames or {}, lake, str(zone)))
     return report
 
 
+@dataclass(frozen=True)
+class _Frame:
+    clip: str
+    agent: str
+    sensor: str
+    frame_idx: int
+    stamp_ns: int
+
+
+def _lake_frames(lake: Lake, zone: str | os.PathLike[str], files: _Files
+                 ) -> dict[str, _Frame] | None:
+    """For a lake zone: the dataset images (blob path relative to the zone -> its frame),
+    from the zone's own ``camera_frames``; None for a release or folder."""
+    if str(zone) not in ("clean", "raw"):
+        return None
+    cf = lake.read_table(str(zone), "camera_frames")
+    if cf.num_rows == 0:
+        return {}
+    d = cf.select(["clip_id", "agent_id", "sensor", "frame_idx", "stamp_ns", "blob"]).to_pydict()
+    return {f"blobs/{b}": _Frame(c, a, s, int(f), int(t)) for c, a, s, f, t, b in zip(
+        d["clip_id"], d["agent_id"], d["sensor"], d["frame_idx"], d["stamp_ns"], d["blob"],
+        strict=True)}
+
+
+def audit_detector(cfg: AuditConfig) -> Any:
+    """The audit's detector: the same models, another scan plan (see ``AuditConfig``)."""
+    from v2xlake.tasks.anonymize.detectors import ScanConfig
+    from v2xlake.tasks.anonymize.run import AnonymizeConfig
+
+    det = AnonymizeConfig(
+        face_fine_scale=cfg.audit_face_fine_scale, face_full_threshold=cfg.face_min_score,
+        region_face_target_px=cfg.region_face_target_px,
+        region_window_face_target_px=cfg.region_face_target_px,
+        region_plate_target_px=cfg.region_plate_target_px, face_threshold=cfg.face_min_score,
+        plate_box_threshold=cfg.plate_min_score, safety_face_max_side=None,
+        safety_plate_max_side=None, region_blob_below_px=0.0,
+    ).build_detector()
+    det.config = replace(det.config, full_plate_scan=ScanConfig(
+        max_side=None, fine_scale=cfg.audit_plate_fine_scale, tile=2048, tile_overlap=128,
+        upscale_min_side=0))
+    return det
+
+
+def _blurred(frames: dict[str, _Frame], lake: Lake | None, zone: str
+             ) -> dict[tuple[str, str, str, int], list[tuple[float, ...]]]:
+    """The boxes the anonymizer blurred, per (clip, agent, sensor, frame) (clean zone)."""
+    if lake is None or zone != "clean" or not frames:
+        return {}
+    au = lake.read_table("clean", "anonymization_audit")
+    out: dict[tuple[str, str, str, int], list[tuple[float, ...]]] = {}
+    if au.num_rows == 0:
+        return out
+    d = au.to_pydict()
+    for i in range(au.num_rows):
+        key = (d["clip_id"][i], d["agent_id"][i], d["sensor"][i], int(d["frame_idx"][i]))
+        out.setdefault(key, []).append((d["x0"][i], d["y0"][i], d["x1"][i], d["y1"][i]))
+    return out
+
+
+def _guides(lake: Lake | None, zone: str, clips: set[str], cfg: AuditConfig) -> dict[str, Any]:
+    """Per clip, the projected-region guide built from the zone's own tables (clean zone)."""
+    if lake is None or zone != "clean":
+        return {}
+    from v2xlake.tasks.anonymize.context import build_guide
+    from v2xlake.tasks.anonymize.guide import GuideConfig
+    from v2xlake.tasks.anonymize.timespace import T0_OFFSET_NS
+
+    out = {}
+    for clip in clips:
+        ego = lake.read_table("clean", "ego_poses", clip_id=clip)
+        if ego.num_rows == 0:
+            continue
+        agents = set(ego.column("agent_id").to_pylist())
+        poses = {a: ego.filter(pc.equal(ego.column("agent_id"), a)) for a in agents}
+        g = build_guide(clip, T0_OFFSET_NS, poses,
+                        lake.read_table("clean", "calibrated_sensors", clip_id=clip),
+                        lake.read_table("clean", "annotations", clip_id=clip),
+                        lake.read_table("clean", "lidar_frames", clip_id=clip),
+                        GuideConfig(min_face_px=cfg.region_min_face_px,
+                                    min_plate_px=cfg.region_min_plate_px, windows=False))
+        if g.boxes:
+            out[clip] = g
+    return out
+
+
+def _overlaps(box: Sequence[float], boxes: Sequence[Sequence[float]], frac: float = 0.3) -> bool:
+    """Whether ``frac`` of ``box`` lies under some box of ``boxes`` (grown by the blur
+    margin: the blur covers more than the detector's box)."""
+    x0, y0, x1, y1 = box
+    area = max((x1 - x0) * (y1 - y0), 1e-9)
+    for b in boxes:
+        mx, my = 0.2 * (b[2] - b[0]) + 2, 0.2 * (b[3] - b[1]) + 2
+        ix = max(0.0, min(x1, b[2] + mx) - max(x0, b[0] - mx))
+        iy = max(0.0, min(y1, b[3] + my) - max(y0, b[1] - my))
+        if ix * iy / area >= frac:
+            return True
+    return False
+
+
 def _recheck_images(
-    files: _Files, images: list[str], n: int, cfg: AuditConfig, detector: Any, report: AuditReport
+    files: _Files, images: list[str], n: int, cfg: AuditConfig, detector: Any,
+    report: AuditReport, frames: dict[str, _Frame], lake: Lake | None, zone: str,
 ) -> list[Finding]:
+    """Re-check a sample of dataset images with the audit's own plan: the whole frame, and
+    (clean zone of a clip with boxes) every projected head / plate location, which must be
+    blurred or hold nothing the audit's detector finds."""
     import cv2
 
     from v2xlake.tasks.anonymize.images import to_bgr8
 
     if detector is None:
-        from v2xlake.tasks.anonymize.run import AnonymizeConfig
-
-        detector = AnonymizeConfig().build_detector()
+        detector = audit_detector(cfg)
     idx = np.unique(np.linspace(0, len(images) - 1, min(n, len(images))).round().astype(int))
+    sample = [images[int(i)] for i in idx]
+    meta = [frames.get(files.rel(p)) for p in sample]
+    blurred = _blurred(frames, lake, zone)
+    guides = _guides(lake, zone, {m.clip for m in meta if m is not None}, cfg)
     out = []
-    for i in idx:
-        p = images[int(i)]
+    for p, m in zip(sample, meta, strict=True):
         img = cv2.imdecode(np.frombuffer(files.read(p), np.uint8), cv2.IMREAD_UNCHANGED)
+        rel = files.rel(p)
         if img is None:
-            out.append(Finding("unreadable", files.rel(p), "image does not decode"))
+            out.append(Finding("unreadable", rel, "image does not decode"))
             continue
         report.n_images_checked += 1
-        for d in detector.detect(to_bgr8(img)):
+        img8 = to_bgr8(img)
+        done = blurred.get((m.clip, m.agent, m.sensor, m.frame_idx), []) if m else []
+        found = list(detector.detect(img8))
+        g = guides.get(m.clip) if m is not None else None
+        regions = g.regions(m.agent, m.sensor, m.stamp_ns) if g is not None and m else None
+        for r in regions or []:
+            report.n_regions += 1
+            hits = [d for d in detector.in_regions(img8, [r]) if d.kind == r.kind]
+            if any(not _overlaps(d.box, done) for d in hits):
+                found += hits  # reported below
+            elif any(_overlaps(b, [r.box], 0.5) for b in done):
+                report.n_regions_blurred += 1
+            else:
+                report.n_regions_not_visible += 1
+        seen: list[tuple[float, ...]] = []
+        for d in found:
             thr = cfg.face_min_score if d.kind == "face" else cfg.plate_min_score
-            if d.score >= thr:
-                b = ", ".join(f"{v:.0f}" for v in d.box)
-                out.append(
-                    Finding(
-                        f"unblurred_{d.kind}",
-                        files.rel(p),
-                        f"{d.detector or 'detector'} score {d.score:.2f} at [{b}]",
-                    )
-                )
+            if d.score < thr or _overlaps(d.box, done) or _overlaps(d.box, seen, 0.5):
+                continue
+            seen.append(d.box)
+            b = ", ".join(f"{v:.0f}" for v in d.box)
+            out.append(Finding(f"unblurred_{d.kind}", rel,
+                               f"{d.detector or 'detector'} score {d.score:.2f} at [{b}]"))
     return out

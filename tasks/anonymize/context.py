@@ -64,17 +64,28 @@ class ClipGuide:
             return None
         T_ego_cam, intr = cam
         T_cam_world = invert(track.matrices(t)[0] @ T_ego_cam)
-        own = self.boxes[agent].at(t, self.config.max_age_ns) if agent in self.boxes else None
+        own = self._at(self.boxes[agent], t) if agent in self.boxes else None
         seen = set(own.instance.tolist()) if own is not None else set()
         parts = [own] if own is not None else []
         for other, b in self.boxes.items():
             if other == agent:
                 continue
-            ob = b.at(t, self.config.max_age_ns)
+            ob = self._at(b, t)
             keep = ~np.isin(ob.instance, list(seen)) if seen else np.ones(len(ob), bool)
             parts.append(_take(ob, keep))
             seen |= set(ob.instance[keep].tolist())
         return project_regions(WorldBoxes.concat(parts), T_cam_world, intr, self.config)
+
+
+    def _at(self, b: WorldBoxes, t: int) -> WorldBoxes:
+        """Boxes at time ``t``: annotated instances moved by their velocity; LiDAR clusters
+        (no identity across scans, no velocity) from the one scan nearest in time."""
+        if self.source == "lidar clusters" and len(b):
+            near = b.t_ns[np.argmin(np.abs(b.t_ns - t))]
+            if abs(int(near) - t) > self.config.max_age_ns:
+                return _take(b, np.zeros(len(b), bool))
+            return _take(b, b.t_ns == near)
+        return b.at(t, self.config.max_age_ns)
 
 
 def _take(b: WorldBoxes, m: np.ndarray) -> WorldBoxes:

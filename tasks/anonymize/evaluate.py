@@ -246,11 +246,13 @@ def match(
 
 # ------------------------------------------------------------------ simulator ground truth
 # Sizes from which the default setting is *reliable* (recall >= 0.95 at IoU >= 0.3), measured
-# on the simulator's visible boxes and on real faces pasted into street frames (README.md).
+# on the simulator's visible boxes at 640x360, 1920x1080 and 3840x2160 with the guided plan
+# (tests/test_anonymize_sim.py) and on real faces pasted into street frames (README.md).
 # Faces: box height; plates: box width, in pixels of the original frame.
-FACE_MIN_PX_NATIVE = 24  # frames scanned at native resolution (longest side < 1280, "fast")
-FACE_MIN_PX_FINE = 16  # frames scanned with the x2 fine pass (default, longest side >= 1280)
-PLATE_MIN_PX = 40
+FACE_MIN_PX = 16  # guided plan, any frame size
+PLATE_MIN_PX = 20  # guided plan, any frame size
+FACE_MIN_PX_NATIVE = 24  # full-frame plan without the x2 fine pass ("fast")
+FACE_MIN_PX_FINE = 16  # full-frame plan with the x2 fine pass (default)
 SIZE_BINS: dict[str, tuple[float, ...]] = {
     "face": (0, 8, 12, 16, 24, 32, 48, 1e9),
     "plate": (0, 16, 25, 30, 40, 60, 90, 1e9),
@@ -307,6 +309,22 @@ def sim_hits(
             size = b[3] - b[1] if kind == "face" else b[2] - b[0]
             out.append(SimTruthHit(key[0], key[1], key[2], kind, size, bool(f)))
     return out
+
+
+def false_blurs(truth: dict[str, list],
+                detections: Mapping[tuple[str, str, int], Sequence[Detection]],
+                iou: float = 0.1) -> float:
+    """Detections per image that overlap no true face / plate of their kind (visible or not,
+    any size: blurring a hidden or tiny face is not a false blur) at IoU >= ``iou``."""
+    boxes: dict[tuple[str, str, int], list[tuple[str, Box]]] = {}
+    for i, kind in enumerate(truth["kind"]):
+        if kind in ("face", "plate"):
+            key = (str(truth["agent"][i]), str(truth["camera"][i]), int(truth["stamp_ns"][i]))
+            boxes.setdefault(key, []).append((kind, (
+                float(truth["x0"][i]), float(truth["y0"][i]), float(truth["x1"][i]),
+                float(truth["y1"][i]))))
+    n = sum(match(boxes.get(k, []), d, iou)[1] for k, d in detections.items())
+    return n / max(len(detections), 1)
 
 
 def recall_by_size(hits: Sequence[SimTruthHit], kind: str) -> list[tuple[str, int, float]]:

@@ -60,15 +60,15 @@ class GuidedConfig:
     # vehicle faces where the plate is expected narrower than this (frame px) hold no legible
     # glyphs for the text detector: their rectified view is also searched for a plate-sized
     # (metres) rectangle that stands out from the body colour and holds texture (glyphs)
-    blob_below_px: float = 40.0
+    blob_below_px: float = 64.0
     plate_m: tuple[float, float, float, float] = (0.2, 0.7, 0.05, 0.3)  # w lo/hi, h lo/hi
     blob_min_fill: float = 0.6
     blob_min_contrast: float = 25.0  # colour distance (Lab units) from the body
     blob_min_texture: float = 12.0  # grey-level std inside the rectangle (glyphs)
     # the safety pass over the whole frame, shrunk to this longest side (None: no pass of
     # that kind): what has no box (missed by the LiDAR, not annotated) but is large
-    safety_face_max_side: int | None = 640
-    safety_plate_max_side: int | None = 640
+    safety_face_max_side: int | None = 480
+    safety_plate_max_side: int | None = 480
     # the full-frame plan of frames without guidance (no pose, no boxes, no calibration)
     full_face_scan: ScanConfig = field(default_factory=lambda: ScanConfig(
         max_side=1920, fine_scale=2.0, tile=2048, tile_overlap=160, upscale_min_side=0))
@@ -414,9 +414,11 @@ class GuidedDetector:
             out.append(Detection(kind, box, score, det.name))
         return out
 
-    def detect(self, image: np.ndarray, regions: Sequence[Region] | None = None
-               ) -> list[Detection]:
-        """``regions`` None: no guidance for this frame (full-frame plan)."""
+    def detect(self, image: np.ndarray, regions: Sequence[Region] | None = None,
+               full_safety: bool = False) -> list[Detection]:
+        """``regions`` None: no guidance for this frame (full-frame plan). ``full_safety``:
+        the regions are less trusted (LiDAR clusters): the full-frame plan is the safety."""
         if regions is None:
             return self.full_frame(image)
-        return nms(self.in_regions(image, regions) + self.safety(image), 0.3)
+        safety = self.full_frame(image) if full_safety else self.safety(image)
+        return nms(self.in_regions(image, regions) + safety, 0.3)

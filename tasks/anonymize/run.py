@@ -29,7 +29,9 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import AnonymizationAuditRow
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import calibrations, pose_samples
 from v2xlake.tasks.anonymize.blur import BlurConfig, blur_boxes
+from v2xlake.tasks.anonymize.clusters import cluster_boxes, yaw_quat
 from v2xlake.tasks.anonymize.context import ClipGuide, build_guide
 from v2xlake.tasks.anonymize.detectors import (
     CenterFaceDetector,
@@ -41,12 +43,13 @@ from v2xlake.tasks.anonymize.detectors import (
     HaarPlateDetector,
     ScanConfig,
 )
-from v2xlake.tasks.anonymize.guide import GuideConfig
+from v2xlake.tasks.anonymize.guide import GuideConfig, WorldBoxes, world_boxes_from_sensor
 from v2xlake.tasks.anonymize.guided import GuidedConfig, GuidedDetector
 from v2xlake.tasks.anonymize.images import decode_image, encode_image, to_bgr8
 from v2xlake.tasks.anonymize.temporal import fill_gaps
 from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
 from v2xlake.tasks.anonymize.timespace import (
+    T0_OFFSET_NS,
     clip_t0_abs,
     gnss_to_local,
     ins_to_ego_poses,
@@ -57,6 +60,7 @@ from v2xlake.tasks.anonymize.timespace import (
     shift_times,
 )
 from v2xlake.tasks.geodesy import LocalFrame
+from v2xlake.tasks.interpolate import PoseTrack
 
 log = logging.getLogger(__name__)
 STAGE = "anonymize"
@@ -113,13 +117,18 @@ class AnonymizeConfig(BaseModel):
     region_margin_px: float = Field(
         12.0, description="projected regions grown by this (calibration and timing errors)")
     region_margin_frac: float = Field(0.25, description="... plus this share of their size")
+    lidar_clusters: bool = Field(
+        True, description="a clip without annotations is guided by LiDAR clusters")
+    cluster_full_frame: bool = Field(
+        True, description="regions from LiDAR clusters miss more than annotated ones (merged "
+        "or partial objects): the full-frame plan is then their safety pass")
     box_max_age_ms: float = Field(
         250.0, description="a 3D box is moved (by its velocity) to images this far in time")
     safety_face_max_side: int | None = Field(
-        640, description="guided plan: full-frame face pass on the frame shrunk to this "
+        480, description="guided plan: full-frame face pass on the frame shrunk to this "
         "longest side (large faces without a box; None: off)")
     safety_plate_max_side: int | None = Field(
-        640, description="guided plan: full-frame plate pass, likewise (None: off)")
+        480, description="guided plan: full-frame plate pass, likewise (None: off)")
     # "text": PP-OCRv4's DB text detector + plate geometry (textplate.py); "classic": edge /
     # MSER rules without weights (many false plates on real streets: kept for comparison)
     plate_detector: Literal["text", "classic", "haar", "text+classic", "classic+haar", "none"] = (
@@ -127,7 +136,7 @@ class AnonymizeConfig(BaseModel):
     )
     plate_upscale: float = 1.0  # classic detector only
     region_blob_below_px: float = Field(
-        40.0, description="vehicle faces whose plate is expected narrower than this (px) are "
+        64.0, description="vehicle faces whose plate is expected narrower than this (px) are "
         "also searched for a plate-sized textured rectangle (no legible glyphs for the text "
         "detector there); 0: never")
     plate_box_threshold: float = Field(
@@ -391,9 +400,55 @@ def _stream_points(
 
 
 def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Table]],
-                   cfg: AnonymizeConfig) -> dict | None:
-    """Object boxes from LiDAR clusters when the clip has no annotations (not yet)."""
-    return None
+                   cfg: AnonymizeConfig) -> dict[str, WorldBoxes] | None:
+    """Object boxes from LiDAR clusters (``clusters.py``), one set per scan, in the clip
+    world, for clips without annotations; None when the clip has annotations (or no LiDAR,
+    or no poses)."""
+    if not cfg.lidar_clusters or not ego:
+        return None
+    if lake.read_table("raw", "annotations", clip_id=clip_id, columns=["frame_idx"]).num_rows:
+        return None
+    frames = lake.read_table("raw", "lidar_frames", clip_id=clip_id)
+    calib = lake.read_table("raw", "calibrated_sensors", clip_id=clip_id)
+    if frames.num_rows == 0 or calib.num_rows == 0:
+        return None
+    fd = frames.select(["agent_id", "sensor", "frame_idx", "t_start_ns"]).to_pydict()
+    start = {(a, s, int(f)): int(t) for a, s, f, t in zip(
+        fd["agent_id"], fd["sensor"], fd["frame_idx"], fd["t_start_ns"], strict=True)}
+    out: dict[str, WorldBoxes] = {}
+    for path, agent, _name in _partition_files(lake, "raw", "lidar_points", clip_id):
+        if agent is None or agent not in ego:
+            continue
+        samples = pose_samples(pa.concat_tables(ego[agent]), clip_id, agent)
+        track = PoseTrack.create(samples.t_ns, samples.xyz, samples.quat_wxyz)
+        sensors = calibrations(calib.filter(pc.equal(calib.column("agent_id"), agent)),
+                               clip_id, agent)
+        pf = pq.ParquetFile(lake.fs.open_input_file(path))
+        parts = []
+        for i in range(pf.num_row_groups):
+            g = pf.read_row_group(i, columns=["sensor", "frame_idx", "x", "y", "z"])
+            if g.num_rows == 0:
+                continue
+            sensor, fidx = str(g.column("sensor")[0]), int(g.column("frame_idx")[0].as_py())
+            t = start.get((agent, sensor, fidx))
+            if t is None or sensor not in sensors:
+                continue
+            t_rel = t - t0 + T0_OFFSET_NS
+            if not bool(track.covers(t_rel)):
+                continue
+            xyz = np.stack([g.column(c).to_numpy() for c in ("x", "y", "z")], 1)
+            T_ego = sensors[sensor].T_ego_sensor
+            c, size, yaw, cat = cluster_boxes(xyz @ T_ego[:3, :3].T + T_ego[:3, 3])
+            if not len(c):
+                continue
+            m = len(c)
+            parts.append(world_boxes_from_sensor(
+                np.full(m, t_rel, np.int64), np.broadcast_to(track.matrices(t_rel)[0], (m, 4, 4)),
+                c, size, yaw_quat(yaw), np.zeros((m, 3)), cat,
+                np.array([f"lidar:{agent}:{sensor}:{fidx}:{k}" for k in range(m)])))
+        if parts:
+            out[agent] = WorldBoxes.concat(parts)
+    return out or None
 
 
 def _encode(img: np.ndarray, key: str, cfg: AnonymizeConfig) -> tuple[bytes, str]:
@@ -452,7 +507,8 @@ def _anonymize_images(
         key, agent, sensor, stamp = item
         img = decode(key, agent)
         regions = guide.regions(agent, sensor, stamp) if guide is not None else None
-        return img, detector.detect(to_bgr8(img), regions), regions is not None
+        full = cfg.cluster_full_frame and guide is not None and guide.source == "lidar clusters"
+        return img, detector.detect(to_bgr8(img), regions, full), regions is not None
 
     def finish(img: np.ndarray, key: str, dets: list[Detection]) -> tuple[str, str]:
         out = img.copy()
