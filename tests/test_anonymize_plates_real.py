@@ -3,7 +3,7 @@
 * ``plates_eu/``: 108 real photos of European cars, one labelled plate each (openalpr's
   benchmark, AGPL test data read in place: skipped when the folder is absent). Recall at IoU
   >= 0.3 must be >= 0.95 (the issue's target; 107/108 measured).
-* the real street images of ``images/labels.json``: at most 0.5 false plate blurs per image
+* the real street images of ``images/labels.json``: at most 0.5 false blurs per image
   and 0.5 % of the image area (the classic detector made 82 on one of them).
 * the DB post-processing (probability map -> text lines) is a pure function, tested on a map
   with known lines; the model comes from the installed wheel, identified by its hash.
@@ -66,5 +66,16 @@ def test_plates_eu_recall(detector: TextPlateDetector) -> None:
 def test_few_false_plates_on_real_streets(detector: TextPlateDetector) -> None:
     s = score_real(street_images(STREETS), detector.detect, kinds=("plate",))
     assert s.n_images >= 3
+    assert s.false_per_image <= 0.5, s
+    assert max(s.false_area) <= 0.005, s
+
+
+@pytest.mark.skipif(not STREETS.is_dir(), reason="real street images not present")
+def test_default_detector_few_false_blurs_on_real_streets() -> None:
+    """Faces and plates together, with the plan a frame without pose or LiDAR gets (the
+    full-frame plan: faces in a coarse and an x2 pass at a score of 0.5, plates natively)."""
+    from v2xlake.tasks.anonymize.run import AnonymizeConfig
+
+    s = score_real(street_images(STREETS), AnonymizeConfig().build_detector().detect)
     assert s.false_per_image <= 0.5, s
     assert max(s.false_area) <= 0.005, s

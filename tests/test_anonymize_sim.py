@@ -1,11 +1,12 @@
 """Recall of the anonymization stage on the simulator's ground truth, at every frame size.
 
-simulate (small preset at 640x360, 1920x1080 and 3840x2160; 5 Hz) -> ingest -> run_anonymize
-with the default (guided) plan -> the clean zone's anonymization_audit is matched against
-``truth/boxes2d.parquet`` at IoU >= 0.3. The population is what a person could identify and
-what the stage documents as reliable: visible (``occluded`` false) faces from
-``FACE_MIN_PX`` (16) px tall and plates from ``PLATE_MIN_PX`` (20) px wide; recall >= 0.95 for
-each. Smaller objects are measured and reported (README.md) but not asserted. False blurs
+simulate (small preset at 640, 1920 and 3840 px wide: 640x360 / 1920x1080 / 3840x2160 front
+cameras, one agent's side cameras 640x512 / 1920x1536 / 3840x3072; 5 Hz) -> ingest ->
+run_anonymize with the default (guided) plan -> the clean zone's anonymization_audit is
+matched against ``truth/boxes2d.parquet`` at IoU >= 0.3. The population is what a person
+could identify and what the stage documents as reliable: visible (``occluded`` false) faces
+from ``FACE_MIN_PX`` (16) px tall and plates from ``PLATE_MIN_PX`` (20) px wide; recall >= 0.95
+for each. Smaller objects are measured and reported (README.md) but not asserted. False blurs
 (detections overlapping no true face / plate, visible or not) stay under 0.5 per image.
 """
 
