@@ -56,3 +56,17 @@ def test_jpeg_clean_zone(jpeg_lake: Lake) -> None:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
         assert img is not None and img.shape[:2] == (cf["height"][0], cf["width"][0])
         assert "centerface@" in anonymizer and "text-plate@" in anonymizer
+
+
+def test_chunking_does_not_change_the_result(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Frames of a camera go in chunks with one frame of look-ahead: one frame per chunk and
+    one chunk for all give the same images, blurs and counts."""
+    out = []
+    for n in (1, 16):
+        lk = Lake(tmp_path_factory.mktemp(f"lake_chunk{n}"))
+        build_raw_clip(lk, n_images=3)
+        rep = run_anonymize(lk, CLIP, AnonymizeConfig(frames_per_chunk=n))
+        cf = lk.read_table("clean", "camera_frames", clip_id=CLIP).to_pydict()
+        out.append((sorted(cf["sha256"]), rep.metrics["n_images_guided"],
+                    rep.metrics["n_faces"], rep.metrics["n_plates"]))
+    assert out[0] == out[1]

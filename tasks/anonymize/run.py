@@ -549,24 +549,27 @@ def _anonymize_images(
                     images: dict[int, np.ndarray] = {}
                     for i, (img, found, guided) in zip(todo, pool.map(detect, items),
                                                         strict=True):
-                        known[i] = found
+                        known[i] = found  # every frame is detected once (chunk or look-ahead)
+                        n_guided += guided
                         if i in chunk:
                             images[i] = img
-                            n_guided += guided
+                    # the detector's own boxes (``known``) are the evidence for the fill, never
+                    # the filled ones: the result does not depend on the chunk size
+                    final = {i: known[i] for i in chunk}
                     if cfg.temporal_fill:
                         order = rows[max(c0 - 1, 0) : c0 + len(chunk) + 1]
                         add = fill_gaps([known[i] for i in order], [stamps[i] for i in order],
                                         gap_ns)
                         for i, extra in zip(order, add, strict=True):
-                            if i in images:
-                                known[i] = known[i] + extra
+                            if i in final:
+                                final[i] = known[i] + extra
                     missing = [i for i in chunk if i not in images]  # the previous look-ahead
                     for i in missing:
                         images[i] = decode(keys[i], agent_col[i])
-                    jobs = [(images[i], keys[i], known[i]) for i in chunk]
+                    jobs = [(images[i], keys[i], final[i]) for i in chunk]
                     for i, res in zip(chunk, pool.map(lambda j: finish(*j), jobs), strict=True):
                         result[i] = res
-                        dets[i] = known[i]
+                        dets[i] = final[i]
                         done += 1
                         if progress:
                             progress(done, total)
