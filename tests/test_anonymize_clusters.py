@@ -75,3 +75,18 @@ def test_rectified_face_of_a_car_seen_from_behind() -> None:
     assert np.allclose(piece.to_frame(np.array([0, 0, piece.out_w, piece.out_h]), 1280, 720),
                        [min(p[0] for p in rear.quad), min(p[1] for p in rear.quad),
                         max(p[0] for p in rear.quad), max(p[1] for p in rear.quad)], atol=1.0)
+
+
+def test_boxes_without_velocity_move_with_their_track() -> None:
+    """Annotations without velocities: a car at 10 m/s along x, boxes every 100 ms; at an
+    image 50 ms after a box, it is where it drove to (not where the box left it)."""
+    from v2xlake.tasks.anonymize.guide import world_boxes_from_sensor
+
+    t = np.arange(4) * 100_000_000
+    c = np.stack([np.arange(4) * 1.0, np.zeros(4), np.zeros(4)], 1)
+    wb = world_boxes_from_sensor(t, np.eye(4), c, np.tile([1.8, 4.5, 1.5], (4, 1)),
+                                 np.tile([1.0, 0, 0, 0], (4, 1)), np.full((4, 3), np.nan),
+                                 np.array(["Car"] * 4), np.array(["a"] * 4))
+    assert np.allclose(wb.velocity, [[10.0, 0, 0]] * 4)
+    at = wb.at(150_000_000, 250_000_000)
+    assert len(at) == 1 and at.center[0, 0] == pytest.approx(1.5)

@@ -237,7 +237,30 @@ def _face_quad(centre: np.ndarray, size: np.ndarray, quat: np.ndarray, name: str
 def world_boxes_from_sensor(t_ns: np.ndarray, T_world_sensor: np.ndarray, center: np.ndarray,
                             size: np.ndarray, quat: np.ndarray, velocity: np.ndarray,
                             category: np.ndarray, instance: np.ndarray) -> WorldBoxes:
-    """Boxes given in a sensor frame (one ``T_world_sensor`` per row) -> world boxes."""
-    c, q, v = transform_boxes(T_world_sensor, center, quat, np.nan_to_num(velocity))
-    return WorldBoxes(np.asarray(t_ns, np.int64), c, np.asarray(size, float), q, v,
-                      np.asarray(category).astype(str), np.asarray(instance).astype(str))
+    """Boxes given in a sensor frame (one ``T_world_sensor`` per row) -> world boxes. Rows
+    without a velocity (many datasets annotate none) get their instance's track velocity."""
+    vel = np.asarray(velocity, float)
+    missing = ~np.isfinite(vel).all(1)
+    c, q, v = transform_boxes(T_world_sensor, center, quat, np.nan_to_num(vel))
+    t = np.asarray(t_ns, np.int64)
+    inst = np.asarray(instance).astype(str)
+    if missing.any():
+        v[missing] = track_velocity(t, c, inst)[missing]
+    return WorldBoxes(t, c, np.asarray(size, float), q, v, np.asarray(category).astype(str),
+                      inst)
+
+
+def track_velocity(t_ns: np.ndarray, centre: np.ndarray, instance: np.ndarray) -> np.ndarray:
+    """(M, 3) world velocity of each box from its instance's neighbouring boxes in time
+    (central differences; one-sided at the ends; zero for an instance seen once)."""
+    out = np.zeros((len(t_ns), 3))
+    for name in np.unique(instance):
+        idx = np.flatnonzero(instance == name)
+        idx = idx[np.argsort(t_ns[idx], kind="stable")]
+        t = t_ns[idx].astype(np.float64) * 1e-9
+        keep = np.concatenate([[True], np.diff(t) > 0])  # one box per time (several agents)
+        idx, t = idx[keep], t[keep]
+        if len(idx) < 2:
+            continue
+        out[idx] = np.stack([np.gradient(centre[idx, k], t) for k in range(3)], 1)
+    return out
