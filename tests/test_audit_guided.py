@@ -10,6 +10,7 @@ diagnostic plot outside the dataset's images is never re-checked.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -106,3 +107,32 @@ def test_plots_are_not_dataset_images(tmp_path: Path) -> None:
     (rel / "bev_0001.png").write_bytes(buf.tobytes())
     rep = audit(None, rel, sample_images=10)
     assert rep.ok and rep.n_images_checked == 0, rep.summary()
+
+
+def test_face_behind_a_window_is_found_by_the_blur(lake: tuple[Lake, str]) -> None:
+    """A real face pasted (16-24 px, the reliable range) into a vehicle's projected window
+    band: the anonymizer's guided plan finds it there."""
+    from v2xlake.tasks.anonymize.evaluate import match
+
+    lk, clip_id = lake
+    frames = _lake_frames(lk, "clean", None)  # type: ignore[arg-type]
+    assert frames
+    guide = _guides(lk, "clean", {clip_id}, AuditConfig())[clip_id]
+    guide.config = replace(guide.config, windows=True)
+    det = AnonymizeConfig().build_detector()
+    photo, face_box = real_faces()["grace_hopper"]
+    tried = 0
+    for rel, m in sorted(frames.items()):
+        regs = guide.regions(m.agent, m.sensor, m.stamp_ns) or []
+        for r in (r for r in regs if r.part == "window" and 16 <= r.expected_px <= 40):
+            img = decode_image(lk.read_blob("clean", rel.removeprefix("blobs/")))
+            fh = int(max(16, min(r.expected_px, 24)))
+            x = int((r.box[0] + r.box[2]) / 2 - fh / 2)
+            y = int((r.box[1] + r.box[3]) / 2 - fh / 2)
+            truth = paste_face(img, photo, face_box, fh, x, y, body_max=0)
+            found, _ = match([("face", truth)], det.detect(img, regs))
+            assert found.all(), (rel, r, truth)
+            tried += 1
+            if tried >= 3:
+                return
+    assert tried > 0, "no window band of the expected size in the clip"
