@@ -91,9 +91,12 @@ def main() -> int:
             server = start_server(home / "prefect")
             api_url = server.api_url
         env["PREFECT_API_URL"] = api_url
-        # what every remote process needs, and nothing of this shell's state
+        # what every remote process needs, and nothing of this shell's state; a worker's
+        # console is its log file, where each task run's lines belong (a quiet CLI in this
+        # shell must not silence them)
         worker_env = dict(os.environ, **env, PREFECT_HOME=str(home / "prefect-client"),
                           DO_NOT_TRACK="1", PREFECT_SERVER_ANALYTICS_ENABLED="false",
+                          PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL="INFO",
                           PYTHONPATH=os.pathsep.join(
                               p for p in (str(REPO), args.pythonpath) if p))
         sched = start_dask_scheduler(home, env=worker_env)

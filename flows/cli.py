@@ -98,7 +98,7 @@ ParamsOpt = Annotated[Path | None, typer.Option(
 def _console(stderr: bool = False) -> Any:
     from rich.console import Console
 
-    return Console(stderr=stderr, highlight=False)
+    return Console(stderr=stderr, highlight=False, soft_wrap=True)
 
 
 def _csv(text: str | None) -> list[str] | None:
@@ -435,6 +435,20 @@ def export(
     return 0
 
 
+def known_clip(lake: str, clip: str) -> Any:
+    """The lake, after checking that ``clip`` is a well-formed id of a processed clip."""
+    from v2xlake.storage.lake import checked_clip_id
+
+    the_lake = open_lake(lake)
+    try:
+        checked_clip_id(the_lake, clip)
+    except ValueError as e:
+        raise UserError(str(e)) from e
+    if not the_lake.exists(the_lake.table_dir("clean", "clips", clip)):
+        raise UserError(f"unknown clip {clip!r} in {lake}")
+    return the_lake
+
+
 @app.command()
 def view(
     clip: Annotated[str, typer.Argument(help="clip id")],
@@ -446,16 +460,9 @@ def view(
     = None,
 ) -> int:
     """Look at a clip: a PNG of one cooperative sample and an MCAP that Foxglove opens."""
-    from v2xlake.storage.lake import checked_clip_id
     from v2xlake.tasks.export.view import ViewConfig, view_clip
 
-    the_lake = open_lake(lake)
-    try:
-        checked_clip_id(the_lake, clip)
-    except ValueError as e:
-        raise UserError(str(e)) from e
-    if not the_lake.exists(the_lake.table_dir("clean", "clips", clip)):
-        raise UserError(f"unknown clip {clip!r} in {lake}")
+    the_lake = known_clip(lake, clip)
     paths = view_clip(the_lake, clip, out, ViewConfig(png=png, mcap=mcap, sample=sample))
     for p in paths:
         _console().print(str(p))
@@ -490,7 +497,7 @@ def plot_registration(
     """Bird's-eye view of one frame's registration before and after refinement."""
     from v2xlake.tasks.register.stage import plot_registration as run_plot
 
-    the_lake = open_lake(lake)
+    the_lake = known_clip(lake, clip)
     if frame is None:
         frames = sorted(set(the_lake.read_table("clean", "registrations", clip_id=clip,
                                                 columns=["frame_idx"]).column(0).to_pylist()))
@@ -499,6 +506,42 @@ def plot_registration(
         frame = frames[len(frames) // 2]
     path = run_plot(the_lake, clip, frame, out)
     _console().print(f"registration of clip {clip}, frame {frame} -> {path}")
+    return 0
+
+
+@app.command()
+def calibration(
+    clip: Annotated[str, typer.Argument(help="clip id")],
+    lake: LakeOpt = DEFAULT_LAKE,
+    fmt: Annotated[Format, typer.Option("--format")] = Format.table,
+) -> int:
+    """Published vs refined LiDAR extrinsics per agent and sensor: the clip solve's
+    correction (LiDAR frame), its 1-sigma, and which one deskew, alignment and exports use."""
+    from v2xlake.tasks.register.calibration import compare_calibration, format_calibration
+
+    rows = compare_calibration(known_clip(lake, clip), clip)
+    if not rows:
+        raise UserError(f"clip {clip} has no LiDAR calibration in {lake}")
+    if fmt is Format.table:
+        _console().print(format_calibration(rows))
+        return 0
+    out = [{"agent_id": r.agent_id, "sensor": r.sensor,
+            "published_T_ego_sensor": r.published.tolist(),
+            "refined_T_ego_sensor": None if r.refined is None else r.refined.tolist(),
+            "correction_m": r.correction_m, "correction_deg": r.correction_deg,
+            "std_m": r.std_m if r.refined is not None else None,
+            "std_deg": r.std_deg if r.refined is not None else None,
+            "refined_components": r.refined_components, "usable": r.usable,
+            "used": r.effective} for r in rows]
+    if fmt is Format.json:
+        sys.stdout.write(json.dumps(out, indent=1) + "\n")
+    else:
+        import csv
+
+        w = csv.writer(sys.stdout)
+        keys = [k for k in out[0] if not k.endswith("T_ego_sensor")]
+        w.writerow(keys)
+        w.writerows([[o[k] for k in keys] for o in out])
     return 0
 
 

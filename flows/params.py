@@ -23,6 +23,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from v2xlake.schemas.clip import load_yaml
 from v2xlake.schemas.stage import Stage
 from v2xlake.tasks.align.stage import AlignConfig
 from v2xlake.tasks.annotate.core import AnnotateConfig
@@ -118,7 +119,7 @@ def load_params(path: str | Path | None) -> PipelineParams:
     if path is None:
         return PipelineParams()
     try:
-        data = yaml.safe_load(Path(path).read_text())
+        data = load_yaml(Path(path).read_text())
     except OSError as e:
         raise ParamsError(f"cannot read parameters file {path}: {e.strerror}") from e
     except yaml.YAMLError as e:
@@ -132,7 +133,7 @@ def clip_params(clip_dir: str | Path) -> dict[str, Any]:
     """The ``params:`` block of a clip folder's clip.yaml ({} when absent or unreadable:
     reading the contract properly, with a clear error, is ingest's job)."""
     try:
-        data = yaml.safe_load((Path(clip_dir) / "clip.yaml").read_text())
+        data = load_yaml((Path(clip_dir) / "clip.yaml").read_text())
     except (OSError, yaml.YAMLError):
         return {}
     block = data.get("params") if isinstance(data, dict) else None

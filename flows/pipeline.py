@@ -22,6 +22,7 @@ clip has its own flow run and state, and one bad clip never stops the others.
 
 from __future__ import annotations
 
+import contextvars
 import importlib
 import re
 import time
@@ -43,9 +44,10 @@ from pydantic import BaseModel
 
 from v2xlake.flows import bookkeeping
 from v2xlake.flows.params import ParamsError, clip_params, parse_params
+from v2xlake.schemas.clip import load_yaml
 from v2xlake.schemas.errors import ClipError, DeliveryConflict
 from v2xlake.schemas.stage import Stage, StageReport
-from v2xlake.storage.lake import CLIP_ID, Lake
+from v2xlake.storage.lake import CLIP_ID, Lake, LakeWriteError
 from v2xlake.tasks.align.stage import ALIGN
 from v2xlake.tasks.annotate.stage import ANNOTATE
 from v2xlake.tasks.anonymize.stage import ANONYMIZE
@@ -119,7 +121,7 @@ def peek_clip_id(clip_dir: str | Path) -> str:
     like an existing clip must never be taken for it."""
     path = Path(clip_dir) / "clip.yaml"
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text())
         cid = data.get("clip_id") if isinstance(data, dict) else None
         if isinstance(cid, str) and CLIP_ID.fullmatch(cid):
             return cid
@@ -132,11 +134,19 @@ def _artifact_key(*parts: str) -> str:
     return re.sub(r"[^a-z0-9-]+", "-", "-".join(parts).lower()).strip("-")[:100]
 
 
+#: Failures that a retry reproduces exactly: bad input, a lake that cannot take the write
+#: (disk full, permissions) and programming errors. Retrying them only triples the time to
+#: the error; what is left (network, timeouts, a lost worker) is worth another try.
+DETERMINISTIC: tuple[type[BaseException], ...] = (
+    ClipError, LakeWriteError, ValueError, TypeError, KeyError, IndexError, AttributeError,
+    ArithmeticError, AssertionError, NotImplementedError, MemoryError)
+
+
 def _no_retry_on_bad_input(task: Any, task_run: Any, state: Any) -> bool:
-    """Retry transient failures only: bad input stays bad."""
+    """Retry transient failures only: bad input stays bad, and so does a bug."""
     try:
         state.result()
-    except ClipError:
+    except DETERMINISTIC:
         return False
     except Exception:
         return True
@@ -296,6 +306,11 @@ def process_clip(clip_dir: str, lake: str, stages: list[str] | None = None,
     chosen = select(resolve_pipeline(pipeline), stages)
     run_params = parse_params(params)
     clip_id = peek_clip_id(clip_dir)
+    if CLIP_ID.fullmatch(clip_id):  # what a killed earlier run of this clip left behind
+        swept = the_lake.sweep(clip_id)
+        if swept:
+            logger.info("%s: removed %d staging folder(s) of dead runs (%d rolled forward)",
+                        clip_id, len(swept.runs), len(swept.rolled_forward))
     summary: dict[str, Any] = {
         "clip_dir": str(clip_dir), "clip_id": clip_id, "status": "ok", "error": None,
         "quarantine_report": None, "stages": [],
@@ -414,7 +429,10 @@ def process_clips(clip_dirs: list[str], lake: str, stages: list[str] | None = No
 
             # a few clips' flows at a time here; their stages and chunks run on the workers
             with ThreadPoolExecutor(max_workers=max(1, min(len(dirs), threads))) as pool:
-                results = list(pool.map(one, dirs))
+                # each thread runs in a copy of this context: Prefect's settings and client
+                # live in context variables, which plain threads do not inherit
+                futures = [pool.submit(contextvars.copy_context().run, one, d) for d in dirs]
+                results = [f.result() for f in futures]
     bookkeeping.refresh_catalog(Lake(lake))
     bad = [r for r in results if r["status"] != "ok"]
     logger.info("%d clip(s) processed, %d ok, %d not", len(results), len(results) - len(bad),

@@ -24,6 +24,15 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from v2xlake.schemas.calibration import CameraIntrinsics
 from v2xlake.schemas.geometry import Transform
 
+#: libyaml's loader when PyYAML was built with it: a clip.yaml is parsed by several stages
+#: and by every no-op check, and the pure-Python loader takes milliseconds on a large one.
+_SafeLoader: type[yaml.SafeLoader] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+def load_yaml(text: str | bytes) -> Any:
+    """Parse YAML safely (no Python objects), with libyaml when available."""
+    return yaml.load(text, Loader=_SafeLoader)
+
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_\-]*$"
 
 
@@ -503,9 +512,7 @@ class ClipConfig(_Strict):
 
     @classmethod
     def load(cls, clip_dir: str | Path) -> ClipConfig:
-        path = Path(clip_dir) / "clip.yaml"
-        with path.open() as f:
-            return cls.model_validate(yaml.safe_load(f))
+        return cls.model_validate(load_yaml((Path(clip_dir) / "clip.yaml").read_text()))
 
     def dump(self, clip_dir: str | Path) -> Path:
         path = Path(clip_dir) / "clip.yaml"

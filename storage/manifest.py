@@ -16,9 +16,9 @@ Output files are checked to still exist, so deleting a table re-runs the stage t
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
-import os
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -32,6 +32,7 @@ from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import ManifestRow
 from v2xlake.storage import checksum
 from v2xlake.storage.lake import Lake
+from v2xlake.storage.statcache import file_checksum
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -85,19 +86,6 @@ class Manifest(BaseModel):
 
 
 # --------------------------------------------------------------------------- hashing
-_FILE_SUM: dict[tuple[str, int, int], str] = {}
-
-
-def file_checksum(path: str | Path) -> str:
-    """Checksum of a local file; remembered per (path, size, mtime) within the process, so a
-    scheduler re-checking the same landing folders does not re-read gigabytes of bags."""
-    st = os.stat(path)
-    key = (str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
-    if key not in _FILE_SUM:
-        _FILE_SUM[key] = checksum.of_file(path)
-    return _FILE_SUM[key]
-
-
 def lake_file_checksum(lake: Lake, path: str) -> str:
     with lake.fs.open_input_stream(path) as f:
         return checksum.of_stream(f)
@@ -116,6 +104,7 @@ def params_hash(config: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+@functools.cache
 def package_version() -> str:
     try:
         return metadata.version("v2xlake")
@@ -123,9 +112,7 @@ def package_version() -> str:
         return "0+unknown"
 
 
-def code_hash(paths: Iterable[str | Path]) -> str:
-    """Hash of every ``.py`` (and ``.msg``) file under the given files/folders, by relative path."""
-    h = hashlib.sha256()
+def _code_files(paths: Iterable[str | Path]) -> list[Path]:
     files: list[Path] = []
     for p in paths:
         p = Path(p)
@@ -134,7 +121,17 @@ def code_hash(paths: Iterable[str | Path]) -> str:
             files.extend(f for f in p.rglob("*") if f.suffix in (".py", ".msg") and f.is_file())
         elif p.is_file():
             files.append(p)
-    for f in sorted(set(files)):
+    return sorted(set(files))
+
+
+def code_hash(paths: Iterable[str | Path]) -> str:
+    """Hash of every ``.py`` (and ``.msg``) file under the given files/folders, by relative path."""
+    return _hash_files(_code_files(paths))
+
+
+def _hash_files(files: Iterable[Path]) -> str:
+    h = hashlib.sha256()
+    for f in files:
         rel = f.relative_to(REPO).as_posix() if f.is_relative_to(REPO) else f.name
         h.update(rel.encode() + b"\0" + f.read_bytes() + b"\0")
     return h.hexdigest()[:16]
@@ -176,16 +173,45 @@ def module_closure(module: str) -> list[Path]:
     return sorted(set(seen.values()))
 
 
+_Stamp = tuple[tuple[str, int, int], ...]
+_CODE_MEMO: dict[tuple[str, tuple[str, ...] | None], tuple[list[Path], _Stamp, str]] = {}
+
+
+def _stamp(files: Sequence[Path]) -> _Stamp:
+    """(mtime, size) of the files and of their folders: an edit changes a file's, a module
+    added to or removed from a package changes its folder's."""
+    out = []
+    for p in sorted({*files, *(f.parent for f in files)}):
+        try:
+            st = p.stat()
+            out.append((str(p), st.st_mtime_ns, st.st_size))
+        except OSError:
+            out.append((str(p), -1, -1))
+    return tuple(out)
+
+
 def code_version(stage: str, code_paths: Sequence[str | Path] | None = None) -> str:
     """``<package version>+<hash of the stage's source closure>``; ``code_paths`` overrides
-    (a stage outside the registry hashes its own file)."""
+    (a stage outside the registry hashes its own file).
+
+    Remembered per process while none of the closure's files and folders changed their stat:
+    parsing the closure with ``ast`` for every stage of every clip was 80 % of a no-op re-run
+    check (docs/scale.md); a re-stat costs ~1 ms per stage."""
+    memo_key = (stage, None if code_paths is None else tuple(map(str, code_paths)))
+    hit = _CODE_MEMO.get(memo_key)
+    if hit is not None and _stamp(hit[0]) == hit[1]:
+        return hit[2]
     if code_paths is not None:
         paths: list[str | Path] = list(code_paths)
     elif stage in STAGE_MODULES:
         paths = list(module_closure(STAGE_MODULES[stage]))
     else:
         paths = [REPO / "schemas"]
-    return f"{package_version()}+{code_hash(paths)}"
+    files = _code_files(paths)
+    stamp = _stamp(files)
+    version = f"{package_version()}+{_hash_files(files)}"
+    _CODE_MEMO[memo_key] = (files, stamp, version)
+    return version
 
 
 # --------------------------------------------------------------------------- API

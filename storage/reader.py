@@ -32,6 +32,7 @@ import pyarrow.parquet as pq
 
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.geometry import transform
+from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 
 DESKEWED = "lidar_points_deskewed"
@@ -359,6 +360,23 @@ def pose_missing(lake: Lake, clip_id: str, agent_id: str) -> str | None:
         return "agents.has_ins is false"
     ego = read(lake, "ego_poses", clip_id, agent_id, columns=["t_ns"])
     return None if ego.num_rows else "no clean ego_poses rows"
+
+
+def no_pose_report(lake: Lake, clip_id: str, stage: str, why_needed: str,
+                   agents: Sequence[str] | None = None) -> StageReport | None:
+    """A ``not_applicable`` report when none of the clip's agents (or of ``agents``) has a
+    pose track, else None. A recording without an INS is still worth its anonymized images
+    and raw scans: the stages that need poses say so instead of quarantining the clip (which
+    would delete what the earlier stages made)."""
+    if agents is None:
+        rows = read(lake, "agents", clip_id)
+        agents = rows.column("agent_id").to_pylist() if rows.num_rows else []
+    without = {a: why for a in agents if (why := pose_missing(lake, clip_id, a))}
+    if not agents or len(without) < len(agents):
+        return None
+    return StageReport.not_applicable(
+        stage, clip_id, "no agent has a pose track (" + "; ".join(
+            f"{a}: {w}" for a, w in without.items()) + f"): {why_needed}")
 
 
 def read_pose_samples(lake: Lake, clip_id: str, agent_id: str) -> PoseSamples:

@@ -28,6 +28,14 @@ REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Bag checksums remembered across processes go to a file of this run, not ~/.v2xlake."""
+    import tempfile
+
+    os.environ.setdefault("V2XLAKE_CHECKSUM_CACHE",
+                          str(Path(tempfile.mkdtemp(prefix="v2xlake-sums-")) / "sums.sqlite"))
+
+
 def _free_port() -> int:
     import socket
 

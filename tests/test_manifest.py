@@ -135,3 +135,80 @@ def test_real_ingest_manifest(tmp_path: Path) -> None:
     assert not mf.is_current(lake, cid, "ingest", mf.stage_key(
         lake, cid, "ingest", IngestConfig(png_compression=5), input_files=files))
     assert mf.code_version("ingest").startswith(mf.package_version() + "+")
+
+
+# ------------------------------------------------------------------ the no-op check's cost
+def test_bag_checksums_are_remembered_across_processes(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """A scheduled scan re-checks every clip: bags whose stat is unchanged are not read again
+    (the cache file stands for an earlier process), anything else is."""
+    import os
+
+    from v2xlake.storage import checksum, statcache
+
+    monkeypatch.setenv(statcache.ENV, str(tmp_path / "sums.sqlite"))
+    bag = tmp_path / "bag.db3"
+    bag.write_bytes(b"a" * 1000)
+    reads: list[str] = []
+    real_of_file = checksum.of_file
+
+    def counting(path: str | Path) -> str:
+        reads.append(str(path))
+        return real_of_file(path)
+
+    monkeypatch.setattr(checksum, "of_file", counting)
+    first = statcache.file_checksum(bag)
+    assert first == real_of_file(bag) and len(reads) == 1
+    statcache._MEMO.clear()  # a new process: only the cache file remembers
+    assert statcache.file_checksum(bag) == first and len(reads) == 1
+    # same size, new content: the mtime changed
+    st = bag.stat()
+    bag.write_bytes(b"b" * 1000)
+    os.utime(bag, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    statcache._MEMO.clear()
+    second = statcache.file_checksum(bag)
+    assert second != first and len(reads) == 2
+    # replaced by another file with the same size and mtime: another inode
+    other = tmp_path / "other.db3"
+    other.write_bytes(b"c" * 1000)
+    os.utime(other, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    other.replace(bag)
+    statcache._MEMO.clear()
+    assert statcache.file_checksum(bag) == real_of_file(bag) != second and len(reads) == 3
+    # a damaged cache file is ignored, never an error; "off" hashes every time
+    statcache._DB.clear()
+    (tmp_path / "sums.sqlite").write_bytes(b"not a database" * 100)
+    for p in tmp_path.glob("sums.sqlite-*"):
+        p.unlink()
+    statcache._MEMO.clear()
+    assert statcache.file_checksum(bag) == real_of_file(bag) and len(reads) == 4
+    monkeypatch.setenv(statcache.ENV, "off")
+    statcache._MEMO.clear()
+    statcache.file_checksum(bag)
+    statcache._MEMO.clear()
+    statcache.file_checksum(bag)
+    assert len(reads) == 6
+    statcache._DB.clear()
+
+
+def test_code_version_follows_edits_while_remembered(tmp_path: Path) -> None:
+    """The code version is remembered per process, yet an edit, a new module in a package or
+    a removed one still changes it (their stat is checked on every call)."""
+    import os
+
+    pkg = tmp_path / "plugin"
+    pkg.mkdir()
+    (pkg / "core.py").write_text("X = 1\n")
+    os.utime(pkg, ns=(0, 0))  # Linux stamps in ticks of a few ms: as if made long ago
+    v1 = mf.code_version("plugin", [pkg])
+    assert mf.code_version("plugin", [pkg]) == v1
+    st = (pkg / "core.py").stat()
+    (pkg / "core.py").write_text("X = 2\n")  # same size
+    os.utime(pkg / "core.py", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    v2 = mf.code_version("plugin", [pkg])
+    assert v2 != v1
+    (pkg / "extra.py").write_text("Y = 1\n")
+    v3 = mf.code_version("plugin", [pkg])
+    assert v3 not in (v1, v2)
+    (pkg / "extra.py").unlink()
+    assert mf.code_version("plugin", [pkg]) == v2

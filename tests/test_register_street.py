@@ -171,6 +171,22 @@ def test_refined_calibration_is_what_consumers_read(street: tuple[Path, Path],
     print(text)
     assert "black" in text and "refined" in text
     assert rows[0].correction_m > 0.1 and 0.3 < rows[0].correction_deg < 0.5
+    # the command a user runs: the same rows, as JSON
+    import contextlib
+    import io
+    import json
+
+    from v2xlake.flows.cli import main
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["calibration", CID, "--lake", lake.uri, "--format", "json"]) == 0
+    got = json.loads(buf.getvalue())
+    assert [(g["agent_id"], g["used"]) for g in got] == [("black", "refined"),
+                                                          ("red", "refined")]
+    assert got[0]["correction_m"] == pytest.approx(rows[0].correction_m)
+    np.testing.assert_allclose(got[0]["refined_T_ego_sensor"], rows[0].refined)
+    assert main(["calibration", "no-such-clip", "--lake", lake.uri]) == 2
 
 
 def test_redeskew_with_the_refined_extrinsic(street: tuple[Path, Path], tmp_path: Path) -> None:

@@ -270,3 +270,33 @@ def test_num_lidar_pts_has_one_definition(tmp_path: Path) -> None:
     assert exported == {k: catalog[k] for k in exported}
     assert sum(exported.values()) > 0
     assert sum(catalog.values()) == world.column(0)[0].as_py()
+
+
+# ------------------------------------------------------------------ retries
+def test_only_transient_failures_are_retried() -> None:
+    """A retry of bad input, a full disk or a bug reproduces the same failure (and triples
+    the time to the error); a connection lost to a worker or a timeout may not."""
+    import errno
+
+    from v2xlake.flows.pipeline import _no_retry_on_bad_input
+    from v2xlake.schemas.errors import ClipError
+    from v2xlake.storage.lake import LakeWriteError
+
+    class Failed:
+        def __init__(self, exc: BaseException | None) -> None:
+            self.exc = exc
+
+        def result(self) -> None:
+            if self.exc is not None:
+                raise self.exc
+
+    def retried(exc: BaseException | None) -> bool:
+        return _no_retry_on_bad_input(None, None, Failed(exc))
+
+    for bad in (ClipError("clip-a", "no LiDAR topic"), ValueError("x must be finite"),
+                KeyError("frame_idx"), ZeroDivisionError(), TypeError("None"),
+                LakeWriteError(errno.ENOSPC, "no space left on the device")):
+        assert not retried(bad), type(bad).__name__
+    for transient in (ConnectionError("worker lost"), TimeoutError(), OSError(errno.EIO, "io")):
+        assert retried(transient), type(transient).__name__
+    assert not retried(None)

@@ -30,7 +30,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import AlignmentRow
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import CameraCalib, iter_point_frames
+from v2xlake.storage.reader import CameraCalib, iter_point_frames, no_pose_report
 from v2xlake.tasks.align.boxes import BoxArray
 from v2xlake.tasks.align.methods import (
     METHODS,
@@ -211,6 +211,9 @@ def _fill_velocities(agent: AgentData, lidar_sensor: str, ann: pa.Table,
 def run_align(lake: Lake, clip_id: str, config: AlignConfig = AlignConfig(),  # noqa: B008
               truth_dir: Path | None = None) -> StageReport:
     """Associate camera frames with LiDAR frames / objects by the three methods; evaluate."""
+    if (na := no_pose_report(lake, clip_id, STAGE, "associating camera and LiDAR frames "
+                             "across agents needs their poses")):
+        return na
     try:
         clip = load_clip(lake, clip_id)
     except ClipError as e:

@@ -35,7 +35,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import AnnotationWorldRow, InstanceRow
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import iter_point_frames
+from v2xlake.storage.reader import iter_point_frames, no_pose_report
 from v2xlake.tasks.geometry import apply, count_points_in_boxes, transform, transform_boxes
 from v2xlake.tasks.reader import AgentData, load_clip
 
@@ -203,6 +203,9 @@ def run_annotate(lake: Lake, clip_id: str,
     ann_all = lake.read_table("clean", "annotations", clip_id=clip_id)
     if ann_all.num_rows == 0:
         return StageReport.not_applicable(STAGE, clip_id, "the clip has no annotations")
+    if (na := no_pose_report(lake, clip_id, STAGE, "world-frame boxes and instance tracks "
+                             "need poses; the annotations stay as delivered")):
+        return na
     try:
         clip = load_clip(lake, clip_id)
     except ClipError as e:

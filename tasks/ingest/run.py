@@ -35,7 +35,14 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from v2xlake.schemas.arrow import arrow_schema, columns_to_table
-from v2xlake.schemas.clip import ID_PATTERN, AgentConfig, ClipConfig, Modality, SensorConfig
+from v2xlake.schemas.clip import (
+    ID_PATTERN,
+    AgentConfig,
+    ClipConfig,
+    Modality,
+    SensorConfig,
+    load_yaml,
+)
 from v2xlake.schemas.errors import ClipError, DeliveryConflict
 from v2xlake.schemas.geometry import Transform
 from v2xlake.schemas.stage import OutputFile, StageReport
@@ -135,7 +142,7 @@ def load_clip_config(clip_dir: Path) -> ClipConfig:
     if not path.is_file():
         raise ClipError(clip_dir.name, "clip folder has no clip.yaml", path=str(path), stage=STAGE)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path.read_text())
     except (yaml.YAMLError, OSError, UnicodeDecodeError) as e:
         raise ClipError(clip_dir.name, f"clip.yaml is not readable YAML: {e}", path=str(path),
                         stage=STAGE) from e

@@ -45,6 +45,7 @@ from v2xlake.schemas.clip import (
     SensorConfig,
     SplitPose,
     SyncMode,
+    load_yaml,
 )
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
@@ -462,13 +463,11 @@ def _col(t: pa.Table, name: str) -> np.ndarray:
 
 
 def load_landing_config(lake: Lake, clip_id: str) -> ClipConfig:
-    import yaml
-
     path = lake.path("landing", clip_id, "clip.yaml")
     if not lake.exists(path):
         raise ClipError(clip_id, "no landing copy of clip.yaml: run ingest first", path=path,
                         stage=STAGE)
-    return ClipConfig.model_validate(yaml.safe_load(lake.read_bytes(path)))
+    return ClipConfig.model_validate(load_yaml(lake.read_bytes(path)))
 
 
 def run_qa(lake: Lake, clip_id: str, config: QaConfig | None = None) -> StageReport:

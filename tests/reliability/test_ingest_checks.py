@@ -500,3 +500,35 @@ def test_no_pose_clip_keeps_its_anonymized_images(tmp_path: Path) -> None:
     assert lake.read_table("clean", "ego_poses", clip_id="nopose").num_rows == 0
     assert run_deskew(lake, "nopose").status == "not_applicable"
     assert run_register(lake, "nopose").status == "not_applicable"
+
+
+# --------------------------------------------------------------------------- no pose
+def _no_pose_clip(tmp_path: Path) -> Path:
+    """A LiDAR + camera recording without any INS, as many roadside units deliver."""
+    ts = _ts()
+    jpg = _jpeg(64, 48)
+    cams = [m for k in range(8) for m in _camera(ts, T0 + k * 50_000_000, jpg, (64, 48))]
+    bag = [*scans(ts, 4), *cams, _static(ts)]
+    return write(tmp_path / "nopose", [agent(sensors=[lidar_sensor(), _cam_sensor(rate=20)],
+                                             tf_static_topic="/tf_static")], {"bag_car": bag})
+
+
+@pytest.mark.slow
+def test_no_pose_clip_runs_the_whole_flow(prefect_server: object, tmp_path: Path) -> None:
+    """Issue #12: a clip without any pose was ingested and anonymized, then quarantined (and
+    its anonymized images deleted) when deskew refused it. The stages that need poses now
+    say why they do not apply, and what the others made stays."""
+    from v2xlake.flows.pipeline import process_clip
+    from v2xlake.storage.quarantine import is_quarantined
+
+    lake = Lake(tmp_path / "lake")
+    summary = process_clip(str(_no_pose_clip(tmp_path)), lake.uri)
+    assert summary["status"] == "ok", summary
+    status = {s["stage"]: s["status"] for s in summary["stages"]}
+    assert status["ingest"] == status["anonymize"] == "done"
+    for stage in ("deskew", "register", "align"):
+        assert status[stage] == "not_applicable", (stage, status)
+    reasons = {s["stage"]: s["report"]["reason"] for s in summary["stages"]}
+    assert "car: agents.has_ins is false" in reasons["deskew"]
+    assert not is_quarantined(lake, "nopose")
+    assert lake.read_table("clean", "camera_frames", clip_id="nopose").num_rows == 8
