@@ -52,10 +52,9 @@ def stage_key(lake: Lake, clip_id: str, stage: Stage[Any], config: BaseModel,
 def cached_report(lake: Lake, clip_id: str, stage: str,
                   key: manifest.StageKey) -> StageReport | None:
     """The recorded result when the stage is current (same key, outputs still there)."""
-    if not manifest.is_current(lake, clip_id, stage, key):
+    m = manifest.current(lake, clip_id, stage, key)
+    if m is None:
         return None
-    m = manifest.read(lake, clip_id, stage)
-    assert m is not None
     images = [lake.path(o.path) if not o.path.startswith(lake.base) else o.path
               for o in m.outputs if o.path.endswith(".png")]
     status = "not_applicable" if m.status == "not_applicable" else "done"

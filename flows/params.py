@@ -16,6 +16,8 @@ changed parameter re-runs that stage and what reads its tables) and recorded in 
 
 from __future__ import annotations
 
+import copy
+import functools
 import warnings
 from pathlib import Path
 from typing import Any
@@ -133,8 +135,14 @@ def clip_params(clip_dir: str | Path) -> dict[str, Any]:
     """The ``params:`` block of a clip folder's clip.yaml ({} when absent or unreadable:
     reading the contract properly, with a clear error, is ingest's job)."""
     try:
-        data = load_yaml((Path(clip_dir) / "clip.yaml").read_text())
-    except (OSError, yaml.YAMLError):
+        return copy.deepcopy(_params_block((Path(clip_dir) / "clip.yaml").read_text()))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
         return {}
+
+
+@functools.lru_cache(maxsize=64)
+def _params_block(text: str) -> dict[str, Any]:
+    """Once per distinct clip.yaml text: the flow asks before every stage of every clip."""
+    data = load_yaml(text)
     block = data.get("params") if isinstance(data, dict) else None
     return dict(block) if isinstance(block, dict) else {}

@@ -651,9 +651,7 @@ class Lake:
     def list_files(self, path: str, suffix: str = "", *, hidden: bool = False) -> list[str]:
         """Files under ``path`` (recursive), sorted. Hidden names (temporary files in
         flight) are left out unless ``hidden``: a release check must see every file."""
-        if not self.exists(path):
-            return []
-        sel = pafs.FileSelector(path, recursive=True)
+        sel = pafs.FileSelector(path, recursive=True, allow_not_found=True)
         out = [
             i.path for i in self.fs.get_file_info(sel)
             if i.type == pafs.FileType.File and i.path.endswith(suffix)

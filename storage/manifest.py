@@ -19,6 +19,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import os
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -223,7 +224,33 @@ def read(lake: Lake, clip_id: str, stage: str) -> Manifest | None:
     path = manifest_path(lake, clip_id, stage)
     if not lake.exists(path):
         return None
-    return Manifest.model_validate(lake.read_json(path))
+    return _parse(lake, path)
+
+
+_PARSED: dict[str, tuple[tuple[int, int, int, int], Manifest]] = {}
+
+
+def _parse(lake: Lake, path: str) -> Manifest:
+    """The manifest at ``path``; on a local lake remembered per process while its (device,
+    inode, size, mtime) stay the same: manifests are only ever replaced by rename, so a new
+    one is a new inode, and every stage's no-op check reads all of its clip's manifests.
+    Callers must not modify what they get. On S3 (second-resolution mtimes, no inode) it
+    is read every time."""
+    if not lake.is_local:
+        return Manifest.model_validate(lake.read_json(path))
+    try:
+        st = os.stat(path)
+    except OSError:
+        return Manifest.model_validate(lake.read_json(path))
+    stamp = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    hit = _PARSED.get(path)
+    if hit is not None and hit[0] == stamp:
+        return hit[1]
+    m = Manifest.model_validate(lake.read_json(path))
+    if len(_PARSED) > 100_000:
+        _PARSED.clear()
+    _PARSED[path] = (stamp, m)
+    return m
 
 
 def stage_key(
@@ -305,15 +332,20 @@ def _common_parts(paths: list[Path]) -> list[str]:
     return out or ["/"]
 
 
-def is_current(lake: Lake, clip_id: str, stage: str, key: StageKey) -> bool:
-    """True when the recorded run of ``stage`` is done, has the same key and its outputs exist."""
+def current(lake: Lake, clip_id: str, stage: str, key: StageKey) -> Manifest | None:
+    """The recorded run of ``stage`` when it finished with the same key and its outputs
+    still exist (None: the stage must run)."""
     m = read(lake, clip_id, stage)
     if m is None or m.status not in ("done", "not_applicable"):
-        return False
+        return None
     if (m.code_version, m.params_hash, m.inputs_hash) != (
             key.code_version, key.params_hash, key.inputs_hash):
-        return False
-    return all(lake.exists(_abs(lake, o.path)) for o in m.outputs)
+        return None
+    return m if all(lake.exists(_abs(lake, o.path)) for o in m.outputs) else None
+
+
+def is_current(lake: Lake, clip_id: str, stage: str, key: StageKey) -> bool:
+    return current(lake, clip_id, stage, key) is not None
 
 
 def _abs(lake: Lake, path: str) -> str:
@@ -357,8 +389,7 @@ def record(lake: Lake, report: StageReport, key: StageKey, status: str = "done",
 def load(lake: Lake, clip_id: str) -> list[Manifest]:
     """Every stage manifest of one clip, sorted by stage name."""
     files = lake.list_files(lake.path("manifests", clip_id), ".json")
-    return sorted((Manifest.model_validate(lake.read_json(f)) for f in files),
-                  key=lambda m: m.stage)
+    return sorted((_parse(lake, f) for f in files), key=lambda m: m.stage)
 
 
 def clear(lake: Lake, clip_id: str) -> None:

@@ -16,6 +16,7 @@ partial output.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -142,19 +143,26 @@ def load_clip_config(clip_dir: Path) -> ClipConfig:
     if not path.is_file():
         raise ClipError(clip_dir.name, "clip folder has no clip.yaml", path=str(path), stage=STAGE)
     try:
-        data = load_yaml(path.read_text())
+        text = path.read_text()
+        return _parsed_clip_config(text).model_copy(deep=True)
     except (yaml.YAMLError, OSError, UnicodeDecodeError) as e:
         raise ClipError(clip_dir.name, f"clip.yaml is not readable YAML: {e}", path=str(path),
                         stage=STAGE) from e
-    try:
-        return ClipConfig.model_validate(data)
     except ValidationError as e:
+        data = load_yaml(text)
         cid, agent, reason = explain_invalid(data, e)
         raise ClipError(cid or clip_dir.name, f"invalid clip.yaml: {reason}", agent_id=agent,
                         path=str(path), stage=STAGE) from e
     except ValueError as e:
         raise ClipError(clip_dir.name, f"invalid clip.yaml: {e}", path=str(path),
                         stage=STAGE) from e
+
+
+@functools.lru_cache(maxsize=64)
+def _parsed_clip_config(text: str) -> ClipConfig:
+    """Parsed and validated once per distinct text: every no-op check of a clip reads its
+    clip.yaml, and parsing a large one is most of the check's cost (callers get a copy)."""
+    return ClipConfig.model_validate(load_yaml(text))
 
 
 def explain_invalid(data: Any, e: ValidationError) -> tuple[str | None, str | None, str]:
