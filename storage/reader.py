@@ -11,7 +11,8 @@ is the tasks' business (``v2xlake.tasks.reader`` builds pose tracks on these rec
 
 Small tables (poses, calibration, frames, annotations) are read whole for one clip; point
 tables are streamed frame by frame (one Parquet row group per frame in the lake), so a 30 s
-clip of 225k-point scans never sits in memory at once.
+clip of 225k-point scans never sits in memory at once. Radar scans (hundreds of detections) are
+read whole per radar.
 
 Two tables are joins of two writers' rows, as the catalog's views join them (one writer per
 table, issue #15): ``lidar_frames`` (ingest/anonymize) gets deskew's reference time per frame
@@ -115,6 +116,35 @@ class CameraFrames:
         return len(self.frame_idx)
 
 
+@dataclass(frozen=True, eq=False)
+class RadarFrames:
+    """Per-scan metadata of one radar, sorted by stamp. A radar scan has one time
+    (``stamp_ns``, the message header), as automotive radars report it and as nuScenes
+    stores it; its points may still carry their own ``t_ns``."""
+
+    sensor: str
+    frame_idx: np.ndarray  # int64
+    stamp_ns: np.ndarray  # int64
+    n_points: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.frame_idx)
+
+
+@dataclass(frozen=True, eq=False)
+class RadarScan:
+    """One radar scan's detections in the radar frame (``radar_points`` rows)."""
+
+    frame_idx: int
+    t_ns: np.ndarray  # int64 per point
+    xyz: np.ndarray  # float32 (N, 3)
+    velocity: np.ndarray  # float32 radial (Doppler) velocity, m/s, positive away
+    rcs: np.ndarray  # float32 dBsm, NaN where the radar gives none
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+
 @dataclass(eq=False)
 class AgentRecord:
     agent_id: str
@@ -124,6 +154,7 @@ class AgentRecord:
     sensors: dict[str, SensorCalib]
     lidar: dict[str, LidarFrames]
     cameras: dict[str, CameraFrames]
+    radar: dict[str, RadarFrames]  # per radar sensor (empty: the agent has no radar)
     annotations: pa.Table  # clean ``annotations`` rows of this agent (may be empty)
     # per sensor: "published" (calibrated_sensors) or "refined" (calibration_refined)
     calibration_source: dict[str, str]
@@ -316,6 +347,45 @@ def camera_frames(frames: pa.Table) -> dict[str, CameraFrames]:
     return out
 
 
+def radar_frames(frames: pa.Table) -> dict[str, RadarFrames]:
+    """One agent's ``radar_frames`` per sensor, sorted by stamp."""
+    out: dict[str, RadarFrames] = {}
+    if not frames.num_rows:
+        return out
+    for s in sorted(set(frames["sensor"].to_pylist())):
+        f = _of(frames, "sensor", s).sort_by("stamp_ns")
+        out[s] = RadarFrames(s, _np(f, "frame_idx").astype(np.int64),
+                             _np(f, "stamp_ns").astype(np.int64), _np(f, "n_points"))
+    return out
+
+
+def read_radar_scans(lake: Lake, clip_id: str, agent_id: str, sensor: str
+                     ) -> dict[int, RadarScan]:
+    """One radar's detections by frame index (clean ``radar_points``).
+
+    Read whole, unlike LiDAR points: a radar scan holds hundreds to a few thousand
+    detections, so a clip's worth is a few MB at most.
+    """
+    t = read(lake, "radar_points", clip_id, agent_id,
+             columns=["sensor", "frame_idx", "t_ns", "x", "y", "z", "velocity", "rcs"])
+    if t.num_rows == 0:
+        return {}
+    t = t.filter(pc.equal(t["sensor"].cast(pa.string()), sensor))
+    if t.num_rows == 0:
+        return {}
+    t = t.sort_by([("frame_idx", "ascending"), ("t_ns", "ascending")])
+    fidx = _np(t, "frame_idx").astype(np.int64)
+    xyz = np.stack([_np(t, c) for c in "xyz"], 1).astype(np.float32, copy=False)
+    tt = _np(t, "t_ns").astype(np.int64)
+    vel = _np(t, "velocity").astype(np.float32, copy=False)
+    rcs = _np(t, "rcs").astype(np.float32, copy=False)
+    cuts = np.flatnonzero(np.diff(fidx)) + 1
+    out: dict[int, RadarScan] = {}
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(fidx)], strict=True):
+        out[int(fidx[a])] = RadarScan(int(fidx[a]), tt[a:b], xyz[a:b], vel[a:b], rcs[a:b])
+    return out
+
+
 def read_clip(lake: Lake, clip_id: str,
               calibration: CalibrationChoice = CalibrationChoice()) -> ClipRecord:
     """Everything but the points of one clip, from the clean zone only; each agent's
@@ -328,6 +398,7 @@ def read_clip(lake: Lake, clip_id: str,
     desk_t = read(lake, "deskew_frames", clip_id)
     refined_t = read(lake, "calibration_refined", clip_id)
     cam_t = read(lake, "camera_frames", clip_id)
+    radar_t = read(lake, "radar_frames", clip_id)
     ann_t = with_point_counts(read(lake, "annotations", clip_id),
                               read(lake, "annotations_world", clip_id))
     agent_rows = _rows(agents_t)
@@ -347,7 +418,8 @@ def read_clip(lake: Lake, clip_id: str,
         agents[aid] = AgentRecord(
             aid, row.get("kind") or "vehicle", row.get("role") or "", poses, sensors,
             lidar_frames(_of(lidar_t, "agent_id", aid), _of(desk_t, "agent_id", aid)),
-            camera_frames(_of(cam_t, "agent_id", aid)), _of(ann_t, "agent_id", aid), source)
+            camera_frames(_of(cam_t, "agent_id", aid)), radar_frames(_of(radar_t, "agent_id", aid)),
+            _of(ann_t, "agent_id", aid), source)
     return ClipRecord(clip_id, info, agents, read(lake, "instances", clip_id),
                       read(lake, "registrations", clip_id))
 

@@ -1,5 +1,5 @@
 """What every export shares besides the clean-zone reader (``tasks/reader.py``): tokens,
-output file records, camera undistortion.
+output file records, atomic file writes, camera undistortion.
 
 Tokens are deterministic (uuid5 of a readable name) so that re-exporting a clip gives
 byte-identical tables and a token can be recomputed from the names alone.
@@ -7,6 +7,8 @@ byte-identical tables and a token can be recomputed from the names alone.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import uuid
 from pathlib import Path
 
@@ -17,7 +19,7 @@ from v2xlake.storage import checksum
 from v2xlake.storage.reader import CameraCalib
 from v2xlake.tasks.pngcodec import encode_png
 
-__all__ = ["Undistorter", "file_output", "token"]
+__all__ = ["Undistorter", "file_output", "token", "write_atomic"]
 
 _NAMESPACE = uuid.UUID("6f1b2c1e-3f55-5d1c-9a7e-7632786c616b")  # "v2xlake" export namespace
 
@@ -25,6 +27,21 @@ _NAMESPACE = uuid.UUID("6f1b2c1e-3f55-5d1c-9a7e-7632786c616b")  # "v2xlake" expo
 def token(*parts: object) -> str:
     """32-hex deterministic token from readable parts (uuid5), as nuScenes tokens look."""
     return uuid.uuid5(_NAMESPACE, "/".join(str(p) for p in parts)).hex
+
+
+def write_atomic(path: Path, data: bytes | memoryview) -> None:
+    """Write a file under a hidden temporary name in its own directory, then rename it into
+    place: a killed or failed export never leaves a truncated file that a dataset loader
+    would read as a short scan (the temporary is removed on failure)."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
 
 
 def file_output(path: Path, rows: int | None = None) -> OutputFile:

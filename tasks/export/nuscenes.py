@@ -10,6 +10,12 @@ start t0) go to the global frame with ``T_world_ego(t0) @ T_ego_lidar``, which i
 frame of the deskewed ``.pcd.bin`` written for that sample, so ``num_lidar_pts`` counts the
 very points a user will load. Times are integer microseconds on the clip's relative axis.
 
+Each radar is a ``RADAR_*`` channel keyed like a camera (the scan nearest a sample is its
+keyframe in samples/, the rest are sweeps), one binary ``.pcd`` per scan in the layout the
+devkit's ``RadarPointCloud`` parses (``nuscenes_radar``), ego pose at the scan's stamp; a
+box's ``num_radar_pts`` counts the detections of its sample's key radar scans inside it,
+summed over the radars and unfiltered, as nuScenes defines it.
+
 The devkit's detection evaluation only knows nuScenes' hard-coded split names; custom
 splits go to ``<dataroot>/<version>/splits.json`` (what its tracking eval and
 ``get_scenes_of_split`` read) and :func:`detection_eval` makes the detection eval use them.
@@ -35,10 +41,17 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.nuscenes import NUSCENES_TABLES
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import CameraCalib, available_frames, iter_point_frames
+from v2xlake.storage.reader import (
+    CameraCalib,
+    RadarScan,
+    available_frames,
+    iter_point_frames,
+    read_radar_scans,
+)
 from v2xlake.tasks.export.bev import BevGrid
-from v2xlake.tasks.export.common import Undistorter, file_output, token
-from v2xlake.tasks.geometry import apply, compose, invert, quat_wxyz_of
+from v2xlake.tasks.export.common import Undistorter, file_output, token, write_atomic
+from v2xlake.tasks.export.nuscenes_radar import radar_pcd_points, write_radar_pcd
+from v2xlake.tasks.geometry import apply, compose, count_points_in_boxes, invert, quat_wxyz_of
 from v2xlake.tasks.reader import AgentData, ClipData, boxes_matrices, load_clip, nearest_index
 
 ATTRIBUTES = {
@@ -78,6 +91,12 @@ class NuScenesExportConfig(BaseModel):
     map_margin_m: float = Field(60.0, ge=0.0, description=(
         "map raster margin around every ego pose (the devkit renders 40 m around the ego)"))
     write_lake_tables: bool = True
+    write_radar: bool = Field(True, description=(
+        "a RADAR_* channel for every radar the clip has (nothing when it has none); False "
+        "leaves radars out and every num_radar_pts at 0"))
+    sensor_velocity_window_ms: float = Field(10.0, gt=0.0, description=(
+        "half window of the central difference of the pose track that gives a radar's own "
+        "velocity for the ego-compensated radar velocities (vx_comp, vy_comp)"))
     scene_offset_us: int = Field(1, ge=0, description=(
         "scene k's timestamps are shifted by k * this many microseconds: the devkit's "
         "list_scenes sorts (timestamp, record) tuples and crashes on two scenes starting at "
@@ -284,13 +303,61 @@ def _write_lake_tables(lake: Lake, tabs: _Tables, global_ids: dict[str, dict[str
 
 
 def write_pcd_bin(path: Path, xyz: np.ndarray, intensity: np.ndarray, ring: np.ndarray) -> int:
-    """nuScenes LiDAR file: N x 5 float32 (x, y, z, intensity, ring), one copy then write."""
+    """nuScenes LiDAR file: N x 5 float32 (x, y, z, intensity, ring), one copy then an
+    atomic write."""
     arr = np.empty((len(xyz), 5), np.float32)
     arr[:, :3] = xyz
     arr[:, 3] = intensity
     arr[:, 4] = ring
-    arr.tofile(path)
+    write_atomic(path, arr.reshape(-1).view(np.uint8).data)  # no second copy
     return len(arr)
+
+
+def _key_of(times: np.ndarray, sample_times: np.ndarray, tolerance_ns: float) -> np.ndarray:
+    """Sample index each frame is the keyframe of, else -1: for every sample, the frame
+    nearest it when within the tolerance (cameras and radars alike)."""
+    key = np.full(len(times), -1)
+    nk = nearest_index(times, sample_times)
+    good = np.abs(times[nk] - sample_times) <= tolerance_ns
+    key[nk[good]] = np.flatnonzero(good)
+    return key
+
+
+def _radar_channel(sensor: str) -> str:
+    """The nuScenes channel of a lake radar: its own name when it is already RADAR_*, else
+    RADAR_<NAME> (the devkit and users find radars by that prefix)."""
+    up = sensor.upper()
+    return up if up.startswith("RADAR_") else "RADAR_" + "".join(
+        c if c.isalnum() else "_" for c in up)
+
+
+def _sensor_velocity(agent: AgentData, t_ns: np.ndarray, T_ego_sensor: np.ndarray,
+                     window_ns: int, clip_id: str) -> np.ndarray:
+    """(N, 3) velocity of a sensor's origin in its own axes at each time: central
+    differences of the ego pose track (one-sided at the track's ends), so the ego's turn
+    rate times the lever arm is included, which the ego origin's velocity alone would miss
+    for a bumper radar. Zero where the track covers a single instant only."""
+    lo = np.maximum(t_ns - window_ns, agent.poses.t_min)
+    hi = np.minimum(t_ns + window_ns, agent.poses.t_max)
+    p_lo = (agent.T_world_ego(lo, clip_id=clip_id) @ T_ego_sensor)[:, :3, 3]
+    p_hi = (agent.T_world_ego(hi, clip_id=clip_id) @ T_ego_sensor)[:, :3, 3]
+    dt = (hi - lo).astype(np.float64) / 1e9
+    v_world = np.divide(p_hi - p_lo, dt[:, None], out=np.zeros_like(p_hi),
+                        where=dt[:, None] > 0)
+    R = (agent.T_world_ego(t_ns, clip_id=clip_id) @ T_ego_sensor)[:, :3, :3]
+    return np.einsum("nji,nj->ni", R, v_world)
+
+
+def _radar_counts(key_points: list[np.ndarray], T_global_box: np.ndarray, wlh: np.ndarray
+                  ) -> np.ndarray:
+    """nuScenes ``num_radar_pts`` of each box: detections (global frame) of the sample's key
+    radar scans inside it, summed over the radars, without filtering (nuScenes' definition),
+    by the project's one points-in-box test."""
+    n = np.zeros(len(T_global_box), np.int64)
+    for pts in key_points:
+        n += count_points_in_boxes(pts, T_global_box[:, :3, 3], wlh,
+                                   quat_wxyz_of(T_global_box))
+    return n
 
 
 def _following(sample_times: np.ndarray, t: int) -> int:
@@ -355,10 +422,11 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
     def calib_token(channel: str) -> str:
         return token("calibrated_sensor", cid, aid, channel)
 
-    def add_sensor(channel: str, modality: str, K: np.ndarray | None) -> None:
+    def add_sensor(channel: str, modality: str, K: np.ndarray | None,
+                   lake_sensor: str | None = None) -> None:
         tabs.add("sensor", dict(token=token("sensor", channel), channel=channel,
                                 modality=modality), cid)
-        T = agent.sensors[channel].T_ego_sensor
+        T = agent.sensors[lake_sensor or channel].T_ego_sensor
         tabs.add("calibrated_sensor", dict(
             token=calib_token(channel), sensor_token=token("sensor", channel),
             translation=_xyz(T), rotation=_quat(T),
@@ -409,19 +477,53 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
         if len(ci) == 0:
             continue
         ct = frames.stamp_ns[ci]
-        ckey = np.full(len(ci), -1)
-        nk = nearest_index(ct, sample_times)
-        good = np.abs(ct[nk] - sample_times) <= cfg.keyframe_tolerance_ms * 1e6
-        ckey[nk[good]] = np.flatnonzero(good)
+        ckey = _key_of(ct, sample_times, cfg.keyframe_tolerance_ms * 1e6)
         files = [f"{'samples' if ckey[k] >= 0 else 'sweeps'}/{ch}/{name}__{ch}__"
                  f"{int(ct[k]) // 1000}.png" for k in range(len(ci))]
         for d in ("samples", "sweeps"):
             (root / d / ch).mkdir(parents=True, exist_ok=True)
         for k, j in enumerate(ci):
             data = lake.read_blob("clean", frames.blob[j])
-            (root / files[k]).write_bytes(und.png(data) if und is not None else data)
+            write_atomic(root / files[k], und.png(data) if und is not None else data)
         add_chain(ch, ct, ckey, files, "png", (cam.width, cam.height), frames.frame_idx[ci])
         n_files += len(ci)
+
+    # ---- radars: every scan inside pose coverage, at its stamp (one time per scan)
+    radar_key_points: dict[int, list[np.ndarray]] = defaultdict(list)  # sample -> global xyz
+    for rs, rf in (agent.radar.items() if cfg.write_radar else ()):
+        if rs not in agent.sensors:
+            notes.append(f"{name}: radar {rs} has no calibration, skipped")
+            continue
+        ch = _radar_channel(rs)
+        add_sensor(ch, "radar", None, rs)
+        ri = np.flatnonzero(agent.poses.covers(rf.stamp_ns))
+        if len(ri) < len(rf):
+            notes.append(f"{name}: {len(rf) - len(ri)} {rs} scans outside pose coverage "
+                         "dropped")
+        if len(ri) == 0:
+            continue
+        rt = rf.stamp_ns[ri]
+        rkey = _key_of(rt, sample_times, cfg.keyframe_tolerance_ms * 1e6)
+        files = [f"{'samples' if rkey[k] >= 0 else 'sweeps'}/{ch}/{name}__{ch}__"
+                 f"{int(rt[k]) // 1000}.pcd" for k in range(len(ri))]
+        for d in ("samples", "sweeps"):
+            (root / d / ch).mkdir(parents=True, exist_ok=True)
+        scans = read_radar_scans(lake, cid, aid, rs)
+        T_er = agent.sensors[rs].T_ego_sensor
+        T_gr = T_gw @ agent.T_world_ego(rt, clip_id=cid) @ T_er  # global <- radar
+        v_sensor = _sensor_velocity(agent, rt, T_er, int(cfg.sensor_velocity_window_ms * 1e6),
+                                    cid)
+        none = np.zeros(0, np.float32)
+        for k, j in enumerate(ri):
+            f = int(rf.frame_idx[j])
+            scan = scans.get(f) or RadarScan(f, np.zeros(0, np.int64), np.zeros((0, 3),
+                                             np.float32), none, none)
+            write_radar_pcd(root / files[k],
+                            radar_pcd_points(scan, v_sensor[k], cfg.moving_speed_mps))
+            if rkey[k] >= 0 and len(scan):
+                radar_key_points[int(rkey[k])].append(apply(T_gr[k], scan.xyz))
+        add_chain(ch, rt, rkey, files, "pcd", (0, 0), rf.frame_idx[ri])
+        n_files += len(ri)
 
     # ---- points (.pcd.bin) and annotations
     ann = agent.annotations
@@ -456,11 +558,14 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
         T_w_ego = compose(T_wl, invert(T_el))
         cams = [(invert(compose(T_w_ego, cam.T_ego_sensor)), K, cam.width, cam.height)
                 for _, cam, K in cam_for_vis]
-        st = sample_tok[int(np.flatnonzero(sample_frames == fr.frame_idx)[0])]
+        si = int(np.flatnonzero(sample_frames == fr.frame_idx)[0])
+        st = sample_tok[si]
+        n_radar = _radar_counts(radar_key_points.get(si, []), Tw, wlh)
         for r, row in enumerate(a.to_pylist()):
             boxes[row["instance_id"]].append((int(t_lidar[k]), dict(
                 sample_token=st, translation=_xyz(Tw[r]), size=wlh[r].tolist(),
-                rotation=_quat(Tw[r]), num_lidar_pts=_counted(row, cid, aid), num_radar_pts=0,
+                rotation=_quat(Tw[r]), num_lidar_pts=_counted(row, cid, aid),
+                num_radar_pts=int(n_radar[r]),
                 visibility_token=_visibility(_box_samples(Tw[r], wlh[r]), cams),
                 category=row["category"], links=row["links"] or [])))
     # ---- instances, attributes, prev/next chains
@@ -493,7 +598,7 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
                 attribute_tokens=[token("attribute", attr)], translation=b["translation"],
                 size=b["size"], rotation=b["rotation"], prev=atoks[k - 1] if k else "",
                 next=atoks[k + 1] if k + 1 < len(atoks) else "",
-                num_lidar_pts=b["num_lidar_pts"], num_radar_pts=0), cid)
+                num_lidar_pts=b["num_lidar_pts"], num_radar_pts=b["num_radar_pts"]), cid)
         tabs.add("instance", dict(
             token=itok, category_token=token("category", NUSCENES_CATEGORY[cat]),
             nbr_annotations=len(atoks), first_annotation_token=atoks[0],
