@@ -11,6 +11,7 @@ traceback; ``ClipError`` texts keep their ``[stage]`` tag.
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 import time
@@ -101,6 +102,14 @@ def _console(stderr: bool = False) -> Any:
     return Console(stderr=stderr, highlight=False, soft_wrap=True)
 
 
+def _esc(value: object) -> str:
+    """``value`` as literal text in rich markup: errors, paths and ids carry ``[stage]`` tags
+    and brackets that rich would otherwise take for markup and drop."""
+    from rich.markup import escape
+
+    return escape(str(value))
+
+
 def _csv(text: str | None) -> list[str] | None:
     if not text:
         return None
@@ -184,9 +193,9 @@ def simulate(
                      cameras, clip_id, pose_format.value if pose_format else None, radar or None)
     t0 = time.perf_counter()
     path = run_simulate(out, cfg)
-    _console().print(f"simulated clip [bold]{cfg.name}[/] ({preset.value}, {cfg.seconds:g} s, "
-                     f"{','.join(cfg.agents)}, {cfg.storage}) -> {path} in "
-                     f"{time.perf_counter() - t0:.1f} s")
+    _console().print(f"simulated clip [bold]{_esc(cfg.name)}[/] ({preset.value}, "
+                     f"{cfg.seconds:g} s, {','.join(cfg.agents)}, {cfg.storage}) -> "
+                     f"{_esc(path)} in {time.perf_counter() - t0:.1f} s")
     return 0
 
 
@@ -216,7 +225,8 @@ class StageProgress:
             self.progress.advance(self.task)
             if event.get("status") == "failed":
                 self.progress.console.print(
-                    f"[red]{event['clip_id']}: {event['stage']} failed[/] {event.get('error')}")
+                    f"[red]{_esc(event['clip_id'])}: {event['stage']} failed[/] "
+                    f"{_esc(event.get('error'))}")
 
     def __enter__(self) -> StageProgress:
         self.progress.start()
@@ -230,7 +240,7 @@ class StageProgress:
 def stage_table(summary: dict[str, Any]) -> Any:
     from rich.table import Table
 
-    table = Table(title=f"clip {summary['clip_id']}: {summary['status']}")
+    table = Table(title=f"clip {_esc(summary['clip_id'])}: {summary['status']}")
     for col in ("stage", "status", "time [s]", "key metrics"):
         table.add_column(col)
     colors = {"done": "green", "cached": "cyan", "not_applicable": "yellow", "failed": "red"}
@@ -240,7 +250,7 @@ def stage_table(summary: dict[str, Any]) -> Any:
         status = o["status"]
         reason = (o.get("report") or {}).get("reason") or o.get("error") or ""
         table.add_row(o["stage"], f"[{colors.get(status, 'white')}]{status}[/]",
-                      f"{float(o.get('seconds', 0.0)):.1f}", shown or reason[:80])
+                      f"{float(o.get('seconds', 0.0)):.1f}", _esc(shown or reason[:80]))
     return table
 
 
@@ -315,12 +325,12 @@ def process(
     for r in results:
         console.print(stage_table(r))
         if r["status"] != "ok":
-            console.print(f"[red]{r['clip_id']}: {r['status']}[/] {r.get('error')}"
-                          + (f"\n  report: {r['quarantine_report']}"
+            console.print(f"[red]{_esc(r['clip_id'])}: {r['status']}[/] {_esc(r.get('error'))}"
+                          + (f"\n  report: {_esc(r['quarantine_report'])}"
                              if r.get("quarantine_report") else ""))
     ok = sum(r["status"] == "ok" for r in results)
     console.print(f"{ok}/{len(results)} clip(s) ok in {time.perf_counter() - t0:.1f} s; "
-                  f"lake: {lake}")
+                  f"lake: {_esc(lake)}")
     return 0 if ok == len(results) else 1
 
 
@@ -430,8 +440,8 @@ def export(
     console = _console()
     with console.status(f"exporting {len(clip_ids)} clip(s) as {fmt.value} -> {out} ..."):
         metrics = call_export(fmt.value, the_lake, clip_ids, out, config=cfg)
-    console.print(f"{fmt.value}: {len(clip_ids)} clip(s) -> {out} in "
-                  f"{time.perf_counter() - t0:.1f} s {metrics}")
+    console.print(f"{fmt.value}: {len(clip_ids)} clip(s) -> {_esc(out)} in "
+                  f"{time.perf_counter() - t0:.1f} s {_esc(metrics)}")
     return 0
 
 
@@ -465,7 +475,7 @@ def view(
     the_lake = known_clip(lake, clip)
     paths = view_clip(the_lake, clip, out, ViewConfig(png=png, mcap=mcap, sample=sample))
     for p in paths:
-        _console().print(str(p))
+        _console().print(_esc(p))
     return 0
 
 
@@ -482,7 +492,7 @@ def convert_bag(
     if dst.exists():
         raise UserError(f"{dst} exists; a bag is never overwritten")
     out = run_convert(src, dst, to.value, storage=storage.value)
-    _console().print(f"{src} -> {out} ({to.value})")
+    _console().print(f"{_esc(src)} -> {_esc(out)} ({to.value})")
     return 0
 
 
@@ -497,6 +507,8 @@ def plot_registration(
     """Bird's-eye view of one frame's registration before and after refinement."""
     from v2xlake.tasks.register.stage import plot_registration as run_plot
 
+    if out.is_dir():
+        raise UserError(f"--out {out} is a folder; give the PNG file to write")
     the_lake = known_clip(lake, clip)
     if frame is None:
         frames = sorted(set(the_lake.read_table("clean", "registrations", clip_id=clip,
@@ -505,7 +517,7 @@ def plot_registration(
             raise UserError(f"clip {clip} has no registrations in {lake}")
         frame = frames[len(frames) // 2]
     path = run_plot(the_lake, clip, frame, out)
-    _console().print(f"registration of clip {clip}, frame {frame} -> {path}")
+    _console().print(f"registration of clip {clip}, frame {frame} -> {_esc(path)}")
     return 0
 
 
@@ -523,7 +535,7 @@ def calibration(
     if not rows:
         raise UserError(f"clip {clip} has no LiDAR calibration in {lake}")
     if fmt is Format.table:
-        _console().print(format_calibration(rows))
+        _console().print(_esc(format_calibration(rows)))
         return 0
     out = [{"agent_id": r.agent_id, "sensor": r.sensor,
             "published_T_ego_sensor": r.published.tolist(),
@@ -560,8 +572,8 @@ def audit(
         raise UserError(str(e)) from e
     console = _console()
     for f in report.findings:
-        console.print(f"[red]{f.kind}[/] {f.location}: {f.detail}")
-    console.print(report.summary())
+        console.print(f"[red]{f.kind}[/] {_esc(f.location)}: {_esc(f.detail)}")
+    console.print(_esc(report.summary()))
     return 0 if report.ok else 1
 
 
@@ -579,9 +591,14 @@ def release_build(
     """Build release NAME from a predicate on clips."""
     from v2xlake.flows.release import build_release
 
-    parts = tuple(float(x) for x in fractions.split(","))
-    if len(parts) != 3:
-        raise UserError("--fractions needs three numbers: train,val,test")
+    try:
+        parts = tuple(float(x) for x in fractions.split(","))
+    except ValueError as e:
+        raise UserError(f"--fractions: {e}") from e
+    if len(parts) != 3 or not all(math.isfinite(p) and p >= 0 for p in parts) \
+            or sum(parts) <= 0:
+        raise UserError("--fractions needs three finite, non-negative numbers with a "
+                        "positive sum: train,val,test")
     the_lake = open_lake(lake)
     t0 = time.perf_counter()
     console = _console()
@@ -589,9 +606,9 @@ def release_build(
         meta = build_release(lake, name, where, _csv(formats) or ["lake"], seed,
                              (parts[0], parts[1], parts[2]))
     console.print(f"release [bold]{name}[/]: {len(meta['clip_ids'])} clip(s), splits "
-                  f"{meta['split_counts']}, formats {meta['formats']} in "
+                  f"{_esc(meta['split_counts'])}, formats {_esc(meta['formats'])} in "
                   f"{time.perf_counter() - t0:.1f} s")
-    console.print(f"notes: {the_lake.path('releases', name, 'RELEASE.md')}")
+    console.print(f"notes: {_esc(the_lake.path('releases', name, 'RELEASE.md'))}")
     return 0
 
 
@@ -604,7 +621,7 @@ def release_verify(name: str, lake: LakeOpt = DEFAULT_LAKE) -> int:
     res = verify_release(lake, name)
     console = _console()
     for p in res.problems:
-        console.print(f"[red]FAIL[/] {p}")
+        console.print(f"[red]FAIL[/] {_esc(p)}")
     if res.ok:
         console.print(f"release {name}: {res.checked} files OK")
         return 0
@@ -630,7 +647,7 @@ def catalog_refresh(lake: LakeOpt = DEFAULT_LAKE) -> int:
 
     the_lake = open_lake(lake)
     refresh_catalog(the_lake)
-    _console().print(f"catalog refreshed: {the_lake.catalog_path}")
+    _console().print(f"catalog refreshed: {_esc(the_lake.catalog_path)}")
     return 0
 
 
@@ -650,16 +667,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         if callable(show):
             show(file=sys.stderr)
         else:
-            err.print(f"[red]error[/]: {e}")
+            err.print(f"[red]error[/]: {_esc(e)}")
         return int(getattr(e, "exit_code", 2) or 0)
     except KeyboardInterrupt:
         return 130
     except ImportError as e:
-        err.print(f"[red]unavailable[/]: {e}")
+        err.print(f"[red]unavailable[/]: {_esc(e)}")
         return 2
     except Exception as e:
         if _is_user_error(e):
-            err.print(f"[red]error[/]: {e}")
+            err.print(f"[red]error[/]: {_esc(e)}")
             return 2
         raise
     return int(rv or 0)

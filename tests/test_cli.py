@@ -61,6 +61,13 @@ def test_version_and_usage_errors_without_traceback(
         (["export", "bev", "--lake", lake.uri, "--clip", "nope", "--out",
           str(tmp_path / "o")], "unknown clip"),
         (["process", str(tmp_path / "no_clip"), "--lake", lake.uri], "no clip.yaml"),
+        # brackets in what the user typed are text, not rich markup (a "[deskew]" stage tag
+        # at the start of an error used to vanish)
+        (["view", "[deskew]c0", "--lake", lake.uri], "[deskew]c0"),
+        (["release", "build", "r1", "--where", "true", "--lake", lake.uri, "--fractions",
+          "nan,nan,nan"], "finite"),
+        (["plot", "registration", "--clip", "c0", "--lake", lake.uri, "--out", str(tmp_path)],
+         "is a folder"),
     ]
     for argv, msg in cases:
         assert main(argv) == 2, argv

@@ -137,6 +137,20 @@ def test_ins_gap_in_the_middle_is_an_error(tmp_path: Path) -> None:
         run_deskew(lake, CLIP)
 
 
+def test_a_10_hz_pose_source_is_not_a_gap(tmp_path: Path,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """A localisation stack's 10 Hz Odometry: every sample 100 ms apart. The default limit
+    follows the track's own period (2.5 periods), as QA does; a stricter explicit limit is
+    reported with the parameter that sets it."""
+    monkeypatch.setitem(globals(), "INS_PERIOD_NS", 100_000_000)
+    lake = Lake(tmp_path / "lake")
+    write_agent(lake, "red", Motion(), (0, 700_000_000))
+    rep = run_deskew(lake, CLIP)
+    assert rep.status == "done" and rep.metrics["n_frames"] == 3
+    with pytest.raises(ClipError, match=r"max 50\.0 ms: deskew.max_pose_gap_ns"):
+        run_deskew(lake, CLIP, DeskewConfig(max_pose_gap_ns=50_000_000, on_uncovered="error"))
+
+
 def test_agent_without_ins_says_so(tmp_path: Path) -> None:
     """No pose is a fact about the recording: not applicable with the reason, no error."""
     lake = Lake(tmp_path / "lake")

@@ -63,10 +63,15 @@ class DeskewConfig(BaseModel):
         "skip_edge",
         description="uncompensable frames: error always; skip those at the clip's edges "
                     "(INS starts late / stops early) and error in the middle; or skip all")
-    max_pose_gap_ns: int = Field(
-        50_000_000, gt=0,
-        description="INS samples further apart than this are a gap, not something to "
-                    "interpolate across (125 Hz INS: 8 ms nominal)")
+    max_pose_gap_ns: int | None = Field(
+        None, gt=0,
+        description="pose samples further apart than this are a gap, not something to "
+                    "interpolate across; default: pose_gap_periods of the pose track's "
+                    "median period, at least 50 ms (125 Hz INS: 50 ms; a 10 Hz "
+                    "localisation: 250 ms), as QA judges it")
+    pose_gap_periods: float = Field(
+        2.5, gt=1, description="with max_pose_gap_ns unset: a gap is longer than this many "
+                               "periods of the pose track")
     frames_per_file: int = Field(
         100, ge=1, description="frames per output file and per chunk of work (bounds memory; "
                                "chunks are what a distributed run spreads over workers)")
@@ -102,6 +107,17 @@ def _fail(clip_id: str, reason: str, agent_id: str | None = None) -> ClipError:
 
 def _col(t: pa.Table, name: str) -> np.ndarray:
     return np.asarray(t.column(name).to_numpy(zero_copy_only=False))
+
+
+def max_pose_gap(track: PoseTrack, cfg: DeskewConfig) -> int:
+    """The longest pose interval deskew interpolates across: the configured one, else
+    ``pose_gap_periods`` of the track's median period and at least 50 ms. A fixed 50 ms
+    made every 10 Hz pose source (localisation stacks, Odometry) a gap at every sample."""
+    if cfg.max_pose_gap_ns is not None:
+        return cfg.max_pose_gap_ns
+    d = np.diff(track.t_ns)
+    period = float(np.median(d)) if d.size else 0.0
+    return int(max(50_000_000, cfg.pose_gap_periods * period))
 
 
 def _pose_gaps(track: PoseTrack, max_gap: int) -> np.ndarray:
@@ -210,7 +226,7 @@ def deskew_chunk(lake: Lake, clip_id: str, cfg: DeskewConfig, chunk: DeskewChunk
     agent = chunk.agent
     track = load_pose_track(lake, clip_id, agent)
     extr = read_extrinsics(lake, clip_id, agent)
-    gaps = _pose_gaps(track, cfg.max_pose_gap_ns)
+    gaps = _pose_gaps(track, max_pose_gap(track, cfg))
     fa = lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent)
     t_start = {(str(s), int(f)): int(t0) for s, f, t0 in zip(
         _col(fa, "sensor"), _col(fa, "frame_idx"), _col(fa, "t_start_ns"), strict=True)} \
@@ -363,8 +379,10 @@ def _uncompensable(res: DeskewResult, track: PoseTrack, gaps: np.ndarray,
     assert res.t_min_ns is not None and res.t_max_ns is not None
     for a, b in gaps:
         if a < res.t_max_ns and b > res.t_min_ns:
+            limit = max_pose_gap(track, cfg) / 1e6
             return (f"{span} but the INS has a gap of {(b - a) / 1e6:.1f} ms between {a} and "
-                    f"{b} ns (max {cfg.max_pose_gap_ns / 1e6:.1f} ms)")
+                    f"{b} ns (max {limit:.1f} ms: deskew.max_pose_gap_ns or "
+                    "deskew.pose_gap_periods sets it)")
     return None
 
 
