@@ -9,7 +9,9 @@ frame, frames available) from there and the math from here.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
@@ -94,17 +96,81 @@ def lidar_world_poses(agent: AgentData, sensor: str, t_ns: np.ndarray, clip_id: 
     return agent.T_world_ego(t_ns, clip_id=clip_id) @ agent.sensors[sensor].T_ego_sensor
 
 
+#: Where a cooperative agent's relative transform ``T_Lref_Lother`` comes from: the register
+#: stage's accepted refinement (eq. 1b), the two agents' INS poses (eq. 1a), or -- for the
+#: reference agent itself -- nothing relative at all (identity).
+TransformSource = Literal["registered", "ins", "reference"]
+REGISTERED: TransformSource = "registered"
+INS: TransformSource = "ins"
+REFERENCE: TransformSource = "reference"
+
+NOT_REGISTERED_CLIP = "register has not run on this clip (no registrations rows)"
+NOT_REGISTERED_FRAME = "no registration row for this agent at this reference frame"
+REGISTRATION_OFF = "use_registration=False"
+
+
+@dataclass(frozen=True, eq=False)
+class RelativeTransform:
+    """Which ``T_Lref_Lother`` a reader should use for one agent at one reference frame.
+
+    ``T`` is the accepted refined transform (eq. 1b) when ``source == "registered"``, else
+    None and the caller composes the INS poses (eq. 1a). ``reason`` says why the frame is not
+    registered (the register stage's own reason for a rejected pair, e.g. "uncertain: clip
+    estimate 1-sigma 2.5 cm > 2.0 cm"); empty when it is. Readers expose it because an INS
+    fallback is ~0.5 m off where a registered transform is ~2 cm, and a training set mixing
+    the two without knowing which is which is silently worse.
+    """
+
+    source: TransformSource
+    reason: str = ""
+    T: np.ndarray | None = None
+
+
+_REG_INDEX: weakref.WeakKeyDictionary[ClipRecord, dict[tuple[str, int], dict[str, Any]]] = \
+    weakref.WeakKeyDictionary()
+
+
+def _registration_index(clip: ClipRecord) -> dict[tuple[str, int], dict[str, Any]]:
+    """Rows of ``registrations`` against the reference agent by (other agent, reference
+    frame), an accepted row winning over a rejected one; built once per clip record so that
+    a sample costs a dict lookup, not a scan of the table."""
+    idx = _REG_INDEX.get(clip)
+    if idx is None:
+        idx = {}
+        r = clip.registrations
+        for x in (r.to_pylist() if r.num_rows else []):
+            if x["agent_ref"] != clip.reference_agent:
+                continue
+            key = (str(x["agent_other"]), int(x["frame_idx"]))
+            if key not in idx or (x["accepted"] and not idx[key]["accepted"]):
+                idx[key] = x
+        _REG_INDEX[clip] = idx
+    return idx
+
+
+def relative_transform(clip: ClipRecord, other: str, ref_frame_idx: int, *,
+                       use_registration: bool = True) -> RelativeTransform:
+    """The source of ``T_Lref_Lother`` at one reference frame, with the refined matrix when
+    the register stage accepted that frame (see :class:`RelativeTransform`)."""
+    if other == clip.reference_agent:
+        return RelativeTransform(REFERENCE)
+    if not use_registration:
+        return RelativeTransform(INS, REGISTRATION_OFF)
+    if clip.registrations.num_rows == 0:
+        return RelativeTransform(INS, NOT_REGISTERED_CLIP)
+    x = _registration_index(clip).get((other, int(ref_frame_idx)))
+    if x is None:
+        return RelativeTransform(INS, NOT_REGISTERED_FRAME)
+    if not x["accepted"]:
+        return RelativeTransform(INS, f"rejected: {x['reason'] or 'no reason recorded'}")
+    return RelativeTransform(REGISTERED, "", transform(
+        np.array([x["tx"], x["ty"], x["tz"]]), np.array([x["qw"], x["qx"], x["qy"], x["qz"]])))
+
+
 def registered_T(clip: ClipRecord, other: str, ref_frame_idx: int) -> np.ndarray | None:
-    """The accepted refined ``T_Lref_Lother`` (eq. 1b) of one reference frame, if any."""
-    r = clip.registrations
-    if r.num_rows == 0:
-        return None
-    for x in r.to_pylist():
-        if x["agent_other"] == other and x["agent_ref"] == clip.reference_agent \
-                and x["frame_idx"] == ref_frame_idx and x["accepted"]:
-            return transform(np.array([x["tx"], x["ty"], x["tz"]]),
-                             np.array([x["qw"], x["qx"], x["qy"], x["qz"]]))
-    return None
+    """The accepted refined ``T_Lref_Lother`` (eq. 1b) of one reference frame, if any
+    (:func:`relative_transform` also says why there is none)."""
+    return relative_transform(clip, other, ref_frame_idx).T
 
 
 def match_agents(clip: ClipData, ref_t: np.ndarray, tolerance_ns: float, *,

@@ -108,33 +108,69 @@ def test_images_carry_calibration_at_their_stamp(lake_dir: Path) -> None:
     assert img.png()[:4] == b"\x89PNG"
 
 
+def _reg_row(T: np.ndarray, base: np.ndarray, frame_idx: int, accepted: bool,
+             reason: str) -> RegistrationRow:
+    q, q0 = matrix_to_quat(T[:3, :3]), matrix_to_quat(base[:3, :3])
+    return RegistrationRow(
+        clip_id=CLIP, agent_ref="red", agent_other="black", frame_idx=frame_idx, t_ns=0,
+        init_tx=base[0, 3], init_ty=base[1, 3], init_tz=base[2, 3], init_qw=q0[0],
+        init_qx=q0[1], init_qy=q0[2], init_qz=q0[3], tx=T[0, 3], ty=T[1, 3], tz=T[2, 3],
+        qw=q[0], qx=q[1], qy=q[2], qz=q[3], fitness=0.9, inlier_rmse=0.02, correction_m=0.2,
+        correction_deg=0.0, accepted=accepted, method="gicp", reason=reason)
+
+
 def test_registration_overrides_poses(tmp_path: Path) -> None:
     root = tmp_path / "lake"
     lk = Lake(root)
     build_clean_clip(lk, CLIP, seconds=0.3, n_ground=300, with_cameras=False)
-    # an accepted refined T_Lred_Lblack 0.2 m off the poses' one on frame 1
-    base = v2xlake.open(root).clip(CLIP).sample(1).T("red", "black")
+    # an accepted refined T_Lred_Lblack 0.2 m off the poses' one on frame 1, a rejected one
+    # on frame 2, no row for frame 0
+    never = v2xlake.open(root).clip(CLIP).sample(1)
+    base = never.T("red", "black")
+    assert never.sources == {"red": "reference", "black": "ins"} and not never.registered
+    assert never.source_reason("black").startswith("register has not run")
     T = base.copy()
     T[0, 3] += 0.2
-    q = matrix_to_quat(T[:3, :3])
-    row = RegistrationRow(
-        clip_id=CLIP, agent_ref="red", agent_other="black", frame_idx=1, t_ns=0,
-        init_tx=base[0, 3], init_ty=base[1, 3], init_tz=base[2, 3], init_qw=q[0],
-        init_qx=q[1], init_qy=q[2], init_qz=q[3], tx=T[0, 3], ty=T[1, 3], tz=T[2, 3],
-        qw=q[0], qx=q[1], qy=q[2], qz=q[3], fitness=0.9, inlier_rmse=0.02, correction_m=0.2,
-        correction_deg=0.0, accepted=True, method="gicp", reason="")
+    uncertain = "uncertain: clip estimate 1-sigma 2.5 cm / 0.025 deg > 2.0 cm / 0.05 deg"
     from v2xlake.schemas.arrow import rows_to_table
 
-    lk.write_table("clean", "registrations", rows_to_table(RegistrationRow, [row]),
-                   clip_id=CLIP)
+    lk.write_table("clean", "registrations", rows_to_table(RegistrationRow, [
+        _reg_row(T, base, 1, True, "ok"), _reg_row(T, base, 2, False, uncertain)]),
+        clip_id=CLIP)
     clip = v2xlake.open(root).clip(CLIP)
     assert np.allclose(clip.sample(1).T("red", "black"), T, atol=1e-9)
     assert np.allclose(clip.sample(2).T("red", "black"), clip.sample(2)["red"].T_to("red")
                        @ invert(clip.sample(2)["red"].T_world_lidar)
                        @ clip.sample(2)["black"].T_world_lidar)
     assert clip.sample(1).registration().num_rows == 1
+    # which transform each agent got, and why not the refined one
+    s0, s1, s2 = clip.sample(0), clip.sample(1), clip.sample(2)
+    assert s1.sources == {"red": "reference", "black": "registered"} and s1.registered
+    assert s1["black"].T_source == "registered" and s1.source_reason("black") == ""
+    assert s2.source("black") == "ins" and s2.source_reason("black") == f"rejected: {uncertain}"
+    assert s0.source("black") == "ins" and "no registration row" in s0.source_reason("black")
+    assert not s0.registered and not s2.registered
+    assert clip.frame("black", 1).T_source == "ins"  # outside a sample: its own INS pose
     off = v2xlake.open(root, use_registration=False).clip(CLIP)
     assert np.allclose(off.sample(1).T("red", "black"), base)
+    assert off.sample(1).source_reason("black") == "use_registration=False"
+    # the dataset says it per item, and can keep the registered samples only
+    ds = v2xlake.CoopDataset(root)
+    assert [ds[i]["T_source"]["black"] for i in range(len(ds))] == ["ins", "registered", "ins"]
+    assert ds[2]["T_source_reason"] == {"red": "", "black": f"rejected: {uncertain}"}
+    for kw in ({}, {"require_all_agents": True}):
+        strict = v2xlake.CoopDataset(root, require_registered=True, **kw)
+        assert strict.index == [(CLIP, 1)]
+        assert strict[0]["T_source"] == {"red": "reference", "black": "registered"}
+        assert np.allclose(strict[0]["T"]["black"], T, atol=1e-9)
+
+
+def test_dataset_unknown_clip_is_an_error(lake_dir: Path) -> None:
+    with pytest.raises(KeyError, match="nope"):
+        v2xlake.CoopDataset(lake_dir, clips=["nope", CLIP])
+    with pytest.raises(KeyError, match="nope"):
+        v2xlake.CoopDataset(lake_dir, clips=["nope"], require_all_agents=True)
+    assert len(v2xlake.CoopDataset(lake_dir, clips=[CLIP])) == 10
 
 
 def test_frame_index_is_one_query(lake_dir: Path) -> None:

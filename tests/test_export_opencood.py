@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ from v2xlake.storage.reader import iter_point_frames
 from v2xlake.tasks.export.opencood import (
     export_opencood,
     matrix_to_opencood_angles,
+    opencood_loader_ego,
     opencood_x_to_world,
 )
 
@@ -37,7 +39,9 @@ def test_layout_like_the_loader_scans_it(exported) -> None:
     _, out = exported
     scen = out / "test" / "clip-a"
     cavs = sorted(x.name for x in scen.iterdir() if x.is_dir())
-    assert cavs == ["0", "1"] and all(int(c) >= 0 for c in cavs)
+    assert cavs == ["0", "1"] and all(int(c) >= 0 for c in cavs)  # two vehicles
+    meta = json.loads((out / "test" / "clip-a.json").read_text())
+    assert meta["agents"] == {"red": 0, "black": 1} and meta["loader_ego"] == "red"
     for c in cavs:
         ys = sorted(p.name for p in (scen / c).glob("*.yaml"))
         assert ys == [f"{i:06d}.yaml" for i in range(20) if i != 7]
@@ -156,3 +160,47 @@ def test_the_v2v4real_pose_path_takes_our_yaml(exported) -> None:
         # and the form we wrote before this test existed (a nested 4x4 list) is what crashed
         with pytest.raises((TypeError, ValueError)):
             _v2v4real_x1_to_x2(cav["lidar_pose_matrix"], ego["lidar_pose_matrix"])
+
+
+def _opencood_cav_list(scenario: Path) -> list[str]:
+    """OpenCOOD ``BaseDataset`` (train=False) / V2V4Real ``reinitialize`` (train=False):
+    sorted folder names, a negative first one moved to the end; the first is the ego."""
+    cav_list = sorted(x.name for x in scenario.iterdir() if x.is_dir())
+    if int(cav_list[0]) < 0:
+        cav_list = [*cav_list[1:], cav_list[0]]
+    return cav_list
+
+
+def test_roadside_units_get_negative_ids(tmp_path: Path) -> None:
+    """V2XSet marks infrastructure with negative cav ids, and the loader relies on that to
+    keep a roadside unit from being the ego; the reference vehicle stays ``0``."""
+    from v2xlake.schemas.arrow import rows_to_table
+    from v2xlake.schemas.tables import LAKE_TABLES
+
+    lake = Lake(tmp_path / "lake")
+    build_clean_clip(lake, "clip-r", seconds=0.5, n_ground=300, with_cameras=False)
+    lake.write_table("clean", "agents", rows_to_table(LAKE_TABLES["agents"], [
+        dict(clip_id="clip-r", agent_id="red", kind="vehicle", role="reference", has_ins=True),
+        dict(clip_id="clip-r", agent_id="black", kind="roadside", role="cooperative",
+             has_ins=True)]), clip_id="clip-r")
+    out = tmp_path / "oc"
+    rep = export_opencood(lake, ["clip-r"], out, splits={"clip-r": "test"})
+    assert not rep.notes
+    scen = out / "test" / "clip-r"
+    assert sorted(x.name for x in scen.iterdir() if x.is_dir()) == ["-1", "0"]
+    assert _opencood_cav_list(scen) == ["0", "-1"]  # the reference vehicle is the ego
+    meta = json.loads((out / "test" / "clip-r.json").read_text())
+    assert meta["agents"] == {"red": 0, "black": -1} and meta["loader_ego"] == "red"
+    doc = yaml.safe_load((scen / "-1" / "000002.yaml").read_text())
+    assert doc["agent_id"] == "black" and doc["pose_source"] == "ins"
+    assert doc["pose_source_reason"].startswith("register has not run")
+    assert yaml.safe_load((scen / "0" / "000002.yaml").read_text())["pose_source"] == \
+        "reference"
+
+
+def test_loader_ego_rule() -> None:
+    # one roadside unit is moved behind the vehicles; a second one is not (sorted names are
+    # "-1", "-2", "0": only "-1" moves), which the export reports in a note
+    assert opencood_loader_ego([0, 1, -1]) == 0
+    assert opencood_loader_ego([0, -1, -2]) == -2
+    assert opencood_loader_ego([-1]) == -1

@@ -39,13 +39,17 @@ from v2xlake.storage.lake import checked_clip_id
 from v2xlake.storage.reader import DESKEWED, read_point_frame
 from v2xlake.tasks.geometry import apply, invert, quat_wxyz_of
 from v2xlake.tasks.reader import (
+    INS,
+    REFERENCE,
     AgentData,
     ClipData,
+    RelativeTransform,
+    TransformSource,
     boxes_matrices,
     load_clip,
     match_agents,
     nearest_index,
-    registered_T,
+    relative_transform,
 )
 
 __all__ = ["AgentFrame", "Boxes", "CameraImage", "Clip", "CoopDataset", "CoopSample", "Lake",
@@ -153,11 +157,25 @@ class CameraImage:
 
 
 # ---------------------------------------------------------------------------------- frames
+STANDALONE = "not part of a cooperative sample: the agent's own INS pose"
+
+
 class AgentFrame:
-    """One agent's LiDAR frame: its pose, points, boxes and the images around it."""
+    """One agent's LiDAR frame: its pose, points, boxes and the images around it.
+
+    ``T_source`` says where ``T_world_lidar`` -- and so every transform to another agent's
+    frame -- comes from: ``"registered"`` (the register stage's accepted refined
+    ``T_Lref_Lagent``, eq. 1b, composed with the reference agent's pose), ``"ins"`` (the
+    agent's own INS pose, eq. 1a: decimetres off between agents) or ``"reference"`` (the
+    clip's reference agent, whose INS pose defines the sample's frame). ``T_source_reason``
+    says why an ``"ins"`` frame is not registered: the register stage's reason for a
+    rejected frame (``"rejected: uncertain: ..."``), no row for the frame, a clip that never
+    ran register, or ``use_registration=False``; empty otherwise.
+    """
 
     def __init__(self, clip: Clip, agent_id: str, index: int, *, sensor: str = "LIDAR_TOP",
-                 T_world_lidar: np.ndarray | None = None) -> None:
+                 T_world_lidar: np.ndarray | None = None,
+                 relative: RelativeTransform | None = None) -> None:
         agent = clip.data.agents[agent_id]
         self.clip = clip
         self.agent_id = agent_id
@@ -171,10 +189,15 @@ class AgentFrame:
         self.T_world_lidar = T_world_lidar if T_world_lidar is not None else \
             self.T_world_ego @ agent.sensors[self.sensor].T_ego_sensor
         self.sample: CoopSample | None = None  # set when the frame is part of one
+        if relative is None:
+            relative = RelativeTransform(REFERENCE) if agent_id == clip.reference_agent \
+                else RelativeTransform(INS, STANDALONE)
+        self.T_source: TransformSource = relative.source
+        self.T_source_reason: str = relative.reason
 
     def __repr__(self) -> str:
         return (f"AgentFrame(clip={self.clip.clip_id!r}, agent={self.agent_id!r}, "
-                f"frame={self.frame_idx}, t_ns={self.t_ns})")
+                f"frame={self.frame_idx}, t_ns={self.t_ns}, T_source={self.T_source!r})")
 
     @property
     def agent(self) -> AgentData:
@@ -243,7 +266,13 @@ class CoopSample:
 
     ``T(a, b)`` maps agent b's LiDAR frame into agent a's. For a cooperative agent with an
     accepted registration (the register stage, eq. 1b) that transform is the refined one;
-    otherwise it comes from the two agents' INS poses (eq. 1a).
+    otherwise it comes from the two agents' INS poses (eq. 1a), which is typically tens of
+    centimetres off. The register stage leaves frames unaccepted (e.g. "uncertain: clip
+    estimate 1-sigma 2.5 cm > 2.0 cm") and some clips never run it, so ``source(agent)``
+    (``"registered"``, ``"ins"`` or ``"reference"``), ``source_reason(agent)`` and
+    ``registered`` say which one each agent got: filter on them when the relative
+    transform's accuracy matters (``CoopDataset(require_registered=True)`` does).
+    ``T(a, b)`` between two cooperative agents is registered only when both are.
     """
 
     def __init__(self, clip: Clip, index: int, frames: dict[str, AgentFrame]) -> None:
@@ -266,6 +295,26 @@ class CoopSample:
     @property
     def agents(self) -> list[str]:
         return list(self.frames)
+
+    def source(self, agent: str) -> TransformSource:
+        """Where ``T(reference, agent)`` comes from: "registered", "ins" or "reference"."""
+        return self.frames[agent].T_source
+
+    def source_reason(self, agent: str) -> str:
+        """Why ``agent`` is not registered at this sample ("" when it is, or is the
+        reference): the register stage's reason for a rejected frame, or what is missing."""
+        return self.frames[agent].T_source_reason
+
+    @property
+    def sources(self) -> dict[str, TransformSource]:
+        """``source(agent)`` of every agent, reference first."""
+        return {a: f.T_source for a, f in self.frames.items()}
+
+    @property
+    def registered(self) -> bool:
+        """True when no agent's relative transform fell back to INS poses (a sample with the
+        reference agent alone is trivially registered)."""
+        return all(f.T_source != INS for f in self.frames.values())
 
     def T(self, a: str, b: str) -> np.ndarray:
         """``T_La_Lb`` between two agents' LiDAR frames at this sample."""
@@ -393,12 +442,11 @@ class Clip:
         for aid, j in picks.items():
             if aid == ref:
                 continue
-            T = None
-            if self.use_registration:
-                reg = registered_T(self.data, aid, frames[ref].frame_idx)
-                if reg is not None:
-                    T = frames[ref].T_world_lidar @ reg
-            frames[aid] = AgentFrame(self, aid, j, sensor=self.sensor, T_world_lidar=T)
+            rel = relative_transform(self.data, aid, frames[ref].frame_idx,
+                                     use_registration=self.use_registration)
+            T = None if rel.T is None else frames[ref].T_world_lidar @ rel.T
+            frames[aid] = AgentFrame(self, aid, j, sensor=self.sensor, T_world_lidar=T,
+                                     relative=rel)
         s = CoopSample(self, index, frames)
         for f in frames.values():
             f.sample = s
@@ -605,26 +653,42 @@ class CoopDataset:
     tensors; point clouds differ in size, so pass a ``collate_fn`` that keeps lists, or a
     ``transform`` that voxelises): ``clip_id``, ``frame_idx`` (reference), ``t_ns``,
     ``agents`` (reference first), ``points`` {agent: (N, 4) x y z intensity in ``frame``},
-    ``boxes`` {agent: Boxes as arrays}, ``T`` {agent: ``T_frame_Lagent``} and, with
+    ``boxes`` {agent: Boxes as arrays}, ``T`` {agent: ``T_frame_Lagent``}, ``T_source``
+    {agent: "registered" | "ins" | "reference"} and ``T_source_reason`` {agent: why not
+    registered, "" if it is} (see :class:`CoopSample`: an "ins" agent's points sit where its
+    INS pose puts them, typically tens of centimetres off the reference's) and, with
     ``images=True``, ``images`` {agent: [{"camera", "rgb", "K", "T_frame_cam"}]}.
     ``transform(item) -> item`` runs last (augmentation, voxelisation, target encoding).
 
     The index is every deskewed reference frame (``stride``: every n-th per clip), from the
     lake-wide frame index in one query; an item holds the agents that can fill that frame
     (``Clip.sample_at``). ``require_all_agents=True`` keeps only frames every agent fills
-    (``Clip.sample``), which reads each clip's tables once while building the index. A worker
-    process re-opens the lake lazily.
+    (``Clip.sample``), which reads each clip's tables once while building the index.
+    ``require_registered=True`` keeps only samples where no agent fell back to INS poses
+    (``CoopSample.registered``: every cooperative agent's transform is the register stage's
+    accepted one); it too reads each clip's tables once while building the index, and a
+    clip that never ran register contributes only frames the reference agent fills alone.
+    ``clips`` must name clips with status ok (KeyError otherwise, as ``Lake.clip``). A
+    worker process re-opens the lake lazily.
     """
 
     def __init__(self, lake: Lake | str | PathLike[str], clips: Sequence[str] | None = None,
                  *, frame: str = "reference", stride: int = 1, images: bool = False,
-                 require_all_agents: bool = False,
+                 require_all_agents: bool = False, require_registered: bool = False,
                  transform: Callable[[dict[str, Any]], Any] | None = None) -> None:
         self.lake = lake if isinstance(lake, Lake) else open(lake)
         self.frame = frame
         self.images = images
         self.transform = transform
         self.require_all = require_all_agents
+        self.require_registered = require_registered
+        if clips is not None:
+            clips = list(clips)
+            # the frame index query would just match nothing: an empty dataset from a typo
+            missing = sorted(set(clips) - set(self.lake.clips))
+            if missing:
+                raise KeyError(f"no clip(s) {missing} with status ok in the clean zone of "
+                               f"{self.lake.uri}")
         step = max(1, stride)
         index: list[tuple[str, int]] = []
         if require_all_agents:
@@ -639,19 +703,26 @@ class CoopDataset:
                 last = cid
                 if k % step == 0:
                     index.append((str(cid), int(fi)))
+        if require_registered:
+            index = [(cid, k) for cid, k in index if self._sample(cid, k).registered]
         self.index = index
+
+    def _sample(self, cid: str, k: int) -> CoopSample:
+        clip = self.lake.clip(cid)
+        return clip.sample(k) if self.require_all else clip.sample_at(k)
 
     def __len__(self) -> int:
         return len(self.index)
 
     def __getitem__(self, i: int) -> Any:
         cid, k = self.index[i]
-        clip = self.lake.clip(cid)
-        s = clip.sample(k) if self.require_all else clip.sample_at(k)
+        s = self._sample(cid, k)
         f = s.reference_agent if self.frame == "reference" else self.frame
         item: dict[str, Any] = {
             "clip_id": cid, "frame_idx": s[s.reference_agent].frame_idx, "t_ns": s.t_ns,
-            "agents": s.agents, "points": {}, "boxes": {}, "T": {}}
+            "agents": s.agents, "points": {}, "boxes": {}, "T": {},
+            "T_source": dict(s.sources),
+            "T_source_reason": {a: fr.T_source_reason for a, fr in s.frames.items()}}
         for a, fr in s.frames.items():
             item["points"][a] = fr.points(f).numpy()
             b = fr.boxes(f)

@@ -2,9 +2,18 @@
 
 What the V2V4Real loader expects, and why each choice here:
 
-* agent folders are integers; the loader makes the first sorted folder the ego, so the clip's
-  reference agent is ``0`` and the others follow (``agents.json`` next to the scenario
-  folders maps the numbers back to agent ids);
+* agent folders are integers, "cav ids": vehicles ``0, 1, ...`` (the clip's reference agent
+  first when it is a vehicle) and roadside units ``-1, -2, ...``, as V2XSet marks
+  infrastructure. OpenCOOD's ``BaseDataset`` lists the folders -- sorted when
+  ``train=False``, shuffled when ``train=True`` (V2V4Real / v2x-vit) -- then moves the first
+  one to the end if its id is negative ("roadside unit data's id is always negative ... they
+  shouldn't be ego vehicle"), and makes the first of the list the ego. So with
+  ``train=False`` the ego is the reference vehicle ``0`` when the clip has at most one
+  roadside unit (with two, sorted names are "-1", "-2", "0": only "-1" moves and "-2"
+  becomes the ego); with ``train=True`` the ego is a random agent per scenario, as the
+  loader intends. ``<clip>.json`` next to the scenario folders maps the numbers back to
+  agent ids and names ``loader_ego``, the agent a sorted (``train=False``) loader takes;
+  a clip where that is not the reference agent gets a report note;
 * every agent has the same file names (the loader indexes timestamps on the ego only), so
   frame ``%06d`` is the reference agent's LiDAR frame index and the other agents contribute
   their scan nearest in time;
@@ -16,6 +25,8 @@ What the V2V4Real loader expects, and why each choice here:
   first two entries. The exact 4x4 is kept beside it as ``lidar_pose_matrix``. For a
   cooperative agent with an accepted registration (eq. 1b) the pose is
   ``T_world_lidar_ref @ T_L1_L2`` so that fusing uses the refined relative transform;
+  ``pose_source`` ("registered" / "ins" / "reference") and ``pose_source_reason`` say which
+  one a frame got (``v2xlake.tasks.reader.relative_transform``); the loader ignores them;
 * ``vehicles`` are in the agent's own LiDAR frame at t0 (as V2V4Real annotates): ``location``
   = box centre, ``center`` = 0, ``angle`` = [roll, yaw, pitch] in degrees in OpenCOOD's
   ``x_to_world`` convention, ``extent`` = half (l, w, h), ``ass_id`` = one integer per global
@@ -43,12 +54,15 @@ from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import available_frames, iter_point_frames
 from v2xlake.tasks.export.common import file_output
 from v2xlake.tasks.reader import (
+    ClipData,
     boxes_matrices,
     lidar_world_poses,
     load_clip,
     match_agents,
-    registered_T,
+    relative_transform,
 )
+
+ROADSIDE = "roadside"  # the agents table's kind of an infrastructure unit (schemas.clip)
 
 
 class OpenCoodConfig(BaseModel):
@@ -105,6 +119,24 @@ def write_pcd(path: Path, xyz: np.ndarray, intensity01: np.ndarray) -> None:
         raise OSError(f"open3d could not write {path}")
 
 
+def opencood_cav_ids(clip: ClipData) -> dict[str, int]:
+    """Folder number per agent: vehicles 0, 1, ... in the clip's agent order (reference
+    first), roadside units -1, -2, ... (V2XSet's convention, which the loader relies on to
+    keep infrastructure from being the ego)."""
+    vehicles = [aid for aid, a in clip.agents.items() if a.kind != ROADSIDE]
+    rsus = [aid for aid, a in clip.agents.items() if a.kind == ROADSIDE]
+    return {**{a: i for i, a in enumerate(vehicles)}, **{a: -1 - i for i, a in enumerate(rsus)}}
+
+
+def opencood_loader_ego(cav_ids: Sequence[int]) -> int:
+    """The cav id OpenCOOD's ``BaseDataset`` makes the ego with ``train=False``: the first
+    sorted folder name, unless negative, in which case that one goes to the end."""
+    names = sorted(str(c) for c in cav_ids)
+    if int(names[0]) < 0:
+        names = names[1:] + names[:1]
+    return int(names[0])
+
+
 def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                     splits: dict[str, str] | None = None,
                     config: OpenCoodConfig = OpenCoodConfig()) -> StageReport:  # noqa: B008
@@ -125,10 +157,16 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
             if a.annotations.num_rows:
                 gids = sorted(set(gids) | set(a.annotations["instance_id"].to_pylist()))
         ass = {g: i for i, g in enumerate(gids)}
-        agent_num = {aid: i for i, aid in enumerate(clip.agents)}
+        agent_num = opencood_cav_ids(clip)
+        ego_num = opencood_loader_ego(list(agent_num.values()))
+        loader_ego = next(a for a, n in agent_num.items() if n == ego_num)
+        if loader_ego != clip.reference_agent:
+            report.notes.append(
+                f"{cid}: OpenCOOD's sorted loader (train=False) takes {loader_ego} (folder "
+                f"{ego_num}) as ego, not the reference agent {clip.reference_agent}")
         (scen).mkdir(parents=True, exist_ok=True)
         meta = {"agents": agent_num, "instances": ass,
-                "reference_agent": clip.reference_agent,
+                "reference_agent": clip.reference_agent, "loader_ego": loader_ego,
                 "frames": {f"{int(f):06d}": int(t) for f, t in
                            zip(ref_frames.frame_idx, ref_t, strict=True)}}
         meta["note"] = "frames: reference LiDAR frame -> scan start (ns, relative time)"
@@ -159,10 +197,10 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                 ref_fi = int(ref_frames.frame_idx[k])
                 name = f"{ref_fi:06d}"
                 T = T_by_frame[fr.frame_idx]
-                if aid != clip.reference_agent and config.use_registrations:
-                    reg = registered_T(clip, aid, ref_fi)
-                    if reg is not None:
-                        T = T_wl_ref[k] @ reg
+                rel = relative_transform(clip, aid, ref_fi,
+                                         use_registration=config.use_registrations)
+                if rel.T is not None:
+                    T = T_wl_ref[k] @ rel.T
                 inten = fr.intensity.astype(np.float64)
                 scale = config.intensity_scale if config.intensity_scale is not None else (
                     255.0 if inten.size and float(inten.max()) > 1.0 else 1.0)
@@ -185,6 +223,7 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                 doc = {"lidar_pose": matrix_to_opencood_pose(T),
                        "lidar_pose_matrix": [[float(v) for v in row] for row in T],
                        "vehicles": vehicles, "agent_id": aid,
+                       "pose_source": rel.source, "pose_source_reason": rel.reason,
                        "timestamp_ns": int(lf.points_t_ns[lf.frame_idx == fr.frame_idx][0])}
                 yp = d / f"{name}.yaml"
                 yp.write_text(yaml.safe_dump(doc, sort_keys=False))

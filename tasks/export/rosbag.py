@@ -9,6 +9,11 @@ without custom packages:
   LIO-SAM and FAST-LIO read;
 * ``/<agent>/camera/<CAM>/image/compressed`` sensor_msgs/msg/CompressedImage (the anonymized
   PNG bytes, lossless) + ``/<agent>/camera/<CAM>/camera_info`` (calibration as recorded);
+* ``/<agent>/radar/<RADAR>/points`` sensor_msgs/msg/PointCloud2 per radar (clips with
+  ``radar_frames``): one message per scan stamped at the scan's time (a radar reports one
+  time per scan), frame ``<agent>/<radar lower-case>``, fields x y z (radar frame),
+  ``velocity`` (measured radial / Doppler speed, m/s, positive away) and ``rcs`` (dBsm, NaN
+  where the radar gives none), all f32 -- the lake's ``radar_points`` unchanged;
 * ``/<agent>/imu`` sensor_msgs/msg/Imu (clean imu table, orientation from the interpolated
   INS pose);
 * ``/<agent>/ins/odometry`` nav_msgs/msg/Odometry: ``T_world_ego`` in the clip's local ENU
@@ -49,7 +54,14 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import DESKEWED, CameraCalib, iter_point_frames
+from v2xlake.storage.reader import (
+    DESKEWED,
+    CameraCalib,
+    RadarFrames,
+    RadarScan,
+    iter_point_frames,
+    read_radar_scans,
+)
 from v2xlake.tasks.export.common import file_output
 from v2xlake.tasks.geometry import matrix_to_quat
 from v2xlake.tasks.reader import AgentData, ClipData, boxes_matrices, load_clip
@@ -59,6 +71,9 @@ POINT_DTYPE = np.dtype({"names": ["x", "y", "z", "intensity", "ring", "time"],
                         "offsets": [0, 4, 8, 12, 16, 18], "itemsize": 24})
 _FIELD_OFFSETS = (("x", 0), ("y", 4), ("z", 8), ("intensity", 12), ("ring", 16), ("time", 18))
 _PF_FLOAT32, _PF_UINT16 = 7, 4
+_RADAR_FIELDS = ("x", "y", "z", "velocity", "rcs")  # all f32, packed: offset 4 * i
+RADAR_DTYPE = np.dtype({"names": list(_RADAR_FIELDS), "formats": ["<f4"] * 5,
+                        "offsets": [0, 4, 8, 12, 16], "itemsize": 20})
 
 
 class RosbagExportConfig(BaseModel):
@@ -75,6 +90,8 @@ class RosbagExportConfig(BaseModel):
     rosbag2_version: Literal[8, 9] = 8
     cameras: list[str] | None = None
     boxes: bool = Field(True, description="/<agent>/boxes MarkerArray from the annotations")
+    radar: bool = Field(True, description="/<agent>/radar/<RADAR>/points PointCloud2 per "
+                                          "radar scan (nothing when the clip has no radar)")
     combine_agents: bool = Field(
         False, description="one bag <clip>_all with every agent on one timeline instead of "
                            "one bag per agent")
@@ -111,6 +128,23 @@ def pointcloud_msg(ts: Any, t_ns: int, frame: str, xyz: np.ndarray, intensity: n
         is_bigendian=False, point_step=POINT_DTYPE.itemsize,
         row_step=POINT_DTYPE.itemsize * len(arr), data=arr.view(np.uint8).reshape(-1),
         is_dense=True)
+
+
+def radar_msg(ts: Any, t_ns: int, frame: str, scan: RadarScan) -> Any:
+    """One radar scan as a PointCloud2 (x, y, z, velocity, rcs; f32), stamped ``t_ns``."""
+    arr = np.zeros(len(scan), RADAR_DTYPE)
+    if len(scan):
+        arr["x"], arr["y"], arr["z"] = scan.xyz[:, 0], scan.xyz[:, 1], scan.xyz[:, 2]
+        arr["velocity"], arr["rcs"] = scan.velocity, scan.rcs
+    PF = ts.types["sensor_msgs/msg/PointField"]
+    fields = [PF(name=n, offset=4 * i, datatype=_PF_FLOAT32, count=1)
+              for i, n in enumerate(_RADAR_FIELDS)]
+    return ts.types["sensor_msgs/msg/PointCloud2"](
+        header=_header(ts, t_ns, frame), height=1, width=len(arr), fields=fields,
+        is_bigendian=False, point_step=RADAR_DTYPE.itemsize,
+        row_step=RADAR_DTYPE.itemsize * len(arr), data=arr.view(np.uint8).reshape(-1),
+        # rcs is NaN where the radar reports none, so not every field is finite
+        is_dense=bool(np.isfinite(scan.rcs).all()) if len(scan) else True)
 
 
 def _vec3(ts: Any, v: np.ndarray) -> Any:
@@ -176,6 +210,19 @@ def _streams(lake: Lake, clip: ClipData, agent: AgentData, ts: Any, cfg: RosbagE
 
             out.append((f"/{aid}/camera/{ch}/camera_info", "sensor_msgs/msg/CameraInfo",
                         infos()))
+    for rs, rf in sorted(agent.radar.items()) if cfg.radar else ():
+        def radar(rs: str = rs, rf: RadarFrames = rf) -> Iterator[tuple[int, Any]]:
+            scans = read_radar_scans(lake, cid, aid, rs)  # a few MB per clip at most
+            frame = frame_name(aid, rs)
+            none = np.zeros(0, np.float32)
+            for k in range(len(rf)):
+                f, t = int(rf.frame_idx[k]), int(rf.stamp_ns[k])
+                # a scan without detections is still a scan: an empty cloud at its stamp
+                scan = scans.get(f) or RadarScan(f, np.zeros(0, np.int64),
+                                                 np.zeros((0, 3), np.float32), none, none)
+                yield t, radar_msg(ts, t, frame, scan)
+
+        out.append((f"/{aid}/radar/{rs}/points", "sensor_msgs/msg/PointCloud2", radar()))
     imu = lake.read_table("clean", "imu", clip_id=cid)
     if imu.num_rows:
         imu = imu.filter(imu["agent_id"].to_numpy(zero_copy_only=False) == aid).sort_by("t_ns")
