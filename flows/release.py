@@ -113,10 +113,11 @@ def check_fractions(fractions: Sequence[float]) -> tuple[float, float, float]:
     import math
 
     fr = tuple(float(f) for f in fractions)
+    shown = ",".join(str(f) for f in fr)  # no brackets: the CLI prints through rich markup
     if len(fr) != 3 or not all(math.isfinite(f) and 0.0 <= f <= 1.0 for f in fr):
-        raise ReleaseError(f"fractions {list(fractions)}: need three finite numbers in [0, 1]")
+        raise ReleaseError(f"fractions {shown}: need three finite numbers from 0 to 1")
     if abs(sum(fr) - 1.0) > 1e-6:
-        raise ReleaseError(f"fractions {list(fr)} sum to {sum(fr)}, not 1")
+        raise ReleaseError(f"fractions {shown} sum to {sum(fr)}, not 1")
     return fr[0], fr[1], fr[2]
 
 
