@@ -88,12 +88,37 @@ def release_exists(lake: Lake, name: str) -> bool:
     return lake.exists(root) and bool(lake.list_files(root))
 
 
-def _check_name(name: str) -> None:
-    """A release name is a single folder name: never ``..``, a path or a hidden name."""
+MAX_NAME_LEN = 100  # well under NAME_MAX (255) with the ``.NAME.building-<owner>-<id>`` staging
+
+
+def check_release_name(name: str) -> None:
+    """A release name is a single folder name: never ``..``, a path or a hidden name, and
+    short enough that its staging folder name still fits the filesystem's limit (the
+    privacy audit checks ``--release`` names with this too)."""
     import re
 
+    if len(name) > MAX_NAME_LEN:
+        raise ReleaseError(f"release name of {len(name)} characters: at most {MAX_NAME_LEN}")
     if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._\-]*", name) or ".." in name:
         raise ReleaseError(f"release name {name!r}: use letters, digits, '.', '_' and '-'")
+
+
+_check_name = check_release_name
+
+
+def check_fractions(fractions: Sequence[float]) -> tuple[float, float, float]:
+    """train/val/test fractions: three finite numbers in [0, 1] summing to 1. NaN slips
+    through ``SplitConfig``'s sum check (every comparison with NaN is false), and inf or
+    NaN would end up in release.json and the notes."""
+    import math
+
+    fr = tuple(float(f) for f in fractions)
+    shown = ",".join(str(f) for f in fr)  # no brackets: the CLI prints through rich markup
+    if len(fr) != 3 or not all(math.isfinite(f) and 0.0 <= f <= 1.0 for f in fr):
+        raise ReleaseError(f"fractions {shown}: need three finite numbers from 0 to 1")
+    if abs(sum(fr) - 1.0) > 1e-6:
+        raise ReleaseError(f"fractions {shown} sum to {sum(fr)}, not 1")
+    return fr[0], fr[1], fr[2]
 
 
 # ---------------------------------------------------------------- steps
@@ -285,6 +310,7 @@ def build_release(lake_uri: str, name: str, where: str,
                   fractions: tuple[float, float, float] = (0.7, 0.15, 0.15)) -> dict[str, Any]:
     """Build release NAME; returns its release.json content. Refuses an existing name."""
     _check_name(name)
+    fractions = check_fractions(fractions)
     lake = Lake(lake_uri)
     lake.sweep()  # builds (and staging, temporary files) of killed runs
     if release_exists(lake, name):
@@ -370,23 +396,32 @@ def verify_release(lake_uri: str, name: str) -> VerifyResult:
     if not lake.exists(f"{root}/SHA256SUMS") or not lake.exists(f"{root}/checksums.json"):
         return VerifyResult(name, 0, [f"release {name!r} is missing or incomplete "
                                       f"(no SHA256SUMS/checksums.json under {root})"])
-    listed: dict[str, dict[str, Any]] = lake.read_json(f"{root}/checksums.json")["files"]
+    try:
+        listed = _listed(lake.read_bytes(f"{root}/checksums.json"))
+        sums: dict[str, str] = {}
+        for line in lake.read_bytes(f"{root}/SHA256SUMS").decode("utf-8").splitlines():
+            if line.strip():
+                digest, _, rel = line.partition("  ")
+                sums[rel] = digest
+    except (ValueError, OSError) as e:  # JSONDecodeError and UnicodeDecodeError included
+        return VerifyResult(name, 0, [f"release {name!r}: its seal cannot be read ({e})"])
     problems: list[str] = []
-    sums: dict[str, str] = {}
-    for line in lake.read_bytes(f"{root}/SHA256SUMS").decode().splitlines():
-        if line.strip():
-            digest, _, rel = line.partition("  ")
-            sums[rel] = digest
     if sums != {k: v["sha256"] for k, v in listed.items()}:
         problems.append("SHA256SUMS and checksums.json disagree")
-    present = {f[len(root):].strip("/") for f in lake.list_files(root, hidden=True)}
+    if lake.is_local:
+        regular, links = _walk_local(root)
+        problems += [f"{rel}: a symlink (a release is copied, never linked)" for rel in links]
+        present = regular
+    else:  # object stores have no links
+        present = {f[len(root):].strip("/") for f in lake.list_files(root, hidden=True)}
     for rel in sorted(present - set(listed) - set(SEAL_FILES)):
         problems.append(f"{rel}: not listed in the release (added after build)")
     checked = 0
     for rel, want in sorted(listed.items()):
         path = f"{root}/{rel}"
         if rel not in present:
-            problems.append(f"{rel}: missing")
+            if not (lake.is_local and rel in links):
+                problems.append(f"{rel}: missing")
             continue
         data = lake.read_bytes(path)
         checked += 1
@@ -396,6 +431,37 @@ def verify_release(lake_uri: str, name: str) -> VerifyResult:
         if digest != want["sha256"]:
             problems.append(f"{rel}: sha256 {digest[:12]}... != {want['sha256'][:12]}...")
     return VerifyResult(name, checked, problems)
+
+
+def _listed(raw: bytes) -> dict[str, dict[str, Any]]:
+    """``checksums.json``'s file table, checked for shape: a hand-edited or truncated seal
+    is a verify problem, not a KeyError."""
+    doc = json.loads(raw)
+    files = doc.get("files") if isinstance(doc, dict) else None
+    if not isinstance(files, dict):
+        raise ValueError("checksums.json has no 'files' table")
+    for rel, v in files.items():
+        if not (isinstance(v, dict) and isinstance(v.get("sha256"), str)
+                and isinstance(v.get("size"), int)):
+            raise ValueError(f"checksums.json entry {rel!r} lacks sha256/size")
+    return files
+
+
+def _walk_local(root: str) -> tuple[set[str], list[str]]:
+    """(regular files, symlinks) under a local release, relative to it. Links, to files or
+    to folders, are listed and never followed: a release's promise is that its files are
+    copies, and following a link to ``/`` would walk the whole machine (``/proc`` loops)."""
+    files: set[str] = set()
+    links: list[str] = []
+    for d, dirs, names in os.walk(root, followlinks=False):
+        for n in sorted(dirs + names):
+            p = os.path.join(d, n)
+            rel = os.path.relpath(p, root).replace(os.sep, "/")
+            if os.path.islink(p):
+                links.append(rel)
+            elif n in names and os.path.isfile(p):
+                files.add(rel)
+    return files, sorted(links)
 
 
 def list_releases(lake_uri: str) -> list[str]:

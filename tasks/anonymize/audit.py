@@ -19,16 +19,43 @@ What it looks for, and why each rule has the shape it has:
 * image metadata: PNG text/EXIF/time chunks (parsed here) and JPEG APP1/COM segments.
 * unblurred faces / plates: the anonymizer's detector is re-run on a sample of images;
   a detection above the audit's score threshold is a finding.
+* rosbags (``.bag`` ROS 1, ``.db3`` / ``.mcap`` ROS 2; a folder with ``metadata.yaml`` is read
+  as one bag, a bare storage file on its own): opened with ``rosbags.highlevel.AnyReader``,
+  every message is deserialized and walked. Any ``builtin_interfaces/Time`` (header stamps,
+  tf stamps) and any log time in the epoch window is absolute time; ``NavSatFix`` and any
+  message with a lat/lon-named field is latitude/longitude; strings go through the text rule;
+  ``PointCloud2`` fields go through the point rule below; ``Image`` / ``CompressedImage``
+  messages join the dataset images the detector re-checks (one sample over files and bags).
+  A bag that cannot be opened or read is an ``unreadable`` finding, never a silent skip.
+* point files (``.pcd`` by its header's FIELDS/SIZE/TYPE/COUNT, ascii or binary; ``.ply``
+  by its header; ``.npy``; ``.bin`` / ``.pcd.bin`` as nuScenes/KITTI write them): any value
+  of any field in the epoch window in s/ms/us/ns is absolute time (an x of 1.7e9 is never a
+  real point; packed ``rgb``/``rgba`` fields are colours and skipped). A ``.bin`` has no
+  header: it is read as float32 (any value), and as float64 N x 3..6 where a whole column
+  lies in the window (reading float32 points as float64 makes isolated values land there).
+  ``binary_compressed`` PCDs are not decoded: an ``unreadable`` finding.
+* everything else: a file whose extension the audit has no scanner for is an
+  ``unscannable`` finding, not skipped: what cannot be looked at cannot be released on the
+  audit's word. Text-like files (``.md``, ``.txt``, ``.csv``, ``.xml``, no extension such as
+  ``SHA256SUMS``) get the text rule.
+
+Which folder: ``"clean"`` / ``"raw"`` are lake zones; any other name given with a lake is a
+release name, checked like ``release verify`` checks it (never a path: ``../..`` is refused)
+and required to exist; without a lake, ``zone`` is a local folder. ``release=NAME`` always
+means ``releases/NAME``, even for a release called ``clean``.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
 import re
 import struct
+import tempfile
 from collections.abc import Iterator, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -49,7 +76,11 @@ COUNT_NAME = re.compile(r"(size|bytes|count|^n_|_n$|num_|rows|points)", re.I)
 TIME_KEY = re.compile(r"(time|stamp|date|_ns$|_us$|_ms$|^t$|^ts$)", re.I)
 DIGITS = re.compile(rb"(?<![0-9A-Za-z])(?<![0-9]\.)([0-9]{9,19})(?:\.([0-9]+))?(?![0-9A-Za-z])")
 IMAGE_EXT = (".png", ".jpg", ".jpeg")
-TEXT_EXT = (".json", ".yaml", ".yml", ".txt", ".csv", ".xml", ".pcd")
+TEXT_EXT = (".json", ".yaml", ".yml", ".txt", ".csv", ".xml", ".md")
+BAG_EXT = (".bag", ".db3", ".mcap")
+BAG_STORAGE_EXT = (".db3", ".mcap")  # the files a rosbag2 folder's metadata.yaml names
+POINT_EXT = (".pcd", ".ply", ".npy", ".bin")
+COLOUR_FIELDS = {"rgb", "rgba"}  # packed colours, not numbers
 PNG_SIG = b"\x89PNG\r\n\x1a\n"
 PNG_LEAK_CHUNKS = {b"tEXt", b"zTXt", b"iTXt", b"eXIf", b"tIME"}
 
@@ -57,6 +88,7 @@ PNG_LEAK_CHUNKS = {b"tEXt", b"zTXt", b"iTXt", b"eXIf", b"tIME"}
 @dataclass(frozen=True)
 class Finding:
     # absolute_time | latlon | image_metadata | unblurred_face | unblurred_plate | unreadable
+    # (could not be read or parsed) | unscannable (no scanner for this kind of file)
     kind: str
     location: str
     detail: str
@@ -374,19 +406,364 @@ def jpeg_metadata(data: bytes) -> list[str]:
     return found
 
 
+# ------------------------------------------------------------------------------- points
+def scan_points(cols: dict[str, np.ndarray], where: str) -> list[Finding]:
+    """Absolute time in point data: any value of any field in the epoch window (first unit
+    that matches). Unlike a table column, one value is enough: no coordinate, intensity,
+    ring or relative time of a real point is 6e8 or more."""
+    out: list[Finding] = []
+    for name, v in cols.items():
+        if name.lower() in COLOUR_FIELDS or not np.issubdtype(np.asarray(v).dtype, np.number):
+            continue
+        a = np.asarray(v, dtype=np.float64).ravel()
+        a = a[np.isfinite(a)]
+        for unit, k in UNIT_SCALE.items():
+            hit = (a >= EPOCH_LO_S * k) & (a <= EPOCH_HI_S * k)
+            if hit.any():
+                out.append(Finding(
+                    "absolute_time", f"{where}:{name}",
+                    f"{int(hit.sum())} of {a.size} values in the 1990-2100 epoch window in "
+                    f"{unit} (e.g. {float(a[hit][0])!r}): never a real point's value"))
+                break
+    return out
+
+
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4",
+              ("U", 8): "u8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8"}
+
+
+def read_pcd(data: bytes) -> tuple[bytes, dict[str, np.ndarray]]:
+    """(header bytes, field -> values) of a PCD file, ascii or binary, laid out as its
+    header's FIELDS / SIZE / TYPE / COUNT say. Raises ValueError on what it cannot read."""
+    end = data.find(b"\nDATA ")
+    if end < 0:
+        raise ValueError("no DATA line in the PCD header")
+    eol = data.find(b"\n", end + 1)
+    eol = len(data) if eol < 0 else eol
+    header, body = data[: eol + 1], data[eol + 1 :]
+    h: dict[str, list[str]] = {}
+    for line in header.decode("ascii", "replace").splitlines():
+        parts = line.split()
+        if parts and not parts[0].startswith("#"):
+            h[parts[0].upper()] = parts[1:]
+    names, sizes, types = h.get("FIELDS", []), h.get("SIZE", []), h.get("TYPE", [])
+    counts = [int(c) for c in h.get("COUNT", ["1"] * len(names))]
+    if not names or not len(names) == len(sizes) == len(types) == len(counts):
+        raise ValueError("PCD header FIELDS/SIZE/TYPE/COUNT disagree")
+    n = int(h["POINTS"][0]) if "POINTS" in h else int(h["WIDTH"][0]) * int(h["HEIGHT"][0])
+    fmts = [_PCD_TYPES[(t.upper(), int(z))] for t, z in zip(types, sizes, strict=True)]
+    kind = h["DATA"][0].lower()
+    cols: dict[str, np.ndarray] = {}
+    if kind == "ascii":
+        arr = np.loadtxt(io.BytesIO(body), dtype=np.float64, ndmin=2) if body.strip() else (
+            np.zeros((0, sum(counts))))
+        j = 0
+        for name, c in zip(names, counts, strict=True):
+            cols[name] = arr[:, j : j + c]
+            j += c
+    elif kind == "binary":
+        dt = np.dtype([(f"f{i}", "<" + f, (c,)) for i, (f, c) in enumerate(
+            zip(fmts, counts, strict=True))])
+        rec = np.frombuffer(body, dtype=dt, count=n)
+        cols = {name: rec[f"f{i}"] for i, name in enumerate(names)}
+    else:
+        raise ValueError(f"PCD DATA {kind} is not decoded by the audit")
+    return header, cols
+
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",
+              "int16": "i2", "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4",
+              "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4", "double": "f8",
+              "float64": "f8"}
+
+
+def read_ply(data: bytes) -> tuple[bytes, dict[str, np.ndarray]]:
+    """(header bytes, "element.property" -> values) of a PLY file's elements up to the first
+    one with a list property (a point cloud's vertices come first)."""
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise ValueError("not a PLY file")
+    eol = data.index(b"\n", end)
+    header, body = data[: eol + 1], data[eol + 1 :]
+    fmt = ""
+    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
+    for line in header.decode("ascii", "replace").splitlines():
+        p = line.split()
+        if p[:1] == ["format"]:
+            fmt = p[1]
+        elif p[:1] == ["element"]:
+            elements.append((p[1], int(p[2]), []))
+        elif p[:1] == ["property"] and elements:
+            elements[-1][2].append((p[-1], "list" if p[1] == "list" else _PLY_TYPES[p[1]]))
+    order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(fmt)
+    cols: dict[str, np.ndarray] = {}
+    pos = 0
+    lines = body.splitlines() if fmt == "ascii" else []
+    for name, n, props in elements:
+        if any(t == "list" for _, t in props):
+            break
+        if fmt == "ascii":
+            arr = np.loadtxt(lines[pos : pos + n], dtype=np.float64, ndmin=2)
+            pos += n
+            cols.update({f"{name}.{p}": arr[:, i] for i, (p, _) in enumerate(props)})
+        elif order is not None:
+            dt = np.dtype([(p, order + t) for p, t in props])
+            rec = np.frombuffer(body, dtype=dt, count=n, offset=pos)
+            pos += n * dt.itemsize
+            cols.update({f"{name}.{p}": rec[p] for p, _ in props})
+        else:
+            raise ValueError(f"PLY format {fmt!r}")
+    return header, cols
+
+
+def scan_bin(data: bytes, where: str) -> list[Finding]:
+    """A headerless ``.bin`` / ``.pcd.bin`` (nuScenes N x 5, KITTI N x 4 float32): every
+    float32 value; and, read as float64 N x 3..6, any column lying wholly in the window (a
+    float64 file would otherwise hide its times from the float32 reading)."""
+    if len(data) % 4:
+        return [Finding("unscannable", where, f"{len(data)} bytes: not float32 points")]
+    out = scan_points({"float32": np.frombuffer(data, "<f4")}, where)
+    if out or len(data) % 8:
+        return out
+    d = np.frombuffer(data, "<f8")
+    for k in (5, 4, 6, 3):
+        if d.size % k == 0 and d.size // k >= 2:
+            m = d.reshape(-1, k)
+            for j in range(k):
+                if epoch_unit(float(np.min(m[:, j])), float(np.max(m[:, j]))) is not None:
+                    return [Finding("absolute_time", f"{where}:float64 column {j}",
+                                    f"read as float64 N x {k}, every value of column {j} lies "
+                                    f"in the 1990-2100 epoch window (e.g. {float(m[0, j])!r})")]
+    return out
+
+
+def scan_npy(data: bytes, where: str) -> list[Finding]:
+    arr = np.load(io.BytesIO(data), allow_pickle=False)
+    if arr.dtype.names:
+        return scan_points({n: arr[n] for n in arr.dtype.names}, where)
+    if not np.issubdtype(arr.dtype, np.number):
+        return [Finding("unscannable", where, f"array of dtype {arr.dtype}")]
+    return scan_points({"values": arr}, where)
+
+
+# ------------------------------------------------------------------------------- rosbags
+@dataclass(frozen=True)
+class _BagImage:
+    """One Image / CompressedImage message of a bag, for the detector re-check."""
+
+    bag: str  # local path of the bag (file or rosbag2 folder)
+    topic: str
+    index: int  # n-th message on the topic
+    location: str
+
+
+_PF_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+def _cloud_columns(msg: Any) -> dict[str, np.ndarray]:
+    """The fields of a ``sensor_msgs/PointCloud2`` as arrays."""
+    step = int(msg.point_step)
+    raw = np.ascontiguousarray(np.asarray(msg.data, dtype=np.uint8))
+    n = raw.size // step if step else 0
+    bo = ">" if msg.is_bigendian else "<"
+    names, fmts, offs = [], [], []
+    for f in msg.fields:
+        t = _PF_TYPES.get(int(f.datatype))
+        if t and f.name not in names and int(f.offset) + np.dtype(t).itemsize <= step:
+            names.append(f.name)
+            fmts.append(bo + t)
+            offs.append(int(f.offset))
+    if not names or n == 0:
+        return {}
+    dt = np.dtype({"names": names, "formats": fmts, "offsets": offs, "itemsize": step})
+    rec = raw[: n * step].view(dt)
+    return {name: rec[name] for name in names}
+
+
+def _walk_msg(obj: Any, path: str, stamps: list[tuple[str, int]], names: set[str],
+              strings: set[str], depth: int = 0) -> None:
+    """Collect Time stamps (path, sec), lat/lon-named numeric fields and strings of a
+    deserialized message (rosbags messages are dataclasses; number arrays are numpy)."""
+    fields = getattr(obj, "__dataclass_fields__", None)
+    if not fields or depth > 12:
+        return
+    if "sec" in fields and "nanosec" in fields:
+        stamps.append((path or "stamp", int(obj.sec)))
+        return
+    for n in fields:
+        v = getattr(obj, n)
+        p = f"{path}.{n}" if path else n
+        if isinstance(v, str):
+            strings.add(v)
+        elif isinstance(v, bool):
+            continue
+        elif isinstance(v, int | float | np.ndarray):
+            if LATLON_NAME.search(n):
+                names.add(p)
+        elif isinstance(v, list):
+            for x in v[:10000]:
+                if isinstance(x, str):
+                    strings.add(x)
+                else:
+                    _walk_msg(x, f"{p}[]", stamps, names, strings, depth + 1)
+        else:
+            _walk_msg(v, p, stamps, names, strings, depth + 1)
+
+
+def _open_bag(path: Path) -> Any:
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    # bags without embedded definitions (older sqlite3 rosbag2) decode with the ROS 2 set
+    return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+
+
+def scan_bag(path: Path, where: str) -> tuple[list[Finding], list[_BagImage]]:
+    """Findings of one bag (file or rosbag2 folder) and its image messages. A bag that
+    cannot be opened or read through is an ``unreadable`` finding."""
+    out: list[Finding] = []
+    images: list[_BagImage] = []
+    flagged: set[tuple[str, str]] = set()
+
+    def flag(kind: str, topic: str, detail: str) -> None:
+        if (kind, topic) not in flagged:
+            flagged.add((kind, topic))
+            out.append(Finding(kind, f"{where}:{topic}", detail))
+
+    try:
+        with _open_bag(path) as r:
+            counts: dict[str, int] = {}
+            log_hit: int | None = None
+            for con, t, raw in r.messages():
+                topic, typ = con.topic, con.msgtype
+                k = counts.get(topic, 0)
+                counts[topic] = k + 1
+                if log_hit is None and epoch_unit(float(t), float(t), "t_ns") is not None:
+                    log_hit = int(t)
+                if typ.endswith(("/Image", "/CompressedImage")):
+                    images.append(_BagImage(str(path), topic, k, f"{where}:{topic}[{k}]"))
+                if typ.endswith("/NavSatFix"):
+                    flag("latlon", topic, f"{typ} messages: GNSS latitude/longitude")
+                msg = r.deserialize(raw, typ)
+                stamps: list[tuple[str, int]] = []
+                names: set[str] = set()
+                strings: set[str] = set()
+                _walk_msg(msg, "", stamps, names, strings)
+                for p, sec in stamps:
+                    if EPOCH_LO_S <= sec <= EPOCH_HI_S:
+                        flag("absolute_time", topic, f"{typ} {p}.sec = {sec}: an epoch time")
+                        break
+                for p in sorted(names):
+                    flag("latlon", topic, f"{typ} field {p}: latitude/longitude")
+                if strings and ("absolute_time", topic) not in flagged:
+                    for f in scan_text("\n".join(sorted(strings)).encode(), f"{where}:{topic}"):
+                        flag(f.kind, topic, f"{typ} string: {f.detail}")
+                if typ.endswith("/PointCloud2") and ("absolute_time", topic) not in flagged:
+                    for f in scan_points(_cloud_columns(msg), f"{where}:{topic}"):
+                        flag(f.kind, topic, f"{typ} {f.location.rsplit(':', 1)[-1]}: "
+                                            f"{f.detail}")
+            if log_hit is not None:
+                out.append(Finding("absolute_time", where,
+                                   f"message log time {log_hit} ns is an epoch time"))
+    except Exception as e:
+        return [Finding("unreadable", where,
+                        f"bag cannot be scanned: {type(e).__name__}: {e}")], []
+    return out, images
+
+
+def _decode_ros_image(msg: Any, typ: str) -> np.ndarray | None:
+    """A decoded Image / CompressedImage message (BGR or mono), None if it does not decode."""
+    import cv2
+
+    data = np.asarray(msg.data, dtype=np.uint8).tobytes()
+    if typ.endswith("/CompressedImage"):
+        return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    enc = str(msg.encoding).lower()
+    table = {"mono8": ("u1", 1), "8uc1": ("u1", 1), "mono16": ("u2", 1), "16uc1": ("u2", 1),
+             "bgr8": ("u1", 3), "rgb8": ("u1", 3), "8uc3": ("u1", 3), "bgra8": ("u1", 4),
+             "rgba8": ("u1", 4), "8uc4": ("u1", 4)}
+    if enc not in table:
+        return None
+    t, ch = table[enc]
+    dt = np.dtype((">" if msg.is_bigendian else "<") + t)
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if step * h > len(data) or w * ch * dt.itemsize > step:
+        return None
+    rows = np.frombuffer(data[: step * h], np.uint8).reshape(h, step)[:, : w * ch * dt.itemsize]
+    img = np.ascontiguousarray(rows).view(dt).reshape(h, w, ch).astype(dt.newbyteorder("="))
+    if ch == 1:
+        return img[:, :, 0]
+    if enc.startswith("rgb"):
+        return cv2.cvtColor(img, cv2.COLOR_RGB2BGR if ch == 3 else cv2.COLOR_RGBA2BGRA)
+    return img
+
+
+def _read_bag_images(refs: Sequence[_BagImage]) -> dict[_BagImage, np.ndarray | None]:
+    """The sampled image messages, each bag read through once."""
+    out: dict[_BagImage, np.ndarray | None] = dict.fromkeys(refs)
+    for bag in sorted({r.bag for r in refs}):
+        want = {(r.topic, r.index): r for r in refs if r.bag == bag}
+        topics = {t for t, _ in want}
+        try:
+            with _open_bag(Path(bag)) as rd:
+                cons = [c for c in rd.connections if c.topic in topics]
+                counts: dict[str, int] = {}
+                for con, _, raw in rd.messages(connections=cons):
+                    k = counts.get(con.topic, 0)
+                    counts[con.topic] = k + 1
+                    ref = want.get((con.topic, k))
+                    if ref is not None:
+                        out[ref] = _decode_ros_image(rd.deserialize(raw, con.msgtype),
+                                                     con.msgtype)
+        except Exception:
+            continue  # left None: reported as "does not decode"
+    return out
+
+
 # ------------------------------------------------------------------------------- walking
 class _Files:
     """The files of a lake zone or of a local folder, through one filesystem."""
 
-    def __init__(self, lake: Lake | None, zone: str | os.PathLike[str]) -> None:
+    def __init__(self, lake: Lake | None, zone: str | os.PathLike[str],
+                 release: str | None = None) -> None:
         z = str(zone)
-        if lake is not None and z in ("clean", "raw", "releases", "landing"):
-            self.fs: pafs.FileSystem = lake.fs
-            self.root = lake.path(z)
-        elif lake is not None and not os.path.isabs(z) and lake.exists(lake.path("releases", z)):
-            self.fs, self.root = lake.fs, lake.path("releases", z)
+        self.fs: pafs.FileSystem
+        if lake is not None and release is None and z in ("clean", "raw"):
+            self.fs, self.root = lake.fs, lake.path(z)
+        elif lake is not None and (release is not None or isinstance(zone, str)):
+            # a release name, never a path: the same rule as ``release verify``
+            name = release if release is not None else z
+            from v2xlake.flows.release import ReleaseError, check_release_name
+
+            try:
+                check_release_name(name)
+            except ReleaseError as e:
+                raise AuditError(str(e)) from e
+            self.fs, self.root = lake.fs, lake.path("releases", name)
+            if not lake.exists(self.root):
+                raise AuditError(f"no release {name!r} in {lake.uri}")
         else:
             self.fs, self.root = pafs.LocalFileSystem(), str(Path(z).resolve())
+
+    @property
+    def is_local(self) -> bool:
+        return isinstance(self.fs, pafs.LocalFileSystem)
+
+    def local(self, path: str, members: Sequence[str], stack: ExitStack) -> Path:
+        """A local path of ``path`` (a file, or a folder whose files are ``members``), copied
+        to a temporary folder that lives as long as ``stack`` when the lake is remote."""
+        if self.is_local:
+            return Path(path)
+        tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="v2xlake-audit-")))
+        if not members:
+            dst = tmp / Path(path).name
+            dst.write_bytes(self.read(path))
+            return dst
+        for m in members:
+            dst = tmp / m[len(path) :].lstrip("/")
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            dst.write_bytes(self.read(m))
+        return tmp
 
     def list(self) -> list[str]:
         info = self.fs.get_file_info(self.root)
@@ -425,14 +802,38 @@ def audit(
     sample_images: int = 20,
     config: AuditConfig | None = None,
     detector: Any = None,
+    *,
+    release: str | None = None,
 ) -> AuditReport:
-    """Scan every table and file of ``zone`` ("clean", a release name, or a folder path).
+    """Scan every table and file of ``zone`` ("clean", "raw", a release name, or without a
+    lake a folder path), or of release ``release`` (always ``releases/NAME``).
 
     ``detector``: what re-checks images (default: the anonymizer's default detector);
     ``sample_images``: how many images, spread evenly over the sorted list, are re-checked.
     """
     cfg = config or AuditConfig()
-    files = _Files(lake, zone)
+    files = _Files(lake, zone, release)
+    if release is not None:
+        # a release, whatever its name (even "clean"): never the clean zone's tables
+        zone = f"releases/{release}"
+    with ExitStack() as stack:
+        return _audit(lake, zone, files, sample_images, cfg, detector, stack)
+
+
+def _bag_dirs(paths: Sequence[str]) -> dict[str, list[str]]:
+    """rosbag2 folders (a ``metadata.yaml`` next to ``.db3`` / ``.mcap`` files) -> their
+    files: each is read as one bag, its storage files not again on their own."""
+    dirs = {p.rsplit("/", 1)[0] for p in paths if p.endswith("/metadata.yaml")}
+    out: dict[str, list[str]] = {}
+    for p in paths:
+        d = p.rsplit("/", 1)[0]
+        if d in dirs:
+            out.setdefault(d, []).append(p)
+    return {d: m for d, m in out.items() if any(x.lower().endswith(BAG_STORAGE_EXT) for x in m)}
+
+
+def _audit(lake: Lake | None, zone: str | os.PathLike[str], files: _Files, sample_images: int,
+           cfg: AuditConfig, detector: Any, stack: ExitStack) -> AuditReport:
     paths = files.list()
     if not paths:
         raise AuditError(f"nothing to audit: {files.root} does not exist or holds no files")
@@ -448,12 +849,37 @@ def audit(
         else None
     )
     frames = _lake_frames(lake, zone, files) if lake is not None else None
-    images: list[str] = []
+    images: list[str | _BagImage] = []
+    bags = _bag_dirs(paths)
+    in_bag = {m: d for d, ms in bags.items() for m in ms}
     for p in paths:
         rel = files.rel(p)
         low = p.lower()
+        base = low.rsplit("/", 1)[-1]
         try:
-            if low.endswith(".parquet"):
+            if p in in_bag:
+                d = in_bag[p]
+                if p.endswith("/metadata.yaml"):  # the folder, once; the YAML below too
+                    found, imgs = scan_bag(files.local(d, bags[d], stack), files.rel(d))
+                    report.findings.extend(found)
+                    images.extend(imgs)
+                else:
+                    continue  # a storage file of that folder
+            if low.endswith(BAG_EXT):
+                found, imgs = scan_bag(files.local(p, [], stack), rel)
+                report.findings.extend(found)
+                images.extend(imgs)
+            elif low.endswith(".pcd"):
+                header, cols = read_pcd(files.read(p))
+                report.findings.extend(scan_text(header, rel) + scan_points(cols, rel))
+            elif low.endswith(".ply"):
+                header, cols = read_ply(files.read(p))
+                report.findings.extend(scan_text(header, rel) + scan_points(cols, rel))
+            elif low.endswith(".bin"):
+                report.findings.extend(scan_bin(files.read(p), rel))
+            elif low.endswith(".npy"):
+                report.findings.extend(scan_npy(files.read(p), rel))
+            elif low.endswith(".parquet"):
                 report.n_tables += 1
                 pf = pq.ParquetFile(files.fs.open_input_file(p))
                 # points: first 3 row groups (frames) only; a column has one unit
@@ -485,8 +911,13 @@ def audit(
                     report.findings.extend(scan_text(data, rel))
                 else:
                     report.findings.extend(scan_structured(obj, rel))
-            elif low.endswith(TEXT_EXT):
+            elif low.endswith(TEXT_EXT) or "." not in base:
                 report.findings.extend(scan_text(files.read(p, cfg.text_max_bytes), rel))
+            else:
+                ext = "." + base.rsplit(".", 1)[-1]
+                report.findings.append(Finding(
+                    "unscannable", rel, f"the audit has no scanner for {ext} files: what "
+                    "it holds is unchecked (remove it, or teach the audit its format)"))
         except Exception as e:
             report.findings.append(Finding("unreadable", rel, f"{type(e).__name__}: {e}"))
     if frames is not None and not frames and zone in ("clean", "raw"):
@@ -597,7 +1028,7 @@ def _overlaps(box: Sequence[float], boxes: Sequence[Sequence[float]], frac: floa
 
 
 def _recheck_images(
-    files: _Files, images: list[str], n: int, cfg: AuditConfig, detector: Any,
+    files: _Files, images: Sequence[str | _BagImage], n: int, cfg: AuditConfig, detector: Any,
     report: AuditReport, frames: dict[str, _Frame], lake: Lake | None, zone: str,
 ) -> list[Finding]:
     """Re-check a sample of dataset images with the audit's own plan: the whole frame, and
@@ -611,13 +1042,17 @@ def _recheck_images(
         detector = audit_detector(cfg)
     idx = np.unique(np.linspace(0, len(images) - 1, min(n, len(images))).round().astype(int))
     sample = [images[int(i)] for i in idx]
-    meta = [frames.get(files.rel(p)) for p in sample]
+    from_bags = _read_bag_images([p for p in sample if isinstance(p, _BagImage)])
+    meta = [frames.get(files.rel(p)) if isinstance(p, str) else None for p in sample]
     blurred = _blurred(frames, lake, zone)
     guides = _guides(lake, zone, {m.clip for m in meta if m is not None}, cfg)
     out = []
     for p, m in zip(sample, meta, strict=True):
-        img = cv2.imdecode(np.frombuffer(files.read(p), np.uint8), cv2.IMREAD_UNCHANGED)
-        rel = files.rel(p)
+        if isinstance(p, _BagImage):
+            img, rel = from_bags.get(p), p.location
+        else:
+            img = cv2.imdecode(np.frombuffer(files.read(p), np.uint8), cv2.IMREAD_UNCHANGED)
+            rel = files.rel(p)
         if img is None:
             out.append(Finding("unreadable", rel, "image does not decode"))
             continue
