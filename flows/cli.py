@@ -567,7 +567,9 @@ def audit(
     from v2xlake.tasks.anonymize.audit import audit as run_audit
 
     try:
-        report = run_audit(open_lake(lake), release or "clean")
+        the_lake = open_lake(lake)
+        report = (run_audit(the_lake, release=release) if release
+                  else run_audit(the_lake, "clean"))
     except AuditError as e:
         raise UserError(str(e)) from e
     console = _console()
