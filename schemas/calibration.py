@@ -30,16 +30,29 @@ _N_COEFFS = {
 }
 
 
+#: Bounds of a focal length in pixels. Below one pixel the whole image would span more than
+#: a radian per pixel (no pinhole or fisheye camera does); above 10^6 pixels a 10,000-pixel
+#: image would see less than 0.6 degrees (a telescope, not a driving camera). Outside, the
+#: number is a unit mistake or an attack, and projections with it are meaningless.
+MIN_FOCAL_PX = 1.0
+MAX_FOCAL_PX = 1e6
+#: Largest image side accepted, pixels (beyond any automotive sensor).
+MAX_IMAGE_SIDE = 100_000
+
+
 class CameraIntrinsics(BaseModel):
     """Pinhole intrinsics plus distortion, checked against the image size they claim (and,
     at ingest, against the size of the images themselves)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    # Every number finite (``allow_inf_nan=False``): a NaN distortion coefficient or an
+    # infinite focal length validated here used to reach anonymize, whose projection of
+    # faces and plates then silently covered nothing (or crashed there, far from the cause).
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    width: int = Field(gt=0)
-    height: int = Field(gt=0)
-    fx: float = Field(gt=0)
-    fy: float = Field(gt=0)
+    width: int = Field(gt=0, le=MAX_IMAGE_SIDE)
+    height: int = Field(gt=0, le=MAX_IMAGE_SIDE)
+    fx: float = Field(ge=MIN_FOCAL_PX, le=MAX_FOCAL_PX, description="pixels")
+    fy: float = Field(ge=MIN_FOCAL_PX, le=MAX_FOCAL_PX, description="pixels")
     cx: float
     cy: float
     distortion_model: DistortionModel = DistortionModel.NONE

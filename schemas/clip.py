@@ -14,12 +14,13 @@ would otherwise be ignored and its sensor silently calibrated from somewhere els
 
 from __future__ import annotations
 
+import math
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any, Literal, Self
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from v2xlake.schemas.calibration import CameraIntrinsics
 from v2xlake.schemas.geometry import Transform
@@ -28,18 +29,90 @@ from v2xlake.schemas.geometry import Transform
 #: and by every no-op check, and the pure-Python loader takes milliseconds on a large one.
 _SafeLoader: type[yaml.SafeLoader] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
+#: Largest YAML text ``load_yaml`` parses (bytes or characters). A real clip.yaml is a few
+#: KB (a thousand-sensor one well under 1 MB); a larger one is a hostile or broken delivery,
+#: and parsing it would cost memory and time before anything could say so.
+MAX_YAML_SIZE = 16 * 1024 * 1024
+
+#: Deepest nesting of collections ``load_yaml`` accepts. A clip.yaml nests about ten levels
+#: deep. libyaml's composer (via PyYAML's C extension) recurses in C, about 320 bytes of
+#: stack per level: 100,000 levels overflow the stack and kill the process (segfault, no
+#: Python exception). 256 levels need ~85 KB, safe in any thread stack CPython itself runs
+#: in, and stay within the pure-Python loader's recursion limit too.
+MAX_YAML_NESTING = 256
+
+_OPEN_EVENTS = (yaml.SequenceStartEvent, yaml.MappingStartEvent)
+_CLOSE_EVENTS = (yaml.SequenceEndEvent, yaml.MappingEndEvent)
+
+
+def _nesting_bound(text: str | bytes) -> int:
+    """An upper bound of the collection nesting of ``text``, at C speed: a flow collection
+    needs an opening bracket, and a block collection nests at a column no smaller than its
+    parent's (strictly greater every other level), so its depth is at most twice the
+    longest line. Loose (brackets in strings count), but never below the real depth."""
+    if isinstance(text, bytes):
+        openers = text.count(b"[") + text.count(b"{")
+    else:
+        openers = text.count("[") + text.count("{")
+    longest = max(map(len, text.splitlines()), default=0)
+    return openers + 2 * (longest + 1) + 1
+
+
+def _nesting(text: str | bytes, limit: int) -> int:
+    """The real nesting depth of ``text`` from its event stream (libyaml's parser is a state
+    machine with a heap stack: no recursion), stopping as soon as it passes ``limit``."""
+    depth = deepest = 0
+    for event in yaml.parse(text, Loader=_SafeLoader):
+        if isinstance(event, _OPEN_EVENTS):
+            depth += 1
+            deepest = max(deepest, depth)
+            if depth > limit:
+                break
+        elif isinstance(event, _CLOSE_EVENTS):
+            depth -= 1
+    return deepest
+
 
 def load_yaml(text: str | bytes) -> Any:
-    """Parse YAML safely (no Python objects), with libyaml when available."""
-    return yaml.load(text, Loader=_SafeLoader)
+    """Parse YAML safely (no Python objects), with libyaml when available.
+
+    A clip.yaml is untrusted input, so the parse is bounded: a text above ``MAX_YAML_SIZE``
+    or nested deeper than ``MAX_YAML_NESTING`` raises ``yaml.YAMLError`` (which every
+    caller already turns into its own error) instead of exhausting memory or overflowing
+    the C stack. The nesting is measured only when a cheap bound cannot rule it out."""
+    if len(text) > MAX_YAML_SIZE:
+        raise yaml.YAMLError(f"YAML text too large ({len(text):,} > {MAX_YAML_SIZE:,} bytes)")
+    too_deep = f"YAML nesting too deep (more than {MAX_YAML_NESTING} levels)"
+    if (_nesting_bound(text) > MAX_YAML_NESTING
+            and _nesting(text, MAX_YAML_NESTING) > MAX_YAML_NESTING):
+        raise yaml.YAMLError(too_deep)
+    try:
+        return yaml.load(text, Loader=_SafeLoader)
+    except RecursionError as e:  # the pure-Python composer recurses (a caller deep already)
+        raise yaml.YAMLError(too_deep) from e
+
 
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_\-]*$"
+
+#: Highest sensor or pose-sample rate accepted, Hz. Above any real sensor (a fast IMU runs at
+#: a few kHz); an absurd rate sizes buffers and sample grids (a fixed pose is sampled at it).
+MAX_RATE_HZ = 100_000.0
+#: Farthest a sensor may sit from its agent's ego frame, metres (``extrinsic`` and the
+#: tf_static chain alike). Sensors are on the vehicle or the RSU mast; a kilometre is a
+#: generous bound that still catches a unit mistake (mm for m) or a world pose given as an
+#: extrinsic. World poses (a fixed RSU's ``local`` pose, a datum) are not bounded: they may
+#: be UTM or other large local coordinates.
+MAX_SENSOR_OFFSET_M = 1000.0
+#: Bound of each coordinate of an agent's body-box centre in its ego frame, metres.
+MAX_BODY_OFFSET_M = 50.0
 
 
 class _Strict(BaseModel):
     """Frozen, and an unknown key is an error naming the key."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    # No NaN or infinity anywhere in a clip.yaml: no field means "unknown" or "unbounded"
+    # by them, and a NaN compares false with every bound, so it would pass range checks.
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
 
 class Weather(StrEnum):
@@ -153,13 +226,23 @@ class SensorConfig(_Strict):
     extrinsic: Transform | None = Field(default=None, description="T_ego_sensor")
     intrinsics: CameraIntrinsics | None = None
     camera_info_topic: str | None = None
-    rate_hz: float | None = Field(default=None, gt=0, description="nominal rate; QA estimates "
+    rate_hz: float | None = Field(default=None, gt=0, le=MAX_RATE_HZ,
+                                  description="nominal rate; QA estimates "
                                   "it from the stamps (and says so) when not given")
     sync: SyncModel | None = Field(default=None, description="PPS-locked or free-running; "
                                    "default: PPS-locked when the agent has a pose source "
                                    "(its GNSS supplies the PPS), else free-running")
     scan_fov_deg: float = Field(360.0, gt=0, le=360, description="LiDAR: azimuth range one "
                                 "scan covers; a FOV-limited scan spans fov/360 of the period")
+
+    @field_validator("extrinsic")
+    @classmethod
+    def _near_the_agent(cls, v: Transform | None) -> Transform | None:
+        if v is not None and (d := math.hypot(*v.translation)) > MAX_SENSOR_OFFSET_M:
+            raise ValueError(f"extrinsic translation is {d:.6g} m from the ego frame; at most "
+                             f"{MAX_SENSOR_OFFSET_M:g} m (metres, not millimetres? a sensor "
+                             "sits on its agent)")
+        return v
 
     @model_validator(mode="after")
     def _lidar_needs_fields(self) -> Self:
@@ -379,7 +462,8 @@ class FixedPose(_Euler):
     geodetic: GeodeticPoint | None = None
     attitude: FixedAttitude = FixedAttitude()
     angle_unit: AngleUnit = AngleUnit.DEG
-    rate_hz: float = Field(50.0, gt=0, description="samples of the constant pose per second "
+    rate_hz: float = Field(50.0, gt=0, le=MAX_RATE_HZ,
+                           description="samples of the constant pose per second "
                            "over the recording (deskew and QA bound the gap between poses)")
     local: Transform | None = Field(default=None, description="T_map_ego in a local map "
                                     "shared with the other agents (datum: local)")
@@ -402,6 +486,9 @@ PoseConfig = Annotated[InsPose | OdometryPose | SplitPose | TfPose | FixedPose |
                        Field(discriminator="kind")]
 
 
+_BodyOffset = Annotated[float, Field(ge=-MAX_BODY_OFFSET_M, le=MAX_BODY_OFFSET_M)]
+
+
 class AgentDimensions(_Strict):
     """The agent's body as a box (ground to roof, nuScenes-style), for removing it from the
     other agents' scans before registration: size and the box centre in the ego frame."""
@@ -409,7 +496,7 @@ class AgentDimensions(_Strict):
     length_m: float = Field(gt=0, le=30)
     width_m: float = Field(gt=0, le=5)
     height_m: float = Field(gt=0, le=10)
-    center_in_ego: tuple[float, float, float] = Field(
+    center_in_ego: tuple[_BodyOffset, _BodyOffset, _BodyOffset] = Field(
         default=(0.0, 0.0, 0.0), description="box centre in the ego (INS) frame, metres")
 
 

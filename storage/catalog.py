@@ -72,6 +72,14 @@ EXTRA_SCHEMAS = {"lidar_points_deskewed": LidarPointRow}
 # ``_catalog/<zone>/`` with the lake-relative source path of each row and, in its metadata,
 # (size, mtime_ns) of every file it holds. Tables above the size limit (points) get none.
 SNAPSHOT_DIR = "_catalog"
+
+#: The lake folders a locked-down catalog (user SQL) may read: what its views read (the
+#: table zones, their snapshots, the manifests and quarantine reports), nothing else. Not
+#: the lake root: ``landing/`` holds deliveries as delivered (files a clip folder brought,
+#: checked by ingest but never meant to be queried), and DuckDB's ``allowed_directories``
+#: compares path text, so anything under an allowed folder that is a symlink would be
+#: followed out of it. Releases are read by their own tools, not by ``v2xlake query``.
+QUERY_READABLE = ("raw", "clean", SNAPSHOT_DIR, "manifests", "quarantine")
 SNAPSHOT_KEY = b"v2xlake_sources"
 SNAPSHOT_MAX_BYTES = 256 * 2**20
 SNAPSHOT_MIN_FILES = 64
@@ -705,7 +713,8 @@ class Catalog:
         may itself be read-only) and is removed by ``close``. Why ``allowed_directories``
         before ``enable_external_access = false``: with external access off DuckDB reads
         no file at all, views over the lake included (NOTES.md "DuckDB as a read-only
-        surface"); the lake root is the one folder it may still read."""
+        surface"); the folders its views read (``QUERY_READABLE``: not ``landing/``) are
+        the only ones it may still read."""
         if self._locked:
             return
         self._tmpdir = tempfile.mkdtemp(prefix="v2xlake-catalog-")
@@ -727,8 +736,9 @@ class Catalog:
         con = duckdb.connect(path, read_only=True)
         if not self.lake.is_local:
             self._setup_s3(con)
-        root = self.lake.base if self.lake.is_local else f"s3://{self.lake.base}"
-        for stmt in (f"SET allowed_directories = [{_q(root + '/')}]",
+        readable = ", ".join(_q(self._uri(self.lake.path(zone)) + "/")
+                             for zone in QUERY_READABLE)
+        for stmt in (f"SET allowed_directories = [{readable}]",
                      f"SET temp_directory = {_q(os.path.join(self._tmpdir, 'spill'))}",
                      "SET autoinstall_known_extensions = false",
                      "SET autoload_known_extensions = false",

@@ -979,7 +979,14 @@ class Lake:
         ``link=True`` (ingest's landing copy): on a local lake, hard-link the file when it is
         on the same filesystem (no data written: bags as delivered are immutable, and a link
         keeps them even if the delivery folder is deleted); otherwise, or where links are not
-        allowed, a real copy (``shutil.copyfile``: in-kernel ``sendfile`` on Linux)."""
+        allowed, a real copy (``shutil.copyfile``: in-kernel ``sendfile`` on Linux).
+
+        ``src`` is resolved first, so the lake gets the file a symlink points at, never the
+        symlink: Linux ``link()`` would hard-link the symlink itself, and a symlink in the
+        lake is a way out of it for anything that reads the lake's folders (user SQL).
+        Whether the target may be read at all is the caller's decision (ingest's
+        ``plain_files``)."""
+        src = os.path.realpath(src)
         head = dest.rpartition("/")[0]
         size = os.path.getsize(src)
         with self.writing(dest):

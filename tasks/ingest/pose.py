@@ -397,11 +397,16 @@ class PoseCollector:
         out.t.append(0)  # counted as one message; times are per edge
 
     def add(self, name: str, msg: Any) -> None:
+        """Keep one pose message, and the frame names it carries. An empty frame name is no
+        frame: drivers leave ``child_frame_id`` / ``header.frame_id`` empty when they have
+        none to give (docs/recordings.md: ``body_frame`` defaults to Odometry's
+        child_frame_id, else the ego frame), so it must not count as a frame called ''
+        that no transform connects to the ego frame."""
         out = self.samples[name]
-        if hasattr(msg, "header"):
-            out.frame_ids.add(str(msg.header.frame_id).lstrip("/"))
-        if hasattr(msg, "child_frame_id"):
-            out.child_frame_ids.add(str(msg.child_frame_id).lstrip("/"))
+        if hasattr(msg, "header") and (frame := str(msg.header.frame_id).lstrip("/")):
+            out.frame_ids.add(frame)
+        if hasattr(msg, "child_frame_id") and (child := str(msg.child_frame_id).lstrip("/")):
+            out.child_frame_ids.add(child)
         self._extract[name](msg, out)
 
     # -- build

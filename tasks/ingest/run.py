@@ -38,6 +38,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from v2xlake.schemas.arrow import arrow_schema, columns_to_table
 from v2xlake.schemas.clip import (
     ID_PATTERN,
+    MAX_SENSOR_OFFSET_M,
     AgentConfig,
     ClipConfig,
     Modality,
@@ -317,31 +318,87 @@ def check_delivery(lake: Lake, clip_dir: Path, cfg: ClipConfig, replace: bool
 
 
 # --------------------------------------------------------------------------- landing
-def copy_to_landing(lake: Lake, clip_dir: Path, cfg: ClipConfig) -> int:
+def _inside(real: str, roots: Sequence[str]) -> bool:
+    return any(os.path.commonpath([r, real]) == r for r in roots)
+
+
+def plain_files(top: Path, roots: Sequence[str], clip_id: str, *,
+                skip_top: frozenset[str] = frozenset(), agent_id: str | None = None
+                ) -> list[tuple[str, str]]:
+    """``(relative path, real path)`` of every visible regular file under ``top``, for the
+    landing copy, which must hold plain files only: ``v2xlake query`` may read the lake's
+    folders, and a symlink copied (or hard-linked: ``link()`` links the symlink itself) into
+    the lake would let it read whatever the link points at.
+
+    A symlink in a delivery is untrusted like a path in clip.yaml, so the same rule as
+    ``check_inputs``: a file symlink that resolves inside ``roots`` (the clip folder, an
+    operator-allowed root) is taken as the file it points at; one that resolves elsewhere
+    is refused with a ``ClipError`` even when clip.yaml does not name it (a delivery has no
+    business pointing outside itself, and skipping it silently would hide the attempt).
+    A symlinked folder is never walked: pointing outside ``roots`` it is refused the same
+    way; inside, it is the same files again (a bag clip.yaml names through it is resolved
+    and copied as an external bag). Hidden names, ``skip_top`` entries at the top level,
+    dangling links and non-regular files (FIFOs, sockets, devices) are left out."""
+    out: list[tuple[str, str]] = []
+    todo: list[Path] = [top]
+    while todo:
+        folder = todo.pop()
+        try:
+            entries = sorted(os.scandir(folder), key=lambda e: e.name)
+        except OSError as e:
+            raise ClipError(clip_id, f"cannot list {folder}: {e.strerror}", agent_id=agent_id,
+                            path=str(folder), stage=STAGE) from e
+        for entry in entries:
+            path = Path(entry.path)
+            rel = path.relative_to(top).as_posix()
+            if entry.name.startswith(".") or (folder == top and entry.name in skip_top):
+                continue
+            if entry.is_symlink():
+                real = os.path.realpath(path)
+                if not _inside(real, roots):
+                    raise ClipError(
+                        clip_id, f"{rel!r} is a symlink to {real}, outside the clip folder: "
+                        "refused (the landing copy holds the delivery's own files only; an "
+                        "operator may allow a root: ingest.allowed_bag_roots)",
+                        agent_id=agent_id, path=str(path), stage=STAGE)
+                if os.path.isfile(real):
+                    out.append((rel, real))
+            elif entry.is_dir(follow_symlinks=False):
+                todo.append(path)
+            elif entry.is_file(follow_symlinks=False):
+                out.append((rel, entry.path))
+    return sorted(out)
+
+
+def copy_to_landing(lake: Lake, clip_dir: Path, cfg: ClipConfig,
+                    allowed_roots: Sequence[str] = ()) -> int:
     """Copy the clip as delivered into ``landing/<clip_id>/`` (the simulator's ``truth/`` is
     not part of the input contract and stays out). Bags that live outside the clip folder go
     to ``external/<agent>/`` and the landing clip.yaml is rewritten to point at them (the
     original is kept as ``clip.delivered.yaml``). Files are hard-linked when the lake is local
     and on the same filesystem (bags as delivered are immutable; copying a 10 GB clip would
-    cost more than ingesting it), otherwise copied."""
-    root = lake.path("landing", cfg.clip_id)
-    lake.delete_dir(root)
-    n = 0
-    for f in sorted(clip_dir.rglob("*")):
-        rel = f.relative_to(clip_dir)
-        hidden = any(p.startswith(".") for p in rel.parts)
-        if f.is_file() and rel.parts[0] != "truth" and not hidden:
-            n += lake.copy_in(f, f"{root}/{rel.as_posix()}", link=True)
+    cost more than ingesting it), otherwise copied. Landing holds regular files only: every
+    symlink is resolved first and refused when it points outside the clip folder and the
+    operator-allowed roots (``plain_files``), before the old landing copy is touched."""
+    roots = [os.path.realpath(clip_dir), *(os.path.realpath(r) for r in allowed_roots)]
+    files = plain_files(clip_dir, roots, cfg.clip_id, skip_top=frozenset({"truth"}))
     rewrite: dict[str, str] = {}
     for a in cfg.agents:
         bag = resolve(clip_dir, a.bag)
         if bag.is_relative_to(clip_dir):
             continue
         dest = f"external/{a.agent_id}/{bag.name}"
-        for f in bag_files(bag):
-            n += lake.copy_in(f, f"{root}/{dest}/{f.relative_to(bag).as_posix()}"
-                              if bag.is_dir() else f"{root}/{dest}", link=True)
+        if bag.is_dir():
+            files += [(f"{dest}/{rel}", real) for rel, real in plain_files(
+                bag, roots, cfg.clip_id, agent_id=a.agent_id)]
+        else:
+            files.append((dest, os.path.realpath(bag)))
         rewrite[a.agent_id] = dest
+    root = lake.path("landing", cfg.clip_id)
+    lake.delete_dir(root)
+    n = 0
+    for rel, real in files:
+        n += lake.copy_in(real, f"{root}/{rel}", link=True)
     if rewrite:
         data = cfg.model_dump(mode="json", exclude_none=True)
         for a in data["agents"]:
@@ -749,6 +806,11 @@ class _AgentIngest:
             elif frame is not None and (
                     m := self.tf.lookup(self.agent.ego_frame, frame)) is not None:
                 T, source = Transform.from_matrix(m), ["tf_static"]
+                if (d := float(np.linalg.norm(T.translation))) > MAX_SENSOR_OFFSET_M:
+                    raise self.err(
+                        f"sensor {s.name}: tf_static puts frame {frame!r} {d:.6g} m from ego "
+                        f"frame {self.agent.ego_frame!r} (at most {MAX_SENSOR_OFFSET_M:g} m: a "
+                        "sensor sits on its agent)", topic=s.topic)
             elif s.modality is Modality.INS:
                 T, source = Transform.identity(), ["ego_frame"]
             if T is None:
@@ -885,7 +947,7 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
     typestore = build_typestore(d, cfg)
     notes: list[str] = []
     if config.copy_to_landing:
-        copy_to_landing(lake, d, cfg)
+        copy_to_landing(lake, d, cfg, config.allowed_bag_roots)
         lake.write_json(lake.path("landing", cid, DELIVERY), delivery)
     if lake.discard_staging(cid):
         notes.append(f"removed stale staging output of an earlier, interrupted ingest of {cid}")
