@@ -569,7 +569,7 @@ class Lake:
                     con.execute(f"CREATE VIEW clean.{table} AS SELECT * FROM read_parquet("
                                 f"'{glob}', hive_partitioning=true, "
                                 "hive_types_autocast=false, union_by_name=true)")
-                root = self.io.base.replace("'", "''")
+                root = self.io.path("clean").replace("'", "''")  # all these views read
                 for stmt in (f"SET allowed_directories = ['{root}/']",
                              "SET enable_external_access = false",
                              "SET lock_configuration = true"):
