@@ -32,6 +32,10 @@ rate and acceleration between knots. A degenerate frame (blind along the street)
 nothing in its blind direction, which the smooth ``v_a`` and the constant ``eps_a`` carry over
 from frames that see it (turns, intersections, poles).
 
+An INS position step (found in the pose track by the stage) gets a free world offset of that
+agent's ``v_a`` from the step on (``steps``), so it is neither smoothed into the drift nor
+absorbed into ``eps_a``.
+
 Solver: Levenberg-Marquardt on the normal equations (``_gauss_newton``), analytic Jacobians.
 
 Robustness. GICP's Hessian has no absolute scale (plane-regularised covariances, correlated
@@ -41,6 +45,12 @@ squares): the binary accept/reject gate becomes a weight. Afterwards every cross
 is tested against the solution of all OTHER frames (leave-one-out, closed form on the
 linearised problem): a frame whose own GICP result disagrees beyond the ``outlier_p`` chi^2
 quantile is an outlier, flagged with its reason.
+
+Honest uncertainty. A frame's reported covariance is the clip's plus the per-frame floor (a
+systematic error shared by neighbouring frames does not average out), with the measurements'
+information counted once per ``correlation_s`` (consecutive GICP errors are correlated), and
+``bracketing`` refuses what the clip would only extrapolate: a direction a frame did not
+observe itself needs observing frames before and after it within ``max_bridge_s``.
 """
 
 from __future__ import annotations

@@ -486,7 +486,8 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
                          steps)
         timing["solve_s"] = time.perf_counter() - t_solve
         fix = {c.agent_id: _matrix(c, "") for c in _calibration_rows(
-            clip_id, sol, agents, cfg, len(measured), method) if c.usable}
+            clip_id, sol, agents, cfg, len(measured), method)
+            if c.usable and (c.correction_m > 0 or c.correction_deg > 0)}
         if cfg.redeskew and fix:
             # the scans of an agent whose extrinsic was wrong were deskewed with it: deskew
             # them again with the refined one and measure and solve once more
