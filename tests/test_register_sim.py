@@ -118,4 +118,9 @@ def test_register_on_simulated_clip(processed: tuple[Lake, Path]) -> None:
         m1, d1 = transform_delta(T_true, T)
         print(f"frame {r['frame_idx']}: eq. 1a off {m0 * 100:.1f} cm / {d0:.2f} deg -> GICP "
               f"{m1 * 100:.2f} cm / {d1:.3f} deg (fitness {r['fitness']:.2f})")
-        assert r["accepted"] and m1 < 0.03 and d1 < 0.1
+        assert m1 < 0.03 and d1 < 0.1
+        # a 0.4 s clip is about one measurement (GICP errors of consecutive frames are
+        # correlated, ``gicp_correlation_s``): its edge frames' honest 1-sigma sits at the
+        # acceptance limit (2.0 cm); they may be held back as uncertain, never accepted wrong
+        assert r["accepted"] or r["reason"].startswith("uncertain")
+    assert sum(r["accepted"] for r in regs) >= len(regs) // 2

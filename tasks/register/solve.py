@@ -32,6 +32,10 @@ rate and acceleration between knots. A degenerate frame (blind along the street)
 nothing in its blind direction, which the smooth ``v_a`` and the constant ``eps_a`` carry over
 from frames that see it (turns, intersections, poles).
 
+An INS position step (found in the pose track by the stage) gets a free world offset of that
+agent's ``v_a`` from the step on (``steps``), so it is neither smoothed into the drift nor
+absorbed into ``eps_a``.
+
 Solver: Levenberg-Marquardt on the normal equations (``_gauss_newton``), analytic Jacobians.
 
 Robustness. GICP's Hessian has no absolute scale (plane-regularised covariances, correlated
@@ -41,6 +45,12 @@ squares): the binary accept/reject gate becomes a weight. Afterwards every cross
 is tested against the solution of all OTHER frames (leave-one-out, closed form on the
 linearised problem): a frame whose own GICP result disagrees beyond the ``outlier_p`` chi^2
 quantile is an outlier, flagged with its reason.
+
+Honest uncertainty. A frame's reported covariance is the clip's plus the per-frame floor (a
+systematic error shared by neighbouring frames does not average out), with the measurements'
+information counted once per ``correlation_s`` (consecutive GICP errors are correlated), and
+``bracketing`` refuses what the clip would only extrapolate: a direction a frame did not
+observe itself needs observing frames before and after it within ``max_bridge_s``.
 """
 
 from __future__ import annotations
@@ -159,6 +169,17 @@ class SolveSettings:
     # the LiDAR's height above the ground (per agent, median over its scans) against its
     # declared body (ground to roof): the extrinsic's z; 1-sigma for suspension, road crown
     ground_sigma_m: float = 0.02
+    # acceptance of a frame's clip estimate (see ``bracketing``): the 1-sigma a frame's own
+    # GICP must reach along a direction to count as observing it, and how far in time the
+    # clip may carry a direction from frames that observed it (on both sides) to one that
+    # did not; nothing is carried beyond the observed frames (no extrapolation)
+    final_max_std_m: float = 0.02
+    final_max_std_deg: float = 0.05
+    max_bridge_s: float = 3.0
+    # GICP errors of consecutive frames are correlated (the same facades and poles, the same
+    # voxel aliasing): frames within this many seconds count as one measurement in the
+    # reported covariance of a frame's clip estimate (not in the estimate itself)
+    correlation_s: float = 2.0
 
 
 @dataclass
@@ -180,6 +201,12 @@ class ClipSolution:
     seconds: float = 0.0
     n_params: int = 0
     notes: list[str] = field(default_factory=list)
+    # (N,) "" where the frame's own GICP observed every direction or frames that observed
+    # the missing ones bracket it within ``max_bridge_s``; otherwise why not (not accepted)
+    unbracketed: list[str] = field(default_factory=list)
+    # agent -> fraction of the cross-agent frames it takes part in that are outliers
+    outlier_fraction: dict[str, float] = field(default_factory=dict)
+    steps: list[tuple[str, float]] = field(default_factory=list)  # modelled INS steps
 
 
 # ------------------------------------------------------------------ the problem
@@ -207,7 +234,8 @@ class _Problem:
 
     def __init__(self, agents: list[str], extr: dict[str, np.ndarray],
                  cross: list[CrossMeasurement], odo: list[OdoMeasurement],
-                 s: SolveSettings, ref: str) -> None:
+                 s: SolveSettings, ref: str,
+                 steps: list[tuple[str, float]] | None = None) -> None:
         self.agents, self.s, self.ref = agents, s, ref
         times = [c.t_s for c in cross] + [c.t_oth_s or c.t_s for c in cross]
         times += [o.t0_s for o in odo] + [o.t1_s for o in odo]
@@ -215,7 +243,11 @@ class _Problem:
         self.n_k = max(2, int(np.ceil((t1 - t0) / s.knot_s - 1e-9)) + 1)
         self.knots = t0 + s.knot_s * np.arange(self.n_k)
         self.per_agent = 9 + 3 * self.n_k
-        self.n = self.per_agent * len(agents)
+        # a step of an agent's INS track (detected in its poses) at time t: a free world
+        # offset of its position error from t on (3 parameters after all agents' blocks)
+        self.steps = [(a, float(t)) for a, t in (steps or []) if a in agents]
+        self.n_base = self.per_agent * len(agents)
+        self.n = self.n_base + 3 * len(self.steps)
         self.idx = {a: i * self.per_agent for i, a in enumerate(agents)}
         self.E = {a: extr[a] for a in agents}
         self.P = self._prior_matrix()
@@ -305,7 +337,7 @@ class _Problem:
         v = V[i0] * (1 - w)[:, None] + V[i1] * w[:, None]
         C = M.copy()
         C[:, :3, :3] = so3_exp(self.omega(th, a)) @ M[:, :3, :3]
-        C[:, :3, 3] = M[:, :3, 3] + v
+        C[:, :3, 3] = M[:, :3, 3] + v + self.step_offset(th, a, t)
         L = C @ (self.E[a] @ se3_exp(self.eps(th, a)))
         n = len(M)
         D = np.zeros((n, 6, self.per_agent))
@@ -317,6 +349,24 @@ class _Problem:
             D[r, 3 + k, 9 + 3 * i0 + k] = 1 - w
             D[r, 3 + k, 9 + 3 * i1 + k] += w
         return L, D, C[:, :3, 3]
+
+    def step_offset(self, th: np.ndarray, a: str, t: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(np.atleast_1d(t)), 3))
+        for i, (b, ts) in enumerate(self.steps):
+            if b == a:
+                c = self.n_base + 3 * i
+                out += np.where((np.asarray(t) >= ts)[:, None], th[c:c + 3][None, :], 0.0)
+        return out
+
+    def step_jac(self, a: str, t: np.ndarray) -> np.ndarray:
+        """d(world-left twist of the agent's LiDAR)/d(step offsets) (N, 6, n)."""
+        D = np.zeros((len(t), 6, self.n))
+        for i, (b, ts) in enumerate(self.steps):
+            if b == a:
+                c = self.n_base + 3 * i
+                on = np.asarray(t) >= ts
+                D[on, 3:, c:c + 3] = np.eye(3)
+        return D
 
     def _pairs(self, th: np.ndarray, a1: list[str], M1: np.ndarray, t1: np.ndarray,
                a2: list[str], M2: np.ndarray, t2: np.ndarray
@@ -348,6 +398,9 @@ class _Problem:
             m2 = np.array([x == a for x in a2])
             G[r[m1], :, sl] += g1[m1]
             G[r[m2], :, sl] += g2[m2]
+            if self.steps:
+                G[r[m1]] -= Ad[m1] @ self.step_jac(a, t1[m1])
+                G[r[m2]] += Ad[m2] @ self.step_jac(a, t2[m2])
         return T, G
 
     def cross_model(self, th: np.ndarray, cross: list[CrossMeasurement]
@@ -392,6 +445,11 @@ class _Problem:
                 for i in range(nk - 2):
                     q = 1 / (s.prior_drift_accel * dt * dt)
                     row({9 + 3 * i + k: q, 9 + 3 * (i + 1) + k: -2 * q, 9 + 3 * (i + 2) + k: q})
+        for i in range(len(self.steps)):
+            for k in range(3):
+                r = np.zeros(self.n)
+                r[self.n_base + 3 * i + k] = 1 / s.prior_pos_m
+                rows.append(r)
         return np.array(rows)
 
 
@@ -472,7 +530,8 @@ def _cauchy_weight(chi: np.ndarray, c: float) -> np.ndarray:
 def solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
                cross: list[CrossMeasurement], odo: list[OdoMeasurement],
                settings: SolveSettings = SolveSettings(),
-               ground: dict[str, tuple[float, float]] | None = None) -> ClipSolution:
+               ground: dict[str, tuple[float, float]] | None = None,
+               steps: list[tuple[str, float]] | None = None) -> ClipSolution:
     """Fuse a clip's per-frame GICP measurements (see the module doc). ``ground``: per agent
     (measured LiDAR height above the ground, the ground's z in the ego frame from the
     declared body). The dense algebra is small (hundreds of rows, about a hundred
@@ -480,16 +539,17 @@ def solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1):
-        return _solve_clip(agents, ref, extrinsics, cross, odo, settings, ground or {})
+        return _solve_clip(agents, ref, extrinsics, cross, odo, settings, ground or {},
+                           steps or [])
 
 
 def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
                 cross: list[CrossMeasurement], odo: list[OdoMeasurement],
-                settings: SolveSettings, ground: dict[str, tuple[float, float]]
-                ) -> ClipSolution:
+                settings: SolveSettings, ground: dict[str, tuple[float, float]],
+                steps: list[tuple[str, float]]) -> ClipSolution:
     t_start = time.perf_counter()
     s = settings
-    P = _Problem(agents, extrinsics, cross, odo, s, ref)
+    P = _Problem(agents, extrinsics, cross, odo, s, ref, steps)
     P.ground = {a: g for a, g in ground.items() if a in agents and np.isfinite(g).all()}
     usable = [k for k, c in enumerate(cross) if c.usable]
     uc = [cross[k] for k in usable]
@@ -565,7 +625,20 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
 
     N = len(cross)
     T_all, G_all = P.cross_model(th, cross)
-    cov_all = np.einsum("nai,ij,nbj->nab", G_all, A_inv, G_all)
+    # the clip covariance shrinks like 1/sqrt(N) as if each frame's floor were independent;
+    # a systematic error (voxels, deskew, what filtering left) is shared by neighbouring
+    # frames and does not average out: a frame is never reported better than the floor
+    # ... and consecutive frames' GICP errors are correlated: the measurements' information
+    # counts once per ``correlation_s`` (the priors as they are)
+    t_use = np.array([c.t_s for c in uc])
+    rate = (len(uc) - 1) / max(float(np.ptp(t_use)), 1e-9) if len(uc) > 1 else 1.0
+    n_same = len({c.other for c in uc}) or 1
+    # (never more frames than the clip has: a clip shorter than that is one measurement)
+    corr = max(1.0, min(s.correlation_s * rate, len(uc)) / n_same)
+    PtP = P.P.T @ P.P
+    A_c = (A - PtP) / corr + PtP
+    A_c_inv = np.linalg.pinv(A_c, rcond=1e-13, hermitian=True)
+    cov_all = np.einsum("nai,ij,nbj->nab", G_all, A_c_inv, G_all) + floor
     weight, chi_all, loo = np.zeros(N), np.full(N, np.nan), np.full(N, np.nan)
     limit = chi2.isf(s.outlier_p, 6)
     for j, k in enumerate(usable):
@@ -591,13 +664,92 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
     info = np.full((N, 6, 6), np.nan)
     for j, k in enumerate(usable):
         info[k] = _drop_weak(np.linalg.inv(vf * Cw[j] + floor), weak_dirs[j])
+    unbracketed = bracketing(cross, info, outlier, extrinsics[ref], s)
+    frac = {}
+    for a in agents:
+        m = [k for k in usable if a in (ref, cross[k].other)]
+        frac[a] = float(np.mean(outlier[m])) if m else 0.0
     return ClipSolution(
+        unbracketed=unbracketed, outlier_fraction=frac, steps=list(P.steps),
         agents=agents, eps={a: P.eps(th, a).copy() for a in agents},
         eps_cov={a: A_inv[P.idx[a]:P.idx[a] + 6, P.idx[a]:P.idx[a] + 6].copy() for a in agents},
         omega={a: P.omega(th, a).copy() for a in agents}, T_cross=T_all, cross_cov=cov_all,
         weight=weight, chi2=chi_all, loo_chi2=loo, outlier=outlier, variance_factor=vf,
         odo_weight=w[n_c:].copy(), information=info, loo_limit=float(limit),
         seconds=time.perf_counter() - t_start, n_params=P.n)
+
+
+def _unobserved(I: np.ndarray | None, lim_t: float, lim_r: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A frame's own marginal covariances (translation, rotation; 3x3, L1 frame) from its
+    metric information, and the eigen-directions of each whose 1-sigma exceeds the limit
+    (all of them without a measurement)."""
+    if I is None or not np.isfinite(I).all():
+        big = np.eye(3) * 1e12
+        return big, big, np.eye(3), np.eye(3)
+    out = []
+    for sl, lim in ((slice(3, 6), lim_t), (slice(0, 3), lim_r)):
+        # a direction without information (pinv: zero variance) is unobserved too
+        Ib = I[sl, sl] - I[sl, :][:, _other(sl)] @ np.linalg.pinv(
+            I[_other(sl), :][:, _other(sl)], rcond=1e-12, hermitian=True) @ I[_other(sl), :][:, sl]
+        lam, V = np.linalg.eigh(0.5 * (Ib + Ib.T))
+        # marginal covariance: a direction without information has infinite variance (not
+        # the zero a pseudo-inverse would give it)
+        C = (V / np.maximum(lam, 1e-30)) @ V.T
+        out.append((C, V[:, lam < 1.0 / lim**2]))
+    (Ct, Ut), (Cr, Ur) = out
+    return Ct, Cr, Ut, Ur
+
+
+def _other(sl: slice) -> slice:
+    return slice(0, 3) if sl.start == 3 else slice(3, 6)
+
+
+def bracketing(cross: list[CrossMeasurement], info: np.ndarray, outlier: np.ndarray,
+               E_ref: np.ndarray, s: SolveSettings) -> list[str]:
+    """No extrapolation: a direction (world axes) that frame k's own GICP did not observe
+    (1-sigma of its own information above ``final_max_std_*``: degenerate, marginalised, or
+    no measurement at all) may come from the clip solve only when frames of the same agent
+    pair that observed it (inliers, own 1-sigma along it within the limit) exist before AND
+    after k within ``max_bridge_s``: the smooth INS model then interpolates between
+    measurements; otherwise it extrapolates one through the drift model with nothing to
+    check it, and the frame is not accepted. "" where accepted, otherwise the reason."""
+    lim_t, lim_r = s.final_max_std_m, np.radians(s.final_max_std_deg)
+    n = len(cross)
+    R = np.stack([(c.M_ref @ E_ref)[:3, :3] for c in cross]) if n else np.zeros((0, 3, 3))
+    t = np.array([c.t_s for c in cross])
+    own = []
+    for k, c in enumerate(cross):
+        ok = c.usable and np.isfinite(info[k]).all()
+        own.append(_unobserved(info[k] if ok else None, lim_t, lim_r))
+    good = np.array([c.usable and not outlier[k] for k, c in enumerate(cross)], bool)
+    out = []
+    for k, c in enumerate(cross):
+        _, _, Ut, Ur = own[k]
+        why = []
+        for kind, U, lim, ci in (("translation", Ut, lim_t, 0), ("rotation", Ur, lim_r, 1)):
+            for u in U.T:
+                uw = R[k] @ u
+                cand = [j for j in range(n) if good[j] and j != k and cross[j].other == c.other
+                        and abs(t[j] - t[k]) <= s.max_bridge_s]
+                before = after = False
+                for j in cand:
+                    uj = R[j].T @ uw
+                    if float(uj @ own[j][ci] @ uj) <= lim**2:
+                        before |= t[j] < t[k]
+                        after |= t[j] > t[k]
+                if not (before and after):
+                    side = "before" if not before else "after"
+                    ax = "xyz"[int(np.argmax(np.abs(uw)))]
+                    why.append(f"{kind} ~world {ax} ({uw[0]:+.2f}, {uw[1]:+.2f}, {uw[2]:+.2f}): "
+                               f"no frame observing it within {s.max_bridge_s:g} s {side}")
+        if why and not c.usable:
+            out.append("no GICP measurement and no bracketing frames (" + "; ".join(why) + ")")
+        elif why:
+            out.append("uncertain: extrapolated along " + "; ".join(why))
+        else:
+            out.append("")
+    return out
 
 
 def relative_truth_check(T_est: np.ndarray, T_true: np.ndarray) -> np.ndarray:
