@@ -810,6 +810,16 @@ class Lake:
         globbed by the catalog. Folders of dead earlier runs of the clip are swept first."""
         self.sweep(clip_id)
         sub = self._run_dir(clip_id, self.writer or "stage")
+        if self.is_local:
+            # another process tidies an empty ``_staging`` (or clip folder) away with rmdir:
+            # that can land between two levels of makedirs, so try again
+            for attempt in range(5):
+                try:
+                    os.makedirs(sub, exist_ok=True)
+                    break
+                except FileNotFoundError:
+                    if attempt == 4:
+                        raise
         staged = Lake(sub if self.is_local else f"s3://{sub}")
         staged.writer, staged.owns = self.writer, self.owns  # ownership, not the redirect
         return staged

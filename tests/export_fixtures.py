@@ -16,6 +16,7 @@ Everything is generated from one world model, so it is self-consistent by constr
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -426,3 +427,20 @@ def render_pinhole(agent: str, t_ns: int, K: np.ndarray) -> np.ndarray:
     img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     assert img is not None
     return img
+
+
+def run_stages(lake: Lake, clip_dir: Path, needed: tuple[str, ...]) -> str:
+    """Run the flow's stages named in ``needed`` (in pipeline order, default parameters) on
+    a clip folder, directly (no Prefect); each must be done. Returns the clip id."""
+    from v2xlake.flows.pipeline import STAGES
+
+    cid: str | None = None
+    for stage in STAGES:
+        if stage.name not in needed:
+            continue
+        rep = stage.run(lake, str(clip_dir) if stage.name == "ingest" else str(cid),
+                        stage.config_model())
+        assert rep.status == "done", (stage.name, rep.reason)
+        cid = rep.clip_id
+    assert cid is not None
+    return cid

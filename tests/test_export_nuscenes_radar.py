@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from v2xlake.flows.pipeline import STAGES
+from tests.export_fixtures import run_stages
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.export.common import token
 from v2xlake.tasks.export.nuscenes import NuScenesExportConfig, export_nuscenes
@@ -33,16 +33,7 @@ def processed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, str]:
         "small", seconds=1.0, seed=3, cameras=("CAM_FRONT",), camera_hz=10, radar=True,
         write_lidar_truth=False))
     lake = Lake(tmp / "lake")
-    cid: str | None = None
-    for stage in STAGES:
-        if stage.name not in NEEDED:
-            continue
-        rep = stage.run(lake, str(clip) if stage.name == "ingest" else str(cid),
-                        stage.config_model())
-        assert rep.status == "done", (stage.name, rep.reason)
-        cid = rep.clip_id
-    assert cid is not None
-    return lake, cid
+    return lake, run_stages(lake, clip, NEEDED)
 
 
 @pytest.fixture(scope="module")

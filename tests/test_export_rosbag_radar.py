@@ -13,7 +13,7 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
-from v2xlake.flows.pipeline import STAGES
+from tests.export_fixtures import run_stages
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.export.rosbag import RosbagExportConfig, export_rosbag
 from v2xlake.tasks.reader import load_clip
@@ -28,16 +28,7 @@ def radar_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, str]:
     clip = simulate(tmp / "clip", SimConfig.preset(
         "small", seconds=0.5, seed=3, cameras=(), radar=True, write_lidar_truth=False))
     lake = Lake(tmp / "lake")
-    cid: str | None = None
-    for stage in STAGES:
-        if stage.name not in NEEDED:
-            continue
-        rep = stage.run(lake, str(clip) if stage.name == "ingest" else str(cid),
-                        stage.config_model())
-        assert rep.status == "done", (stage.name, rep.reason)
-        cid = rep.clip_id
-    assert cid is not None
-    return lake, cid
+    return lake, run_stages(lake, clip, NEEDED)
 
 
 def _read(bag: Path) -> tuple[dict[str, list[tuple[int, Any]]], list[Any]]:
