@@ -11,7 +11,6 @@ traceback; ``ClipError`` texts keep their ``[stage]`` tag.
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import time
@@ -591,22 +590,17 @@ def release_build(
     fractions: Annotated[str, typer.Option(help="train,val,test")] = "0.7,0.15,0.15",
 ) -> int:
     """Build release NAME from a predicate on clips."""
-    from v2xlake.flows.release import build_release
+    from v2xlake.flows.release import build_release, check_fractions
 
     try:
-        parts = tuple(float(x) for x in fractions.split(","))
+        parts = check_fractions([float(x) for x in fractions.split(",")])
     except ValueError as e:
         raise UserError(f"--fractions: {e}") from e
-    if len(parts) != 3 or not all(math.isfinite(p) and p >= 0 for p in parts) \
-            or sum(parts) <= 0:
-        raise UserError("--fractions needs three finite, non-negative numbers with a "
-                        "positive sum: train,val,test")
     the_lake = open_lake(lake)
     t0 = time.perf_counter()
     console = _console()
     with console.status(f"building release {name} ({formats}) ..."):
-        meta = build_release(lake, name, where, _csv(formats) or ["lake"], seed,
-                             (parts[0], parts[1], parts[2]))
+        meta = build_release(lake, name, where, _csv(formats) or ["lake"], seed, parts)
     console.print(f"release [bold]{name}[/]: {len(meta['clip_ids'])} clip(s), splits "
                   f"{_esc(meta['split_counts'])}, formats {_esc(meta['formats'])} in "
                   f"{time.perf_counter() - t0:.1f} s")

@@ -103,8 +103,6 @@ def check_release_name(name: str) -> None:
         raise ReleaseError(f"release name {name!r}: use letters, digits, '.', '_' and '-'")
 
 
-_check_name = check_release_name
-
 
 def check_fractions(fractions: Sequence[float]) -> tuple[float, float, float]:
     """train/val/test fractions: three finite numbers in [0, 1] summing to 1. NaN slips
@@ -309,7 +307,7 @@ def build_release(lake_uri: str, name: str, where: str,
                   formats: Sequence[str] = ("lake",), seed: int = 0,
                   fractions: tuple[float, float, float] = (0.7, 0.15, 0.15)) -> dict[str, Any]:
     """Build release NAME; returns its release.json content. Refuses an existing name."""
-    _check_name(name)
+    check_release_name(name)
     fractions = check_fractions(fractions)
     lake = Lake(lake_uri)
     lake.sweep()  # builds (and staging, temporary files) of killed runs
@@ -390,7 +388,7 @@ class VerifyResult:
 
 def verify_release(lake_uri: str, name: str) -> VerifyResult:
     """Recompute every checksum; list missing, changed, unlisted files (empty list = intact)."""
-    _check_name(name)
+    check_release_name(name)
     lake = Lake(lake_uri, create=False)
     root = _release_root(lake, name)
     if not lake.exists(f"{root}/SHA256SUMS") or not lake.exists(f"{root}/checksums.json"):

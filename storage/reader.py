@@ -324,10 +324,7 @@ def lidar_frames(frames: pa.Table, deskew: pa.Table) -> dict[str, LidarFrames]:
             if r is not None:
                 ref_of[(str(s), int(f))] = int(r)
     out: dict[str, LidarFrames] = {}
-    if not frames.num_rows:
-        return out
-    for s in sorted(set(frames["sensor"].to_pylist())):
-        f = _of(frames, "sensor", s).sort_by("frame_idx")
+    for s, f in _per_sensor(frames, "frame_idx"):
         idx = _np(f, "frame_idx").astype(np.int64)
         ref = np.array([ref_of.get((s, int(i)), NOT_DESKEWED) for i in idx], np.int64)
         out[s] = LidarFrames(s, idx, _np(f, "t_start_ns").astype(np.int64),
@@ -335,28 +332,26 @@ def lidar_frames(frames: pa.Table, deskew: pa.Table) -> dict[str, LidarFrames]:
     return out
 
 
-def camera_frames(frames: pa.Table) -> dict[str, CameraFrames]:
-    out: dict[str, CameraFrames] = {}
+def _per_sensor(frames: pa.Table, order: str) -> Iterator[tuple[str, pa.Table]]:
+    """(sensor, its rows sorted by ``order``) of a frames table, sensors in name order."""
     if not frames.num_rows:
-        return out
+        return
     for s in sorted(set(frames["sensor"].to_pylist())):
-        f = _of(frames, "sensor", s).sort_by("stamp_ns")
-        out[s] = CameraFrames(s, _np(f, "frame_idx").astype(np.int64),
-                              _np(f, "stamp_ns").astype(np.int64), _np(f, "width"),
-                              _np(f, "height"), f["blob"].to_pylist())
-    return out
+        yield s, _of(frames, "sensor", s).sort_by(order)
+
+
+def camera_frames(frames: pa.Table) -> dict[str, CameraFrames]:
+    return {s: CameraFrames(s, _np(f, "frame_idx").astype(np.int64),
+                            _np(f, "stamp_ns").astype(np.int64), _np(f, "width"),
+                            _np(f, "height"), f["blob"].to_pylist())
+            for s, f in _per_sensor(frames, "stamp_ns")}
 
 
 def radar_frames(frames: pa.Table) -> dict[str, RadarFrames]:
     """One agent's ``radar_frames`` per sensor, sorted by stamp."""
-    out: dict[str, RadarFrames] = {}
-    if not frames.num_rows:
-        return out
-    for s in sorted(set(frames["sensor"].to_pylist())):
-        f = _of(frames, "sensor", s).sort_by("stamp_ns")
-        out[s] = RadarFrames(s, _np(f, "frame_idx").astype(np.int64),
-                             _np(f, "stamp_ns").astype(np.int64), _np(f, "n_points"))
-    return out
+    return {s: RadarFrames(s, _np(f, "frame_idx").astype(np.int64),
+                           _np(f, "stamp_ns").astype(np.int64), _np(f, "n_points"))
+            for s, f in _per_sensor(frames, "stamp_ns")}
 
 
 def read_radar_scans(lake: Lake, clip_id: str, agent_id: str, sensor: str
@@ -443,9 +438,20 @@ def no_pose_report(lake: Lake, clip_id: str, stage: str, why_needed: str,
     if agents is None:
         rows = read(lake, "agents", clip_id)
         agents = rows.column("agent_id").to_pylist() if rows.num_rows else []
-    without = {a: why for a in agents if (why := pose_missing(lake, clip_id, a))}
+    without = poses_missing(lake, clip_id, agents)
     if not agents or len(without) < len(agents):
         return None
+    return pose_less_report(stage, clip_id, why_needed, without)
+
+
+def poses_missing(lake: Lake, clip_id: str, agents: Sequence[str]) -> dict[str, str]:
+    """{agent: why it has no pose track} for those of ``agents`` without one."""
+    return {a: why for a in agents if (why := pose_missing(lake, clip_id, a))}
+
+
+def pose_less_report(stage: str, clip_id: str, why_needed: str,
+                     without: dict[str, str]) -> StageReport:
+    """The ``not_applicable`` report of a stage on a clip where no agent has a pose."""
     return StageReport.not_applicable(
         stage, clip_id, "no agent has a pose track (" + "; ".join(
             f"{a}: {w}" for a, w in without.items()) + f"): {why_needed}")

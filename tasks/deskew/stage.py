@@ -37,7 +37,12 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import Chunked, OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import DeskewFrameRow
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import no_pose_report, pose_missing, read_extrinsics
+from v2xlake.storage.reader import (
+    pose_less_report,
+    pose_missing,
+    poses_missing,
+    read_extrinsics,
+)
 from v2xlake.tasks.deskew.core import DeskewResult, deskew_points
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.reader import load_pose_track
@@ -206,10 +211,10 @@ def plan_deskew(lake: Lake, clip_id: str, cfg: DeskewConfig) -> list[DeskewChunk
     lake.delete_partition("clean", OUT_TABLE, clip_id)
     lake.delete_partition("clean", FRAMES_TABLE, clip_id)
     agents = sorted({a for _, a, _ in point_files if a is not None})
-    without = {a for a in agents if pose_missing(lake, clip_id, a)}
-    if (na := no_pose_report(lake, clip_id, STAGE, "per-point motion compensation needs "
-                             "poses; the raw scans stay available as lidar_points", agents)):
-        return na
+    without = poses_missing(lake, clip_id, agents)
+    if len(without) == len(agents):
+        return pose_less_report(STAGE, clip_id, "per-point motion compensation needs poses; "
+                                "the raw scans stay available as lidar_points", without)
     chunks: list[DeskewChunk] = []
     for path, agent, _ in point_files:
         if agent is None or agent in without:

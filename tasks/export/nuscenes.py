@@ -449,15 +449,20 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
                 width=wh[0], filename=files[k], prev=toks[k - 1] if k else "",
                 next=toks[k + 1] if k + 1 < len(toks) else ""), cid)
 
+    def file_names(channel: str, times: np.ndarray, key_sample: np.ndarray,
+                   ext: str) -> list[str]:
+        """nuScenes file names of a channel's data (keyframes in samples/, the rest in
+        sweeps/), their folders made."""
+        for d in ("samples", "sweeps"):
+            (root / d / channel).mkdir(parents=True, exist_ok=True)
+        return [f"{'samples' if key_sample[k] >= 0 else 'sweeps'}/{channel}/{name}__{channel}__"
+                f"{int(times[k]) // 1000}.{ext}" for k in range(len(times))]
+
     # ---- LiDAR: every scan, keyframes in samples/, the rest in sweeps/
     add_sensor(sensor, "lidar", None)
     lkey = np.full(len(li), -1)
     lkey[key_pos] = np.arange(len(key_pos))
-    is_key = lkey >= 0
-    lfiles = [f"{'samples' if is_key[k] else 'sweeps'}/{sensor}/{name}__{sensor}__"
-              f"{int(t_lidar[k]) // 1000}.pcd.bin" for k in range(len(li))]
-    for d in ("samples", "sweeps"):
-        (root / d / sensor).mkdir(parents=True, exist_ok=True)
+    lfiles = file_names(sensor, t_lidar, lkey, "pcd.bin")
     add_chain(sensor, t_lidar, lkey, lfiles, "pcd", (0, 0), lf.frame_idx[li])
 
     # ---- cameras
@@ -478,10 +483,7 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
             continue
         ct = frames.stamp_ns[ci]
         ckey = _key_of(ct, sample_times, cfg.keyframe_tolerance_ms * 1e6)
-        files = [f"{'samples' if ckey[k] >= 0 else 'sweeps'}/{ch}/{name}__{ch}__"
-                 f"{int(ct[k]) // 1000}.png" for k in range(len(ci))]
-        for d in ("samples", "sweeps"):
-            (root / d / ch).mkdir(parents=True, exist_ok=True)
+        files = file_names(ch, ct, ckey, "png")
         for k, j in enumerate(ci):
             data = lake.read_blob("clean", frames.blob[j])
             write_atomic(root / files[k], und.png(data) if und is not None else data)
@@ -504,10 +506,7 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
             continue
         rt = rf.stamp_ns[ri]
         rkey = _key_of(rt, sample_times, cfg.keyframe_tolerance_ms * 1e6)
-        files = [f"{'samples' if rkey[k] >= 0 else 'sweeps'}/{ch}/{name}__{ch}__"
-                 f"{int(rt[k]) // 1000}.pcd" for k in range(len(ri))]
-        for d in ("samples", "sweeps"):
-            (root / d / ch).mkdir(parents=True, exist_ok=True)
+        files = file_names(ch, rt, rkey, "pcd")
         scans = read_radar_scans(lake, cid, aid, rs)
         T_er = agent.sensors[rs].T_ego_sensor
         T_gr = T_gw @ agent.T_world_ego(rt, clip_id=cid) @ T_er  # global <- radar

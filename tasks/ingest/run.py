@@ -263,7 +263,7 @@ def check_inputs(clip_dir: Path, cfg: ClipConfig, allowed_roots: Sequence[str] =
     """Every file clip.yaml names must exist and resolve (after symlinks) inside the clip
     folder or an operator-allowed root: a clip folder is untrusted input, and nothing
     outside it may be read, linked or copied into the lake because a clip.yaml says so."""
-    roots = [os.path.realpath(clip_dir), *(os.path.realpath(r) for r in allowed_roots)]
+    roots = _roots(clip_dir, allowed_roots)
     named: list[tuple[str | None, str, str]] = [(a.agent_id, "bag", a.bag) for a in cfg.agents]
     named += [(None, "message definition", m) for m in cfg.message_definitions]
     if cfg.annotations:
@@ -271,7 +271,7 @@ def check_inputs(clip_dir: Path, cfg: ClipConfig, allowed_roots: Sequence[str] =
     for agent_id, what, rel in named:
         p = resolve(clip_dir, rel)
         real = os.path.realpath(p)
-        if not any(os.path.commonpath([r, real]) == r for r in roots):
+        if not _inside(real, roots):
             raise ClipError(cfg.clip_id, f"{what} {rel!r} resolves to {real}, outside the clip "
                             "folder (an operator may allow a root: ingest.allowed_bag_roots)",
                             agent_id=agent_id, path=str(p), stage=STAGE)
@@ -318,6 +318,11 @@ def check_delivery(lake: Lake, clip_dir: Path, cfg: ClipConfig, replace: bool
 
 
 # --------------------------------------------------------------------------- landing
+def _roots(clip_dir: Path, allowed_roots: Sequence[str]) -> list[str]:
+    """Where a delivery's files may resolve to: the clip folder and operator-allowed roots."""
+    return [os.path.realpath(clip_dir), *(os.path.realpath(r) for r in allowed_roots)]
+
+
 def _inside(real: str, roots: Sequence[str]) -> bool:
     return any(os.path.commonpath([r, real]) == r for r in roots)
 
@@ -380,7 +385,7 @@ def copy_to_landing(lake: Lake, clip_dir: Path, cfg: ClipConfig,
     cost more than ingesting it), otherwise copied. Landing holds regular files only: every
     symlink is resolved first and refused when it points outside the clip folder and the
     operator-allowed roots (``plain_files``), before the old landing copy is touched."""
-    roots = [os.path.realpath(clip_dir), *(os.path.realpath(r) for r in allowed_roots)]
+    roots = _roots(clip_dir, allowed_roots)
     files = plain_files(clip_dir, roots, cfg.clip_id, skip_top=frozenset({"truth"}))
     rewrite: dict[str, str] = {}
     for a in cfg.agents:
