@@ -1,4 +1,4 @@
-"""Property tests of the one geometry vocabulary (tasks/geometry.py)."""
+"""Property tests of the one geometry vocabulary (v2xlake/tasks/geometry.py)."""
 
 from __future__ import annotations
 

@@ -50,12 +50,12 @@ def test_every_stage_is_a_typed_stage_object_in_its_own_package() -> None:
         assert isinstance(s, Stage) and issubclass(s.config_model, BaseModel)
         module = sys.modules[s.run.__module__].__name__
         assert module.startswith(f"v2xlake.tasks.{s.name}."), (s.name, module)
-        assert (REPO / "tasks" / s.name / "stage.py").is_file()
+        assert (REPO / "v2xlake" / "tasks" / s.name / "stage.py").is_file()
     # the old split modules are gone: one package per stage
     for old in ("deskew.py", "deskew_stage.py", "register.py", "align.py", "qa.py",
                 "annotate.py", "registration", "alignment"):
-        assert not (REPO / "tasks" / old).exists(), old
-    assert not (REPO / "flows" / "stages.py").exists()  # no module:function registry
+        assert not (REPO / "v2xlake" / "tasks" / old).exists(), old
+    assert not (REPO / "v2xlake" / "flows" / "stages.py").exists()  # no module:function registry
 
 
 def test_broken_stage_import_fails_before_any_clip_is_touched(tmp_path: Path) -> None:

@@ -1,9 +1,9 @@
 """v2xlake: cooperative-perception driving recordings into a queryable, releasable lake.
 
-The repository keeps its layers at the top level (``schemas/``, ``tasks/``, ``storage/``,
-``flows/``, see DESIGN.md); this package maps them as ``v2xlake.schemas`` etc. (relative
-symlinks in the source tree, real folders in a built wheel), so installing v2xlake claims one
-import name only, never ``tasks`` or ``schemas`` in a user's environment.
+The layers are sub-packages of this one folder: ``v2xlake.schemas`` (data contracts),
+``v2xlake.storage`` (all I/O), ``v2xlake.tasks`` (one package per stage) and
+``v2xlake.flows`` (Prefect orchestration and the CLI); a checkout, an editable install and a
+wheel hold the same files, and installing v2xlake claims one import name only.
 """
 
 from importlib import metadata as _metadata

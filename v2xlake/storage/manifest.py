@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import importlib.util
 import json
 import os
 import time
@@ -35,7 +36,17 @@ from v2xlake.storage import checksum
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.statcache import file_checksum
 
-REPO = Path(__file__).resolve().parents[1]
+
+def _package_root() -> Path:
+    """The ``v2xlake`` folder the import system uses (checkout, editable install or wheel
+    alike); file names in a code hash are relative to the folder above it."""
+    spec = importlib.util.find_spec("v2xlake")
+    if spec is None or not spec.submodule_search_locations:
+        raise RuntimeError("the v2xlake package cannot be found by the import system")
+    return Path(next(iter(spec.submodule_search_locations))).resolve()
+
+
+PACKAGE_ROOT = _package_root()
 
 # The module of each stage; its source and every project module it imports (transitively,
 # ``tasks.*`` and ``schemas.*``) make the stage's code version, so editing a helper that a
@@ -117,7 +128,7 @@ def _code_files(paths: Iterable[str | Path]) -> list[Path]:
     files: list[Path] = []
     for p in paths:
         p = Path(p)
-        p = p if p.is_absolute() else REPO / p
+        p = p if p.is_absolute() else PACKAGE_ROOT.parent / p
         if p.is_dir():
             files.extend(f for f in p.rglob("*") if f.suffix in (".py", ".msg") and f.is_file())
         elif p.is_file():
@@ -133,13 +144,20 @@ def code_hash(paths: Iterable[str | Path]) -> str:
 def _hash_files(files: Iterable[Path]) -> str:
     h = hashlib.sha256()
     for f in files:
-        rel = f.relative_to(REPO).as_posix() if f.is_relative_to(REPO) else f.name
+        top = PACKAGE_ROOT.parent
+        rel = f.relative_to(top).as_posix() if f.is_relative_to(top) else f.name
         h.update(rel.encode() + b"\0" + f.read_bytes() + b"\0")
     return h.hexdigest()[:16]
 
 
 def _module_file(name: str) -> Path | None:
-    base = REPO.joinpath(*name.split("."))
+    """The source file of module ``name`` under the package folder the import system found
+    (``PACKAGE_ROOT``); nothing is imported, so a name below a module (``pkg.mod.func``)
+    simply has no file."""
+    top, _, rest = name.partition(".")
+    if top != PACKAGE_ROOT.name:
+        return None
+    base = PACKAGE_ROOT.joinpath(*rest.split(".")) if rest else PACKAGE_ROOT
     for cand in (base.with_suffix(".py"), base / "__init__.py"):
         if cand.is_file():
             return cand
@@ -207,7 +225,7 @@ def code_version(stage: str, code_paths: Sequence[str | Path] | None = None) -> 
     elif stage in STAGE_MODULES:
         paths = list(module_closure(STAGE_MODULES[stage]))
     else:
-        paths = [REPO / "schemas"]
+        paths = [PACKAGE_ROOT / "schemas"]
     files = _code_files(paths)
     stamp = _stamp(files)
     version = f"{package_version()}+{_hash_files(files)}"
