@@ -199,3 +199,31 @@ def iou_xyxy(a: np.ndarray, b: np.ndarray, *, paired: bool = False) -> np.ndarra
 def quat_wxyz_of(T: np.ndarray) -> np.ndarray:
     """(..., 4) unit quaternions (w >= 0) of (..., 4, 4) transforms."""
     return matrix_to_quat(np.asarray(T)[..., :3, :3])
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices (Rodrigues)."""
+    w = np.asarray(w, np.float64)
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = np.zeros((*w.shape[:-1], 3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -w[..., 2], w[..., 1]
+    K[..., 1, 0], K[..., 1, 2] = w[..., 2], -w[..., 0]
+    K[..., 2, 0], K[..., 2, 1] = -w[..., 1], w[..., 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(th > 1e-8, np.sin(th) / th, 1.0 - th**2 / 6.0)
+        b = np.where(th > 1e-8, (1.0 - np.cos(th)) / th**2, 0.5 - th**2 / 24.0)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) -> (..., 3) rotation vectors; exact to the last digit at small angles
+    (atan2 of sin and cos, not arccos of the trace)."""
+    R = np.asarray(R, np.float64)
+    v = 0.5 * np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                        R[..., 1, 0] - R[..., 0, 1]], -1)
+    s = np.linalg.norm(v, axis=-1)
+    c = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    th = np.arctan2(s, c)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.where(s > 1e-12, th / s, 1.0)
+    return v * f[..., None]

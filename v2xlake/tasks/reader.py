@@ -17,18 +17,26 @@ import numpy as np
 import pyarrow as pa
 
 from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.geometry import matrix_to_quat, quat_to_matrix
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import AgentRecord, ClipRecord, PoseSamples, read_clip
 from v2xlake.storage.reader import read_pose_samples as _read_pose_samples
-from v2xlake.tasks.geometry import transform
+from v2xlake.tasks.geometry import invert, so3_exp, so3_log, transform
 from v2xlake.tasks.interpolate import PoseCoverageError, PoseTrack
 
 
 @dataclass(eq=False)
 class AgentData(AgentRecord):
-    """An agent's records plus its pose track (``poses``)."""
+    """An agent's records plus its pose track (``poses``).
+
+    ``poses`` is what every consumer places the agent with: for a cooperative agent whose
+    frames the register stage accepted, its INS track corrected by the registered relative
+    transform (``pose_source == "registered"``, see :func:`registered_track`); otherwise the
+    INS track itself. ``ins_poses`` is always the INS track."""
 
     poses: PoseTrack
+    ins_poses: PoseTrack | None = None
+    pose_source: str = "ins"  # "registered" | "ins"
 
     @property
     def velocity(self) -> np.ndarray:
@@ -56,18 +64,114 @@ def track(samples: PoseSamples, clip_id: str, agent_id: str) -> PoseTrack:
         raise ClipError(clip_id, f"ego_poses unusable: {e}", agent_id=agent_id) from e
 
 
-def with_tracks(rec: ClipRecord) -> ClipData:
-    """The record with every agent's pose track built."""
+#: Registered frames further apart than this (by the other agent's scan time) are not
+#: bridged: between them the agent's poses stay INS (``load_clip(registered_max_gap_s=)``).
+REGISTERED_MAX_GAP_S = 0.35
+
+
+def with_tracks(rec: ClipRecord, *, registered: bool = True,
+                registered_max_gap_s: float = REGISTERED_MAX_GAP_S) -> ClipData:
+    """The record with every agent's pose track built; with ``registered`` the cooperative
+    agents' tracks carry the register stage's accepted transforms (:func:`registered_track`)."""
     agents = {aid: AgentData(**{k: getattr(a, k) for k in AgentRecord.__dataclass_fields__},
                              poses=track(a.pose_samples, rec.clip_id, aid))
               for aid, a in rec.agents.items()}
+    for a in agents.values():
+        a.ins_poses = a.poses
+    if registered and rec.registrations.num_rows:
+        ref = agents[rec.reference_agent]
+        for aid, a in agents.items():
+            if aid == rec.reference_agent:
+                continue
+            corrected = registered_track(rec, ref, a, int(registered_max_gap_s * 1e9))
+            if corrected is not None:
+                a.poses, a.pose_source = corrected, "registered"
     return ClipData(rec.clip_id, rec.info, agents, rec.instances,
                     rec.registrations)
 
 
-def load_clip(lake: Lake, clip_id: str) -> ClipData:
-    """Everything but the points of one clip (clean zone), pose tracks built."""
-    return with_tracks(read_clip(lake, clip_id))
+def load_clip(lake: Lake, clip_id: str, *, registered: bool = True,
+              registered_max_gap_s: float = REGISTERED_MAX_GAP_S) -> ClipData:
+    """Everything but the points of one clip (clean zone), pose tracks built (cooperative
+    agents placed by their registered transforms where the register stage accepted them)."""
+    return with_tracks(read_clip(lake, clip_id), registered=registered,
+                       registered_max_gap_s=registered_max_gap_s)
+
+
+def registered_track(clip: ClipRecord, ref: AgentData, agent: AgentData, max_gap_ns: int,
+                     pair_tolerance_ns: int = 1_000_000) -> PoseTrack | None:
+    """The agent's ego track placed by the accepted registrations against the reference agent.
+
+    At an accepted frame k the register stage measured ``T_L1_Lj`` between the two deskewed
+    scans (at their reference times t1, tj), so the agent's LiDAR is at
+    ``T_W_Lj = T_W_E1(t1) E1 T_L1_Lj`` and its ego at ``T_W_Lj Ej^-1``, with the extrinsics
+    every consumer uses (the effective calibration). The difference to the INS pose at tj --
+    a rotation about the agent and a shift, in world axes -- is interpolated linearly
+    between accepted frames at most ``max_gap_ns`` apart and applied to the INS samples
+    there (and added as samples at each tj, so the track reproduces every registered
+    transform exactly); elsewhere the INS track stands. None when nothing is accepted.
+
+    Why the whole track and not only the LiDAR frames: cameras, radar, boxes and the ROS
+    ``/tf`` tree of this agent are placed by the same ego track, so all of them move with
+    the registration consistently; a per-frame patch of the LiDAR alone would leave the
+    camera 15 cm away from the LiDAR it is calibrated to."""
+    r = clip.registrations
+    if r.num_rows == 0:
+        return None
+    rows = [x for x in r.to_pylist() if x["accepted"] and x["agent_other"] == agent.agent_id
+            and x["agent_ref"] == ref.agent_id]
+    if not rows:
+        return None
+    s1, sj = ref.lidar_sensor(), agent.lidar_sensor()
+    lf1, lfj = ref.lidar[s1], agent.lidar[sj]
+    E1, Ej = ref.sensors[s1].T_ego_sensor, agent.sensors[sj].T_ego_sensor
+    ref_of = dict(zip(lf1.frame_idx.tolist(), lf1.ref_ns.tolist(), strict=True))
+    order = np.argsort(lfj.t_start_ns)
+    starts = lfj.t_start_ns[order]
+    base = ref.poses  # the reference agent is never corrected
+    ins = agent.ins_poses or agent.poses
+    t_k, dR, dp = [], [], []
+    for x in rows:
+        t1 = ref_of.get(int(x["frame_idx"]))
+        i = int(np.clip(np.searchsorted(starts, int(x["t_ns"])), 1, max(len(starts) - 1, 1)))
+        cand = [j for j in (i - 1, i) if 0 <= j < len(starts)]
+        j = min(cand, key=lambda j: abs(int(starts[j]) - int(x["t_ns"])))
+        if t1 is None or t1 < 0 or abs(int(starts[j]) - int(x["t_ns"])) > pair_tolerance_ns:
+            continue
+        tj = int(lfj.ref_ns[order[j]])
+        if tj < 0 or not (base.covers(t1) and ins.covers(tj)):
+            continue
+        T_reg = transform(np.array([x["tx"], x["ty"], x["tz"]]),
+                          np.array([x["qw"], x["qx"], x["qy"], x["qz"]]))
+        M_reg = base.matrices(t1)[0] @ E1 @ T_reg @ invert(Ej)
+        M_ins = ins.matrices(tj)[0]
+        t_k.append(tj)
+        dR.append(so3_log(M_reg[:3, :3] @ M_ins[:3, :3].T))
+        dp.append(M_reg[:3, 3] - M_ins[:3, 3])
+    if not t_k:
+        return None
+    o = np.argsort(t_k)
+    tk = np.asarray(t_k, np.int64)[o]
+    keep = np.concatenate([[True], np.diff(tk) > 0])
+    tk, wk, pk = tk[keep], np.asarray(dR)[o][keep], np.asarray(dp)[o][keep]
+    t_all = np.union1d(ins.t_ns, tk)
+    xyz, q = ins.at(t_all)
+    # accepted frames bracketing each sample, bridged only when close enough
+    k = np.searchsorted(tk, t_all, side="right") - 1
+    i0 = np.clip(k, 0, len(tk) - 1)
+    i1 = np.clip(k + 1, 0, len(tk) - 1)
+    exact = (k >= 0) & (tk[i0] == t_all)
+    inside = (k >= 0) & (k < len(tk) - 1)
+    gap = tk[i1] - tk[i0]
+    bridged = inside & (gap <= max_gap_ns)
+    use = exact | bridged
+    a = np.where(bridged, (t_all - tk[i0]) / np.maximum(gap, 1), 0.0)[:, None]
+    w = wk[i0] * (1 - a) + wk[i1] * a
+    p = pk[i0] * (1 - a) + pk[i1] * a
+    R_new = so3_exp(np.where(use[:, None], w, 0.0)) @ quat_to_matrix(q)
+    q_new = matrix_to_quat(R_new)
+    xyz_new = xyz + np.where(use[:, None], p, 0.0)
+    return PoseTrack.create(t_all, xyz_new, q_new)
 
 
 def load_pose_track(lake: Lake, clip_id: str, agent_id: str) -> PoseTrack:

@@ -22,8 +22,7 @@ from v2xlake.storage.reader import (
     effective_calibration,
     read,
 )
-from v2xlake.tasks.geometry import invert, rotation_angle
-from v2xlake.tasks.register.solve import so3_log
+from v2xlake.tasks.geometry import invert, rotation_angle, so3_log
 
 
 @dataclass(frozen=True)

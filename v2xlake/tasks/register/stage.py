@@ -469,7 +469,8 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     ground = {a: (float(np.nanmedian(h)), b.center_ego[2] - b.height / 2)
               for a, b in bodies.items()
               if (h := [x for x in timing["ground"].get(a, []) if np.isfinite(x)])}
-    sol: ClipSolution | None = None
+    sol: ClipSolution | None = None  # the relative transforms, frame by frame
+    ext: ClipSolution | None = None  # the extrinsic split (with odometry and priors)
     agents = [ref, *others]
     steps: list[tuple[str, float]] = []
     if cfg.clip_solve:
@@ -481,13 +482,10 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
                     f"{np.linalg.norm(d) * 100:.1f} cm ({d[0]:+.3f}, {d[1]:+.3f}, {d[2]:+.3f} m); "
                     "modelled as a free offset of its INS error from there on")
         t_solve = time.perf_counter()
-        sol = solve_clip([a.agent for a in agents], ref.agent,
-                         {a.agent: a.T_ego_lidar for a in agents},
-                         [p.measurement for p in measured], odo, cfg.solve_settings(), ground,
-                         steps)
+        sol, ext = _solve(cfg, agents, measured, odo, ground, steps)
         timing["solve_s"] = time.perf_counter() - t_solve
         fix = {c.agent_id: _matrix(c, "") for c in _calibration_rows(
-            clip_id, sol, agents, cfg, len(measured), method)
+            clip_id, ext, agents, cfg, len(measured), method)
             if c.usable and (c.correction_m > 0 or c.correction_deg > 0)}
         if cfg.redeskew and fix:
             # the scans of an agent whose extrinsic was wrong were deskewed with it: deskew
@@ -497,17 +495,14 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
             t_solve = time.perf_counter()
             measured, odo, timing = _measure(cfg, backend, ref, others, pairs, ref_frames,
                                              bodies, t0_ns, fix)
-            sol = solve_clip([a.agent for a in agents], ref.agent,
-                             {a.agent: a.T_ego_lidar for a in agents},
-                             [p.measurement for p in measured], odo, cfg.solve_settings(),
-                             ground, steps)
+            sol, ext = _solve(cfg, agents, measured, odo, ground, steps)
             timing["solve_s"] = time.perf_counter() - t_solve
     rows = [_row(clip_id, ref_id, p, k, sol, cfg, method) for k, p in enumerate(measured)]
     path, n = lake.write_table("clean", "registrations", rows_to_table(RegistrationRow, rows),
                                clip_id=clip_id, name="registrations")
     report.outputs.append(OutputFile(path=path, rows=n))
-    if sol is not None:
-        cal = _calibration_rows(clip_id, sol, [ref, *others], cfg, len(measured), method,
+    if ext is not None:
+        cal = _calibration_rows(clip_id, ext, [ref, *others], cfg, len(measured), method,
                                 report.notes)
         path, n = lake.write_table("clean", "calibration_refined",
                                    rows_to_table(CalibrationRefinedRow, cal), clip_id=clip_id,
@@ -552,9 +547,9 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
         variance_factor=float(sol.variance_factor) if sol is not None else 0.0,
         seconds=time.perf_counter() - wall0,
     )
-    if sol is not None:
-        for a in sol.agents:
-            e = sol.eps[a]
+    if ext is not None:
+        for a in ext.agents:
+            e = ext.eps[a]
             report.metrics[f"extrinsic_correction_m_{a}"] = float(np.linalg.norm(e[3:]))
             report.metrics[f"extrinsic_correction_deg_{a}"] = float(np.degrees(
                 np.linalg.norm(e[:3])))
@@ -564,6 +559,33 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
             log.warning("register %s frame %d %s->%s not accepted: %s", clip_id, r.frame_idx,
                         r.agent_other, ref_id, r.reason)
     return report
+
+
+def _solve(cfg: RegisterConfig, agents: list[AgentScans], measured: list[_Pair],
+           odo: list[OdoMeasurement], ground: dict[str, tuple[float, float]],
+           steps: list[tuple[str, float]]) -> tuple[ClipSolution, ClipSolution]:
+    """The two solves of a clip: (relative, extrinsic).
+
+    The relative transform between two LiDARs is what the cross-agent GICP measures, frame
+    by frame; the split of a correction into "extrinsic" and "INS error" is not (driving
+    straight, a wrong extrinsic translation and a constant INS offset are the same
+    measurement). So the per-frame estimates come from a solve of the cross-agent frames
+    alone (the same model, robust weights, leave-one-out test, honest covariance and
+    bracketing), which the split's extra information -- hand-eye odometry, the
+    non-holonomic and ground constraints -- cannot pull away from what the frames measured:
+    a bias in any of those (a corridor's odometry sliding along the street, a declared body
+    height that is off) would otherwise move every frame's estimate with it. The full solve
+    with that information estimates the extrinsic corrections (``calibration_refined``)."""
+    names = [a.agent for a in agents]
+    extr = {a.agent: a.T_ego_lidar for a in agents}
+    cross = [p.measurement for p in measured]
+    ext = solve_clip(names, agents[0].agent, extr, cross, odo, cfg.solve_settings(), ground,
+                     steps)
+    if not odo and not ground:
+        return ext, ext
+    rel = solve_clip(names, agents[0].agent, extr, cross, [], cfg.solve_settings(), None,
+                     steps)
+    return rel, ext
 
 
 def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
