@@ -382,6 +382,9 @@ class CalibrationRefinedRow(_Row):
     n_frames: I64
     source: str  # "refined"
     method: str
+    # why the published extrinsic is kept (or which parts of it): "not determined: tx ty",
+    # "correction not significant", "fit inconsistent ..."; None when refined as a whole
+    reason: str | None = None
 
 
 class AlignmentRow(_Row):

@@ -54,6 +54,7 @@ from v2xlake.tasks.register.solve import (
     solve_clip,
 )
 from v2xlake.tasks.register.static import RemovalCounts
+from v2xlake.tasks.register.timeline import render_registration_timeline
 
 log = logging.getLogger(__name__)
 
@@ -355,7 +356,8 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
             usable=bool(det.any() and std_m <= cfg.refined_max_std_m
                         and std_deg <= cfg.refined_max_std_deg and consistent
                         and (det.all() or not cfg.refined_require_all)),
-            n_frames=n_frames, source="refined", method=method))
+            n_frames=n_frames, source="refined", method=method,
+            reason="; ".join(why) or None))
         if notes is not None and why:
             notes.append(f"calibration {a.agent}: " + "; ".join(why))
     return rows
@@ -501,6 +503,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     path, n = lake.write_table("clean", "registrations", rows_to_table(RegistrationRow, rows),
                                clip_id=clip_id, name="registrations")
     report.outputs.append(OutputFile(path=path, rows=n))
+    cal: list[CalibrationRefinedRow] = []
     if ext is not None:
         cal = _calibration_rows(clip_id, ext, [ref, *others], cfg, len(measured), method,
                                 report.notes)
@@ -520,6 +523,12 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
                     f"{ref_id} ({r.reason[:60]})"))
                 report.images.append(key)
                 break
+    if cfg.write_bev:
+        key = lake.path("clean", "images", clip_id, "registration_timeline.png")
+        lake.write_bytes(key, render_registration_timeline(
+            [r.model_dump() for r in rows], [c.model_dump() for c in cal] if ext else [],
+            title=f"{clip_id}: registration against {ref_id} ({method})"))
+        report.images.append(key)
     acc = [r for r in rows if r.accepted]
     res = [p.res for p in measured]
     removed = RemovalCounts()
@@ -697,6 +706,19 @@ def _matrix(r: RegistrationRow | CalibrationRefinedRow, p: str) -> np.ndarray:
     t = np.array([getattr(r, f"{p}tx"), getattr(r, f"{p}ty"), getattr(r, f"{p}tz")],
                  dtype=np.float64)
     return transform(t, q / np.linalg.norm(q))
+
+
+def plot_registration_timeline(lake: Lake, clip_id: str, out_png: str | Path) -> Path:
+    """The whole clip's registration (``timeline.render_registration_timeline``) from the
+    stored ``registrations`` and ``calibration_refined`` rows."""
+    regs = lake.read_table("clean", "registrations", clip_id=clip_id).to_pylist()
+    if not regs:
+        raise _fail(clip_id, "no registrations rows: run the register stage first")
+    cal = lake.read_table("clean", "calibration_refined", clip_id=clip_id).to_pylist()
+    out = Path(out_png)
+    render_registration_timeline(regs, cal, out, title=f"{clip_id}: registration against "
+                                 f"{regs[0]['agent_ref']} ({regs[0]['method']})")
+    return out
 
 
 def plot_registration(lake: Lake, clip_id: str, frame_idx: int, out_png: str | Path,
