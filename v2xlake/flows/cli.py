@@ -503,12 +503,18 @@ def plot_registration(
     frame: Annotated[int | None, typer.Option(help="default: the middle registered frame")]
     = None,
 ) -> int:
-    """Bird's-eye view of one frame's registration before and after refinement."""
+    """The clip's registration over time (GICP vs clip estimate vs INS, 1-sigma, each
+    frame's decision; OUT) and the bird's-eye view of one frame before and after
+    refinement (OUT with a ``_bev`` suffix)."""
     from v2xlake.tasks.register.stage import plot_registration as run_plot
+    from v2xlake.tasks.register.stage import plot_registration_timeline
 
     if out.is_dir():
         raise UserError(f"--out {out} is a folder; give the PNG file to write")
     the_lake = known_clip(lake, clip)
+    timeline = plot_registration_timeline(the_lake, clip, out)
+    _console().print(f"registration of clip {clip} over time -> {_esc(timeline)}")
+    out = out.with_name(f"{out.stem}_bev{out.suffix or '.png'}")
     if frame is None:
         frames = sorted(set(the_lake.read_table("clean", "registrations", clip_id=clip,
                                                 columns=["frame_idx"]).column(0).to_pylist()))
