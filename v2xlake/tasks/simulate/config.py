@@ -16,6 +16,16 @@ Presets (``SimConfig.preset(name, **overrides)``):
   with corner buildings, the other agent 5..25 m ahead in the next lane), only ``black``'s
   published LiDAR extrinsic wrong (15 cm / 0.4 deg), the reference agent's exact, and an INS
   drift of 3 cm/s per agent (a few cm/s between the agents), 10 m/s city speed.
+* ``coop`` is the cooperative-registration scenario of issue #21 (``street="boulevard"``, see
+  ``scene``): a straight boulevard between walls at +-14 m from its centre line, 20 poles,
+  6 parked cars, an oncoming car, a truck and a pedestrian crossing; ``red`` at 15 m/s turns
+  at 0.25 rad/s for 1 s (and back 2 s later when the clip holds the whole turn back),
+  ``black`` drives straight at 16 m/s in the adjacent lane 20 m behind (``coop_gap_m``);
+  64-beam 1024-column 10 Hz single-return LiDAR 1.9 m above the ground, no cameras; exact,
+  noise-free INS written as ``nav_msgs/Odometry``; only ``black``'s published LiDAR extrinsic
+  wrong, by exactly (0.12, -0.08, 0.05) m and +0.4 deg yaw (``lidar_ext_err_xyz_m`` /
+  ``lidar_ext_err_rpy_deg``). Variations are overrides of the same fields (the module doc of
+  ``scene`` and ``tests/fixtures/street.py`` list them).
 
 Every number that tests relate to (extrinsic errors, INS bias, noise) is a field here, so a
 test can switch an error source off and check the geometry exactly. The whole config is
@@ -96,17 +106,62 @@ class SimConfig(BaseModel):
                           "(None: every agent; the others publish the true one)")
     ins_drift_mps: float = Field(0.0, ge=0.0, description="INS position drift rate per agent "
                                  "(m/s, a seeded horizontal direction): b(t) += v_d * t")
+    lidar_ext_err_xyz_m: tuple[float, float, float] | None = Field(
+        None, description="explicit LiDAR extrinsic error: published translation = true + this "
+                          "(base_link axes, m); with lidar_ext_err_rpy_deg replaces the "
+                          "random-direction magnitudes above (see rig)")
+    lidar_ext_err_rpy_deg: tuple[float, float, float] | None = Field(
+        None, description="explicit LiDAR extrinsic rotation error roll, pitch, yaw (deg): "
+                          "R_pub = Rz(yaw) Ry(pitch) Rx(roll) @ R_true")
+    lidar_height_m: float | None = Field(
+        None, gt=0.0, description="height of the vehicles' LiDAR origin above the ground "
+                                  "(nominal mount, before the seeded mm-level mounting "
+                                  "deviation); None: 1.55 m above base_link = 1.95 m")
+    ins_step_m: tuple[float, float, float] | None = Field(
+        None, description="a sudden INS position jump (world ENU axes, m) added to the "
+                          "reported position from ins_step_at_s on, on ins_step_agents")
+    ins_step_at_s: float = Field(1.0, description="clip time (s) of the INS step")
+    ins_step_agents: tuple[str, ...] = Field(("black",), description="agents with the INS step")
     write_lidar_truth: bool = True
     radar: bool = Field(False, description="a 20 Hz front 4D radar on each vehicle "
                         "(simulate.radar)")
     pose_format: Literal["inspva", "odometry", "navsat-imu", "tf"] = Field(
         "inspva", description="how the vehicles' INS solution is written (simulate.navformats)")
     speed_mps: float = Field(18.0, description="nominal speed of the red agent")
-    street: Literal["town", "corridor"] = Field(
+    street: Literal["town", "corridor", "boulevard"] = Field(
         "town", description="town: mixed buildings, fences, parked cars, a few road users; "
-                            "corridor: the hard street of issue #13 (see the module doc)")
+                            "corridor: the hard street of issue #13; boulevard: the "
+                            "cooperative scenario of issue #21 (see the module doc)")
     turn_at_s: float | None = Field(None, description="corridor: clip time (s) of the middle of "
-                                                      "the 90 deg turn (default: mid-clip)")
+                                                      "the 90 deg turn (default: mid-clip); "
+                                                      "boulevard: of red's first turn "
+                                                      "(default 1.0 s)")
+    # boulevard (issue #21): every number of the scenario, so variations are overrides
+    turn_rate_radps: float = Field(0.25, description="boulevard: red's yaw rate in its turn "
+                                   "(rad/s, + = left; 0 = no turn at all)")
+    turn_duration_s: float = Field(1.0, gt=0.0, description="boulevard: length of the turn "
+                                   "(the logistic window integrates to rate * duration)")
+    turn_ramp_s: float = Field(0.05, gt=0.0, description="boulevard: logistic on/off ramp "
+                               "time constant of the turn (0.05 s: over 98 % of the rate "
+                               "for the middle 0.6 s of a 1 s turn)")
+    turn_back_after_s: float | None = Field(
+        2.0, description="boulevard: red turns back (-rate for the same duration) this long "
+                         "after the first turn (middle to middle), if the clip holds the whole "
+                         "turn back and its ramp (5 turn_ramp_s); None: never")
+    coop_gap_m: float = Field(-20.0, description="boulevard: black's position along the road "
+                              "relative to red at clip time 0 (m, - behind, + ahead)")
+    coop_speed_mps: float = Field(16.0, ge=0.0, description="boulevard: black's (constant) "
+                                  "speed; it drives straight along its lane")
+    coop_lane_m: float = Field(-5.25, description="boulevard: black's lane centre, left of the "
+                               "road centre line (m)")
+    red_lane_m: float | None = Field(
+        None, description="boulevard: red's lane centre at clip time 0, left of the road centre "
+                          "line; None: the lane right of black's for a left turn (or none), "
+                          "left of it for a right turn, so red's turn crosses black's lane")
+    wall_offset_m: float = Field(14.0, gt=0.0, description="boulevard: the walls' faces, "
+                                 "left and right of the road centre line (m)")
+    n_poles: int = Field(20, ge=0, description="boulevard: poles (both sidewalks)")
+    n_parked_cars: int = Field(6, ge=0, description="boulevard: parked cars (right kerb)")
 
     @field_validator("agents")
     @classmethod
@@ -124,6 +179,14 @@ class SimConfig(BaseModel):
         if bad:
             raise ValueError(f"unknown cameras {bad}; choose from {CAMERA_NAMES}")
         return tuple(c for c in CAMERA_NAMES if c in v)
+
+    @field_validator("ins_step_agents")
+    @classmethod
+    def _step_agents(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        bad = [a for a in v if a not in AGENT_NAMES]
+        if bad:
+            raise ValueError(f"ins_step_agents: unknown agents {bad}; choose from {AGENT_NAMES}")
+        return v
 
     @field_validator("camera_hz")
     @classmethod
@@ -144,7 +207,8 @@ class SimConfig(BaseModel):
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> SimConfig:
-        """``small`` (test scale) or ``cats`` (Tab. 2); ``None`` overrides are ignored."""
+        """``small`` (test scale), ``street``, ``coop`` or ``cats`` (Tab. 2); ``None`` overrides
+        are ignored."""
         over = {k: v for k, v in overrides.items() if v is not None}
         if isinstance(over.get("agents"), str):
             over["agents"] = tuple(a.strip() for a in over["agents"].split(",") if a.strip())
@@ -175,7 +239,19 @@ class SimConfig(BaseModel):
                 "lidar_ext_rot_err_deg": 0.4, "lidar_ext_err_agents": ("black",),
                 "ins_drift_mps": 0.03,
             }
+        elif name == "coop":
+            base = {
+                "preset_name": "coop",
+                "lidar": LidarSpec(beams=64, columns=1024, dual_return=False, max_range_m=200.0),
+                "cameras": (), "image_width": 640, "write_lidar_truth": True,
+                "street": "boulevard", "speed_mps": 15.0, "lidar_height_m": 1.9,
+                "lidar_ext_err_agents": ("black",), "lidar_ext_err_xyz_m": (0.12, -0.08, 0.05),
+                "lidar_ext_err_rpy_deg": (0.0, 0.0, 0.4),
+                "ins_bias_m": 0.0, "ins_bias_drift_m": 0.0, "ins_att_bias_deg": 0.0,
+                "ins_noise_m": 0.0, "ins_drift_mps": 0.0, "pose_format": "odometry",
+            }
         else:
-            raise ValueError(f"unknown preset {name!r}; choose 'small', 'street' or 'cats'")
+            raise ValueError(
+                f"unknown preset {name!r}; choose 'small', 'street', 'coop' or 'cats'")
         base.update(over)
         return cls(**base)

@@ -9,7 +9,10 @@ What the INS reports (its error model, per agent, seeded):
   ``ins_bias_drift_m`` and period ``ins_bias_period_s`` (default 300 s, i.e. < 0.1 mm change
   within one LiDAR sweep; none for the static roadside unit, whose "INS" is a surveyed pose),
   plus an optional linear drift ``v_d * t`` (``ins_drift_mps``, a seeded horizontal direction;
-  none for the roadside unit), plus optional white noise ``ins_noise_m``;
+  none for the roadside unit), plus an optional step ``s * [t >= t_s]`` (``ins_step_m`` at
+  ``ins_step_at_s`` on the agents of ``ins_step_agents``: a sudden jump such as a GNSS
+  re-convergence, part of ``b(t)`` so truth and eq. 1a see it), plus optional white noise
+  ``ins_noise_m``;
 * attitude: ``R_ins = R_bias @ R_true`` with a constant world-frame rotation ``R_bias``
   (roll, pitch, yaw each +-``ins_att_bias_deg``);
 * velocity: the true world velocity (central differences of the analytic path).
@@ -48,11 +51,14 @@ class InsError:
     R_bias: np.ndarray  # (3, 3) world-frame attitude bias
     att_bias_rpy: np.ndarray  # (3,) rad
     drift: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) m/s
+    step: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) m
+    step_at_s: float = 0.0
 
     def bias(self, tau: np.ndarray) -> np.ndarray:
         tau = np.asarray(tau, float)
         return (self.b0 + self.b1 * np.sin(2 * np.pi * tau / self.period_s + self.phase)[..., None]
-                + self.drift * tau[..., None])
+                + self.drift * tau[..., None]
+                + self.step * (tau >= self.step_at_s)[..., None])
 
 
 def ins_error(cfg: SimConfig, agent: str) -> InsError:
@@ -69,7 +75,11 @@ def ins_error(cfg: SimConfig, agent: str) -> InsError:
     if cfg.ins_drift_mps > 0 and agent != "rsu":  # drawn last: other errors keep their values
         a = rng.uniform(0, 2 * np.pi)
         rate = cfg.ins_drift_mps * np.array([np.cos(a), np.sin(a), 0.0])
-    return InsError(d * cfg.ins_bias_m, d1 * drift, phase, cfg.ins_bias_period_s, rb, rpy, rate)
+    step = np.zeros(3)
+    if cfg.ins_step_m is not None and agent in cfg.ins_step_agents and agent != "rsu":
+        step = np.asarray(cfg.ins_step_m, float)
+    return InsError(d * cfg.ins_bias_m, d1 * drift, phase, cfg.ins_bias_period_s, rb, rpy, rate,
+                    step, cfg.ins_step_at_s)
 
 
 @dataclass

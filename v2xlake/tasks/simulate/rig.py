@@ -10,7 +10,15 @@ clockwise seen from above (front -> right -> back -> left), as in CATS-V2V Fig. 
 nominal mount plus a small seeded mounting deviation; ``/tf_static`` publishes the true one
 composed with a calibration error ``T_pub = T_true @ T_err`` whose translation has norm
 ``lidar_ext_trans_err_m`` and rotation angle ``lidar_ext_rot_err_deg`` (random directions), on
-every agent or only on those named in ``lidar_ext_err_agents``.
+every agent or only on those named in ``lidar_ext_err_agents``. An explicit error
+(``lidar_ext_err_xyz_m`` and/or ``lidar_ext_err_rpy_deg``, issue #21) replaces the random one and
+is exact in base_link terms: ``t_pub = t_true + xyz`` and ``R_pub = Rz(yaw) Ry(pitch) Rx(roll)
+@ R_true`` (a pure yaw error adds exactly that angle to the extrinsic's yaw), so a test can
+state "published minus true" without the mounting deviation leaking in. The random stream is
+drawn either way, so the other numbers of a seed do not move.
+
+``lidar_height_m`` sets the vehicles' nominal LiDAR height above the ground (the mount sits
+``lidar_height_m - EGO_HEIGHT`` above base_link); default 1.55 m above base_link (1.95 m).
 """
 
 from __future__ import annotations
@@ -23,6 +31,7 @@ from scipy.spatial.transform import Rotation
 from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
 from v2xlake.tasks.geometry import rigid
 from v2xlake.tasks.simulate.config import SimConfig
+from v2xlake.tasks.simulate.scene import EGO_HEIGHT
 
 # name: (yaw deg, hfov deg, base width, base height red, base height black, x, y, z) with x y z
 # the mount position in base_link
@@ -60,6 +69,15 @@ def _error(rng: np.random.Generator, trans: float, rot_deg: float) -> np.ndarray
     return rigid(Rotation.from_rotvec(unit() * np.radians(rot_deg)).as_matrix(), unit() * trans)
 
 
+def explicit_error(T_true: np.ndarray, xyz: tuple[float, float, float] | None,
+                   rpy_deg: tuple[float, float, float] | None) -> np.ndarray:
+    """``T_pub`` for an explicit error: translation ``t_true + xyz`` (base_link axes) and
+    rotation ``Rz(yaw) Ry(pitch) Rx(roll) @ R_true``."""
+    r, p, y = np.radians(rpy_deg or (0.0, 0.0, 0.0))
+    R_err = Rotation.from_euler("ZYX", [y, p, r]).as_matrix()
+    return rigid(R_err @ T_true[:3, :3], T_true[:3, 3] + np.asarray(xyz or (0.0, 0.0, 0.0)))
+
+
 @dataclass(frozen=True)
 class CameraRig:
     name: str
@@ -84,7 +102,8 @@ def build_rigs(cfg: SimConfig) -> dict[str, AgentRig]:
             lid_nom = rigid(np.eye(3), np.array([0.0, 0.0, 5.5]))
             cams_for = [c for c in ("CAM_FRONT",) if c in cfg.cameras]
         else:
-            lid_nom = rigid(np.eye(3), np.array([0.20, 0.0, 1.55]))
+            z = 1.55 if cfg.lidar_height_m is None else cfg.lidar_height_m - EGO_HEIGHT
+            lid_nom = rigid(np.eye(3), np.array([0.20, 0.0, z]))
             cams_for = list(cfg.cameras)
         mount = rigid(Rotation.from_rotvec(rng.normal(size=3) * np.radians(0.3)).as_matrix(),
                      rng.normal(size=3) * 0.02)
@@ -92,7 +111,12 @@ def build_rigs(cfg: SimConfig) -> dict[str, AgentRig]:
         wrong = cfg.lidar_ext_err_agents is None or agent in cfg.lidar_ext_err_agents
         # the error is drawn for every agent (same random stream), applied to the chosen ones
         err = _error(rng, cfg.lidar_ext_trans_err_m, cfg.lidar_ext_rot_err_deg)
-        lid_pub = lid_true @ err if wrong else lid_true.copy()
+        if not wrong:
+            lid_pub = lid_true.copy()
+        elif cfg.lidar_ext_err_xyz_m is not None or cfg.lidar_ext_err_rpy_deg is not None:
+            lid_pub = explicit_error(lid_true, cfg.lidar_ext_err_xyz_m, cfg.lidar_ext_err_rpy_deg)
+        else:
+            lid_pub = lid_true @ err
         cams: dict[str, CameraRig] = {}
         for name in cams_for:
             yaw, hfov, bw, bh_red, bh_black, x, y, z = _CAMS[name]

@@ -325,9 +325,10 @@ def _write_truth(tdir: Path, cfg: SimConfig, world: World, rigs: dict, errs: dic
                         for c, cr in rig.cameras.items()},
             "ins_error": {"b0": e.b0.tolist(), "b1": e.b1.tolist(), "phase": e.phase,
                           "drift_mps": e.drift.tolist(),
+                          "step_m": e.step.tolist(), "step_at_s": e.step_at_s,
                           "period_s": e.period_s, "att_bias_rpy_rad": e.att_bias_rpy.tolist(),
                           "model": "p_ins = p_true + b0 + b1 sin(2 pi tau / period + phase) "
-                                   "+ drift_mps tau; "
+                                   "+ drift_mps tau + step_m [tau >= step_at_s]; "
                                    "R_ins = Rz(yaw) Ry(pitch) Rx(roll) @ R_true"},
         }
     (tdir / "extrinsics.json").write_text(json.dumps(ext, indent=1))

@@ -265,6 +265,10 @@ def _corridor_traffic(cfg: SimConfig, rng: np.random.Generator, prof: KinematicP
 
 def build_world(cfg: SimConfig) -> World:
     """Deterministic world for ``cfg`` (seeded by ``cfg.seed``)."""
+    if cfg.street == "boulevard":  # its own layout: a fixed straight road, own profiles
+        from v2xlake.tasks.simulate.boulevard import build_boulevard
+
+        return build_boulevard(cfg)
     rng = np.random.default_rng([cfg.seed, 20240601])
     gz = cfg.ground_alt_m
     corridor = cfg.street == "corridor"
