@@ -71,6 +71,10 @@ class Region:
     quad: tuple[tuple[float, float], ...] | None = None
     size_m: tuple[float, float] | None = None
     part: str = ""  # front | rear | window | head
+    # the part's centre projected into the image (not clipped: may lie outside the frame);
+    # with ``expected_px`` (inversely proportional to depth) it moves and scales a box found
+    # in this region to where the same part is in a neighbouring frame (``carry.py``)
+    anchor: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,10 +189,13 @@ def project_regions(boxes: WorldBoxes, T_cam_world: np.ndarray, intr: CameraIntr
     size = np.array([p[4] for p in parts])
     quat = boxes.quat[[p[2] for p in parts]]
     b2d = project_boxes_2d(centre, size, quat, T_cam_world, intr, near=cfg.near_m)
-    depth = apply(T_cam_world, centre)[:, 2]
+    cam_c = apply(T_cam_world, centre)
+    depth = cam_c[:, 2]
+    anchors, _ = project_points(np.where(depth[:, None] >= cfg.near_m, cam_c, np.nan), intr,
+                                near=cfg.near_m)
     f = 0.5 * (intr.fx + intr.fy)
     out = []
-    for (kind, name, i, c, sz, n), b, z in zip(parts, b2d, depth, strict=True):
+    for (kind, name, i, c, sz, n), b, z, uv in zip(parts, b2d, depth, anchors, strict=True):
         if not np.isfinite(b).all() or z < cfg.near_m:
             continue
         mw, mh = cfg.margin_frac * (b[2] - b[0]) + cfg.margin_px, cfg.margin_frac * (
@@ -205,8 +212,9 @@ def project_regions(boxes: WorldBoxes, T_cam_world: np.ndarray, intr: CameraIntr
             cos = float(np.dot(n, view) / max(np.linalg.norm(view), 1e-9))
             if cos >= np.cos(np.radians(cfg.max_oblique_deg)):
                 quad, metric = _face_quad(c, sz, boxes.quat[i], name, T_cam_world, intr, cfg)
+        anchor = (float(uv[0]), float(uv[1])) if np.isfinite(uv).all() else None
         out.append(Region(kind, grown, float(f * size_m / z), str(boxes.instance[i]), quad,
-                          metric, name))
+                          metric, name, anchor))
     return out
 
 

@@ -9,6 +9,7 @@ clip/agent/name) is mirrored, so downstream readers see the same structure in bo
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 import logging
@@ -31,6 +32,7 @@ from v2xlake.schemas.tables import AnonymizationAuditRow
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import calibrations, pose_samples
 from v2xlake.tasks.anonymize.blur import BlurConfig, blur_boxes
+from v2xlake.tasks.anonymize.carry import between, key_frames, new_regions
 from v2xlake.tasks.anonymize.clusters import cluster_boxes, yaw_quat
 from v2xlake.tasks.anonymize.context import ClipGuide, build_guide
 from v2xlake.tasks.anonymize.detectors import (
@@ -43,7 +45,12 @@ from v2xlake.tasks.anonymize.detectors import (
     HaarPlateDetector,
     ScanConfig,
 )
-from v2xlake.tasks.anonymize.guide import GuideConfig, WorldBoxes, world_boxes_from_sensor
+from v2xlake.tasks.anonymize.guide import (
+    GuideConfig,
+    Region,
+    WorldBoxes,
+    world_boxes_from_sensor,
+)
 from v2xlake.tasks.anonymize.guided import GuidedConfig, GuidedDetector
 from v2xlake.tasks.anonymize.images import decode_image, encode_image, to_bgr8
 from v2xlake.tasks.anonymize.temporal import fill_gaps
@@ -79,6 +86,12 @@ CLEAN_TABLES = (
     "camera_frames",
     "anonymization_audit",
 )
+
+
+# settings that change no blurred pixel: how clean images are encoded, how the work is split
+# (the result does not depend on the chunk size: tests/test_anonymize_temporal.py)
+NOT_PROVENANCE = frozenset({"image_format", "jpeg_quality", "png_compression", "workers",
+                            "frames_per_chunk"})
 
 
 class AnonymizeConfig(BaseModel):
@@ -158,6 +171,17 @@ class AnonymizeConfig(BaseModel):
         "and missed in between is blurred there too")
     temporal_max_gap_ms: float = Field(
         250.0, description="temporal fill only between frames at most this far apart")
+    key_interval_ms: float = Field(
+        120.0, ge=0, description="a camera's frames are detected in full at most this far "
+        "apart (key frames); the frames between get the key frames' detections before and "
+        "after carried to them (moved with their 3D box's region, else grown in place by "
+        "carry_grow) plus a search of the regions new since a key frame (carry.py). 120 ms: "
+        "every 3rd frame at 30 Hz, every 2nd at 20 Hz, every frame at 15 Hz and below; "
+        "0: every frame in full")
+    carry_grow: float = Field(
+        0.5, ge=0, description="a carried detection without a region (safety pass, "
+        "full-frame plan) is grown on each side by this share of its size per key-frame "
+        "interval of time distance (what moved without a 3D box)")
     frames_per_chunk: int = Field(
         16, ge=1, description="frames of one camera decoded and held together")
     image_format: Literal["png", "jpeg", "same"] = Field(
@@ -168,6 +192,19 @@ class AnonymizeConfig(BaseModel):
     blur_margin: float = 0.2
     png_compression: int = 1
     workers: int = 0  # threads decoding/detecting/encoding images; 0: one per CPU core
+
+    def provenance(self, detector_version: str) -> str:
+        """``camera_frames.anonymizer``: the models with their hashes and plan summary, then
+        every setting that changes what is blurred as ``name=value`` (all fields but the
+        output encoding and the threading / chunking, which change no blurred pixel), so two
+        runs that can blur differently never record the same string."""
+        vals = []
+        for name in sorted(type(self).model_fields):
+            if name in NOT_PROVENANCE:
+                continue
+            v = getattr(self, name)
+            vals.append(f"{name}={v:g}" if isinstance(v, float) else f"{name}={v}")
+        return f"{detector_version}|{','.join(vals)}"
 
     def full_face_scan(self) -> ScanConfig:
         return ScanConfig(
@@ -375,7 +412,11 @@ def _write_clean(
         write("gnss", gnss_to_local(_read_file(lake, path), frame, t0), agent, name)
 
     guide = None
-    if cfg.scan_plan == "guided":
+    n_cam = lake.read_table("raw", "camera_frames", clip_id=clip_id, columns=["frame_idx"]
+                            ).num_rows
+    if n_cam == 0:  # nothing to blur: no guide, no LiDAR clusters (they cost minutes)
+        report.notes.append("anonymize: no camera images")
+    elif cfg.scan_plan == "guided":
         guide = build_guide(
             clip_id, t0, {a: pa.concat_tables(ts) for a, ts in ego.items()},
             lake.read_table("raw", "calibrated_sensors", clip_id=clip_id),
@@ -495,7 +536,7 @@ def _anonymize_images(
     total = sum(t.num_rows for _, _, t in tables)
     detector = cfg.build_detector()
     blur = cfg.blur()
-    anonymizer = detector.version
+    anonymizer = cfg.provenance(detector.version)
     done = 0
     n_faces = n_plates = n_guided = 0
     if progress:
@@ -514,12 +555,34 @@ def _anonymize_images(
             raise ClipError(clip_id, f"camera image cannot be decoded: {e}", agent_id=agent,
                             path=key, stage=STAGE) from e
 
-    def detect(item: tuple[str, str, str, int]) -> tuple[np.ndarray, list[Detection], bool]:
+    full = cfg.cluster_full_frame and guide is not None and guide.source == "lidar clusters"
+
+    def detect(item: tuple[str, str, str, int]
+               ) -> tuple[np.ndarray, list[Detection], list[Region] | None]:
+        """A key frame: the whole plan."""
         key, agent, sensor, stamp = item
         img = decode(key, agent)
         regions = guide.regions(agent, sensor, stamp) if guide is not None else None
-        full = cfg.cluster_full_frame and guide is not None and guide.source == "lidar clusters"
-        return img, detector.detect(to_bgr8(img), regions, full), regions is not None
+        return img, detector.detect(to_bgr8(img), regions, full), regions
+
+    def carried(i: int, rows: list[int], is_key: list[bool], pos: dict[int, int],
+                known: dict[int, list[Detection]], kregions: dict[int, list[Region] | None]
+                ) -> tuple[np.ndarray, list[Detection], list[Region] | None]:
+        """A frame between two key frames: their detections carried here, plus a search of
+        the regions the two key frames do not both have (``carry.py``)."""
+        p = pos[i]
+        a = next(rows[q] for q in range(p - 1, -1, -1) if is_key[q])
+        b = next(rows[q] for q in range(p + 1, len(rows)) if is_key[q])
+        img = decode(keys[i], agent_col[i])
+        regions = (guide.regions(agent_col[i], sensors[i], int(stamps[i]))
+                   if guide is not None else None)
+        fresh = new_regions(regions, kregions[a], kregions[b], img.shape) if regions else []
+        found, again = between((known[a], kregions[a], int(stamps[a])),
+                               (known[b], kregions[b], int(stamps[b])), regions,
+                               int(stamps[i]), cfg.carry_grow, img.shape, fresh)
+        if fresh or again:
+            found += detector.in_regions(to_bgr8(img), [*fresh, *again])
+        return img, found, regions
 
     def finish(img: np.ndarray, key: str, dets: list[Detection]) -> tuple[str, str]:
         out = img.copy()
@@ -531,6 +594,7 @@ def _anonymize_images(
     det_names = {d.name: f"{d.name}@{d.version}" for d in detector.detectors}
     workers = cfg.workers if cfg.workers > 0 else (os.cpu_count() or 1)
     gap_ns = int(cfg.temporal_max_gap_ms * 1e6)
+    key_ns = int(cfg.key_interval_ms * 1e6)
     with ThreadPoolExecutor(max_workers=workers) as pool:
         for agent, name, table in tables:
             keys = table.column("blob").to_pylist()
@@ -550,18 +614,36 @@ def _anonymize_images(
                 cams.setdefault((agent_col[i], sensors[i]), []).append(i)
             for rows in cams.values():
                 rows.sort(key=lambda i: (stamps[i], frames[i]))
+                is_key = key_frames([int(stamps[i]) for i in rows], key_ns)
+                pos = {i: p for p, i in enumerate(rows)}
                 known: dict[int, list[Detection]] = {}
+                kregions: dict[int, list[Region] | None] = {}
                 for c0 in range(0, len(rows), cfg.frames_per_chunk):
                     chunk = rows[c0 : c0 + cfg.frames_per_chunk]
-                    ahead = rows[c0 + len(chunk)] if c0 + len(chunk) < len(rows) else None
-                    todo = [i for i in chunk + ([ahead] if ahead is not None else [])
-                            if i not in known]
+                    end = c0 + len(chunk)
+                    # look-ahead: the frame after the chunk (temporal fill) and the key frame
+                    # the chunk's last frames are carried from
+                    stop = end
+                    while stop < len(rows) and not is_key[stop]:
+                        stop += 1
+                    span = rows[c0 : min(stop + 1, len(rows))]
+                    todo = [i for i in span if is_key[pos[i]] and i not in known]
                     items = [(keys[i], agent_col[i], sensors[i], int(stamps[i])) for i in todo]
                     images: dict[int, np.ndarray] = {}
-                    for i, (img, found, guided) in zip(todo, pool.map(detect, items),
-                                                        strict=True):
+                    for i, (img, found, regs) in zip(todo, pool.map(detect, items), strict=True):
                         known[i] = found  # every frame is detected once (chunk or look-ahead)
-                        n_guided += guided
+                        kregions[i] = regs
+                        n_guided += regs is not None
+                        if i in chunk:
+                            images[i] = img
+                    between_todo = [i for i in span[: end - c0 + 1] if i not in known]
+                    job = functools.partial(carried, rows=rows, is_key=is_key, pos=pos,
+                                            known=known, kregions=kregions)
+                    for i, (img, found, regs) in zip(between_todo,
+                                                     list(pool.map(job, between_todo)),
+                                                     strict=True):
+                        known[i] = found
+                        n_guided += regs is not None
                         if i in chunk:
                             images[i] = img
                     # the detector's own boxes (``known``) are the evidence for the fill, never

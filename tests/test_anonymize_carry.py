@@ -1,0 +1,109 @@
+"""Key frames and carried detections (``carry.py``), the provenance string, and a clip
+without cameras (no guide, no LiDAR clusters)."""
+
+from __future__ import annotations
+
+import pytest
+from anonymize_fixtures import CLIP, build_raw_clip
+
+from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize import run as run_mod
+from v2xlake.tasks.anonymize.carry import CARRIED, between, key_frames, new_regions
+from v2xlake.tasks.anonymize.detectors import Detection
+from v2xlake.tasks.anonymize.guide import Region
+from v2xlake.tasks.anonymize.run import NOT_PROVENANCE, AnonymizeConfig, run_anonymize
+
+MS = 1_000_000
+SHAPE = (1080, 1920, 3)
+
+
+def _stamps(hz: float, n: int) -> list[int]:
+    return [round(k * 1e9 / hz) for k in range(n)]
+
+
+def test_key_frames_every_third_at_30hz_every_frame_at_10hz() -> None:
+    keys = key_frames(_stamps(30, 10), 120 * MS)
+    assert keys == [True, False, False, True, False, False, True, False, False, True]
+    assert all(key_frames(_stamps(10, 6), 120 * MS))
+    assert key_frames(_stamps(20, 5), 120 * MS) == [True, False, True, False, True]
+    assert all(key_frames(_stamps(30, 7), 0))
+    # a gap longer than the interval: both frames around it are key frames
+    t = [0, 33 * MS, 66 * MS, 500 * MS, 533 * MS, 566 * MS]
+    k = key_frames(t, 120 * MS)
+    assert k[2] and k[3] and k[0] and k[-1]
+
+
+def _head(x: float, expected: float = 30.0, inst: str = "ped-1") -> Region:
+    return Region("face", (x - 40, 400, x + 40, 480), expected, inst, part="head",
+                  anchor=(x, 440.0))
+
+
+def test_a_face_found_in_both_key_frames_moves_with_its_region() -> None:
+    """Key frames at 0 and 100 ms; the head's region moves 30 px per 33 ms: the frame at
+    33 ms gets the face where its region put it, not where the key frames saw it."""
+    f0 = Detection("face", (90.0, 425.0, 120.0, 455.0), 0.9, "centerface")
+    f1 = Detection("face", (180.0, 425.0, 210.0, 455.0), 0.8, "centerface")
+    dets, again = between(([f0], [_head(105)], 0), ([f1], [_head(195)], 100 * MS),
+                          [_head(135)], 33 * MS, 0.5, SHAPE)
+    assert not again and len(dets) == 1
+    d = dets[0]
+    assert d.detector == CARRIED and d.kind == "face"
+    assert d.box == pytest.approx((120.0, 425.0, 150.0, 455.0), abs=1e-6)
+
+
+def test_the_key_frames_disagree_the_region_is_searched_again() -> None:
+    """Found before, not after: the carried box is not spread (it may be a flicker of a
+    false face); the region goes back to the detector in this frame."""
+    f0 = Detection("face", (90.0, 425.0, 120.0, 455.0), 0.3, "centerface")
+    dets, again = between(([f0], [_head(105)], 0), ([], [_head(195)], 100 * MS),
+                          [_head(135)], 33 * MS, 0.5, SHAPE)
+    assert dets == [] and [r.instance for r in again] == ["ped-1"]
+
+
+def test_a_detection_without_a_region_is_kept_and_grown() -> None:
+    """A safety-pass plate (no 3D box) seen only in the key frame before: kept in place and
+    grown by carry_grow x the time distance (a third of the interval here)."""
+    p = Detection("plate", (1000.0, 600.0, 1090.0, 620.0), 0.7, "text-plate")
+    dets, again = between(([p], [], 0), ([], [], 99 * MS), [], 33 * MS, 0.5, SHAPE)
+    assert not again and len(dets) == 1
+    x0, _y0, x1, _y1 = dets[0].box
+    assert x0 == pytest.approx(1000 - 0.5 / 3 * 90, rel=0.02)
+    assert x1 - x0 == pytest.approx(90 * (1 + 2 * 0.5 / 3), rel=0.02)
+
+
+def test_new_regions_are_those_not_in_both_key_frames() -> None:
+    here = [_head(135), _head(600, inst="ped-2"), Region("face", (0, 0, 50, 50), 20.0, "")]
+    fresh = new_regions(here, [_head(105), _head(590, inst="ped-2")], [_head(195)], SHAPE)
+    assert {r.instance for r in fresh} == {"ped-2", ""}
+    assert new_regions(here, None, [_head(195)], SHAPE) == here
+    # without an anchor, a region cut by the frame edge is searched again
+    edge = Region("face", (0, 400, 60, 480), 30.0, "ped-3", part="head")
+    assert new_regions([edge], [edge], [edge], SHAPE) == [edge]
+
+
+def test_the_provenance_names_every_setting_that_changes_what_is_blurred() -> None:
+    base = AnonymizeConfig()
+    det = base.build_detector()
+    s = base.provenance(det.version)
+    for name in type(base).model_fields:
+        assert (f"{name}=" in s) == (name not in NOT_PROVENANCE), name
+    for update in ({"face_fine_scale": 1.5}, {"full_plate_fine_scale": 2.0},
+                   {"key_interval_ms": 0.0}, {"blur_margin": 0.3}, {"temporal_fill": False}):
+        assert base.model_copy(update=update).provenance(det.version) != s, update
+    for update in ({"workers": 3}, {"png_compression": 6}, {"frames_per_chunk": 4}):
+        assert base.model_copy(update=update).provenance(det.version) == s, update
+
+
+def test_a_clip_without_cameras_builds_no_guide(tmp_path, monkeypatch) -> None:
+    """No image to blur: neither the guide nor the LiDAR clusters are computed."""
+    lake = Lake(tmp_path)
+    build_raw_clip(lake, n_images=0)
+
+    def boom(*_a: object, **_k: object) -> None:
+        raise AssertionError("computed for a clip without cameras")
+
+    monkeypatch.setattr(run_mod, "lidar_clusters", boom)
+    monkeypatch.setattr(run_mod, "build_guide", boom)
+    rep = run_anonymize(lake, CLIP, AnonymizeConfig(workers=1))
+    assert rep.metrics["n_images"] == 0
+    assert any("no camera images" in n for n in rep.notes)

@@ -1,0 +1,203 @@
+"""Detect on key frames, carry between them: a 30 Hz camera sees nearly the same thing twice.
+
+Why: consecutive frames of a 30 Hz camera are 33 ms apart; the networks (face and text
+detector) cost ~90 % of the anonymize time, and running them on every frame mostly finds the
+same faces and plates again, a few pixels further. So a camera's frames are split into *key
+frames*, at most ``interval`` apart, which get the full detection (guided plan or full-frame
+plan, safety pass included), and the frames between two key frames, which get:
+
+* every detection of the key frame before **and** of the key frame after, carried to this
+  frame: a detection inside a projected region of a 3D box (same instance and part in both
+  frames) is moved with that region, i.e. by the ego motion and the object's own motion as
+  the boxes and poses know them; any other detection (safety pass, full-frame plan) stays
+  where it was, and when only one key frame has it, it is grown by ``grow`` of its size per
+  key-frame interval of time distance (what moved without a box);
+* a fresh detection in every region that is *new*: its (instance, part) is not in both
+  neighbouring key frames (an object entering, a LiDAR cluster of another scan), so nothing
+  seen only between two key frames goes unsearched.
+
+An object found in both key frames gets its box interpolated at the frame's time (at 30 Hz
+the key frames are 100 ms apart: motion is near linear); one found in only one keeps the
+carried box. Pure functions of detections, regions and times; ``run.py`` schedules the
+frames.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from v2xlake.tasks.anonymize.detectors import Box, Detection
+from v2xlake.tasks.anonymize.guide import Region
+
+CARRIED = "carried"
+
+
+def key_frames(t_ns: Sequence[int], interval_ns: int) -> list[bool]:
+    """Which frames of one camera (time order) are detected in full: the first, the last,
+    and every frame after which the next frame would lie more than ``interval_ns`` after
+    the last key frame. Consecutive key frames are therefore at most ``interval_ns`` apart
+    (or adjacent, where the camera's own gap is longer); ``interval_ns <= 0``: every frame."""
+    n = len(t_ns)
+    if interval_ns <= 0 or n <= 2:
+        return [True] * n
+    out = [False] * n
+    out[0] = out[-1] = True
+    last = int(t_ns[0])
+    for i in range(1, n - 1):
+        if int(t_ns[i + 1]) - last > interval_ns:
+            out[i] = True
+            last = int(t_ns[i])
+    return out
+
+
+def _key(r: Region) -> tuple[str, str, str]:
+    return (r.instance, r.kind, r.part)
+
+
+def _at_edge(r: Region, shape: tuple[int, ...]) -> bool:
+    """A region without an anchor cut by the frame edge: its box no longer moves with its
+    object (a region's ``anchor``, the projected part centre, is never clipped)."""
+    if r.anchor is not None:
+        return False
+    h, w = shape[:2]
+    x0, y0, x1, y1 = r.box
+    return x0 <= 1 or y0 <= 1 or x1 >= w - 1 or y1 >= h - 1
+
+
+def new_regions(here: Sequence[Region], before: Sequence[Region] | None,
+                after: Sequence[Region] | None, shape: tuple[int, ...]) -> list[Region]:
+    """Regions of this frame searched here: those whose (instance, kind, part) is missing
+    from either neighbouring key frame (None: that key frame had no guidance), and those cut
+    by the frame edge here or in a key frame (the clipped box does not follow the object:
+    an object entering or leaving the view, often close and fast)."""
+    if before is None or after is None:
+        return list(here)
+    known = ({_key(r) for r in before if not _at_edge(r, shape)}
+             & {_key(r) for r in after if not _at_edge(r, shape)})  # (the frames share a size)
+    return [r for r in here if not r.instance or _key(r) not in known or _at_edge(r, shape)]
+
+
+def _region_of(d: Detection, regions: Sequence[Region]) -> Region | None:
+    """The smallest region of the detection's kind that holds the detection's centre."""
+    cx, cy = (d.box[0] + d.box[2]) / 2, (d.box[1] + d.box[3]) / 2
+    best, area = None, np.inf
+    for r in regions:
+        if r.kind != d.kind or not r.instance:
+            continue
+        x0, y0, x1, y1 = r.box
+        if x0 <= cx <= x1 and y0 <= cy <= y1:
+            a = (x1 - x0) * (y1 - y0)
+            if a < area:
+                best, area = r, a
+    return best
+
+
+def _move(box: Box, ra: Region, rb: Region) -> Box:
+    """A box found in region ``ra`` moved to where region ``rb`` (the same part, another
+    frame) is: by the part's projected centre and its depth (scale), or, without anchors,
+    by the region boxes themselves."""
+    if ra.anchor is not None and rb.anchor is not None:
+        k = rb.expected_px / max(ra.expected_px, 1e-6)
+        (ax, ay), (bx, by) = ra.anchor, rb.anchor
+        return (bx + (box[0] - ax) * k, by + (box[1] - ay) * k,
+                bx + (box[2] - ax) * k, by + (box[3] - ay) * k)
+    a, b = ra.box, rb.box
+    sx = (b[2] - b[0]) / max(a[2] - a[0], 1e-6)
+    sy = (b[3] - b[1]) / max(a[3] - a[1], 1e-6)
+    return (b[0] + (box[0] - a[0]) * sx, b[1] + (box[1] - a[1]) * sy,
+            b[0] + (box[2] - a[0]) * sx, b[1] + (box[3] - a[1]) * sy)
+
+
+def _grow(box: Box, frac: float, w: int, h: int) -> Box:
+    mx, my = frac * (box[2] - box[0]), frac * (box[3] - box[1])
+    return (max(0.0, box[0] - mx), max(0.0, box[1] - my),
+            min(float(w), box[2] + mx), min(float(h), box[3] + my))
+
+
+def carry(dets: Sequence[Detection], key_regions: Sequence[Region] | None,
+          regions: Sequence[Region] | None, fresh: Sequence[Region] = ()
+          ) -> list[tuple[Detection, Region | None]]:
+    """A key frame's detections at another frame, each with the region it moved with: the
+    same (instance, kind, part) projected into both frames moves it; without one it stays
+    in place (region None). None of a region searched afresh here (``fresh``: its own
+    search replaces them)."""
+    here = {_key(r): r for r in regions or ()}
+    again = {_key(r) for r in fresh}
+    out: list[tuple[Detection, Region | None]] = []
+    for d in dets:
+        r0 = _region_of(d, key_regions) if key_regions else None
+        if r0 is not None and _key(r0) in again:
+            continue
+        r1 = here.get(_key(r0)) if r0 is not None else None
+        if r0 is not None and r1 is not None:
+            out.append((Detection(d.kind, _move(d.box, r0, r1), d.score, CARRIED), r1))
+        else:
+            out.append((Detection(d.kind, d.box, d.score, CARRIED), None))
+    return out
+
+
+def _match(p: Detection, cands: Sequence[tuple[Detection, Region | None]], used: set[int]
+           ) -> int | None:
+    """The nearest unused candidate of the same kind and similar size within its size."""
+    px, py = (p.box[0] + p.box[2]) / 2, (p.box[1] + p.box[3]) / 2
+    ps = max(p.box[2] - p.box[0], p.box[3] - p.box[1], 1e-6)
+    best, best_d = None, np.inf
+    for k, (q, _) in enumerate(cands):
+        if k in used or q.kind != p.kind:
+            continue
+        qx, qy = (q.box[0] + q.box[2]) / 2, (q.box[1] + q.box[3]) / 2
+        qs = max(q.box[2] - q.box[0], q.box[3] - q.box[1], 1e-6)
+        d = float(np.hypot(qx - px, qy - py))
+        if max(ps, qs) <= 2 * min(ps, qs) and d <= max(ps, qs) and d < best_d:
+            best, best_d = k, d
+    return best
+
+
+def between(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
+            after: tuple[Sequence[Detection], Sequence[Region] | None, int],
+            regions: Sequence[Region] | None, t_ns: int, grow: float,
+            shape: tuple[int, ...], fresh: Sequence[Region] = ()
+            ) -> tuple[list[Detection], list[Region]]:
+    """The carried detections of a frame at ``t_ns`` between two key frames, each given as
+    (detections, regions, time), and the regions to search again here; ``fresh``: the
+    regions already searched here.
+
+    An object found in both key frames (same kind, similar size, moved at most its size
+    once carried here) gets its box interpolated at this frame's time. Where the key frames
+    disagree, this frame decides: a detection of only one of them that moved with a region
+    is dropped and its region returned to be searched here (a flickering false detection is
+    not spread over the frames between, a flickering true one is found where it shows); one
+    without a region (safety pass, full-frame plan) keeps its box, grown by ``grow`` x its
+    time distance in key-frame intervals (it may have moved; the other key frame may have
+    missed it)."""
+    (d0, r0, t0), (d1, r1, t1) = before, after
+    h, w = shape[:2]
+    span = max(t1 - t0, 1)
+    a = min(max((t_ns - t0) / span, 0.0), 1.0)
+    c0, c1 = carry(d0, r0, regions, fresh), carry(d1, r1, regions, fresh)
+    used: set[int] = set()
+    out: list[Detection] = []
+    again: dict[tuple[str, str, str], Region] = {}
+    for p, reg in c0:
+        k = _match(p, c1, used)
+        if k is not None:
+            used.add(k)
+            q = c1[k][0]
+            box = tuple(float((1 - a) * u + a * v) for u, v in zip(p.box, q.box, strict=True))
+            out.append(Detection(p.kind, box, min(p.score, q.score), CARRIED))  # type: ignore[arg-type]
+        elif reg is not None:
+            again[_key(reg)] = reg
+        else:
+            out.append(Detection(p.kind, _grow(p.box, grow * a, w, h), p.score, CARRIED))
+    for k, (q, reg) in enumerate(c1):
+        if k in used:
+            continue
+        if reg is not None:
+            again[_key(reg)] = reg
+        else:
+            out.append(Detection(q.kind, _grow(q.box, grow * (1 - a), w, h), q.score, CARRIED))
+    out = [Detection(d.kind, _grow(d.box, 0.0, w, h), d.score, d.detector) for d in out]
+    return [d for d in out if d.box[2] - d.box[0] >= 1 and d.box[3] - d.box[1] >= 1], list(
+        again.values())
