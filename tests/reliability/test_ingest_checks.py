@@ -333,7 +333,8 @@ def test_image_size_must_match_its_intrinsics(tmp_path: Path, size: tuple[int, i
                                         tf_static_topic="/tf_static")], {"bag_car": bag})
     err = ingest_error(d)
     assert (err.clip_id, err.agent_id, err.topic) == ("size", "car", "/cam")
-    assert f"images are 64x48 but its CameraInfo are for {size[0]}x{size[1]}" in err.reason
+    assert (f"images are 64x48 but its CameraInfo intrinsics (topic /cam_info) are for "
+            f"{size[0]}x{size[1]}") in err.reason
 
 
 def test_real_calibration_for_1080_rows_on_a_1200_row_image(tmp_path: Path) -> None:

@@ -88,11 +88,12 @@ def quarantine(lake: Lake, clip_id: str, error: Exception, *, stage: str,
     from v2xlake.storage.quarantine import quarantine as storage_quarantine
     from v2xlake.storage.quarantine import report_path
 
-    storage_quarantine(lake, clip_id, error, stage=stage,
-                       zones=("raw", "clean") if remove_data else ())
-    if remove_data:
-        manifest.clear(lake, clip_id)
-    return report_path(lake, clip_id)
+    with lake.clip_lock(clip_id):
+        report = storage_quarantine(lake, clip_id, error, stage=stage,
+                                    zones=("raw", "clean") if remove_data else ())
+        if remove_data:
+            manifest.clear(lake, clip_id)
+    return report_path(lake, report["report_id"])
 
 
 # ---------------------------------------------------------------- catalog

@@ -361,30 +361,63 @@ def params_show(
 
 
 # ---------------------------------------------------------------- query
+def _cell(value: Any) -> Any:
+    """A table cell as literal text: values are data, never rich markup (``'[/x]'`` made
+    rich raise MarkupError)."""
+    from rich.text import Text
+
+    return Text("" if value is None else _num(value))
+
+
 def print_arrow(table: Any, fmt: str, console: Any, title: str | None = None,
-                max_rows: int = 50) -> None:
+                max_rows: int = 50, total_rows: int | None = None) -> None:
+    """Print ``table`` (the first rows of an answer of ``total_rows``, when given)."""
+    total = table.num_rows if total_rows is None else total_rows
     if fmt == "json":
         sys.stdout.write(json.dumps(table.to_pylist(), default=str, indent=2) + "\n")
-        return
-    if fmt == "csv":
+    elif fmt == "csv":
         import csv
 
         w = csv.writer(sys.stdout)
         w.writerow(table.column_names)
         for row in table.to_pylist():
             w.writerow([row[c] for c in table.column_names])
-        return
-    from rich.table import Table
+    else:
+        from rich.table import Table
+        from rich.text import Text
 
-    t = Table(title=title)
-    for c in table.column_names:
-        t.add_column(c)
-    for row in table.slice(0, max_rows).to_pylist():
-        t.add_row(*[_num(row[c]) if row[c] is not None else "" for c in table.column_names])
-    console.print(t)
-    if table.num_rows > max_rows:
-        console.print(f"... {table.num_rows - max_rows} more rows (use --format csv)")
+        t = Table(title=Text(title) if title else None)
+        for c in table.column_names:
+            t.add_column(Text(c))
+        for row in table.slice(0, max_rows).to_pylist():
+            t.add_row(*[_cell(row[c]) for c in table.column_names])
+        console.print(t)
+    shown = min(table.num_rows, max_rows) if fmt == "table" else table.num_rows
+    if total > shown:
+        more = f"... {total - shown:,} more rows (--max-rows N prints more)"
+        if fmt == "table":
+            console.print(_esc(more))
+        else:
+            _console(stderr=True).print(_esc(more))
 
+
+def _watchdog(seconds: float) -> Any:
+    """Exit the process (status 2, one line) if the query still runs ``seconds`` after its
+    statement timeout should have stopped it: a single call of a function DuckDB cannot
+    interrupt (``repeat('a', 2000000000)``) would otherwise run on."""
+    import threading
+
+    def fire() -> None:
+        _console(stderr=True).print(f"[red]error[/]: query stopped: still running "
+                                    f"{seconds:g} s after its start (statement timeout "
+                                    "not honoured by a long function call)")
+        sys.stderr.flush()
+        os._exit(2)
+
+    timer = threading.Timer(seconds, fire)
+    timer.daemon = True
+    timer.start()
+    return timer
 
 
 @app.command()
@@ -392,11 +425,23 @@ def query(
     sql: Annotated[str, typer.Argument(help="one SELECT over the catalog's views")],
     lake: LakeOpt = DEFAULT_LAKE,
     format: Annotated[Format, typer.Option("--format")] = Format.table,
+    max_rows: Annotated[int | None, typer.Option(
+        "--max-rows", min=0, help="rows fetched and printed (the rest are counted); "
+        "default 50 for table, 1,000,000 for csv/json")] = None,
 ) -> int:
-    """SQL over the catalog (read-only)."""
-    from v2xlake.flows.bookkeeping import user_query
+    """SQL over the catalog (read-only; statement timeout V2XLAKE_QUERY_TIMEOUT_S, memory
+    limit V2XLAKE_QUERY_MEMORY)."""
+    from v2xlake.storage.catalog import WHERE_GRACE_S, Catalog, query_bounds
 
-    print_arrow(user_query(open_lake(lake), sql), format.value, _console())
+    timeout, _, cap = query_bounds()
+    rows = max_rows if max_rows is not None else (50 if format is Format.table else cap)
+    guard = _watchdog(timeout + WHERE_GRACE_S)
+    try:
+        with Catalog(open_lake(lake), read_only=True) as cat:
+            head = cat.user_query_head(sql, rows, timeout_s=timeout)
+    finally:
+        guard.cancel()
+    print_arrow(head.table, format.value, _console(), max_rows=rows, total_rows=head.total_rows)
     return 0
 
 
@@ -490,7 +535,12 @@ def convert_bag(
 
     if dst.exists():
         raise UserError(f"{dst} exists; a bag is never overwritten")
-    out = run_convert(src, dst, to.value, storage=storage.value)
+    try:
+        out = run_convert(src, dst, to.value, storage=storage.value)
+    except Exception as e:
+        if not type(e).__module__.startswith("rosbags"):
+            raise
+        raise UserError(_bag_error(src, e)) from e
     _console().print(f"{_esc(src)} -> {_esc(out)} ({to.value})")
     return 0
 
@@ -669,19 +719,45 @@ def main(argv: Sequence[str] | None = None) -> int:
         if callable(show):
             show(file=sys.stderr)
         else:
-            err.print(f"[red]error[/]: {_esc(e)}")
+            err.print(f"[red]error[/]: {_esc(_short(e))}")
         return int(getattr(e, "exit_code", 2) or 0)
     except KeyboardInterrupt:
         return 130
     except ImportError as e:
-        err.print(f"[red]unavailable[/]: {_esc(e)}")
+        err.print(f"[red]unavailable[/]: {_esc(_short(e))}")
         return 2
     except Exception as e:
         if _is_user_error(e):
-            err.print(f"[red]error[/]: {_esc(e)}")
+            err.print(f"[red]error[/]: {_esc(_short(e))}")
             return 2
         raise
     return int(rv or 0)
+
+
+def _bag_error(src: Path, e: Exception) -> str:
+    """rosbags' error about ``src`` with the message types it could not know: a bag without
+    type definitions (ROS 2 bags written before Iron, or stripped) names none of them."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    text = f"cannot convert {src}: {_short(e)}"
+    try:
+        with Reader(src) as reader:
+            store = get_typestore(Stores.ROS2_HUMBLE)
+            unknown = sorted({c.msgtype for c in reader.connections
+                              if c.msgtype not in store.types})
+    except Exception:  # not a ROS 2 bag folder either: rosbags' own words
+        return text
+    if unknown:
+        text += (f"; message type(s) not in the bag and not standard ROS 2: "
+                 f"{', '.join(unknown)} (their .msg definitions are needed)")
+    return text
+
+
+def _short(e: BaseException) -> str:
+    from v2xlake.schemas.errors import bounded
+
+    return bounded(f"{type(e).__name__}: {e}" if not str(e) else str(e))
 
 
 def _is_user_error(e: Exception) -> bool:

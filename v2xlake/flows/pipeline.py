@@ -45,9 +45,10 @@ from pydantic import BaseModel
 from v2xlake.flows import bookkeeping
 from v2xlake.flows.params import ParamsError, clip_params, parse_params
 from v2xlake.schemas.clip import load_yaml
-from v2xlake.schemas.errors import ClipError, DeliveryConflict
+from v2xlake.schemas.errors import ClipError, DeliveryConflict, error_text
 from v2xlake.schemas.stage import Stage, StageReport
-from v2xlake.storage.lake import CLIP_ID, Lake, LakeWriteError
+from v2xlake.storage.lake import CLIP_ID, ClipBusy, Lake, LakeWriteError
+from v2xlake.storage.quarantine import REJECTED
 from v2xlake.tasks.align.stage import ALIGN
 from v2xlake.tasks.annotate.stage import ANNOTATE
 from v2xlake.tasks.anonymize.stage import ANONYMIZE
@@ -138,8 +139,8 @@ def _artifact_key(*parts: str) -> str:
 #: (disk full, permissions) and programming errors. Retrying them only triples the time to
 #: the error; what is left (network, timeouts, a lost worker) is worth another try.
 DETERMINISTIC: tuple[type[BaseException], ...] = (
-    ClipError, LakeWriteError, ValueError, TypeError, KeyError, IndexError, AttributeError,
-    ArithmeticError, AssertionError, NotImplementedError, MemoryError)
+    ClipError, LakeWriteError, ClipBusy, ValueError, TypeError, KeyError, IndexError,
+    AttributeError, ArithmeticError, AssertionError, NotImplementedError, MemoryError)
 
 
 def _no_retry_on_bad_input(task: Any, task_run: Any, state: Any) -> bool:
@@ -157,8 +158,16 @@ def _execute(stage: Stage[Any], lake_uri: str, target: str, clip_id: str, cfg: B
              do: Callable[[Lake, str, BaseModel], StageReport]) -> dict[str, Any]:
     """Run one stage on one clip unless its manifest says it is current: key, staged
     output published together, paths recorded as final, manifest written."""
-    logger = get_run_logger()
     lake = Lake(lake_uri)
+    # one run at a time per clip, from deciding what to run to the manifest (#25)
+    with lake.clip_lock(clip_id):
+        return _execute_locked(lake, stage, target, clip_id, cfg, do)
+
+
+def _execute_locked(lake: Lake, stage: Stage[Any], target: str, clip_id: str,
+                    cfg: BaseModel, do: Callable[[Lake, str, BaseModel], StageReport]
+                    ) -> dict[str, Any]:
+    logger = get_run_logger()
     clip_dir = Path(target) if stage.input == "clip_dir" else None
     key = bookkeeping.stage_key(lake, clip_id, stage, cfg, clip_dir)
     cached = bookkeeping.cached_report(lake, clip_id, stage.name, key)
@@ -318,7 +327,7 @@ def process_clip(clip_dir: str, lake: str, stages: list[str] | None = None,
     order = {s.name: k for k, s in enumerate(chosen)}
 
     def fail(stage: str, exc: Exception, quarantine: bool) -> ClipFailed:
-        text = str(exc) if isinstance(exc, ClipError) else f"{type(exc).__name__}: {exc}"
+        text = error_text(exc)  # bounded: errors quote input
         summary["stages"].append({"stage": stage, "status": "failed", "seconds": 0.0,
                                   "error": text})
         summary["stages"].sort(key=lambda o: order.get(o["stage"], 99))
@@ -327,18 +336,26 @@ def process_clip(clip_dir: str, lake: str, stages: list[str] | None = None,
             summary.update(status="refused", error=text)
             logger.error("clip %s refused: %s", clip_id, text)
             _publish_artifacts(the_lake, summary)
-            return ClipFailed(f"clip {clip_id} refused at stage {stage}: {exc}", summary)
+            return ClipFailed(f"clip {clip_id} refused at stage {stage}: {text}", summary)
         if quarantine:
             cid = clip_id if clip_id.startswith(UNREADABLE) else (
                 getattr(exc, "clip_id", None) or clip_id)
             inputs_stage = any(s.name == stage and s.input == "clip_dir" for s in chosen)
             report_path = bookkeeping.quarantine(the_lake, cid, exc, stage=stage,
                                                  remove_data=not inputs_stage)
+            if f"/{REJECTED}" in report_path:  # the id is another clip's: not that clip
+                summary.update(status="rejected", error=text, quarantine_report=report_path)
+                logger.error("delivery %s rejected at stage %s (the lake's clip %s is "
+                             "untouched): %s (report: %s)", clip_dir, stage, cid, text,
+                             report_path)
+                _publish_artifacts(the_lake, summary)
+                return ClipFailed(f"delivery {clip_dir} rejected at stage {stage}, the lake's "
+                                  f"clip {cid} untouched: {text}", summary)
             summary.update(status="quarantined", error=text, quarantine_report=report_path)
             logger.error("clip %s quarantined at stage %s: %s (report: %s)",
                          clip_id, stage, text, report_path)
             _publish_artifacts(the_lake, summary)
-            return ClipFailed(f"clip {clip_id} quarantined at stage {stage}: {exc}", summary)
+            return ClipFailed(f"clip {clip_id} quarantined at stage {stage}: {text}", summary)
         summary.update(status="failed", error=f"{stage}: {text}")
         _publish_artifacts(the_lake, summary)
         return ClipFailed(f"clip {clip_id} failed at stage {stage}: {text}", summary)

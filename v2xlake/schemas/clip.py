@@ -73,26 +73,125 @@ def _nesting(text: str | bytes, limit: int) -> int:
     return deepest
 
 
+#: Most nodes that aliases may add to a YAML document when expanded (``*a`` repeats the
+#: whole collection anchored as ``&a``). A clip.yaml has no use for more than a few; a
+#: "billion laughs" text of nine lines expands to 9**9 values, which parse into shared
+#: objects in microseconds but hang whatever walks them (validation errors, reprs, logs).
+MAX_YAML_ALIAS_EXPANSION = 100_000
+
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+
+
+def _expanded_size(root: yaml.Node) -> tuple[int, int]:
+    """(distinct nodes, nodes once every alias is expanded) of a composed document, without
+    expanding anything: each node's expanded size is computed once (memoised by identity,
+    iteratively: no recursion on deep documents)."""
+    size: dict[int, int] = {}
+    distinct = 0
+    todo: list[tuple[yaml.Node, bool]] = [(root, False)]
+    while todo:
+        node, done = todo.pop()
+        key = id(node)
+        if key in size:
+            continue
+        children: list[yaml.Node] = []
+        if isinstance(node, yaml.SequenceNode):
+            children = list(node.value)
+        elif isinstance(node, yaml.MappingNode):
+            children = [n for pair in node.value for n in pair]
+        if not done:
+            todo.append((node, True))
+            todo.extend((c, False) for c in children if id(c) not in size)
+            continue
+        distinct += 1
+        size[key] = 1 + sum(size.get(id(c), 1) for c in children)
+    return distinct, size[id(root)]
+
+
+class DuplicateKeyError(yaml.constructor.ConstructorError):
+    """A mapping that names one key twice (YAML 1.2 forbids it; PyYAML keeps the last)."""
+
+
+def _no_duplicate_keys(loader: Any, node: yaml.MappingNode) -> None:
+    """Refuse a mapping whose keys repeat (merge keys ``<<`` excepted: overriding merged
+    values is what they are for). A clip.yaml with ``rate_hz`` twice would silently take
+    the second; which one the author meant cannot be known."""
+    seen: dict[Any, yaml.Node] = {}
+    for key_node, _ in node.value:
+        if key_node.tag == _MERGE_TAG or not isinstance(key_node, yaml.ScalarNode):
+            continue
+        key = loader.construct_object(key_node, deep=False)
+        try:
+            first = seen.setdefault(key, key_node)
+        except TypeError:  # an unhashable key: the constructor says so itself
+            continue
+        if first is not key_node:
+            from v2xlake.schemas.errors import bounded
+
+            raise DuplicateKeyError(
+                "while constructing a mapping", node.start_mark,
+                f"found duplicate key {bounded(repr(key), 200)} (first at line "
+                f"{first.start_mark.line + 1})", key_node.start_mark)
+
+
+_STRICT_LOADERS: dict[type, type] = {}
+
+
+def _strict_loader() -> type:
+    """``_SafeLoader`` (libyaml's when available) refusing duplicate keys (built per base
+    class: tests swap ``_SafeLoader`` for the pure-Python one)."""
+    base = _SafeLoader
+    if base not in _STRICT_LOADERS:
+        def construct_mapping(self: Any, node: yaml.MappingNode, deep: bool = False) -> Any:
+            if isinstance(node, yaml.MappingNode):
+                _no_duplicate_keys(self, node)
+            return base.construct_mapping(self, node, deep=deep)
+
+        _STRICT_LOADERS[base] = type(f"Strict{base.__name__}", (base,),
+                                     {"construct_mapping": construct_mapping})
+    return _STRICT_LOADERS[base]
+
+
 def load_yaml(text: str | bytes) -> Any:
     """Parse YAML safely (no Python objects), with libyaml when available.
 
-    A clip.yaml is untrusted input, so the parse is bounded: a text above ``MAX_YAML_SIZE``
-    or nested deeper than ``MAX_YAML_NESTING`` raises ``yaml.YAMLError`` (which every
-    caller already turns into its own error) instead of exhausting memory or overflowing
-    the C stack. The nesting is measured only when a cheap bound cannot rule it out."""
+    A clip.yaml is untrusted input, so the parse is bounded: a text above ``MAX_YAML_SIZE``,
+    nested deeper than ``MAX_YAML_NESTING``, whose aliases expand to more than
+    ``MAX_YAML_ALIAS_EXPANSION`` extra nodes (an alias bomb), or with a key repeated in one
+    mapping raises ``yaml.YAMLError`` (which every caller already turns into its own error)
+    instead of exhausting memory, overflowing the C stack, hanging what walks the result or
+    silently keeping the last of two values. The nesting is measured only when a cheap bound
+    cannot rule it out."""
     if len(text) > MAX_YAML_SIZE:
         raise yaml.YAMLError(f"YAML text too large ({len(text):,} > {MAX_YAML_SIZE:,} bytes)")
     too_deep = f"YAML nesting too deep (more than {MAX_YAML_NESTING} levels)"
     if (_nesting_bound(text) > MAX_YAML_NESTING
             and _nesting(text, MAX_YAML_NESTING) > MAX_YAML_NESTING):
         raise yaml.YAMLError(too_deep)
+    loader = _strict_loader()(text)
     try:
-        return yaml.load(text, Loader=_SafeLoader)
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        has_alias = b"*" in text if isinstance(text, bytes) else "*" in text
+        if has_alias:  # no alias: nothing to expand
+            distinct, expanded = _expanded_size(node)
+            if expanded - distinct > MAX_YAML_ALIAS_EXPANSION:
+                raise yaml.YAMLError(
+                    f"YAML aliases expand to {expanded:,} nodes from {distinct:,} (more than "
+                    f"{MAX_YAML_ALIAS_EXPANSION:,} added): an alias bomb? refused")
+        return loader.construct_document(node)
     except RecursionError as e:  # the pure-Python composer recurses (a caller deep already)
         raise yaml.YAMLError(too_deep) from e
+    finally:
+        loader.dispose()
 
 
-ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_\-]*$"
+#: Clip, agent and sensor ids: they name folders and files of the lake (``clip_id=<id>``,
+#: ``quarantine/<id>``), so a letter or digit first and at most 128 characters (file names
+#: stop at 255 bytes; a 300-character id was an OSError, not a refused clip).
+MAX_ID_LENGTH = 128
+ID_PATTERN = rf"^[A-Za-z0-9][A-Za-z0-9_\-]{{0,{MAX_ID_LENGTH - 1}}}$"
 
 #: Highest sensor or pose-sample rate accepted, Hz. Above any real sensor (a fast IMU runs at
 #: a few kHz); an absurd rate sizes buffers and sample grids (a fixed pose is sampled at it).

@@ -9,6 +9,32 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+#: Longest error text (characters) the project renders anywhere: a ClipError's reason, a
+#: quarantine report, a log line, the CLI. Reasons are written from untrusted input (a
+#: clip.yaml value, a field name, a bag's type name); a real one is a line or a few.
+MAX_ERROR_CHARS = 2000
+
+
+def bounded(text: object, limit: int = MAX_ERROR_CHARS) -> str:
+    """``str(text)`` cut to at most ``limit`` characters (saying how much was cut): every
+    error text that may quote input goes through this before it is shown, logged or
+    written. Only ``str`` is called, once, on what the caller passes: a caller holding an
+    object whose ``str`` itself may be unbounded (a pydantic error of a huge input) must
+    not pass that object, but the text it builds with bounded parts."""
+    s = text if isinstance(text, str) else str(text)
+    if len(s) <= limit:
+        return s
+    keep = max(limit - 40, 0)
+    return f"{s[:keep]} ... [{len(s) - keep:,} more characters]"
+
+
+def error_text(exc: BaseException, limit: int = MAX_ERROR_CHARS) -> str:
+    """One bounded line for any exception: a ClipError's own message, else
+    ``Type: message``."""
+    if isinstance(exc, ClipError):
+        return bounded(str(exc), limit)
+    return bounded(f"{type(exc).__name__}: {exc}", limit)
+
 
 class ClipError(Exception):
     """Bad input in one clip: quarantine the clip, keep going with the others."""
@@ -24,16 +50,17 @@ class ClipError(Exception):
         stage: str | None = None,
         checks: Sequence[Any] = (),
     ) -> None:
+        reason = bounded(reason)
         self.clip_id, self.reason = clip_id, reason
         self.checks = list(checks)  # QA findings behind the error, for the quarantine report
         self.agent_id, self.topic, self.path, self.stage = agent_id, topic, path, stage
-        where = [f"clip {clip_id}"]
+        where = [f"clip {bounded(clip_id, 200)}"]
         if agent_id:
-            where.append(f"agent {agent_id}")
+            where.append(f"agent {bounded(agent_id, 200)}")
         if topic:
-            where.append(f"topic {topic}")
+            where.append(f"topic {bounded(topic, 500)}")
         if path:
-            where.append(f"file {path}")
+            where.append(f"file {bounded(path, 1000)}")
         if stage:
             where.insert(0, f"[{stage}]")
         super().__init__(f"{', '.join(where)}: {reason}")

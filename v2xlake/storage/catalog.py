@@ -37,8 +37,12 @@ import contextlib
 import errno
 import json
 import os
+import re
 import shutil
+import subprocess
+import sys
 import tempfile
+import threading
 import uuid
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -95,6 +99,53 @@ QUARANTINE_COLUMNS = {"clip_id": "VARCHAR", "stage": "VARCHAR", "reason": "VARCH
 
 class QueryRefused(ValueError):
     """User SQL that is not allowed (not one SELECT, not one expression, not the lake's)."""
+
+
+class QueryTimeout(QueryRefused):
+    """User SQL that ran past its statement timeout (stopped)."""
+
+
+#: Bounds of user SQL (``v2xlake query``, ``release build --where``, the API's user
+#: queries), each overridable by its environment variable: a statement timeout (seconds,
+#: ``V2XLAKE_QUERY_TIMEOUT_S``), DuckDB's memory limit (``V2XLAKE_QUERY_MEMORY``) and spill
+#: limit, and the most rows a caller fetches into memory (``V2XLAKE_QUERY_MAX_ROWS``; the
+#: CLI prints the first rows and only counts the rest).
+QUERY_TIMEOUT_S = 120.0
+QUERY_MEMORY = "2GB"
+QUERY_SPILL = "8GB"
+QUERY_MAX_ROWS = 1_000_000
+#: A ``--where`` predicate is evaluated in a child process that is killed at the timeout:
+#: one DuckDB function call (``repeat('a', 2000000000)``) is not interruptible.
+WHERE_GRACE_S = 10.0
+#: Rows per batch a user query's answer streams in (the rows past the first are only
+#: counted; a small batch would cost most of the time in per-batch overhead).
+STREAM_BATCH_ROWS = 100_000
+
+
+def query_bounds() -> tuple[float, str, int]:
+    """(timeout s, memory limit, max rows) in force (environment, else the defaults)."""
+    env = os.environ
+    try:
+        timeout = float(env.get("V2XLAKE_QUERY_TIMEOUT_S", QUERY_TIMEOUT_S))
+        rows = int(env.get("V2XLAKE_QUERY_MAX_ROWS", QUERY_MAX_ROWS))
+    except ValueError:
+        timeout, rows = QUERY_TIMEOUT_S, QUERY_MAX_ROWS
+    memory = env.get("V2XLAKE_QUERY_MEMORY", QUERY_MEMORY)
+    if not re.fullmatch(r"\d+(\.\d+)?\s*[KMGT]i?B", memory):
+        memory = QUERY_MEMORY
+    return timeout, memory, rows
+
+
+@dataclass
+class QueryHead:
+    """The first rows of a user query's answer and how many rows it has in all."""
+
+    table: pa.Table
+    total_rows: int
+
+    @property
+    def truncated(self) -> bool:
+        return self.total_rows > self.table.num_rows
 
 
 # the newlines: a trailing "-- comment" in the predicate cannot swallow the closing ")"
@@ -190,29 +241,46 @@ class ViewInfo:
     files: int
     sql: str
     deps: tuple[str, ...] = ()  # qualified views this one selects from (created first)
+    # the files its SQL reads (explicit lists: the only files user SQL may open, #25)
+    reads: tuple[str, ...] = ()
 
     @property
     def qualified(self) -> str:
         return f"{self.schema}.{self.name}"
 
 
-def _scan(root: str) -> list[pafs.FileInfo]:
-    """Visible ``*.parquet`` files under a local folder, with size and mtime (what the
-    lake's ``list_files`` shows: hidden names are writers' temporaries)."""
+def _real(path: str) -> bool:
+    """Whether ``path`` (absolute, under the resolved lake root) is reached without a
+    symlink: its real path is itself."""
+    return os.path.realpath(path) == os.path.normpath(path)
+
+
+def _scan(root: str, suffix: str = ".parquet", depth: int | None = None
+          ) -> list[pafs.FileInfo]:
+    """Visible ``*<suffix>`` files under a local folder, with size and mtime (what the
+    lake's ``list_files`` shows: hidden names are writers' temporaries). Symlinks are never
+    followed nor listed, and a root reached through one lists nothing: user SQL may read
+    exactly these files (``Catalog._lock``), and a link inside a zone would lead out of the
+    lake (``ln -s /etc <lake>/raw/evil``). ``depth``: only files that many folders down."""
     out: list[pafs.FileInfo] = []
-    todo = [root]
+    if not _real(root):
+        return out
+    todo = [(root, 0)]
     while todo:
+        folder, level = todo.pop()
         try:
-            entries = list(os.scandir(todo.pop()))
+            entries = list(os.scandir(folder))
         except (FileNotFoundError, NotADirectoryError):
             continue
         for e in entries:
-            if e.name.startswith("."):
+            if e.name.startswith(".") or e.is_symlink():
                 continue
             if e.is_dir(follow_symlinks=False):
-                todo.append(e.path)
-            elif e.name.endswith(".parquet") and e.is_file():
-                st = e.stat()
+                if depth is None or level < depth:
+                    todo.append((e.path, level + 1))
+            elif (e.name.endswith(suffix) and e.is_file(follow_symlinks=False)
+                  and (depth is None or level == depth)):
+                st = e.stat(follow_symlinks=False)
                 out.append(pafs.FileInfo(e.path, pafs.FileType.File, size=st.st_size,
                                          mtime_ns=st.st_mtime_ns))
     return out
@@ -348,17 +416,20 @@ class Catalog:
                 sql = (f"SELECT * FROM read_parquet({_q(self.lake.table_glob(zone, table))}, "
                        "hive_partitioning=true, hive_types_autocast=false, union_by_name=true)")
                 return ViewInfo(zone, table, zone, len(infos), sql)
-            parts, fresh = [], infos
+            parts, fresh, reads = [], infos, []
             snap = self._snapshot_use(zone, table, infos)
             if snap is not None:
                 stale, fresh = snap
                 where = (f" WHERE {SOURCE} NOT IN ({', '.join(map(_q, stale))})"
                          if stale else "")
-                uri = _q(self._uri(self._snapshot_path(zone, table)))
-                parts.append(f"SELECT * EXCLUDE ({SOURCE}) FROM read_parquet({uri}){where}")
+                uri = self._uri(self._snapshot_path(zone, table))
+                reads.append(uri)
+                parts.append(f"SELECT * EXCLUDE ({SOURCE}) FROM read_parquet({_q(uri)}){where}")
             if fresh:
                 parts.append(self._files_sql(fresh))
-            return ViewInfo(zone, table, zone, len(infos), " UNION ALL BY NAME ".join(parts))
+                reads.extend(self._uri(i.path) for i in fresh)
+            return ViewInfo(zone, table, zone, len(infos), " UNION ALL BY NAME ".join(parts),
+                            reads=tuple(reads))
         model = LAKE_TABLES.get(table) or EXTRA_SCHEMAS.get(table)
         if model is None:
             sql = "SELECT NULL AS clip_id WHERE false"
@@ -390,6 +461,8 @@ class Catalog:
         no snapshot (or an unreadable one), read every file."""
         if table not in self._snapshot_tables(zone):
             return None
+        if self.lake.is_local and not _real(self._snapshot_path(zone, table)):
+            return None  # a symlink where the snapshot should be: read the files
         import pyarrow.parquet as pq
 
         try:
@@ -508,13 +581,28 @@ class Catalog:
         return ViewInfo("main", name, zone, src.files, sql, deps)
 
     def _json_view(self, name: str, folder: str, pattern: str, cols: dict[str, str],
-                   select: str) -> ViewInfo:
-        files = self.lake.list_files(self.lake.path(folder), ".json")
+                   select: str, glob: bool = True) -> ViewInfo:
+        """``glob``: over ``<folder><pattern>`` (catalog.duckdb: sees later files); else over
+        the explicit list of the files matching it now (what a locked-down catalog may
+        read: symlinks left out, ``_scan``)."""
+        root = self.lake.path(folder)
+        if self.lake.is_local:
+            name_part = pattern.rpartition("/")[2]
+            suffix = name_part.lstrip("*")
+            files = [i.path for i in _scan(root, suffix, depth=pattern.count("/") - 1)
+                     if name_part.startswith("*") or i.path.endswith("/" + name_part)]
+        else:
+            files = [f for f in self.lake.list_files(root, ".json")
+                     if f[len(root):].count("/") == pattern.count("/")
+                     and (pattern.endswith("/*.json") or f.endswith(pattern.rpartition("/")[2]))]
         if files:
-            glob = self._uri(self.lake.path(folder)) + pattern
-            sql = (f"SELECT {select} FROM read_json({_q(glob)}, format='auto', "
+            uris = [self._uri(f) for f in sorted(files)]
+            src = (_q(self._uri(root) + pattern) if glob
+                   else "[" + ", ".join(map(_q, uris)) + "]")
+            sql = (f"SELECT {select} FROM read_json({src}, format='auto', "
                    f"columns={_struct(cols)})")
-            return ViewInfo("main", name, folder, len(files), sql)
+            return ViewInfo("main", name, folder, len(files), sql,
+                            reads=() if glob else tuple(uris))
         empty = ", ".join(f"CAST(NULL AS {'VARCHAR' if t == 'JSON' else t}) AS {k}"
                           for k, t in cols.items())
         return ViewInfo("main", name, "empty", 0, f"SELECT {empty} WHERE false")
@@ -544,10 +632,10 @@ class Catalog:
             outputs = "CAST(outputs AS VARCHAR) AS outputs"
             mcols = ", ".join(k if k != "outputs" else outputs for k in MANIFEST_COLUMNS)
             view = self._json_view("manifests", "manifests", "/*/*.json", MANIFEST_COLUMNS,
-                                   mcols)
+                                   mcols, glob)
         elif qualified == "main.quarantine":
             view = self._json_view("quarantine", "quarantine", "/*/report.json",
-                                   QUARANTINE_COLUMNS, ", ".join(QUARANTINE_COLUMNS))
+                                   QUARANTINE_COLUMNS, ", ".join(QUARANTINE_COLUMNS), glob)
         elif qualified == "main.catalog_tables":
             rows = ", ".join(f"({_q(v.schema)}, {_q(v.name)}, {_q(v.zone)}, {v.files})"
                              for v in (self._view(n, glob) for n in self._names()[:-1])
@@ -736,9 +824,20 @@ class Catalog:
         con = duckdb.connect(path, read_only=True)
         if not self.lake.is_local:
             self._setup_s3(con)
-        readable = ", ".join(_q(self._uri(self.lake.path(zone)) + "/")
-                             for zone in QUERY_READABLE)
-        for stmt in (f"SET allowed_directories = [{readable}]",
+        if self.lake.is_local:
+            # exactly the files the views read, from listings that leave symlinks out:
+            # DuckDB's allowed_directories is a text prefix that follows links (#25)
+            files = sorted({f for v in views for f in v.reads})
+            allow = f"SET allowed_paths = [{', '.join(map(_q, files))}]"
+        else:  # no links on S3: the folders the views read
+            readable = ", ".join(_q(self._uri(self.lake.path(zone)) + "/")
+                                 for zone in QUERY_READABLE)
+            allow = f"SET allowed_directories = [{readable}]"
+        _, memory, _ = query_bounds()
+        for stmt in (allow,
+                     f"SET memory_limit = {_q(memory)}",
+                     f"SET max_temp_directory_size = {_q(QUERY_SPILL)}",
+                     "SET enable_progress_bar = false",
                      f"SET temp_directory = {_q(os.path.join(self._tmpdir, 'spill'))}",
                      "SET autoinstall_known_extensions = false",
                      "SET autoload_known_extensions = false",
@@ -771,18 +870,72 @@ class Catalog:
             raise QueryRefused(f"only SELECT queries are allowed here (got {kind.name})")
         return statements[0]
 
-    def user_query(self, sql: str) -> pa.Table:
+    @contextlib.contextmanager
+    def _deadline(self, timeout_s: float | None = None) -> Any:
+        """Interrupt this connection's statement when it runs past ``timeout_s`` (the
+        statement timeout of user SQL); what it raises then is a ``QueryTimeout``. DuckDB
+        checks for an interrupt between chunks of rows: a single function call that runs
+        long is not stopped (``select_clips`` and the CLI bound those harder)."""
+        limit = query_bounds()[0] if timeout_s is None else timeout_s
+        fired = threading.Event()
+
+        def stop() -> None:
+            fired.set()
+            self.con.interrupt()
+
+        timer = threading.Timer(limit, stop)
+        timer.daemon = True
+        timer.start()
+        try:
+            yield
+        except Exception as e:
+            if fired.is_set():
+                raise QueryTimeout(f"query stopped after {limit:g} s (statement timeout; "
+                                   "V2XLAKE_QUERY_TIMEOUT_S)") from None
+            if "duckdb" in type(e).__module__ and "memory" in str(e).lower():
+                raise QueryRefused(f"query refused: {_first_line(e)} (memory limit "
+                                   f"{query_bounds()[1]}; V2XLAKE_QUERY_MEMORY)") from None
+            raise
+        finally:
+            timer.cancel()
+
+    def user_query(self, sql: str, max_rows: int | None = None) -> pa.Table:
         """One SELECT statement of user text on the locked-down, read-only connection
         (``lock_down``): COPY, ATTACH, INSTALL, PRAGMA, SET, a second statement... are
-        refused before anything runs, and the connection could not do them anyway."""
+        refused before anything runs, and the connection could not do them anyway. Bounded:
+        a statement timeout, DuckDB's memory limit, and at most ``max_rows`` rows
+        (``query_bounds``) fetched, else ``QueryRefused`` (add a LIMIT, or aggregate)."""
+        cap = query_bounds()[2] if max_rows is None else max_rows
+        head = self.user_query_head(sql, cap + 1, count_rest=False)
+        if head.table.num_rows > cap:
+            raise QueryRefused(f"the query returns more than {cap:,} rows: add a LIMIT or "
+                               "aggregate (V2XLAKE_QUERY_MAX_ROWS)")
+        return head.table
+
+    def user_query_head(self, sql: str, max_rows: int, count_rest: bool = True,
+                        timeout_s: float | None = None) -> QueryHead:
+        """The first ``max_rows`` rows of a user query (``user_query``'s checks and bounds),
+        streamed: no more than those rows (and one batch) are ever held; with
+        ``count_rest`` the remaining rows are counted as they stream past."""
         self.lock_down()
         self._one_select(sql, "query")  # refused before any view is built
         self._ensure(self._references(sql))
 
-        def run() -> pa.Table:  # the statement of the connection it runs on
-            return self.con.execute(self._one_select(sql, "query")).fetch_arrow_table()
+        def run() -> QueryHead:  # the statement of the connection it runs on
+            result = self.con.execute(self._one_select(sql, "query"))
+            reader = result.fetch_record_batch(STREAM_BATCH_ROWS)
+            batches, n = [], 0
+            for batch in reader:
+                if n < max_rows:
+                    batches.append(batch.slice(0, max_rows - n))
+                n += batch.num_rows
+                if n >= max_rows and not count_rest:
+                    break
+            table = pa.Table.from_batches(batches, schema=reader.schema)
+            return QueryHead(table, n)
 
-        return self._guarded(run)
+        with self._deadline(timeout_s):
+            return self._guarded(run)
 
     def parse_predicate(self, where: str) -> duckdb.Statement:
         """The statement ``SELECT clip_id FROM clips WHERE (<where>)``, once it is proven
@@ -807,9 +960,9 @@ class Catalog:
         reference.pop("where_clause", None)
         if predicate is None or _strip_locations(node) != _strip_locations(reference):
             raise QueryRefused(f"--where must be one boolean expression over clips columns: "
-                               f"{where!r}")
+                               f"{where[:200]!r}")
         if problem := _predicate_problem(predicate):
-            raise QueryRefused(f"--where {where!r}: {problem}; it must be one boolean "
+            raise QueryRefused(f"--where {where[:200]!r}: {problem}; it must be one boolean "
                                "expression over clips columns, without subqueries")
         return statement
 
@@ -823,11 +976,8 @@ class Catalog:
         """Rows of ``clips`` (status ok) matching a user predicate (``parse_predicate``),
         ordered by clip id. The predicate runs as the parsed statement on the read-only
         connection; the columns and the status filter are the project's own."""
-        statement = self.parse_predicate(where)
-        try:
-            ids = [r[0] for r in self.con.execute(statement).fetchall()]
-        except duckdb.Error as e:
-            raise QueryRefused(f"--where {where!r}: {_first_line(e)}") from e
+        self.parse_predicate(where)  # refused here, at once, before any child starts
+        ids = predicate_ids(self.lake, where)
         cols = ", ".join('"' + c.replace('"', '""') + '"' for c in columns)
         return self.con.execute(
             f"SELECT {cols} FROM clips WHERE status = 'ok' AND list_contains(?, clip_id) "
@@ -844,3 +994,48 @@ class Catalog:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+# ---------------------------------------------------------------- --where in a child process
+def _where_child() -> None:
+    """The child of ``predicate_ids``: lake URI and predicate as JSON on stdin, the matching
+    clip ids (or the refusal) as JSON on stdout."""
+    args = json.loads(sys.stdin.read())
+    out: dict[str, Any]
+    try:
+        with Catalog(Lake(args["lake"], create=False), read_only=True) as cat:
+            statement = cat.parse_predicate(args["where"])
+            try:
+                with cat._deadline(args["timeout"]):
+                    ids = [r[0] for r in cat.con.execute(statement).fetchall()]
+            except duckdb.Error as e:
+                raise QueryRefused(f"--where {args['where']!r}: {_first_line(e)}") from e
+        out = {"ids": ids}
+    except QueryRefused as e:
+        out = {"refused": str(e), "timeout": isinstance(e, QueryTimeout)}
+    sys.stdout.write(json.dumps(out))
+
+
+def predicate_ids(lake: Lake, where: str, timeout_s: float | None = None) -> list[str]:
+    """Clip ids whose ``clips`` row matches a user predicate (``Catalog.parse_predicate``),
+    evaluated in a child process under the statement timeout and DuckDB's memory limit, and
+    killed ``WHERE_GRACE_S`` later if it still runs: one call of a function DuckDB cannot
+    interrupt (``length(repeat('a', 2000000000)) > 0`` ran six minutes) ends there."""
+    limit = query_bounds()[0] if timeout_s is None else timeout_s
+    code = "from v2xlake.storage.catalog import _where_child; _where_child()"
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True,
+            input=json.dumps({"lake": lake.uri, "where": where, "timeout": limit}),
+            timeout=limit + WHERE_GRACE_S)
+    except subprocess.TimeoutExpired:
+        raise QueryTimeout(f"--where {where[:200]!r}: stopped after {limit:g} s (statement "
+                           "timeout; V2XLAKE_QUERY_TIMEOUT_S)") from None
+    try:
+        out = json.loads(done.stdout)
+    except ValueError:
+        raise QueryRefused(f"--where {where[:200]!r}: its evaluation failed (exit "
+                           f"{done.returncode}): {done.stderr.strip()[-300:]}") from None
+    if "refused" in out:
+        raise (QueryTimeout if out.get("timeout") else QueryRefused)(out["refused"])
+    return [str(i) for i in out["ids"]]

@@ -550,6 +550,11 @@ class Lake:
             f"stage {self.writer!r} may not write {zone}.{table}: "
             + (f"it belongs to stage {owner!r}" if owner else "no stage declares it"))
 
+    def clip_lock(self, clip_id: str, wait_s: float | None = None
+                  ) -> contextlib.AbstractContextManager[None]:
+        """This clip's write lock (``clip_lock``): one run at a time per clip."""
+        return clip_lock(self, clip_id, wait_s)
+
     def looks_like_lake(self) -> bool:
         """True when the root holds at least one zone a pipeline writes (a mistyped path, or
         an empty folder, is not a lake: reading it must be an error, not empty answers)."""
@@ -1025,6 +1030,213 @@ class Lake:
 
 
 CLIP_ID = re.compile(ID_PATTERN)
+
+#: Longest name ``safe_name`` keeps as it is (bytes); a file name stops at 255.
+MAX_NAME_BYTES = 160
+
+
+def safe_name(name: str) -> str:
+    """``name`` as one lake folder or file name: unchanged when it is short and holds no
+    ``/`` or NUL (every clip id is), else a prefix of its safe characters and a hash of the
+    whole. Quarantine reports and locks are named after ids that may come from a broken
+    delivery (an ``_unreadable-<folder>`` name, an overlong id): an OSError there would
+    hide the real problem."""
+    if len(name.encode()) <= MAX_NAME_BYTES and name and "/" not in name and "\0" not in name \
+            and name not in (".", ".."):
+        return name
+    digest = hashlib.blake2s(name.encode("utf-8", "surrogatepass"), digest_size=8).hexdigest()
+    head = re.sub(r"[^A-Za-z0-9_\-]+", "_", name)[:96]
+    return f"{head}-{digest}"
+
+
+# ---------------------------------------------------------------- one writer per clip (#25)
+class ClipBusy(RuntimeError):
+    """Another process holds the clip's lock longer than this one may wait."""
+
+
+#: How long a second writer of a clip waits for the first (seconds) before it is refused;
+#: ``V2XLAKE_CLIP_LOCK_WAIT_S`` overrides it.
+CLIP_LOCK_WAIT_S = 600.0
+#: S3 lock lease (seconds): renewed every third of it while held; a holder that stopped
+#: renewing for longer (a killed process, a lost host) is taken over.
+S3_LOCK_LEASE_S = 60.0
+
+
+class _Held:
+    """This process's hold on one lock: a thread lock (threads of one process exclude each
+    other and one thread may re-enter) and the storage lock, taken once."""
+
+    def __init__(self) -> None:
+        self.rlock = threading.RLock()
+        self.depth = 0
+        self.release: Any = None
+
+
+_HELD: dict[str, _Held] = {}
+_HELD_GUARD = threading.Lock()
+
+
+def _lock_wait_s(wait_s: float | None) -> float:
+    if wait_s is not None:
+        return wait_s
+    try:
+        return float(os.environ.get("V2XLAKE_CLIP_LOCK_WAIT_S", CLIP_LOCK_WAIT_S))
+    except ValueError:
+        return CLIP_LOCK_WAIT_S
+
+
+def _flock(path: str, wait_s: float, what: str) -> Any:
+    """An exclusive ``flock`` on a local lock file (released by the kernel when the process
+    dies, whatever killed it); returns the function releasing it."""
+    import fcntl
+
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    deadline = time.monotonic() + wait_s
+    delay = 0.05
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            break
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                holder = ""
+                with contextlib.suppress(OSError):
+                    holder = os.pread(fd, 200, 0).decode(errors="replace").strip()
+                os.close(fd)
+                raise ClipBusy(f"{what} is being written by another run ({holder or 'unknown'}); "
+                               f"waited {wait_s:g} s: try again when it has finished") from None
+            time.sleep(delay)
+            delay = min(delay * 2, 1.0)
+        except BaseException:
+            os.close(fd)
+            raise
+    tag = f"{run_tag()} since {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}"
+    with contextlib.suppress(OSError):
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, tag.encode(), 0)
+
+    def release() -> None:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+        finally:
+            os.close(fd)
+    return release
+
+
+def _s3_client() -> Any:
+    import boto3
+
+    endpoint = os.environ.get("AWS_ENDPOINT_URL") or os.environ.get("V2XLAKE_S3_ENDPOINT")
+    return boto3.client("s3", endpoint_url=endpoint or None,
+                        region_name=os.environ.get("AWS_REGION", "us-east-1"),
+                        aws_access_key_id=os.environ.get("AWS_ACCESS_KEY_ID"),
+                        aws_secret_access_key=os.environ.get("AWS_SECRET_ACCESS_KEY"))
+
+
+def _s3_lock(path: str, wait_s: float, what: str, lease_s: float) -> Any:
+    """A lease object created with a conditional PUT (``If-None-Match: *``: exactly one
+    writer creates it), renewed by a thread with ``If-Match`` on its ETag while held, taken
+    over (conditional DELETE on the stale ETag, then the conditional PUT again) when its
+    lease ran out; returns the function releasing it."""
+    from botocore.exceptions import ClientError
+
+    bucket, _, key = path.partition("/")
+    client = _s3_client()
+    owner = f"{run_tag()}-{uuid.uuid4().hex[:12]}"
+
+    def body() -> bytes:
+        return json.dumps({"owner": owner, "expires": time.time() + lease_s}).encode()
+
+    def code(e: ClientError) -> str:
+        return str(e.response.get("Error", {}).get("Code", ""))
+
+    deadline = time.monotonic() + wait_s
+    delay = 0.05
+    holder = "unknown"
+    while True:
+        try:
+            etag = client.put_object(Bucket=bucket, Key=key, Body=body(),
+                                     IfNoneMatch="*")["ETag"]
+            break
+        except ClientError as e:
+            if code(e) not in ("PreconditionFailed", "ConditionalRequestConflict", "412"):
+                raise
+        try:
+            got = client.get_object(Bucket=bucket, Key=key)
+            info = json.loads(got["Body"].read() or b"{}")
+            holder = str(info.get("owner", "unknown"))[:100]
+            if float(info.get("expires", 0)) < time.time():  # its holder stopped renewing
+                with contextlib.suppress(ClientError):
+                    client.delete_object(Bucket=bucket, Key=key, IfMatch=got["ETag"])
+                continue
+        except ClientError as e:
+            if code(e) not in ("NoSuchKey", "404"):
+                raise
+            continue  # released meanwhile: try again at once
+        except ValueError:  # not our JSON: treat as held until the deadline
+            pass
+        if time.monotonic() >= deadline:
+            raise ClipBusy(f"{what} is being written by another run ({holder}); waited "
+                           f"{wait_s:g} s: try again when it has finished")
+        time.sleep(delay)
+        delay = min(delay * 2, 1.0)
+
+    stop = threading.Event()
+    state = {"etag": etag}
+
+    def renew() -> None:
+        while not stop.wait(lease_s / 3):
+            with contextlib.suppress(Exception):
+                state["etag"] = client.put_object(Bucket=bucket, Key=key, Body=body(),
+                                                  IfMatch=state["etag"])["ETag"]
+
+    thread = threading.Thread(target=renew, name="lake-lock", daemon=True)
+    thread.start()
+
+    def release() -> None:
+        stop.set()
+        thread.join()
+        with contextlib.suppress(ClientError):
+            client.delete_object(Bucket=bucket, Key=key, IfMatch=state["etag"])
+    return release
+
+
+@contextlib.contextmanager
+def clip_lock(lake: Lake, clip_id: str, wait_s: float | None = None) -> Iterator[None]:
+    """Hold ``clip_id``'s write lock: one process at a time runs a stage on (or quarantines)
+    a clip; a second waits up to ``wait_s`` (``CLIP_LOCK_WAIT_S``) and is then refused with
+    ``ClipBusy``. Local lakes take an ``flock`` on ``_locks/<clip>.lock`` (the kernel drops
+    it with its process); S3 lakes a lease object created by a conditional PUT. Re-entrant
+    within a thread; threads of one process exclude each other.
+
+    Why: two runs of one clip each decide from the manifests what to run, then read, write
+    and record; interleaved, one run's stage read what the other's ingest was replacing and
+    recorded a key for inputs it never saw (a table lost, the manifest saying current)."""
+    name = safe_name(clip_id)
+    path = lake.path("_locks", f"{name}.lock")
+    what = f"clip {clip_id}"
+    with _HELD_GUARD:
+        held = _HELD.setdefault(f"{lake.uri}\0{name}", _Held())
+    wait = _lock_wait_s(wait_s)
+    if not held.rlock.acquire(timeout=wait if wait > 0 else -1):
+        raise ClipBusy(f"{what} is being written by another thread of this process; "
+                       f"waited {wait:g} s")
+    try:
+        if held.depth == 0:
+            with lake.writing(path):  # a read-only lake: one clear line
+                lake._mkdir(path.rpartition("/")[0])
+                held.release = (_flock(path, wait, what) if lake.is_local
+                                else _s3_lock(path, wait, what, S3_LOCK_LEASE_S))
+        held.depth += 1
+        try:
+            yield
+        finally:
+            held.depth -= 1
+            if held.depth == 0:
+                release, held.release = held.release, None
+                release()
+    finally:
+        held.rlock.release()
 
 
 def checked_clip_id(lake: Lake, clip_id: str) -> str:

@@ -920,8 +920,11 @@ def _audit(lake: Lake | None, zone: str | os.PathLike[str], files: _Files, sampl
                     "it holds is unchecked (remove it, or teach the audit its format)"))
         except Exception as e:
             report.findings.append(Finding("unreadable", rel, f"{type(e).__name__}: {e}"))
-    if frames is not None and not frames and zone in ("clean", "raw"):
-        report.findings.append(Finding("unreadable", str(zone), "no camera_frames table"))
+    if frames is not None and not frames and zone in ("clean", "raw") and images:
+        # images in the zone but no camera_frames row to say whose they are; a lake whose
+        # clips have no camera has neither, and that is no finding
+        report.findings.append(Finding("unreadable", str(zone), f"{len(images)} image(s) "
+                                       "but no camera_frames rows to check them against"))
     if sample_images > 0 and images:
         report.findings.extend(_recheck_images(files, images, sample_images, cfg, detector,
                                                report, frames or {}, lake, str(zone)))

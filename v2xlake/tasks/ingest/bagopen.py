@@ -89,9 +89,23 @@ def _shadow_for_empty_storage(clip_id: str, agent_id: str, bag_dir: Path, recove
     except Exception as e:
         raise ClipError(clip_id, f"unreadable rosbag2 metadata: {e}", agent_id=agent_id,
                         path=str(meta_path), stage=STAGE) from e
+    files = [str(f) for f in (info.get("relative_file_paths") or [])]
+    missing = [f for f in files if not (bag_dir / f).is_file()]
+    if missing:  # before any advice about other fields: that one is the real problem
+        raise ClipError(clip_id, f"metadata.yaml lists data file(s) {missing} that are not in "
+                        f"the bag folder {bag_dir}: the bag is incomplete (copy the missing "
+                        "file(s), or remove them from relative_file_paths and files)",
+                        agent_id=agent_id, path=str(meta_path), stage=STAGE)
+    for entry in info.get("topics_with_message_count") or []:
+        topic = (entry or {}).get("topic_metadata") or {}
+        if not topic.get("serialization_format"):
+            raise ClipError(clip_id, f"field 'serialization_format' of topic "
+                            f"{str(topic.get('name'))[:200]!r} is empty in metadata.yaml "
+                            "(topics_with_message_count); ROS 2 bags use 'cdr': set it",
+                            agent_id=agent_id, topic=str(topic.get("name") or "")[:200] or None,
+                            path=str(meta_path), stage=STAGE)
     if info.get("storage_identifier"):
         return bag_dir
-    files = list(info.get("relative_file_paths") or [])
     kind = _detect_storage(bag_dir, files) if files else None
     if not recover or kind is None:
         why = ("recovery disabled" if not recover else

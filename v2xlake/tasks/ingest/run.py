@@ -32,6 +32,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import pyarrow as pa
+import xxhash
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -139,6 +140,21 @@ class IngestConfig(BaseModel):
                                                          "replace_existing"})
 
 
+def _payload_digest(msg: Any) -> bytes:
+    """Digest of what a LiDAR / camera / radar message carries (its data bytes and
+    layout, not its header: a re-published frame may get a new sequence number)."""
+    h = xxhash.xxh3_128()  # ~20 GB/s: nothing next to decoding the frame
+    for name in ("height", "width", "point_step", "row_step", "encoding", "format",
+                 "is_bigendian", "step"):
+        h.update(f"{name}={getattr(msg, name, None)!r};".encode())
+    for f in getattr(msg, "fields", None) or ():
+        h.update(f"{getattr(f, 'name', '')}:{getattr(f, 'offset', '')}:"
+                 f"{getattr(f, 'datatype', '')}:{getattr(f, 'count', '')};".encode())
+    data = getattr(msg, "data", b"")
+    h.update(memoryview(data).cast("B") if not isinstance(data, bytes | bytearray) else data)
+    return h.digest()
+
+
 def load_clip_config(clip_dir: Path) -> ClipConfig:
     path = clip_dir / "clip.yaml"
     if not path.is_file():
@@ -152,8 +168,10 @@ def load_clip_config(clip_dir: Path) -> ClipConfig:
     except ValidationError as e:
         data = load_yaml(text)
         cid, agent, reason = explain_invalid(data, e)
+        # not chained: a pydantic error renders its input, and whatever formats the
+        # traceback (Prefect's log handler) would render all of it
         raise ClipError(cid or clip_dir.name, f"invalid clip.yaml: {reason}", agent_id=agent,
-                        path=str(path), stage=STAGE) from e
+                        path=str(path), stage=STAGE) from None
     except ValueError as e:
         raise ClipError(clip_dir.name, f"invalid clip.yaml: {e}", path=str(path),
                         stage=STAGE) from e
@@ -459,8 +477,12 @@ class _AgentIngest:
         # per sensor, in bag order: stamps seen (duplicates dropped), the last stamp, and
         # how many messages repeated a stamp or went back in time (QA reports both)
         self.stamps_seen: dict[str, set[int]] = {s.name: set() for s in agent.sensors}
+        # LiDAR / camera / radar: stamp -> digest of the frame's payload (a repeat with the
+        # same payload is dropped, one with another payload refused)
+        self.frame_digest: dict[str, dict[int, bytes]] = {s.name: {} for s in agent.sensors}
         self.last_stamp: dict[str, int] = {}
         self.n_dup: dict[str, int] = {s.name: 0 for s in agent.sensors}
+        self.n_dropped: dict[str, int] = {s.name: 0 for s in agent.sensors}
         self.n_back: dict[str, int] = {s.name: 0 for s in agent.sensors}
         self.camera_info: dict[str, Any] = {}
         self.writers: dict[str, TableWriter] = {}
@@ -563,9 +585,31 @@ class _AgentIngest:
         self.last_stamp[s.name] = stamp
         return True
 
+    def _frame_is_new(self, s: SensorConfig, stamp: int, msg: Any) -> bool:
+        """LiDAR / camera / radar: False for a message repeating an earlier frame of its
+        topic (same stamp, same payload: a driver publishing twice, a bag recorded from two
+        nodes), which is dropped and counted; a ClipError for one that repeats a stamp with
+        another payload (two different frames claim one time: which is right cannot be
+        known). Before, both were kept: every scan twice, 1.5x the points."""
+        digest = _payload_digest(msg)
+        seen = self.frame_digest[s.name]
+        first = seen.setdefault(stamp, digest)
+        if first is digest:
+            return True
+        if first != digest:
+            idx = self.counts[s.name] - self.n_dropped[s.name]
+            raise self.err(f"two different {s.modality.value} frames with the same stamp "
+                           f"{stamp} ns on this topic (message {idx} repeats the stamp of an "
+                           "earlier one with another payload); which one is right cannot be "
+                           "known", topic=s.topic)
+        self.n_dup[s.name] += 1
+        self.n_dropped[s.name] += 1
+        return False
+
     def _first(self, s: SensorConfig, msg: Any) -> int:
-        idx = self.counts[s.name]
-        self.counts[s.name] = idx + 1
+        """The frame index of this message (messages kept so far) and count it."""
+        idx = self.counts[s.name] - self.n_dropped[s.name]
+        self.counts[s.name] += 1
         if idx == 0 and (s.frame_id or hasattr(msg, "header")):
             self.frame_ids[s.name] = s.frame_id or str(msg.header.frame_id)
         return idx
@@ -576,6 +620,7 @@ class _AgentIngest:
         self._first(s, msg)
         stamp = header_stamp_ns(msg) if hasattr(msg, "header") else None
         if stamp is not None and not self._order(s, stamp, drop_duplicates=True):
+            self.n_dropped[s.name] += 1
             return
         if dec is not None:
             dec.add(msg)
@@ -588,8 +633,11 @@ class _AgentIngest:
             self.res.stamp(stamp)
 
     def _lidar(self, s: SensorConfig, msg: Any) -> None:
-        idx = self._first(s, msg)
         stamp = header_stamp_ns(msg)
+        if not self._frame_is_new(s, stamp, msg):
+            self.counts[s.name] += 1
+            return
+        idx = self._first(s, msg)
         self._order(s, stamp, drop_duplicates=False)
         assert s.fields is not None
         try:
@@ -617,8 +665,11 @@ class _AgentIngest:
         self.res.stamp(min(stamp, cloud.t_start_ns), max(stamp, cloud.t_end_ns))
 
     def _radar(self, s: SensorConfig, msg: Any) -> None:
-        idx = self._first(s, msg)
         stamp = header_stamp_ns(msg)
+        if not self._frame_is_new(s, stamp, msg):
+            self.counts[s.name] += 1
+            return
+        idx = self._first(s, msg)
         self._order(s, stamp, drop_duplicates=False)
         assert s.fields is not None
         try:
@@ -641,8 +692,11 @@ class _AgentIngest:
         """Hand the frame to the PNG pool: encoding is most of a camera's ingest time
         (``bench_ingest.py``, camera case) and OpenCV releases the GIL, so frames are encoded
         on every core while the bag is read; rows are still recorded in frame order."""
-        idx = self._first(s, msg)
         stamp = header_stamp_ns(msg)
+        if not self._frame_is_new(s, stamp, msg):
+            self.counts[s.name] += 1
+            return
+        idx = self._first(s, msg)
         self._order(s, stamp, drop_duplicates=False)
         compressed = s.msg_type.endswith("CompressedImage")
         # a JPEG is stored as delivered (its bytes, checksummed); other formats become PNG
@@ -743,14 +797,14 @@ class _AgentIngest:
             self.res.sensors.append(SensorRow(
                 clip_id=cid, agent_id=aid, sensor=s.name, modality=s.modality.value,
                 topic=s.topic, msg_type=s.msg_type,
-                n_messages=self.counts[s.name] - self.n_dup_dropped(s),
+                n_messages=self.counts[s.name] - self.n_dropped[s.name],
                 n_duplicates=self.n_dup[s.name], n_backwards=self.n_back[s.name]))
             if self.n_dup[s.name]:
                 self.notes.append(f"{aid}/{s.name}: {self.n_dup[s.name]} message(s) on "
                                   f"{s.topic} repeat an earlier stamp"
-                                  + (": dropped" if self.n_dup_dropped(s) else ""))
+                                  + (": dropped" if self.n_dropped[s.name] else ""))
             if s.modality is Modality.LIDAR:
-                self.res.lidar_frames[s.name] = self.counts[s.name]
+                self.res.lidar_frames[s.name] = self.counts[s.name] - self.n_dropped[s.name]
         self.res.calib = self._calibration()
         self._check_image_sizes()
         ins_cols = (ins_columns(self.track) if self.track is not None
@@ -778,10 +832,6 @@ class _AgentIngest:
         for name, t in tables.items():
             st.write_table("raw", name, t, clip_id=cid, agent_id=aid)
 
-    def n_dup_dropped(self, s: SensorConfig) -> int:
-        dropped = s.modality in (Modality.INS, Modality.IMU, Modality.GNSS)
-        return self.n_dup[s.name] if dropped else 0
-
     def _check_image_sizes(self) -> None:
         """Every frame of a camera must have the size its intrinsics were calibrated for:
         a 1920x1080 calibration on 1920x1200 images projects every point to the wrong row."""
@@ -794,7 +844,9 @@ class _AgentIngest:
             s = self.agent.sensor(c.sensor)
             got = sorted(sizes[c.sensor])
             if got != [(c.width, c.height)]:
-                src = "clip.yaml intrinsics" if "clip.yaml" in c.source else "CameraInfo"
+                # where the intrinsics came from (``source`` also names the extrinsic's)
+                src = ("clip.yaml intrinsics" if s.intrinsics is not None
+                       else f"CameraInfo intrinsics (topic {s.camera_info_topic})")
                 raise self.err(
                     f"camera {c.sensor}: images are {', '.join(f'{w}x{h}' for w, h in got)} "
                     f"but its {src} are for {c.width}x{c.height}; the calibration does not "

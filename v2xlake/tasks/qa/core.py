@@ -289,10 +289,11 @@ class _Qa:
                  if n_back else f"header stamps on {s.topic} increase",
                  agent=aid, sensor=s.name, value=float(n_back), threshold=0.0)
         if n_dup:
-            dropped = s.modality in (Modality.INS, Modality.IMU, Modality.GNSS)
+            # ingest drops every repeat (a frame's only with the same payload: one with
+            # another payload is refused there), so the count is of messages not kept
             self.add("duplicate_messages", False, "warning",
-                     f"{n_dup} message(s) on {s.topic} repeat an earlier stamp"
-                     + (" (dropped at ingest)" if dropped else ""),
+                     f"{n_dup} message(s) on {s.topic} repeat an earlier stamp "
+                     "(dropped at ingest)",
                      agent=aid, sensor=s.name, value=float(n_dup), threshold=0.0)
 
     def tolerance_ms(self, s: SensorConfig) -> float:
