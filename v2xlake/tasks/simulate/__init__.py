@@ -1,11 +1,13 @@
 """Realistic multi-agent recorder simulator: writes a clip folder (COMMON.md) from a seed.
 
-Public API: :class:`SimConfig` (``SimConfig.preset("small"|"cats", **overrides)``),
-:func:`simulate` ``(out_dir, config) -> Path``, :func:`load_truth` ``(clip_dir) -> SimTruth``.
-See the module docstrings for every convention: ``trajectory`` (time, world, body frames),
-``rig`` (sensor frames, calibration errors), ``lidar`` (PPS phase lock, per-column time,
-dual return, intensity), ``camera`` (trigger times, rendering, 2D truth), ``ins`` (INS/IMU/GNSS
-error model), ``bagwrite`` (message layout, log-time latencies), ``truth`` (ground truth files).
+Public API: :class:`SimConfig` (``SimConfig.preset(name, **overrides)``, name one of
+``small``, ``street``, ``coop``, ``cats``), :func:`simulate` ``(out_dir, config) -> Path``,
+:func:`load_truth` ``(clip_dir) -> SimTruth``. See the module docstrings for every convention:
+``trajectory`` (time, world, body frames), ``rig`` (sensor frames, calibration errors),
+``boulevard`` (the cooperative scenario of issue #21: a straight road, every vehicle on its own
+profile), ``lidar`` (PPS phase lock, per-column time, dual return, intensity), ``camera``
+(trigger times, rendering, 2D truth), ``ins`` (INS/IMU/GNSS error model), ``bagwrite``
+(message layout, log-time latencies), ``truth`` (ground truth files).
 
 Changes for consumers: (1) ``truth/boxes2d.parquet`` boxes now come from what is really drawn
 (occluders erase faces / plates beneath them) and carry ``visible_fraction`` / ``occluded``

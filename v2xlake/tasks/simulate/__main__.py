@@ -1,4 +1,4 @@
-"""``python -m tasks.simulate OUT [--preset small|cats] [--seconds S] [--storage ...]``.
+"""``python -m v2xlake.tasks.simulate OUT [--preset small|street|coop|cats] [--seconds S] ...``.
 
 The same options as ``v2xlake simulate``; prints time, counts and size of the clip.
 """
@@ -15,9 +15,9 @@ from v2xlake.tasks.simulate import SimConfig, simulate
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m tasks.simulate", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m v2xlake.tasks.simulate", description=__doc__)
     ap.add_argument("out", type=Path)
-    ap.add_argument("--preset", default="small", choices=["small", "cats"])
+    ap.add_argument("--preset", default="small", choices=["small", "street", "coop", "cats"])
     ap.add_argument("--seconds", type=float)
     ap.add_argument("--storage", choices=["sqlite3", "mcap", "ros1"])
     ap.add_argument("--seed", type=int)

@@ -4,6 +4,9 @@ moving vehicles (a truck, a pickup towing a trailer), pedestrians and a cyclist.
 Everything is generated from the seed (``numpy.random.default_rng(seed)``) and the config, so
 ``build_world(cfg)`` called twice gives the same world (``tasks.simulate.truth`` relies on it).
 
+``street="boulevard"`` has its own layout (a straight road fixed in the world, every vehicle on
+its own profile): see ``tasks.simulate.boulevard``. Town and corridor:
+
 Layout (lateral offsets ``d`` in metres, left of the red agent's path, which IS the road):
 right sidewalk -8.0..-5.2, parking lane -5.2..-1.75 (parked cars at -3.3), red's lane
 -1.75..1.75 (centre 0), black's lane (same direction) 1.75..5.25, oncoming lanes centred at 7.0
