@@ -8,6 +8,10 @@
 
 Servers start at most once per session (Prefect's takes 10-20 s on 2 cores) and are stopped
 by process group at the end, whatever happened.
+
+Also: the ``real_data`` marker (tests/fixtures/real.py: skip without the real recordings,
+fail under ``V2XLAKE_REQUIRE_REAL_DATA=1``), and the test oracles that scripts/bootstrap.sh
+installs beside the venv (requirements-oracles.lock) put on ``sys.path``.
 """
 
 from __future__ import annotations
@@ -27,6 +31,12 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
 
+# nuscenes-devkit & co. live outside the venv's site-packages (its numpy<2 pin would break
+# the venv's pip check); appended, so nothing in them shadows a package of the venv
+ORACLES = Path(sys.prefix) / "test-oracles"
+if ORACLES.is_dir() and str(ORACLES) not in sys.path:
+    sys.path.append(str(ORACLES))
+
 
 def pytest_configure(config: pytest.Config) -> None:
     """Bag checksums remembered across processes go to a file of this run, not ~/.v2xlake."""
@@ -34,6 +44,17 @@ def pytest_configure(config: pytest.Config) -> None:
 
     os.environ.setdefault("V2XLAKE_CHECKSUM_CACHE",
                           str(Path(tempfile.mkdtemp(prefix="v2xlake-sums-")) / "sums.sqlite"))
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """``@requires_real_data(...)``: skip (or, under V2XLAKE_REQUIRE_REAL_DATA=1, fail) before
+    any fixture of the test runs, module-scoped ones included."""
+    from tests.fixtures.real import MARKER, require_real_data
+
+    marks = list(item.iter_markers(MARKER))
+    if marks:
+        require_real_data(*[str(a) for m in marks for a in m.args])
 
 
 def _free_port() -> int:
@@ -145,7 +166,7 @@ def s3_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[S3Info]:
         client = boto3.client("s3", endpoint_url=info.endpoint, region_name="us-east-1",
                               aws_access_key_id=info.access_key,
                               aws_secret_access_key=info.secret_key)
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 300  # a cap for a loaded machine, not a deadline
         while True:
             try:
                 client.put_object(Bucket=info.bucket, Key="probe/ready", Body=b"1")

@@ -12,6 +12,7 @@ import numpy as np
 import pyarrow.compute as pc
 import pytest
 
+from tests.fixtures.real import requires_real_data
 from v2xlake.tasks.anonymize.blur import BlurConfig, grow_box
 from v2xlake.tasks.anonymize.detectors import (
     CenterFaceDetector,
@@ -75,6 +76,7 @@ def test_real_face_is_blurred_irreversibly(
     assert_only_boxes_changed(photo, out, [d.box for d in dets])
 
 
+@requires_real_data("images/street_plate_small_pjlab_0.png")
 def test_real_street_small_plate(tmp_path: Path) -> None:
     img = cv2.imread(str(STREET))
     assert img is not None, STREET

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.fixtures.real import requires_real_data
 from v2xlake.schemas.calibration import CameraIntrinsics
 from v2xlake.tasks.anonymize.clusters import cluster_boxes, yaw_quat
 from v2xlake.tasks.anonymize.guide import GuideConfig, WorldBoxes, project_regions
@@ -32,7 +33,7 @@ def _boxes(c: np.ndarray, s: np.ndarray, yaw: np.ndarray, cat: np.ndarray) -> Wo
                       np.asarray(cat), np.array([f"c{i}" for i in range(n)]))
 
 
-@pytest.mark.skipif(not PJLAB.is_dir(), reason="real PJLab calibration data not present")
+@requires_real_data("calib/pjlab_lidar2camera")
 def test_real_scan_guides_to_the_real_plate() -> None:
     pts = np.loadtxt(PJLAB / "0.pcd", skiprows=11)[:, :3]
     doc = json.loads((PJLAB / "center_camera-intrinsic.json").read_text())

@@ -10,13 +10,14 @@ from pathlib import Path
 
 import pytest
 
-from tests.fixtures.real import REAL_DATA_INGEST
+from tests.fixtures.real import REAL_DATA_INGEST, requires_real_data
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.anonymize.run import run_anonymize
 from v2xlake.tasks.ingest import run_ingest
 
 REPO = Path(__file__).resolve().parents[1]
 OUSTER = REPO / "tests" / "fixtures" / "ouster"
+pytestmark = requires_real_data("bags/ouster_os1_128_3frames_ros2")
 
 
 @pytest.fixture(scope="module")

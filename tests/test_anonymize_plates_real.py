@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.fixtures.real import requires_real_data
 from v2xlake.tasks.anonymize.evaluate import plates_eu, score_real, street_images
 from v2xlake.tasks.anonymize.textplate import TextPlateDetector, db_lines, text_det_onnx_path
 
@@ -54,7 +55,7 @@ def test_db_lines_recovers_rectangles() -> None:
     assert abs(abs(lines[1][4]) - 20.0) < 2.0
 
 
-@pytest.mark.skipif(not EU.is_dir(), reason="plates_eu test data not present")
+@requires_real_data("plates_eu")
 def test_plates_eu_recall(detector: TextPlateDetector) -> None:
     images = plates_eu(EU)
     assert len(images) >= 100
@@ -62,7 +63,7 @@ def test_plates_eu_recall(detector: TextPlateDetector) -> None:
     assert s.recall >= 0.95, (s.recall, s.missed)
 
 
-@pytest.mark.skipif(not STREETS.is_dir(), reason="real street images not present")
+@requires_real_data("images")
 def test_few_false_plates_on_real_streets(detector: TextPlateDetector) -> None:
     s = score_real(street_images(STREETS), detector.detect, kinds=("plate",))
     assert s.n_images >= 3
@@ -70,7 +71,7 @@ def test_few_false_plates_on_real_streets(detector: TextPlateDetector) -> None:
     assert max(s.false_area) <= 0.005, s
 
 
-@pytest.mark.skipif(not STREETS.is_dir(), reason="real street images not present")
+@requires_real_data("images")
 def test_default_detector_few_false_blurs_on_real_streets() -> None:
     """Faces and plates together, with the plan a frame without pose or LiDAR gets (the
     full-frame plan: faces in a coarse and an x2 pass at a score of 0.5, plates natively)."""
@@ -100,7 +101,7 @@ def _scaled_recall(images: list, width_px: float,
     return found / len(images)
 
 
-@pytest.mark.skipif(not EU.is_dir(), reason="plates_eu test data not present")
+@requires_real_data("plates_eu")
 def test_small_real_plates_and_the_full_frame_fine_pass() -> None:
     """Without LiDAR guidance the text detector needs a plate ~80 px wide in its input: real
     plates shrunk to 44 px are mostly missed natively; ``full_plate_fine_scale=2`` (a user
@@ -115,7 +116,7 @@ def test_small_real_plates_and_the_full_frame_fine_pass() -> None:
     assert fine >= 0.7 and fine >= native + 0.3, (native, fine)
 
 
-@pytest.mark.skipif(not STREETS.is_dir(), reason="real street images not present")
+@requires_real_data("images")
 def test_small_real_faces_in_real_streets_full_frame_plan() -> None:
     """Real faces (astronaut, Grace Hopper) pasted at 16 and 20 px tall into the real street
     images, the plan a frame without pose gets: at the default full-frame score (0.4) they

@@ -10,7 +10,7 @@ import pyarrow.parquet as pq
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tests.fixtures.real import REAL_DATA_INGEST
+from tests.fixtures.real import REAL_DATA_INGEST, requires_real_data
 from tests.test_deskew import (
     INS_PERIOD_NS,
     Motion,
@@ -166,6 +166,7 @@ def test_agent_without_ins_says_so(tmp_path: Path) -> None:
     assert rep.notes[0].startswith("red not deskewed: agents.has_ins is false")
 
 
+@requires_real_data("bags/ouster_os1_128_3frames_ros2")
 def test_real_ouster_clip_without_ins_is_a_clear_error(tmp_path: Path) -> None:
     """The real OS-1-128 bag (shared data) has per-point times but no INS: deskew must stop
     with a ClipError that says why. The clean zone is made from the real ingest output by

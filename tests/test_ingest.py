@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from tests.fixtures.minibag import T0, MiniClip, write_clip
-from tests.fixtures.real import REAL_DATA_INGEST
+from tests.fixtures.real import REAL_DATA_INGEST, requires_real_data
 from v2xlake.schemas.clip import PointTimeField, TimeReference, TimeUnit
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.catalog import Catalog
@@ -100,6 +100,7 @@ def test_reingest_replaces_partitions(tmp_path: Path) -> None:
     assert count(Catalog(lake, read_only=True), "SELECT count(*) FROM lidar_points") == 400
 
 
+@requires_real_data("bags/ouster_os1_128_3frames_ros2")
 def test_ouster_real_bag(tmp_path: Path) -> None:
     lake = Lake(tmp_path / "lake")
     rep = run_ingest(lake, OUSTER_FIXTURE, REAL_DATA_INGEST)
@@ -136,6 +137,7 @@ def _real_clip(tmp: Path, cid: str, bag: str, topic: str, typ: str) -> Path:
     return d
 
 
+@requires_real_data("bags/nebula_vlp16_packets_only")
 def test_vlp16_packets_only_is_a_clear_error(tmp_path: Path) -> None:
     d = _real_clip(tmp_path, "vlp", "nebula_vlp16_packets_only", "/velodyne_packets",
                    "velodyne_msgs/msg/VelodyneScan")
@@ -149,6 +151,7 @@ def test_vlp16_packets_only_is_a_clear_error(tmp_path: Path) -> None:
     assert count(Catalog(lake), "SELECT count(*) FROM lidar_points") == 0
 
 
+@requires_real_data("bags/nebula_hesai_qt128_empty_storage_id")
 def test_qt128_empty_storage_identifier(tmp_path: Path) -> None:
     d = _real_clip(tmp_path, "qt", "nebula_hesai_qt128_empty_storage_id", "/pandar_packets",
                    "pandar_msgs/msg/PandarScan")
@@ -338,6 +341,7 @@ def test_tf_chain_lookup() -> None:
     assert np.allclose(tree.lookup("lidar", "lidar"), np.eye(4))  # type: ignore[arg-type]
 
 
+@requires_real_data("bags/ouster_os1_128_3frames_ros2")
 def test_ouster_fixture_points_at_shared_data() -> None:
     cfg = yaml.safe_load((OUSTER_FIXTURE / "clip.yaml").read_text())
     bag = (OUSTER_FIXTURE / cfg["agents"][0]["bag"]).resolve()

@@ -16,6 +16,7 @@ from rosbags.rosbag2.storage_mcap import McapReader
 from rosbags.typesys import Stores, get_typestore
 
 from tests.fixtures.minibag import MiniClip, write_clip
+from tests.fixtures.real import requires_real_data
 from v2xlake.tasks.ingest.payloads import messages
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "bags"
@@ -72,6 +73,7 @@ def test_payloads_equal_rosbags(tmp_path: Path, storage: str, mode: CompressionM
         assert all(isinstance(p, memoryview) and p.readonly for _, _, p in got)
 
 
+@requires_real_data("bags/ouster_os1_128_3frames_ros2")
 def test_payloads_equal_rosbags_on_real_ouster_bag() -> None:
     got = assert_same(REAL / "ouster_os1_128_3frames_ros2")
     assert sum(t == "/ouster/points" for t, _, _ in got) == 3

@@ -16,6 +16,7 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from tests.fixtures.real import requires_real_data
 from v2xlake.tasks.ingest.rawmsg import LAYOUTS, parse, parser_for
 
 REPO = Path(__file__).resolve().parents[1]
@@ -112,6 +113,7 @@ def test_fast_parsers_equal_rosbags(tmp_path: Path, storage: str) -> None:
     assert check_bag(write_bag(tmp_path, storage)) == 6 * len(LAYOUTS)
 
 
+@requires_real_data("bags/ouster_os1_128_3frames_ros2")
 def test_fast_parser_on_real_ouster_bag() -> None:
     with AnyReader([OUSTER], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as r:
         conns = [c for c in r.connections if c.msgtype == "sensor_msgs/msg/PointCloud2"]

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.fixtures.real import requires_real_data
 from v2xlake.tasks.pngcodec import encode_png
 
 STREET = (Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "images"
@@ -26,6 +27,7 @@ def test_lossless(shape: tuple[int, ...], dtype: type) -> None:
     assert back is not None and back.dtype == img.dtype and np.array_equal(back, img)
 
 
+@requires_real_data("images/street_plate_small_pjlab_0.png")
 def test_real_photo_lossless_and_not_larger_than_libpng_defaults() -> None:
     img = cv2.imread(str(STREET), cv2.IMREAD_COLOR)
     assert img is not None

@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from tests.fixtures.minibag import MiniClip, write_clip
-from tests.fixtures.real import REAL_DATA_INGEST
+from tests.fixtures.real import REAL_DATA_INGEST, requires_real_data
 from v2xlake.flows import bookkeeping
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.catalog import Catalog
@@ -116,6 +116,7 @@ def test_camera_off_grid_is_an_error(tmp_path: Path) -> None:
 
 
 
+@requires_real_data("bags/ouster_os1_128_3frames_ros2")
 def test_ouster_real_bag_passes_with_warnings(tmp_path: Path) -> None:
     lake = Lake(tmp_path / "lake")
     run_ingest(lake, REPO / "tests" / "fixtures" / "ouster", REAL_DATA_INGEST)

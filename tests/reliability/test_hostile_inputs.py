@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from tests.fixtures.minibag import MiniClip, write_clip
-from tests.fixtures.real import REAL_DATA_INGEST, SHARED_REAL
+from tests.fixtures.real import REAL_DATA_INGEST, SHARED_REAL, requires_real_data
 from v2xlake.flows.params import ParamsError, PipelineParams
 from v2xlake.flows.pipeline import STAGES
 from v2xlake.schemas.errors import ClipError
@@ -59,6 +59,7 @@ def test_a_symlink_inside_the_clip_pointing_outside_is_refused(tmp_path: Path) -
     assert _nothing_of(lake, "c1")
 
 
+@requires_real_data("bags/ouster_os1_128_3frames_ros2")
 def test_an_operator_allowed_root_is_read_in_place(tmp_path: Path) -> None:
     assert SHARED_REAL.is_dir()
     fixture = Path(__file__).resolve().parents[1] / "fixtures" / "ouster"

