@@ -536,16 +536,25 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
     Cw = np.stack([np.linalg.pinv(0.5 * (W + W.T), rcond=1e-12, hermitian=True)
                    for W in Ws]) if Ws else np.zeros((0, 6, 6))
     Uh = np.stack([_chol_upper(W) for W in Ws]) if Ws else np.zeros((0, 6, 6))
-    weak_dirs = [weak_directions(W, s.degenerate_ratio) for W in Ws]
+    weak_dirs: list[list[np.ndarray]] = [[] for _ in Ws]
 
     def effective(vf: float) -> np.ndarray:
         """Whitening of each measurement: GICP's covariance (scaled by the variance factor)
         plus the floor of what its Hessian cannot see (voxel centroids, deskew residuals,
-        what static filtering left): ``chol((vf W^+ + F)^-1)``."""
+        what static filtering left): ``chol((vf W^+ + F)^-1)``, without the directions that
+        information leaves degenerate.
+
+        Degenerate is judged on this effective information, not on the raw Hessian: beside
+        thousands of wall points a street's poles and parked cars look like 1 % of the
+        information, yet they fix the scan along the street to 1-3 cm -- as well as the floor
+        lets any direction be known. Judged on the raw Hessian, every frame of a straight
+        boulevard was "blind" along it and the clip reported 2.5 m for frames within 2 cm."""
         if not len(Cw):
             return np.zeros((0, 6, 6))
-        return np.stack([_chol_upper(_drop_weak(np.linalg.inv(vf * C + floor), weak))
-                         for C, weak in zip(Cw, weak_dirs, strict=True)])
+        infos = [np.linalg.inv(vf * C + floor) for C in Cw]
+        weak_dirs[:] = [weak_directions(I, s.degenerate_ratio) for I in infos]
+        return np.stack([_chol_upper(_drop_weak(I, weak))
+                         for I, weak in zip(infos, weak_dirs, strict=True)])
 
     Z = np.stack([c.Z for c in uc if c.Z is not None] + [o.Z for o in odo]) \
         if n_c + n_o else np.zeros((0, 4, 4))
