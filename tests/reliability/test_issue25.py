@@ -321,6 +321,7 @@ def test_user_sql_has_a_timeout_a_memory_limit_and_a_row_cap(
     assert time.perf_counter() - t0 < 15
     assert user_query(lake, "SELECT current_setting('memory_limit') AS m").to_pylist()[0][
         "m"].endswith("GiB")
+    assert user_query(lake, "SELECT * FROM range(1500000)").num_rows == 1_500_000  # no cap
     monkeypatch.setenv("V2XLAKE_QUERY_MAX_ROWS", "1000")
     with pytest.raises(QueryRefused, match="more than 1,000 rows"):
         user_query(lake, "SELECT * FROM range(5000)")
@@ -341,7 +342,7 @@ def test_a_where_that_cannot_be_interrupted_is_stopped(
     with pytest.raises(QueryTimeout, match="statement timeout"):
         build_release(lake.uri, "slow", "length(repeat('a', 2000000000)) > 0", ["lake"], 0,
                       (1.0, 0.0, 0.0))
-    assert time.perf_counter() - t0 < 2 + 10 + 20
+    assert time.perf_counter() - t0 < 2 + 3 + 20
     assert not Path(lake.path("releases", "slow")).exists()
     meta = build_release(lake.uri, "fast", "weather = 'rain'", ["lake"], 0, (1.0, 0.0, 0.0))
     assert meta["clip_ids"] == ["c1"]

@@ -431,10 +431,11 @@ def query(
 ) -> int:
     """SQL over the catalog (read-only; statement timeout V2XLAKE_QUERY_TIMEOUT_S, memory
     limit V2XLAKE_QUERY_MEMORY)."""
-    from v2xlake.storage.catalog import WHERE_GRACE_S, Catalog, query_bounds
+    from v2xlake.storage.catalog import QUERY_MAX_ROWS, WHERE_GRACE_S, Catalog, query_bounds
 
     timeout, _, cap = query_bounds()
-    rows = max_rows if max_rows is not None else (50 if format is Format.table else cap)
+    rows = max_rows if max_rows is not None else (
+        50 if format is Format.table else cap or QUERY_MAX_ROWS)
     guard = _watchdog(timeout + WHERE_GRACE_S)
     try:
         with Catalog(open_lake(lake), read_only=True) as cat:

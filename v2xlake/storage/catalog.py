@@ -108,28 +108,34 @@ class QueryTimeout(QueryRefused):
 #: Bounds of user SQL (``v2xlake query``, ``release build --where``, the API's user
 #: queries), each overridable by its environment variable: a statement timeout (seconds,
 #: ``V2XLAKE_QUERY_TIMEOUT_S``), DuckDB's memory limit (``V2XLAKE_QUERY_MEMORY``) and spill
-#: limit, and the most rows a caller fetches into memory (``V2XLAKE_QUERY_MAX_ROWS``; the
-#: CLI prints the first rows and only counts the rest).
-QUERY_TIMEOUT_S = 120.0
-QUERY_MEMORY = "2GB"
-QUERY_SPILL = "8GB"
+#: limit, and the most rows fetched: the CLI streams its answer, keeps the first
+#: ``--max-rows`` (50 for a table, ``QUERY_MAX_ROWS`` for csv/json) and only counts the
+#: rest; ``user_query`` (the API) fetches whole answers unless ``V2XLAKE_QUERY_MAX_ROWS``
+#: caps them.
+QUERY_TIMEOUT_S = 300.0
+QUERY_MEMORY = "4GB"
+QUERY_SPILL = "16GB"
 QUERY_MAX_ROWS = 1_000_000
 #: A ``--where`` predicate is evaluated in a child process that is killed at the timeout:
 #: one DuckDB function call (``repeat('a', 2000000000)``) is not interruptible.
-WHERE_GRACE_S = 10.0
+WHERE_GRACE_S = 3.0
 #: Rows per batch a user query's answer streams in (the rows past the first are only
 #: counted; a small batch would cost most of the time in per-batch overhead).
 STREAM_BATCH_ROWS = 100_000
 
 
-def query_bounds() -> tuple[float, str, int]:
-    """(timeout s, memory limit, max rows) in force (environment, else the defaults)."""
+def query_bounds() -> tuple[float, str, int | None]:
+    """(timeout s, memory limit, row cap of ``user_query`` or None) in force (environment,
+    else the defaults)."""
     env = os.environ
     try:
         timeout = float(env.get("V2XLAKE_QUERY_TIMEOUT_S", QUERY_TIMEOUT_S))
-        rows = int(env.get("V2XLAKE_QUERY_MAX_ROWS", QUERY_MAX_ROWS))
     except ValueError:
-        timeout, rows = QUERY_TIMEOUT_S, QUERY_MAX_ROWS
+        timeout = QUERY_TIMEOUT_S
+    try:
+        rows: int | None = int(env["V2XLAKE_QUERY_MAX_ROWS"])
+    except (KeyError, ValueError):
+        rows = None
     memory = env.get("V2XLAKE_QUERY_MEMORY", QUERY_MEMORY)
     if not re.fullmatch(r"\d+(\.\d+)?\s*[KMGT]i?B", memory):
         memory = QUERY_MEMORY
@@ -903,9 +909,17 @@ class Catalog:
         """One SELECT statement of user text on the locked-down, read-only connection
         (``lock_down``): COPY, ATTACH, INSTALL, PRAGMA, SET, a second statement... are
         refused before anything runs, and the connection could not do them anyway. Bounded:
-        a statement timeout, DuckDB's memory limit, and at most ``max_rows`` rows
-        (``query_bounds``) fetched, else ``QueryRefused`` (add a LIMIT, or aggregate)."""
+        a statement timeout and DuckDB's memory limit; with ``max_rows`` (or
+        ``V2XLAKE_QUERY_MAX_ROWS``) at most that many rows are fetched, else
+        ``QueryRefused`` (add a LIMIT, or aggregate)."""
         cap = query_bounds()[2] if max_rows is None else max_rows
+        if cap is None:
+            self.lock_down()
+            self._one_select(sql, "query")  # refused before any view is built
+            self._ensure(self._references(sql))
+            with self._deadline():
+                return self._guarded(lambda: self.con.execute(
+                    self._one_select(sql, "query")).fetch_arrow_table())
         head = self.user_query_head(sql, cap + 1, count_rest=False)
         if head.table.num_rows > cap:
             raise QueryRefused(f"the query returns more than {cap:,} rows: add a LIMIT or "

@@ -1218,7 +1218,7 @@ def clip_lock(lake: Lake, clip_id: str, wait_s: float | None = None) -> Iterator
     with _HELD_GUARD:
         held = _HELD.setdefault(f"{lake.uri}\0{name}", _Held())
     wait = _lock_wait_s(wait_s)
-    if not held.rlock.acquire(timeout=wait if wait > 0 else -1):
+    if not held.rlock.acquire(blocking=wait > 0, timeout=wait if wait > 0 else -1):
         raise ClipBusy(f"{what} is being written by another thread of this process; "
                        f"waited {wait:g} s")
     try:
