@@ -53,11 +53,15 @@ def test_a_face_found_in_both_key_frames_moves_with_its_region() -> None:
 
 def test_the_key_frames_disagree_the_region_is_searched_again() -> None:
     """Found before, not after: the carried box is not spread (it may be a flicker of a
-    false face); the region goes back to the detector in this frame."""
+    false face); the neighbourhood of the carried box goes back to the detector in this
+    frame, at the scale of its region."""
     f0 = Detection("face", (90.0, 425.0, 120.0, 455.0), 0.3, "centerface")
     dets, again = between(([f0], [_head(105)], 0), ([], [_head(195)], 100 * MS),
                           [_head(135)], 33 * MS, 0.5, SHAPE)
-    assert dets == [] and [r.instance for r in again] == ["ped-1"]
+    assert dets == [] and len(again) == 1
+    r = again[0]
+    assert r.kind == "face" and r.expected_px == 30.0
+    assert r.box == pytest.approx((90.0, 395.0, 180.0, 485.0))  # (120, 425, 150, 455) grown
 
 
 def test_a_detection_without_a_region_is_kept_and_grown() -> None:

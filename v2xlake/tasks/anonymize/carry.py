@@ -155,6 +155,22 @@ def _match(p: Detection, cands: Sequence[tuple[Detection, Region | None]], used:
     return best
 
 
+def _recheck(again: dict[tuple[str, ...], Region], reg: Region, box: Box, w: int, h: int
+             ) -> None:
+    """Queue a search where a key frame's detection was carried but not confirmed: a vehicle
+    face again in full (it is rectified as a whole), a face only around the carried box
+    (grown by its size on each side: a window band is long, a head small), at the scale
+    the region asks for."""
+    if reg.quad is not None or reg.kind != "face":
+        again[_key(reg)] = reg
+        return
+    if _key(reg) in again:
+        return
+    g = _grow(box, 1.0, w, h)
+    small = Region(reg.kind, g, reg.expected_px, "", None, None, reg.part, None)
+    again[(*_key(reg), *(f"{v:.0f}" for v in g))] = small
+
+
 def between(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
             after: tuple[Sequence[Detection], Sequence[Region] | None, int],
             regions: Sequence[Region] | None, t_ns: int, grow: float,
@@ -167,7 +183,8 @@ def between(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
     An object found in both key frames (same kind, similar size, moved at most its size
     once carried here) gets its box interpolated at this frame's time. Where the key frames
     disagree, this frame decides: a detection of only one of them that moved with a region
-    is dropped and its region returned to be searched here (a flickering false detection is
+    is dropped and its region (a face: the neighbourhood of the carried box) returned to be
+    searched here (a flickering false detection is
     not spread over the frames between, a flickering true one is found where it shows); one
     without a region (safety pass, full-frame plan) keeps its box, grown by ``grow`` x its
     time distance in key-frame intervals (it may have moved; the other key frame may have
@@ -179,7 +196,7 @@ def between(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
     c0, c1 = carry(d0, r0, regions, fresh), carry(d1, r1, regions, fresh)
     used: set[int] = set()
     out: list[Detection] = []
-    again: dict[tuple[str, str, str], Region] = {}
+    again: dict[tuple[str, ...], Region] = {}
     for p, reg in c0:
         k = _match(p, c1, used)
         if k is not None:
@@ -188,14 +205,14 @@ def between(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
             box = tuple(float((1 - a) * u + a * v) for u, v in zip(p.box, q.box, strict=True))
             out.append(Detection(p.kind, box, min(p.score, q.score), CARRIED))  # type: ignore[arg-type]
         elif reg is not None:
-            again[_key(reg)] = reg
+            _recheck(again, reg, p.box, w, h)
         else:
             out.append(Detection(p.kind, _grow(p.box, grow * a, w, h), p.score, CARRIED))
     for k, (q, reg) in enumerate(c1):
         if k in used:
             continue
         if reg is not None:
-            again[_key(reg)] = reg
+            _recheck(again, reg, q.box, w, h)
         else:
             out.append(Detection(q.kind, _grow(q.box, grow * (1 - a), w, h), q.score, CARRIED))
     out = [Detection(d.kind, _grow(d.box, 0.0, w, h), d.score, d.detector) for d in out]
