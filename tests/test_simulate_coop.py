@@ -226,6 +226,10 @@ def test_ins_noise_drift_and_step_variations() -> None:
     jump = black.bias(np.array([2.0])) - black.bias(np.array([2.0 - 1e-9]))
     assert np.allclose(jump, [0.3, 0.0, 0.0], atol=1e-9)
     assert np.allclose(red.bias(np.array([1.0, 3.0])), [red.drift * 1.0, red.drift * 3.0])
+    # drift on one agent only: the other keeps its (zero) bias
+    one = coop_config("v", seconds=10.0, ins_drift_mps=0.1, ins_drift_agents=("black",))
+    assert not ins_error(one, "red").drift.any()
+    assert np.array_equal(ins_error(one, "black").drift, black.drift)
     # exact by default, the same world for the same seed
     base = coop_config("v", seconds=3.0)
     assert not np.any(ins_error(base, "black").bias(np.linspace(0, 3, 7)))

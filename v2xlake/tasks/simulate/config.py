@@ -106,6 +106,9 @@ class SimConfig(BaseModel):
                           "(None: every agent; the others publish the true one)")
     ins_drift_mps: float = Field(0.0, ge=0.0, description="INS position drift rate per agent "
                                  "(m/s, a seeded horizontal direction): b(t) += v_d * t")
+    ins_drift_agents: tuple[str, ...] | None = Field(
+        None, description="agents whose INS drifts by ins_drift_mps (None: every vehicle); "
+                          "the drift direction of each agent is drawn either way")
     lidar_ext_err_xyz_m: tuple[float, float, float] | None = Field(
         None, description="explicit LiDAR extrinsic error: published translation = true + this "
                           "(base_link axes, m); with lidar_ext_err_rpy_deg replaces the "
@@ -180,12 +183,12 @@ class SimConfig(BaseModel):
             raise ValueError(f"unknown cameras {bad}; choose from {CAMERA_NAMES}")
         return tuple(c for c in CAMERA_NAMES if c in v)
 
-    @field_validator("ins_step_agents")
+    @field_validator("ins_step_agents", "ins_drift_agents")
     @classmethod
-    def _step_agents(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        bad = [a for a in v if a not in AGENT_NAMES]
+    def _error_agents(cls, v: tuple[str, ...] | None) -> tuple[str, ...] | None:
+        bad = [a for a in v or () if a not in AGENT_NAMES]
         if bad:
-            raise ValueError(f"ins_step_agents: unknown agents {bad}; choose from {AGENT_NAMES}")
+            raise ValueError(f"unknown agents {bad}; choose from {AGENT_NAMES}")
         return v
 
     @field_validator("camera_hz")

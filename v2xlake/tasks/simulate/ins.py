@@ -8,7 +8,8 @@ What the INS reports (its error model, per agent, seeded):
   constant bias of norm ``ins_bias_m`` (mostly horizontal) plus a slow wander of amplitude
   ``ins_bias_drift_m`` and period ``ins_bias_period_s`` (default 300 s, i.e. < 0.1 mm change
   within one LiDAR sweep; none for the static roadside unit, whose "INS" is a surveyed pose),
-  plus an optional linear drift ``v_d * t`` (``ins_drift_mps``, a seeded horizontal direction;
+  plus an optional linear drift ``v_d * t`` (``ins_drift_mps``, a seeded horizontal direction,
+  on the agents of ``ins_drift_agents`` or every vehicle;
   none for the roadside unit), plus an optional step ``s * [t >= t_s]`` (``ins_step_m`` at
   ``ins_step_at_s`` on the agents of ``ins_step_agents``: a sudden jump such as a GNSS
   re-convergence, part of ``b(t)`` so truth and eq. 1a see it), plus optional white noise
@@ -74,7 +75,8 @@ def ins_error(cfg: SimConfig, agent: str) -> InsError:
     rate = np.zeros(3)
     if cfg.ins_drift_mps > 0 and agent != "rsu":  # drawn last: other errors keep their values
         a = rng.uniform(0, 2 * np.pi)
-        rate = cfg.ins_drift_mps * np.array([np.cos(a), np.sin(a), 0.0])
+        if cfg.ins_drift_agents is None or agent in cfg.ins_drift_agents:
+            rate = cfg.ins_drift_mps * np.array([np.cos(a), np.sin(a), 0.0])
     step = np.zeros(3)
     if cfg.ins_step_m is not None and agent in cfg.ins_step_agents and agent != "rsu":
         step = np.asarray(cfg.ins_step_m, float)
