@@ -58,7 +58,7 @@ EOF
     # shellcheck disable=SC2086
     python -m pip uninstall -q -y $STALE
   fi
-  step 3/5 "$(grep -vc '^#' requirements.lock) locked packages: ~2.4 GB in .venv, 3-6 min on a first install (~1 min from pip's cache)"
+  step 3/5 "$(grep -vc '^#' requirements.lock) locked packages: ~2.5 GB in .venv, 2-3 min on a first install from a nearby registry, ~1 min from pip's cache"
   # The lock is the full closure, so --no-deps keeps pip from pulling anything unpinned.
   python -m pip install -q --disable-pip-version-check --no-deps -r requirements.lock
   step 4/5 "test oracles (nuscenes-devkit, scikit-learn) into .venv/test-oracles: ~60 MB, ~20 s"
