@@ -108,8 +108,9 @@ def registered_track(clip: ClipRecord, ref: AgentData, agent: AgentData, max_gap
     every consumer uses (the effective calibration). The difference to the INS pose at tj --
     a rotation about the agent and a shift, in world axes -- is interpolated linearly
     between accepted frames at most ``max_gap_ns`` apart and applied to the INS samples
-    there (and added as samples at each tj, so the track reproduces every registered
-    transform exactly); elsewhere the INS track stands. None when nothing is accepted.
+    there, whose times stay the same (so per-sample data such as velocities still lines up;
+    between samples the correction is interpolated with the pose, sub-millimetre at INS
+    rates); elsewhere the INS track stands. None when nothing is accepted.
 
     Why the whole track and not only the LiDAR frames: cameras, radar, boxes and the ROS
     ``/tf`` tree of this agent are placed by the same ego track, so all of them move with
@@ -154,17 +155,16 @@ def registered_track(clip: ClipRecord, ref: AgentData, agent: AgentData, max_gap
     tk = np.asarray(t_k, np.int64)[o]
     keep = np.concatenate([[True], np.diff(tk) > 0])
     tk, wk, pk = tk[keep], np.asarray(dR)[o][keep], np.asarray(dp)[o][keep]
-    t_all = np.union1d(ins.t_ns, tk)
-    xyz, q = ins.at(t_all)
+    t_all = ins.t_ns
+    xyz, q = ins.xyz, ins.quat_wxyz
     # accepted frames bracketing each sample, bridged only when close enough
     k = np.searchsorted(tk, t_all, side="right") - 1
     i0 = np.clip(k, 0, len(tk) - 1)
     i1 = np.clip(k + 1, 0, len(tk) - 1)
-    exact = (k >= 0) & (tk[i0] == t_all)
     inside = (k >= 0) & (k < len(tk) - 1)
     gap = tk[i1] - tk[i0]
     bridged = inside & (gap <= max_gap_ns)
-    use = exact | bridged
+    use = bridged
     a = np.where(bridged, (t_all - tk[i0]) / np.maximum(gap, 1), 0.0)[:, None]
     w = wk[i0] * (1 - a) + wk[i1] * a
     p = pk[i0] * (1 - a) + pk[i1] * a

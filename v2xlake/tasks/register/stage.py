@@ -38,6 +38,7 @@ from v2xlake.tasks.register.core import (
     refine,
     transform_delta,
 )
+from v2xlake.tasks.register.covisible import covisible_mask
 from v2xlake.tasks.register.scans import (
     AgentScans,
     Body,
@@ -70,8 +71,14 @@ class RegisterConfig(BaseModel):
         "small_gicp", description="GICP implementation; small_gicp is ~1.4x faster here")
     sensor: str | None = Field(None, description="LiDAR to register; default LIDAR_TOP or the "
                                                  "agent's only LiDAR")
-    voxel_m: float = Field(0.6, gt=0, description="target (reference scan) voxel size")
-    source_voxel_m: float = Field(1.0, gt=0, description="source (other scan) voxel size")
+    voxel_m: float = Field(
+        0.3, gt=0, description="target (reference scan) voxel size. Coarse voxels bias the "
+        "relative pose along a street: a voxel's centroid on poles, car bodies and wall "
+        "edges depends on the side each agent saw it from. Measured on the cooperative "
+        "boulevard (64 x 1024 scans): 0.6 / 1.0 m left the frames' GICP 2.2 cm off along "
+        "the street (median) and 9 of 100 frames 3.1-3.3 cm off; 0.3 / 0.3 m 0.7 cm, none "
+        "beyond 2.8 cm, at about 3x the GICP time")
+    source_voxel_m: float = Field(0.3, gt=0, description="source (other scan) voxel size")
     max_range_m: float = Field(80.0, gt=0)
     num_neighbors: int = Field(10, ge=5, description="neighbours per covariance")
     max_correspondence_m: float = Field(1.0, gt=0)
@@ -104,6 +111,11 @@ class RegisterConfig(BaseModel):
                                       "the earlier AND the later neighbouring scans is moving")
     dynamic_neighbours: int = Field(2, ge=1, description="scans on each side compared")
     dynamic_voxel_m: float = Field(0.25, gt=0, description="voxel of the neighbouring scans")
+    covisible: bool = Field(
+        True, description="GICP between two agents on the surfaces both see from the same "
+        "side only: a pole or parked car between the agents is seen from opposite sides, two "
+        "surfaces a diameter apart that GICP pulls together (measured on the cooperative "
+        "boulevard: 2 cm along the street with the agents 20 m apart, 9-12 cm at 50 m)")
     dynamic_object_fraction: float = Field(
         0.25, gt=0, le=1, description="an above-ground object (connected in bird's-eye view) "
         "with this fraction of moving points is removed whole (1: per point only)")
@@ -549,6 +561,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
         voxel_s_per_frame=float(timing["voxel_s"]) / n_frames,
         filter_s_per_frame=float(timing["filter_s"]) / n_frames,
         odometry_s_per_frame=float(timing["odometry_s"]) / n_frames,
+        covisible_s_per_frame=float(timing["covisible_s"]) / n_frames,
         solve_s_per_frame=float(timing.get("solve_s", 0.0)) / n_frames,
         removed_boxes=float(removed.boxes), removed_bodies=float(removed.bodies),
         removed_dynamic=float(removed.dynamic),
@@ -617,6 +630,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     warm: dict[str, np.ndarray | None] = {o.agent: None for o in others}
     out: list[_Pair] = []
     timing: dict[str, Any] = {"pair_s": [], "gicp_s": 0.0, "filter_s": 0.0, "odometry_s": 0.0,
+                              "covisible_s": 0.0,
                               "ground": {a: [] for a in scans}}
 
     def secs(agent: str, f: int) -> float:
@@ -644,6 +658,16 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                 del recent[agent][old]
             _odometry(agent, f)
         return prep, "", len(sc.points), sc.counts
+
+    def covisible(prep: Prepared, other_origin: np.ndarray) -> Prepared:
+        """The prepared scan cut to what the other LiDAR sees from the same side
+        (:mod:`covisible`); the whole scan where too little would remain."""
+        t = time.perf_counter()
+        keep = covisible_mask(prep.points, other_origin)
+        if keep.sum() >= max(cfg.min_inliers, 0.3 * len(keep)) and not keep.all():
+            prep = backend.prepare_points(prep.points[keep])
+        timing["covisible_s"] += time.perf_counter() - t
+        return prep
 
     def _odometry(agent: str, f: int) -> None:
         a = scans[agent]
@@ -681,6 +705,10 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
             t = time.perf_counter()
             if target is None or source is None:
                 res = failed_pair(T_init, why_t or why_s)
+            elif cfg.covisible:
+                res = refine(backend, covisible(target, T_init[:3, 3]),
+                             covisible(source, invert(T_init)[:3, 3]), T_init, limits,
+                             warm[o.agent] if cfg.warm_start else None)
             else:
                 res = refine(backend, target, source, T_init, limits,
                              warm[o.agent] if cfg.warm_start else None)
