@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import cv2
 import numpy as np
 
 from v2xlake.tasks.anonymize.detectors import Box, Detection
@@ -155,16 +156,58 @@ def _match(p: Detection, cands: Sequence[tuple[Detection, Region | None]], used:
     return best
 
 
+PLATE_PAD_M = (0.4, 0.2)  # a plate re-searched on its vehicle face: this much face around it
+
+
+def _sub_face(reg: Region, box: Box, w: int, h: int) -> Region | None:
+    """The part of a rectified vehicle face around a carried plate box: the box's corners
+    taken to the face plane (metres, through the face's homography), grown by
+    ``PLATE_PAD_M`` (enough body around the plate for the plate-blob colour test), clipped
+    to the face, and back to an image quad. None when the box does not map into the face."""
+    assert reg.quad is not None and reg.size_m is not None
+    fw, fh = reg.size_m
+    rect = np.array([[0, 0], [fw, 0], [fw, fh], [0, fh]], np.float32)
+    H = cv2.getPerspectiveTransform(rect, np.asarray(reg.quad, np.float32))
+    try:
+        Hinv = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    pts = np.array([[[box[0], box[1]]], [[box[2], box[1]]], [[box[2], box[3]]],
+                    [[box[0], box[3]]]], np.float64)
+    m = cv2.perspectiveTransform(pts, Hinv).reshape(-1, 2)
+    if not np.isfinite(m).all():
+        return None
+    x0 = max(float(m[:, 0].min()) - PLATE_PAD_M[0], 0.0)
+    x1 = min(float(m[:, 0].max()) + PLATE_PAD_M[0], fw)
+    y0 = max(float(m[:, 1].min()) - PLATE_PAD_M[1], 0.0)
+    y1 = min(float(m[:, 1].max()) + PLATE_PAD_M[1], fh)
+    if x1 - x0 < 0.1 or y1 - y0 < 0.05:
+        return None
+    q = cv2.perspectiveTransform(np.array([[[x0, y0]], [[x1, y0]], [[x1, y1]], [[x0, y1]]],
+                                          np.float64), H).reshape(-1, 2)
+    bb = (max(float(q[:, 0].min()), 0.0), max(float(q[:, 1].min()), 0.0),
+          min(float(q[:, 0].max()), float(w)), min(float(q[:, 1].max()), float(h)))
+    if bb[2] - bb[0] < 2 or bb[3] - bb[1] < 2:
+        return None
+    quad = tuple((float(u), float(v)) for u, v in q)
+    return Region(reg.kind, bb, reg.expected_px, "", quad, (x1 - x0, y1 - y0), reg.part, None)
+
+
 def _recheck(again: dict[tuple[str, ...], Region], reg: Region, box: Box, w: int, h: int
              ) -> None:
-    """Queue a search where a key frame's detection was carried but not confirmed: a vehicle
-    face again in full (it is rectified as a whole), a face only around the carried box
-    (grown by its size on each side: a window band is long, a head small), at the scale
-    the region asks for."""
-    if reg.quad is not None or reg.kind != "face":
-        again[_key(reg)] = reg
-        return
+    """Queue a search where a key frame's detection was carried but not confirmed, at the
+    scale its region asks for: on a vehicle face the rectified part around the carried
+    plate (``_sub_face``); a face around the carried box, grown by its size on each side
+    (a window band is long, a head small); anything else, its whole region."""
     if _key(reg) in again:
+        return
+    if reg.quad is not None and reg.size_m is not None:
+        sub = _sub_face(reg, box, w, h)
+        if sub is not None:
+            again[(*_key(reg), *(f"{v:.0f}" for v in sub.box))] = sub
+            return
+    if reg.kind != "face":
+        again[_key(reg)] = reg
         return
     g = _grow(box, 1.0, w, h)
     small = Region(reg.kind, g, reg.expected_px, "", None, None, reg.part, None)
