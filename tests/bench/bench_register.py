@@ -2,6 +2,15 @@
 
     python tests/bench/bench_register.py [--frames 10] [--voxel 0.3] [--beams 128 --cols 2048]
     python tests/bench/bench_register.py --street [--seconds 16 --turn-at 13] [--workdir DIR]
+    python tests/bench/bench_register.py --coop [--coop-seconds 3 10] [--workdir DIR]
+
+``--coop``: the cooperative boulevard of issue #21 (``coop_config``, 64 x 1024 scans) and its
+variations (the other vehicle ahead / 5-50 m away, no turn, INS drift and noise, an INS step,
+another seed), each simulated once into ``--workdir``; per variation: pairs within 3 cm /
+0.1 deg, accepted, accepted outside it (must be 0), the register stage's time per frame pair
+and its share of the clip's processing time (ingest + anonymize + deskew + register), and
+small_gicp.align called directly on the same deskewed scan pairs from eq. 1a (time, ratio,
+accuracy).
 
 ``--street``: the hard street of issue #13 (simulator preset ``street`` at full size, 128
 beams x 1800 columns, ~225k points per scan) through ingest, anonymize and deskew once
@@ -22,6 +31,7 @@ The process is pinned to one CPU (Open3D ignores OMP_NUM_THREADS).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -151,8 +161,110 @@ def street(args: argparse.Namespace) -> None:
           f"static filtering {ours[2]:.4f} s per frame")
 
 
+COOP_VARIATIONS: dict[str, dict[str, Any]] = {
+    "base (20 m behind)": {},
+    "ahead 20 m": {"coop_gap_m": 20.0},
+    "behind 9 m": {"coop_gap_m": -9.0},
+    "behind 50 m": {"coop_gap_m": -50.0},
+    "ahead 50 m": {"coop_gap_m": 50.0},
+    "no turn": {"turn_rate_radps": 0.0},
+    "no turn, ahead 20 m": {"turn_rate_radps": 0.0, "coop_gap_m": 20.0},
+    "INS drift 10 cm/s": {"ins_drift_mps": 0.1},
+    "INS drift 20 cm/s + noise 2 cm": {"ins_drift_mps": 0.2, "ins_noise_m": 0.02},
+    "INS step 30 cm": {"ins_step_m": (0.3, 0.0, 0.0), "ins_step_at_s": 1.5},
+    "seed 2": {"seed": 2},
+}
+
+
+def coop(args: argparse.Namespace) -> None:
+    import tempfile
+
+    import pyarrow.parquet as pq
+    import small_gicp
+
+    from tests.fixtures.street import _m, coop_config, registration_errors
+    from v2xlake.storage.lake import Lake
+    from v2xlake.tasks.anonymize import run_anonymize
+    from v2xlake.tasks.deskew.stage import run_deskew
+    from v2xlake.tasks.ingest import run_ingest
+    from v2xlake.tasks.register.core import initial_transform_at
+    from v2xlake.tasks.register.scans import AgentScans
+    from v2xlake.tasks.register.stage import RegisterConfig, run_register
+    from v2xlake.tasks.simulate import simulate
+
+    base = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench_coop"))
+    names = [n for n in COOP_VARIATIONS if not args.only or any(o in n for o in args.only)]
+    print(f"cooperative boulevard, 64 x 1024 scans, one core; workdir {base}")
+    print(f"{'variation':34s} {'s':>3s} {'eq1a cm':>7s} {'<=3cm':>6s} {'acc':>4s} "
+          f"{'wrong':>5s} {'med cm':>6s} {'reg s/pair':>10s} {'share':>6s} "
+          f"{'sg.align s':>10s} {'x ours':>6s} {'sg <=3cm':>8s}")
+    for secs in args.coop_seconds:
+        for name in names:
+            over = dict(COOP_VARIATIONS[name])
+            seed = int(over.pop("seed", 1))
+            cid = "coop"
+            root = base / f"{name.replace(' ', '_').replace('/', '')}_{secs:g}s"
+            cfg = coop_config(cid, seconds=secs, seed=seed, **over)
+            times = {}
+            if not (root / "lake").exists():
+                clip = simulate(root / "clip", cfg)
+                lake = Lake(root / "lake")
+                t = time.perf_counter()
+                run_ingest(lake, clip)
+                times["ingest"] = time.perf_counter() - t
+                t = time.perf_counter()
+                run_anonymize(lake, cid)
+                times["anonymize"] = time.perf_counter() - t
+                t = time.perf_counter()
+                run_deskew(lake, cid)
+                times["deskew"] = time.perf_counter() - t
+                (root / "times.json").write_text(json.dumps(times))
+            else:
+                times = json.loads((root / "times.json").read_text())
+            lake, clip_dir = Lake(root / "lake"), root / "clip"
+            t = time.perf_counter()
+            rep = run_register(lake, cid, RegisterConfig(write_bev=False))
+            t_reg = time.perf_counter() - t
+            errs = registration_errors(lake, clip_dir, cid)
+            n = len(errs)
+            within = sum(e.within() for e in errs)
+            acc = sum(e.accepted for e in errs)
+            wrong = sum(e.accepted and not e.within() for e in errs)
+            med = float(np.median([e.final_m for e in errs])) * 100
+            init = float(np.median([e.init_m for e in errs])) * 100
+            share = t_reg / (t_reg + sum(times.values()))
+            # small_gicp.align as a user would call it, on the same deskewed pairs from eq. 1a
+            ref, oth = AgentScans(lake, cid, "red", None), AgentScans(lake, cid, "black", None)
+            rel = {r["frame_idx"]: _m(r, "", ("x", "y", "z")) for r in pq.read_table(
+                clip_dir / "truth" / "relative.parquet").to_pylist()
+                if r["agent_other"] == "black"}
+            d_t, d_ok = [], 0
+            frames = sorted(ref.frames)[:: max(1, len(ref.frames) // args.direct_pairs)]
+            for f in frames:
+                a, b = ref.points(f).astype(np.float64), oth.points(f).astype(np.float64)
+                T0 = initial_transform_at(ref.track, oth.track, ref.T_ego_lidar,
+                                          oth.T_ego_lidar, ref.frames[f][1], oth.frames[f][1])
+                t = time.perf_counter()
+                r = small_gicp.align(a, b, T0, registration_type="GICP",
+                                     downsampling_resolution=0.3,
+                                     max_correspondence_distance=1.0, num_threads=1)
+                d_t.append(time.perf_counter() - t)
+                m_, d_ = transform_delta(rel[f], r.T_target_source)
+                d_ok += m_ <= 0.03 and d_ <= 0.1
+            per_pair = t_reg / max(n, 1)
+            print(f"{name:34s} {secs:3g} {init:7.1f} {within:3d}/{n:<3d} {acc:4d} {wrong:5d} "
+                  f"{med:6.2f} {per_pair:10.3f} {share * 100:5.0f}% {np.median(d_t):10.3f} "
+                  f"{per_pair / np.median(d_t):6.2f} {d_ok:4d}/{len(frames):<3d}")
+            notes = [x for x in rep.notes if x.startswith("calibration black")]
+            if notes:
+                print(f"{'':38s}{notes[0][:110]}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--coop", action="store_true", help="the cooperative boulevard of #21")
+    ap.add_argument("--coop-seconds", type=float, nargs="+", default=[3.0, 10.0])
+    ap.add_argument("--only", nargs="*", default=None, help="variations whose name contains")
     ap.add_argument("--street", action="store_true", help="the hard street of issue #13")
     ap.add_argument("--seconds", type=float, default=16.0)
     ap.add_argument("--turn-at", type=float, default=13.0)
@@ -169,6 +281,9 @@ def main() -> None:
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
     if args.street:
         street(args)
+        return
+    if args.coop:
+        coop(args)
         return
     t = time.perf_counter()
     cases = [c for sc in ("straight", "turning")
