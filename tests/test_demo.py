@@ -53,7 +53,8 @@ def test_demo_then_cli(tmp_path: Path) -> None:
     p = _run(["plot", "registration", "--lake", str(lake), "--clip", clip_id, "--out", str(png)],
              env, tmp_path, 120)
     assert p.returncode == 0, p.stdout + p.stderr
-    assert png.read_bytes()[:4] == b"\x89PNG"
+    assert png.read_bytes()[:4] == b"\x89PNG"  # the clip's registration over time
+    assert (tmp_path / "reg_bev.png").read_bytes()[:4] == b"\x89PNG"  # one frame's BEV
 
     rb = _run(["release", "build", "demo-r1", "--lake", str(lake), "--where", "true",
                "--formats", "nuscenes"], env, tmp_path, 240)

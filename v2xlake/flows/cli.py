@@ -53,6 +53,7 @@ class Storage(StrEnum):
 class Preset(StrEnum):
     small = "small"
     street = "street"
+    coop = "coop"
     cats = "cats"
 
 
