@@ -62,9 +62,13 @@ EOF
   # The lock is the full closure, so --no-deps keeps pip from pulling anything unpinned.
   python -m pip install -q --disable-pip-version-check --no-deps -r requirements.lock
   step 4/5 "test oracles (nuscenes-devkit, scikit-learn) into .venv/test-oracles: ~60 MB, ~20 s"
-  rm -rf .venv/test-oracles
-  python -m pip install -q --disable-pip-version-check --no-deps --target .venv/test-oracles \
-    -r requirements-oracles.lock
+  # built beside the old folder and swapped in, so a test run in progress keeps its devkit
+  rm -rf .venv/test-oracles.new .venv/test-oracles.old
+  python -m pip install -q --disable-pip-version-check --no-deps \
+    --target .venv/test-oracles.new -r requirements-oracles.lock
+  [ ! -d .venv/test-oracles ] || mv .venv/test-oracles .venv/test-oracles.old
+  mv .venv/test-oracles.new .venv/test-oracles
+  rm -rf .venv/test-oracles.old
   step 5/5 "v2xlake itself, editable (~10 s)"
   # setuptools' build log (its generic notice about editable installs included) goes to a
   # file, shown only when the install fails
