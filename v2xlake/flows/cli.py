@@ -583,11 +583,29 @@ def calibration(
     clip: Annotated[str, typer.Argument(help="clip id")],
     lake: LakeOpt = DEFAULT_LAKE,
     fmt: Annotated[Format, typer.Option("--format")] = Format.table,
+    frames: Annotated[bool, typer.Option(
+        "--frames", help="per frame pair: GICP vs clip estimate vs eq. 1a, the 1-sigma and "
+        "the decision with its reason")] = False,
 ) -> int:
     """Published vs refined LiDAR extrinsics per agent and sensor: the clip solve's
-    correction (LiDAR frame), its 1-sigma, and which one deskew, alignment and exports use."""
-    from v2xlake.tasks.register.calibration import compare_calibration, format_calibration
+    correction (LiDAR frame), its 1-sigma, which one deskew, alignment and exports use, and
+    why a published one is kept; ``--frames`` lists every registered frame pair."""
+    from v2xlake.tasks.register.calibration import (
+        compare_calibration,
+        format_calibration,
+        format_frames,
+        frame_rows,
+    )
 
+    if frames:
+        fr = frame_rows(known_clip(lake, clip), clip)
+        if not fr:
+            raise UserError(f"clip {clip} has no registrations in {lake}")
+        if fmt is Format.json:
+            sys.stdout.write(json.dumps(fr, indent=1) + "\n")
+        else:
+            _console().print(_esc(format_frames(fr)))
+        return 0
     rows = compare_calibration(known_clip(lake, clip), clip)
     if not rows:
         raise UserError(f"clip {clip} has no LiDAR calibration in {lake}")
@@ -601,7 +619,7 @@ def calibration(
             "std_m": r.std_m if r.refined is not None else None,
             "std_deg": r.std_deg if r.refined is not None else None,
             "refined_components": r.refined_components, "usable": r.usable,
-            "used": r.effective} for r in rows]
+            "used": r.effective, "reason": r.reason} for r in rows]
     if fmt is Format.json:
         sys.stdout.write(json.dumps(out, indent=1) + "\n")
     else:

@@ -38,6 +38,7 @@ class CalibrationComparison:
     refined_components: str
     usable: bool
     effective: str  # "refined" | "published": what annotate, align and the exports use
+    reason: str = ""  # why (part of) the published extrinsic is kept
 
     @property
     def delta_lidar(self) -> np.ndarray:
@@ -76,7 +77,7 @@ def compare_calibration(lake: Lake, clip_id: str,
                 float(np.degrees(rotation_angle(d))), float(r["std_m"]) if r else float("nan"),
                 float(r["std_deg"]) if r else float("nan"),
                 str(r["refined_components"]) if r else "", bool(r["usable"]) if r else False,
-                source[s]))
+                source[s], str((r or {}).get("reason") or "")))
     return out
 
 
@@ -92,5 +93,51 @@ def format_calibration(rows: list[CalibrationComparison]) -> str:
                else "-")
         lines.append(f"{r.agent_id:10s} {r.sensor:12s} {d[0]:7.3f} {d[1]:7.3f} {d[2]:7.3f} "
                      f"{d[3] * 100:7.1f} {d[4] * 100:7.1f} {d[5] * 100:7.1f} {sig:>15s} "
-                     f"{(r.refined_components or '-'):16s} {r.effective}")
+                     f"{(r.refined_components or '-'):16s} {r.effective}"
+                     + (f"  ({r.reason})" if r.reason else ""))
+    return "\n".join(lines)
+
+
+def frame_rows(lake: Lake, clip_id: str) -> list[dict[str, object]]:
+    """Per registered frame pair: eq. 1a (INS + published extrinsics), the frame's own GICP
+    and the clip estimate, each as the correction of eq. 1a (cm, deg in the reference LiDAR
+    frame), the estimate's 1-sigma, and the decision with its reason."""
+    from v2xlake.tasks.register.timeline import _T, correction
+
+    out: list[dict[str, object]] = []
+    rows = read(lake, "registrations", clip_id).to_pylist()
+    for r in sorted(rows, key=lambda r: (r["agent_other"], r["frame_idx"])):
+        init = _T(r, "init_")
+        fin, gicp = _T(r, ""), _T(r, "gicp_")
+        if init is None or fin is None:
+            continue
+        f = correction(init, fin)
+        g = correction(init, gicp) if gicp is not None else None
+        out.append({
+            "agent_other": r["agent_other"], "frame_idx": r["frame_idx"],
+            "t_s": r["t_ns"] * 1e-9,
+            "gicp_cm": None if g is None else float(np.linalg.norm(g[:3])),
+            "gicp_deg": None if g is None else float(np.linalg.norm(g[3:])),
+            "final_cm": float(np.linalg.norm(f[:3])), "final_deg": float(np.linalg.norm(f[3:])),
+            "final_minus_gicp_cm": None if g is None else float(np.linalg.norm(f[:3] - g[:3])),
+            "std_cm": None if r.get("std_m") is None else float(r["std_m"]) * 100,
+            "std_deg": r.get("std_deg"), "accepted": bool(r["accepted"]),
+            "reason": str(r["reason"])})
+    return out
+
+
+def format_frames(rows: list[dict[str, object]]) -> str:
+    """A table of :func:`frame_rows`: what registration moved each frame by, from where."""
+    head = (f"{'other':8s} {'frame':>5s} {'t s':>6s} {'GICP cm':>8s} {'clip cm':>8s} "
+            f"{'clip-GICP':>9s} {'1-sigma':>8s} {'acc':>4s} reason")
+    lines = [head, "-" * len(head)]
+
+    def num(x: object, f: str) -> str:
+        return "-" if x is None else format(x, f)
+
+    for r in rows:
+        lines.append(f"{r['agent_other']!s:8s} {r['frame_idx']:5d} {r['t_s']:6.2f} "
+                     f"{num(r['gicp_cm'], '8.1f')} {num(r['final_cm'], '8.1f')} "
+                     f"{num(r['final_minus_gicp_cm'], '9.1f')} {num(r['std_cm'], '8.1f')} "
+                     f"{'yes' if r['accepted'] else 'no':>4s} {r['reason']}")
     return "\n".join(lines)
