@@ -26,6 +26,10 @@ from v2xlake.tasks.geometry import iou_xyxy
 # Face boxes inside the source photos (CenterFace's own box on the full photo, rounded).
 ASTRONAUT_FACE: Box = (181.0, 58.0, 270.0, 178.0)
 GRACE_HOPPER_FACE: Box = (175.0, 131.0, 357.0, 336.0)
+# The whole face, hand-labelled on the same photos: hairline to chin, ear to ear (what must be
+# blurred, as against the detector's box; the astronaut's ears are under her hair).
+WHOLE_FACES: dict[str, Box] = {"astronaut": (176.0, 58.0, 278.0, 178.0),
+                               "grace_hopper": (152.0, 131.0, 375.0, 325.0)}
 
 
 @dataclass(frozen=True)
@@ -242,6 +246,32 @@ def match(
             found[i] = bool(hit.any())
             used |= hit
     return found, int((~used).sum())
+
+
+def whole_face(t: TrueBox) -> Box:
+    """The hand-labelled whole face (``WHOLE_FACES``) of a face pasted by ``synth_scene``,
+    in the frame: the photo's detector box maps onto the pasted box ``t.box``."""
+    name = t.source
+    src = ASTRONAUT_FACE if name == "astronaut" else GRACE_HOPPER_FACE
+    whole = WHOLE_FACES[name]
+    s = (t.box[3] - t.box[1]) / (src[3] - src[1])
+    return (t.box[0] + (whole[0] - src[0]) * s, t.box[1] + (whole[1] - src[1]) * s,
+            t.box[0] + (whole[2] - src[0]) * s, t.box[1] + (whole[3] - src[1]) * s)
+
+
+def blurred_share(box: Box, blurred: Sequence[tuple[int, int, int, int]],
+                  shape: tuple[int, ...]) -> float:
+    """Share of ``box``'s pixels inside the union of the ``blurred`` pixel regions (what
+    ``blur.blur_boxes`` returns: the detector boxes grown by the blur margin)."""
+    h, w = shape[:2]
+    x0, y0 = max(int(np.floor(box[0])), 0), max(int(np.floor(box[1])), 0)
+    x1, y1 = min(int(np.ceil(box[2])), w), min(int(np.ceil(box[3])), h)
+    if x1 <= x0 or y1 <= y0:
+        return 1.0
+    m = np.zeros((y1 - y0, x1 - x0), bool)
+    for bx0, by0, bx1, by1 in blurred:
+        m[max(by0 - y0, 0) : max(by1 - y0, 0), max(bx0 - x0, 0) : max(bx1 - x0, 0)] = True
+    return float(m.mean())
 
 
 # ------------------------------------------------------------------ simulator ground truth
