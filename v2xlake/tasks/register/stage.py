@@ -626,6 +626,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     limits = cfg.limits(gate=not cfg.clip_solve)
     # recent prepared clouds per agent, for odometry: frame -> Prepared
     recent: dict[str, dict[int, Prepared]] = {a: {} for a in scans}
+    odo_frames = {a: {g: i for i, g in enumerate(sorted(sc.frames))} for a, sc in scans.items()}
     odo: list[OdoMeasurement] = []
     warm: dict[str, np.ndarray | None] = {o.agent: None for o in others}
     out: list[_Pair] = []
@@ -640,39 +641,51 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         a = scans[agent]
         return a.track.matrices(a.frames[f][1])[0]
 
-    def prepare(agent: str, f: int, voxel: float) -> tuple[Prepared | None, str, int,
-                                                          RemovalCounts]:
-        sc = filt[agent].filtered(f, voxel)
-        timing["ground"][agent].append(sc.ground_m)
+    def prepare(points: np.ndarray) -> tuple[Prepared | None, str]:
         t = time.perf_counter()
         try:
-            prep = backend.prepare_points(sc.points)
+            return backend.prepare_points(points), ""
         except Exception as e:  # per frame, never the clip's end
+            return None, f"{backend.name} could not prepare the scan: {e}"
+        finally:
             timing["gicp_s"] += time.perf_counter() - t
-            return None, f"{backend.name} could not prepare the scan: {e}", len(sc.points), \
-                sc.counts
-        timing["gicp_s"] += time.perf_counter() - t
-        if cfg.odometry_every > 0:
-            recent[agent][f] = prep
-            for old in [g for g in recent[agent] if g < f - cfg.odometry_gap]:
-                del recent[agent][old]
-            _odometry(agent, f)
-        return prep, "", len(sc.points), sc.counts
 
-    def covisible(prep: Prepared, other_origin: np.ndarray) -> Prepared:
-        """The prepared scan cut to what the other LiDAR sees from the same side
-        (:mod:`covisible`); the whole scan where too little would remain."""
-        t = time.perf_counter()
-        keep = covisible_mask(prep.points, other_origin)
-        if keep.sum() >= max(cfg.min_inliers, 0.3 * len(keep)) and not keep.all():
-            prep = backend.prepare_points(prep.points[keep])
-        timing["covisible_s"] += time.perf_counter() - t
-        return prep
+    def scan(agent: str, f: int, voxel: float) -> tuple[np.ndarray, int, RemovalCounts]:
+        """The frame's static-scene voxels; prepared whole (and kept) only when the agent's
+        odometry uses this frame, since a cross pair prepares its co-visible part."""
+        sc = filt[agent].filtered(f, voxel)
+        timing["ground"][agent].append(sc.ground_m)
+        frames = odo_frames[agent]
+        if cfg.odometry_every > 0 and f in frames:
+            i = frames[f]
+            if i % cfg.odometry_every == 0 or (i - cfg.odometry_gap) % cfg.odometry_every == 0:
+                prep, _ = prepare(sc.points)
+                if prep is not None:
+                    recent[agent][f] = prep
+                    for old in [g for g in recent[agent] if g < f - cfg.odometry_gap]:
+                        del recent[agent][old]
+                    _odometry(agent, f)
+        return sc.points, len(sc.points), sc.counts
+
+    def cross_cloud(agent: str, f: int, points: np.ndarray, other_origin: np.ndarray
+                    ) -> tuple[Prepared | None, str]:
+        """The cloud a cross pair registers: with ``covisible`` only what the other LiDAR
+        sees from the same side (:mod:`covisible`; the whole scan where too little would
+        remain), else the whole scan (prepared once, shared with odometry)."""
+        if cfg.covisible:
+            t = time.perf_counter()
+            keep = covisible_mask(points, other_origin)
+            timing["covisible_s"] += time.perf_counter() - t
+            if keep.sum() >= max(cfg.min_inliers, 0.3 * len(keep)):
+                points = points[keep]
+        elif f in recent[agent]:
+            return recent[agent][f], ""
+        return prepare(points)
 
     def _odometry(agent: str, f: int) -> None:
         a = scans[agent]
         frames = sorted(a.frames)
-        i = frames.index(f)
+        i = odo_frames[agent][f]
         if i < cfg.odometry_gap:
             return
         g = frames[i - cfg.odometry_gap]
@@ -694,21 +707,19 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
 
     for f in ref_frames:
         t0 = time.perf_counter()
-        target, why_t, n_ref, c_ref = prepare(ref.agent, f, cfg.voxel_m)
+        ref_pts, n_ref, c_ref = scan(ref.agent, f, cfg.voxel_m)
         for o in others:
             if f not in pairs[o.agent]:
                 continue
             fo = pairs[o.agent][f]
             T_init = initial_transform_at(ref.track, o.track, ref.T_ego_lidar, o.T_ego_lidar,
                                           ref.frames[f][1], o.frames[fo][1])
-            source, why_s, n_oth, c_oth = prepare(o.agent, fo, cfg.source_voxel_m)
+            oth_pts, n_oth, c_oth = scan(o.agent, fo, cfg.source_voxel_m)
+            target, why_t = cross_cloud(ref.agent, f, ref_pts, T_init[:3, 3])
+            source, why_s = cross_cloud(o.agent, fo, oth_pts, invert(T_init)[:3, 3])
             t = time.perf_counter()
             if target is None or source is None:
                 res = failed_pair(T_init, why_t or why_s)
-            elif cfg.covisible:
-                res = refine(backend, covisible(target, T_init[:3, 3]),
-                             covisible(source, invert(T_init)[:3, 3]), T_init, limits,
-                             warm[o.agent] if cfg.warm_start else None)
             else:
                 res = refine(backend, target, source, T_init, limits,
                              warm[o.agent] if cfg.warm_start else None)
