@@ -123,6 +123,10 @@ class RegisterConfig(BaseModel):
     # the clip-level solve (issue #13)
     clip_solve: bool = Field(True, description="fuse the frames (constant extrinsic "
                              "corrections + smooth INS error); off: frame by frame with a gate")
+    relative_solve: bool = Field(
+        True, description="per-frame relative transforms from a solve of the cross-agent "
+        "frames alone (odometry, non-holonomic and ground constraints only split the "
+        "extrinsic); off: one solve gives both")
     redeskew: bool = Field(False, description="when the clip refines an extrinsic, deskew that "
                            "agent's scans again with it (deskew's kernel, backwards then "
                            "forwards) and measure and solve once more: twice the GICP time")
@@ -603,7 +607,7 @@ def _solve(cfg: RegisterConfig, agents: list[AgentScans], measured: list[_Pair],
     cross = [p.measurement for p in measured]
     ext = solve_clip(names, agents[0].agent, extr, cross, odo, cfg.solve_settings(), ground,
                      steps)
-    if not odo and not ground:
+    if not cfg.relative_solve or (not odo and not ground):
         return ext, ext
     rel = solve_clip(names, agents[0].agent, extr, cross, [], cfg.solve_settings(), None,
                      steps)
