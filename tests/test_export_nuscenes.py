@@ -173,3 +173,17 @@ def test_missing_deskewed_points_is_a_clip_error(tmp_path: Path) -> None:
     build_clean_clip(lake, "clip-x", with_deskewed=False, with_cameras=False, seconds=1.0)
     with pytest.raises(ClipError, match="deskew"):
         export_nuscenes(lake, ["clip-x"], tmp_path / "out")
+
+
+def test_missing_devkit_says_how_to_install_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """nuscenes-devkit is optional (it pins numpy<2): without it the evaluation helpers name
+    the way to install it instead of a bare ModuleNotFoundError."""
+    import sys
+
+    from v2xlake.tasks.export.nuscenes_devkit import require_devkit
+
+    monkeypatch.setitem(sys.modules, "nuscenes", None)
+    with pytest.raises(ImportError, match="requirements-oracles.lock"):
+        require_devkit()
+    with pytest.raises(ImportError, match="nuscenes-devkit is not installed"):
+        results_from_ground_truth(None, [])

@@ -50,6 +50,7 @@ from v2xlake.storage.reader import (
 )
 from v2xlake.tasks.export.bev import BevGrid
 from v2xlake.tasks.export.common import Undistorter, file_output, token, write_atomic
+from v2xlake.tasks.export.nuscenes_devkit import require_devkit
 from v2xlake.tasks.export.nuscenes_radar import radar_pcd_points, write_radar_pcd
 from v2xlake.tasks.geometry import apply, compose, count_points_in_boxes, invert, quat_wxyz_of
 from v2xlake.tasks.reader import AgentData, ClipData, boxes_matrices, load_clip, nearest_index
@@ -616,6 +617,7 @@ def detection_eval(nusc: Any, result_path: str | Path, eval_set: str, output_dir
     split that matches the version suffix is pointed at the custom split's scenes while the
     evaluator is built, so everything else (filters, matching, metrics) is the devkit's own.
     """
+    require_devkit()
     import nuscenes.eval.common.loaders as loaders
     from nuscenes.eval.common.config import config_factory
     from nuscenes.eval.detection.evaluate import DetectionEval
@@ -655,6 +657,7 @@ def detection_eval(nusc: Any, result_path: str | Path, eval_set: str, output_dir
 
 def results_from_ground_truth(nusc: Any, sample_tokens: Sequence[str]) -> dict[str, Any]:
     """A detection results file made of the ground truth itself (score 1): eval self-check."""
+    require_devkit()
     from nuscenes.eval.detection.utils import category_to_detection_name
 
     attr = {a["token"]: a["name"] for a in nusc.attribute}

@@ -65,9 +65,25 @@ def _render_ego_centric_map(self: Any, sample_data_token: str, axes_limit: float
               cmap="gray", vmin=0, vmax=255)
 
 
+def require_devkit() -> None:
+    """Fail with the way to install nuscenes-devkit when it is missing. It is no dependency
+    of v2xlake: every release pins ``numpy<2`` (or older matplotlib / Shapely), which cannot
+    resolve beside the NumPy 2 that pyarrow needs; the project's install puts it beside the
+    venv (``.venv/test-oracles``), where it runs fine on NumPy 2 for what is used here."""
+    try:
+        import nuscenes  # noqa: F401
+    except ImportError as e:
+        raise ImportError(
+            "nuscenes-devkit is not installed: it is optional (it pins numpy<2). Install it "
+            "beside the environment with `pip install --no-deps --target .venv/test-oracles "
+            "-r requirements-oracles.lock` and put that folder on PYTHONPATH, or "
+            "`pip install --no-deps nuscenes-devkit pyquaternion`") from e
+
+
 def fix_render_for_numpy2() -> bool:
     """Install the fixed map underlay in the devkit (idempotent). Returns True when it was
     needed: the devkit's own method fails under this NumPy."""
+    require_devkit()
     from nuscenes.nuscenes import NuScenesExplorer
 
     if getattr(NuScenesExplorer.render_ego_centric_map, _PATCHED, False):
