@@ -183,7 +183,7 @@ def test_missing_devkit_says_how_to_install_it(monkeypatch: pytest.MonkeyPatch) 
     from v2xlake.tasks.export.nuscenes_devkit import require_devkit
 
     monkeypatch.setitem(sys.modules, "nuscenes", None)
-    with pytest.raises(ImportError, match="requirements-oracles.lock"):
+    with pytest.raises(ImportError, match=r"requirements-oracles\.lock"):
         require_devkit()
     with pytest.raises(ImportError, match="nuscenes-devkit is not installed"):
         results_from_ground_truth(None, [])
