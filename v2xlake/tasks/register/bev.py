@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -60,6 +61,14 @@ def render_registration_bev(ref_xyz: np.ndarray, other_xyz: np.ndarray, T_init: 
     axes[1].legend(loc="upper right", markerscale=20)
     if title:
         fig.suptitle(title)
+    return figure_png(fig, path)
+
+
+def figure_png(fig: Any, path: str | Path | None = None) -> bytes:
+    """The figure laid out and rendered as PNG bytes (also written to ``path`` if given),
+    then closed: the register stage stores the bytes in the lake, the CLI writes a file."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")

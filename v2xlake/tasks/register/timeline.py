@@ -10,7 +10,6 @@ of ``registrations`` / ``calibration_refined`` in, PNG bytes out.
 
 from __future__ import annotations
 
-import io
 import textwrap
 from collections import Counter
 from pathlib import Path
@@ -20,6 +19,7 @@ import numpy as np
 
 from v2xlake.schemas.geometry import transform
 from v2xlake.tasks.geometry import invert, so3_log
+from v2xlake.tasks.register.bev import figure_png
 
 
 def _T(r: dict[str, Any], p: str) -> np.ndarray | None:
@@ -118,11 +118,4 @@ def render_registration_timeline(rows: list[dict[str, Any]], calibration: list[d
     text = (title + "\n" if title else "") + \
         "\n".join(textwrap.wrap(f"extrinsics: {cal}", 140) if cal else [])
     fig.suptitle(text, fontsize=10)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    plt.close(fig)
-    data = buf.getvalue()
-    if path is not None:
-        Path(path).write_bytes(data)
-    return data
+    return figure_png(fig, path)
