@@ -68,13 +68,22 @@ def _at_edge(r: Region, shape: tuple[int, ...]) -> bool:
 
 
 def new_regions(here: Sequence[Region], before: Sequence[Region] | None,
-                after: Sequence[Region] | None, shape: tuple[int, ...]) -> list[Region]:
+                after: Sequence[Region] | None, shape: tuple[int, ...],
+                min_face_px: float = 0.0) -> list[Region]:
     """Regions of this frame searched here: those whose (instance, kind, part) is missing
-    from either neighbouring key frame (None: that key frame had no guidance), and those cut
+    from either neighbouring key frame (None: that key frame had no guidance), those cut
     by the frame edge here or in a key frame (the clipped box does not follow the object:
-    an object entering or leaving the view, often close and fast)."""
+    an object entering or leaving the view, often close and fast), and face regions whose
+    expected face is under ``min_face_px`` (small faces score near the threshold and
+    flicker from frame to frame: each frame is its own chance to find them)."""
     if before is None or after is None:
         return list(here)
+    small = [r for r in here if r.kind == "face" and r.expected_px < min_face_px]
+    if small:
+        rest = new_regions([r for r in here if not (r.kind == "face"
+                                                    and r.expected_px < min_face_px)],
+                           before, after, shape)
+        return small + rest
     known = ({_key(r) for r in before if not _at_edge(r, shape)}
              & {_key(r) for r in after if not _at_edge(r, shape)})  # (the frames share a size)
     return [r for r in here if not r.instance or _key(r) not in known or _at_edge(r, shape)]
