@@ -94,8 +94,10 @@ def test_the_provenance_names_every_setting_that_changes_what_is_blurred() -> No
     for update in ({"face_fine_scale": 1.5}, {"full_plate_fine_scale": 2.0},
                    {"key_interval_ms": 0.0}, {"blur_margin": 0.3}, {"temporal_fill": False}):
         assert base.model_copy(update=update).provenance(det.version) != s, update
-    for update in ({"workers": 3}, {"png_compression": 6}, {"frames_per_chunk": 4}):
-        assert base.model_copy(update=update).provenance(det.version) == s, update
+    same: tuple[dict[str, object], ...] = (
+        {"workers": 3}, {"png_compression": 6}, {"frames_per_chunk": 4})
+    for upd in same:
+        assert base.model_copy(update=upd).provenance(det.version) == s, upd
 
 
 def test_a_clip_without_cameras_builds_no_guide(tmp_path, monkeypatch) -> None:
