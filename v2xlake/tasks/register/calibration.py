@@ -102,13 +102,13 @@ def frame_rows(lake: Lake, clip_id: str) -> list[dict[str, object]]:
     """Per registered frame pair: eq. 1a (INS + published extrinsics), the frame's own GICP
     and the clip estimate, each as the correction of eq. 1a (cm, deg in the reference LiDAR
     frame), the estimate's 1-sigma, and the decision with its reason."""
-    from v2xlake.tasks.register.timeline import _T, correction
+    from v2xlake.tasks.register.timeline import correction, row_transform
 
     out: list[dict[str, object]] = []
     rows = read(lake, "registrations", clip_id).to_pylist()
     for r in sorted(rows, key=lambda r: (r["agent_other"], r["frame_idx"])):
-        init = _T(r, "init_")
-        fin, gicp = _T(r, ""), _T(r, "gicp_")
+        init = row_transform(r, "init_")
+        fin, gicp = row_transform(r, ""), row_transform(r, "gicp_")
         if init is None or fin is None:
             continue
         f = correction(init, fin)

@@ -22,7 +22,9 @@ from v2xlake.tasks.geometry import invert, so3_log
 from v2xlake.tasks.register.bev import figure_png
 
 
-def _T(r: dict[str, Any], p: str) -> np.ndarray | None:
+def row_transform(r: dict[str, Any], p: str) -> np.ndarray | None:
+    """The 4x4 stored under prefix ``p`` (``init_``, ``gicp_``, "") of a ``registrations``
+    row as a dict; None where the row has none (no GICP measurement)."""
     if r.get(f"{p}tx") is None:
         return None
     q = np.array([r[f"{p}qw"], r[f"{p}qx"], r[f"{p}qy"], r[f"{p}qz"]], dtype=np.float64)
@@ -72,10 +74,11 @@ def render_registration_timeline(rows: list[dict[str, Any]], calibration: list[d
     for c, other in enumerate(others):
         rs = sorted((r for r in rows if r["agent_other"] == other), key=lambda r: r["t_ns"])
         t = np.array([r["t_ns"] for r in rs], dtype=np.float64) * 1e-9
-        init = [_T(r, "init_") for r in rs]
+        init = [row_transform(r, "init_") for r in rs]
         fin = np.array([correction(i, f) for r, i in zip(rs, init, strict=True)
-                        if i is not None and (f := _T(r, "")) is not None])
-        gicp = np.array([correction(i, g) if (g := _T(r, "gicp_")) is not None and i is not None
+                        if i is not None and (f := row_transform(r, "")) is not None])
+        gicp = np.array([correction(i, g)
+                         if (g := row_transform(r, "gicp_")) is not None and i is not None
                          else np.full(6, np.nan) for r, i in zip(rs, init, strict=True)])
         std_cm = np.array([(r.get("std_m") or np.nan) * 100 for r in rs], dtype=np.float64)
         std_deg = np.array([r.get("std_deg") or np.nan for r in rs], dtype=np.float64)
