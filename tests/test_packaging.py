@@ -67,6 +67,13 @@ PROBE = textwrap.dedent("""
 """)
 
 
+def _clean_env() -> dict[str, str]:
+    """This process's environment without PYTHONPATH / PYTHONHOME: other tests put the
+    checkout on PYTHONPATH for their subprocesses, and pip, seeing the checkout's
+    ``v2xlake.egg-info`` there, would call the wheel "already satisfied" and skip it."""
+    return {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+
+
 def _copy_source(dst: Path) -> Path:
     """The working tree as it is (tracked or not), without venvs, caches and build output."""
     def ignore(folder: str, names: list[str]) -> set[str]:
@@ -85,16 +92,17 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     build = subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
          "--disable-pip-version-check", "-v", "-w", str(dist), str(src)],
-        capture_output=True, text=True, cwd=base)
+        capture_output=True, text=True, cwd=base, env=_clean_env())
     assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
     wheels = list(dist.glob("v2xlake-*.whl"))
     assert len(wheels) == 1, wheels
     venv = base / "venv"
-    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True,
+                   env=_clean_env())
     py = venv / "bin" / "python"
     subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps",
                     "--no-index", "--disable-pip-version-check", "-q", str(wheels[0])],
-                   check=True, cwd=base)
+                   check=True, cwd=base, env=_clean_env())
     site = Path(subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()"
                                 "['purelib'])"], check=True, capture_output=True,
                                text=True).stdout.strip())
@@ -115,7 +123,7 @@ def _probe(installed: dict[str, Path], phase: str, stages: list[str],
     change under a running test)."""
     run_dir = installed["base"] / "run"  # outside the repository: no checkout on sys.path
     run_dir.mkdir(exist_ok=True)
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env = _clean_env()
     env["V2XLAKE_HOME"] = str(installed["base"] / "home")
     py = str(installed["py"])
     if checkout:
