@@ -134,9 +134,7 @@ def registered_track(clip: ClipRecord, ref: AgentData, agent: AgentData, max_gap
     t_k, dR, dp = [], [], []
     for x in rows:
         t1 = ref_of.get(int(x["frame_idx"]))
-        i = int(np.clip(np.searchsorted(starts, int(x["t_ns"])), 1, max(len(starts) - 1, 1)))
-        cand = [j for j in (i - 1, i) if 0 <= j < len(starts)]
-        j = min(cand, key=lambda j: abs(int(starts[j]) - int(x["t_ns"])))
+        j = int(nearest_index(starts, int(x["t_ns"]))[0])
         if t1 is None or t1 < 0 or abs(int(starts[j]) - int(x["t_ns"])) > pair_tolerance_ns:
             continue
         tj = int(lfj.ref_ns[order[j]])
@@ -164,13 +162,12 @@ def registered_track(clip: ClipRecord, ref: AgentData, agent: AgentData, max_gap
     inside = (k >= 0) & (k < len(tk) - 1)
     gap = tk[i1] - tk[i0]
     bridged = inside & (gap <= max_gap_ns)
-    use = bridged
     a = np.where(bridged, (t_all - tk[i0]) / np.maximum(gap, 1), 0.0)[:, None]
     w = wk[i0] * (1 - a) + wk[i1] * a
     p = pk[i0] * (1 - a) + pk[i1] * a
-    R_new = so3_exp(np.where(use[:, None], w, 0.0)) @ quat_to_matrix(q)
+    R_new = so3_exp(np.where(bridged[:, None], w, 0.0)) @ quat_to_matrix(q)
     q_new = matrix_to_quat(R_new)
-    xyz_new = xyz + np.where(use[:, None], p, 0.0)
+    xyz_new = xyz + np.where(bridged[:, None], p, 0.0)
     return PoseTrack.create(t_all, xyz_new, q_new)
 
 
