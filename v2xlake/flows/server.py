@@ -107,6 +107,10 @@ class PrefectServer:
     def api_url(self) -> str:
         return f"http://127.0.0.1:{self.port}/api"
 
+    @property
+    def ui_url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
     def healthy(self) -> bool:
         try:
             with urllib.request.urlopen(f"{self.api_url}/health", timeout=2) as r:
@@ -119,8 +123,13 @@ class PrefectServer:
 
 
 def start_server(home: Path, *, port: int | None = None, timeout: float = 120.0,
-                 scheduler_loop_seconds: float | None = None) -> PrefectServer:
-    """Start a server with its own PREFECT_HOME (SQLite there); wait until /health answers."""
+                 scheduler_loop_seconds: float | None = None, ui: bool = False
+                 ) -> PrefectServer:
+    """Start a server with its own PREFECT_HOME (SQLite there); wait until /health answers.
+
+    ``ui``: serve the Prefect UI at ``/`` (``deploy/start_server.py`` does by default, so
+    the run links the tools print open); off for the servers tests and ``--runner dask``
+    start for themselves, where nobody looks at it and it costs start-up time."""
     configure_prefect()
     home = Path(home)
     home.mkdir(parents=True, exist_ok=True)
@@ -131,7 +140,7 @@ def start_server(home: Path, *, port: int | None = None, timeout: float = 120.0,
         "PREFECT_HOME": str(home),
         "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
         "DO_NOT_TRACK": "1",
-        "PREFECT_UI_ENABLED": "false",
+        "PREFECT_UI_ENABLED": "true" if ui else "false",
         "PREFECT_SERVER_API_HOST": "127.0.0.1",
         "PREFECT_SERVER_API_PORT": str(port),
     })
