@@ -173,6 +173,11 @@ COOP_VARIATIONS: dict[str, dict[str, Any]] = {
     "INS drift 20 cm/s + noise 2 cm": {"ins_drift_mps": 0.2, "ins_noise_m": 0.02},
     "INS step 30 cm": {"ins_step_m": (0.3, 0.0, 0.0), "ins_step_at_s": 1.5},
     "seed 2": {"seed": 2},
+    # harder than the issue's scenario: a cooperative extrinsic 40 cm / 1.5 deg off (eq. 1a
+    # starts ~0.5 m away) and the two vehicles close enough to hide each other's view
+    "extrinsic 40 cm / 1.5 deg off": {"lidar_ext_err_xyz_m": (0.3, -0.25, 0.1),
+                                      "lidar_ext_err_rpy_deg": (0.3, -0.2, 1.5)},
+    "behind 5 m, no turn": {"coop_gap_m": -5.0, "turn_rate_radps": 0.0},
 }
 
 
@@ -274,8 +279,11 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--beams", type=int, default=128)
     ap.add_argument("--cols", type=int, default=2048)
-    ap.add_argument("--voxel", type=float, default=GicpParams().voxel_m)
-    ap.add_argument("--source-voxel", type=float, default=GicpParams().source_voxel_m)
+    from v2xlake.tasks.register.stage import RegisterConfig
+
+    # the voxels the register stage uses by default: the speed a user gets
+    ap.add_argument("--voxel", type=float, default=RegisterConfig().voxel_m)
+    ap.add_argument("--source-voxel", type=float, default=RegisterConfig().source_voxel_m)
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})

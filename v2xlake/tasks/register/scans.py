@@ -175,6 +175,20 @@ class AgentScans:
             return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
         return np.concatenate(parts), np.concatenate(times)
 
+    def max_travel_per_scan(self) -> float:
+        """How far the agent moves during one scan at its usual top speed (95th percentile of
+        the INS speed, so a position step does not count as speed) times the scan period
+        (median spacing of scan starts): the lever of a wrong extrinsic rotation on deskew."""
+        starts = np.sort(np.array([t0 for t0, _ in self.frames.values()], dtype=np.int64))
+        t, p = self.track.t_ns, self.track.xyz
+        if len(starts) < 2 or len(t) < 2:
+            return 0.0
+        dt = np.diff(t).astype(np.float64) * 1e-9
+        ok = dt > 0
+        speed = np.linalg.norm(np.diff(p, axis=0)[ok], axis=1) / dt[ok]
+        period = float(np.median(np.diff(starts))) * 1e-9
+        return float(np.percentile(speed, 95)) * period if len(speed) else 0.0
+
     def T_world_lidar(self, frame_idx: int) -> np.ndarray:
         """Where the frame's deskewed points live: ``T_world_ego(t_ref) T_ego_lidar``."""
         return self.track.matrices(self.frames[frame_idx][1])[0] @ self.T_ego_lidar
