@@ -1,4 +1,4 @@
-"""The ``clip.yaml`` input contract (DESIGN.md, "Input contract: a clip folder").
+"""The ``clip.yaml`` input contract (docs/recordings.md).
 
 A clip folder holds one bag per agent plus this file, which says what the bags cannot: the
 conditions, which agent is the reference, and per sensor the topic, message type, field

@@ -1,7 +1,7 @@
 """Rigid transforms as stored everywhere in v2xlake.
 
 A transform named ``T_a_b`` maps points from frame ``b`` into frame ``a``. Rotations are unit
-quaternions in (w, x, y, z) order (DESIGN.md, Space). Validation lives here so that a bad
+quaternions in (w, x, y, z) order (docs/architecture.md, Space). Validation lives here so that a bad
 calibration is rejected where it enters, with the offending field named, instead of producing
 a subtly sheared point cloud three stages later.
 """

@@ -1,6 +1,6 @@
 """The lake: one root (a local directory or an ``s3://bucket/prefix`` URI), five zones.
 
-Layout (DESIGN.md "Lake and catalog")::
+Layout (docs/architecture-catalog.md)::
 
     <root>/landing/<clip_id>/...                          clip folders as delivered
     <root>/raw|clean/<table>/clip_id=<c>[/agent_id=<a>]/<name>.parquet

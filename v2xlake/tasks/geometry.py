@@ -1,6 +1,6 @@
 """The one geometry vocabulary of v2xlake: rigid transforms, boxes and overlaps.
 
-Conventions (DESIGN.md, Space): a transform named ``T_a_b`` maps points from frame ``b``
+Conventions (docs/architecture.md, Space): a transform named ``T_a_b`` maps points from frame ``b``
 into frame ``a`` and is a (..., 4, 4) float64 matrix; quaternions are unit (w, x, y, z);
 boxes carry ``size = (w, l, h)`` with the length along the box x-axis (nuScenes). Every
 stage and export composes, inverts and applies transforms, counts points in boxes and

@@ -31,10 +31,10 @@ the world is ``map``), so the agents' bags can be played or opened together with
 frames colliding; ``combine_agents`` writes all agents into one bag on one timeline.
 
 Stamps and bag times are the clip's relative time (0.1 s is the clip's first instant;
-DESIGN.md): absolute time never leaves the raw zone. Foxglove shows them as elapsed seconds
-with its timestamp format set to "seconds" (as a date they read 1970-01-01 00:00:00.1).
-MCAP chunks are zstd-compressed. Streams are merged lazily in time order, so memory stays at
-about one scan.
+docs/architecture.md, Time): absolute time never leaves the raw zone. Foxglove shows them as
+elapsed seconds with its timestamp format set to "seconds" (as a date they read 1970-01-01
+00:00:00.1). MCAP chunks are zstd-compressed. Streams are merged lazily in time order, so
+memory stays at about one scan.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""The ingest stage: one clip folder -> landing copy + raw-zone tables (DESIGN.md stage 1).
+"""The ingest stage: one clip folder -> landing copy + raw-zone tables
+(docs/architecture.md, Stages).
 
 Driven only by ``clip.yaml``. Each agent's bag is read in a single pass over the configured
 topics; LiDAR frames stream into one Parquet row group each (never the whole clip in memory),

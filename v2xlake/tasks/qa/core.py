@@ -1,5 +1,5 @@
-"""QA stage: timing and completeness checks against each sensor's declared model (DESIGN.md
-stage 2).
+"""QA stage: timing and completeness checks against each sensor's declared model
+(docs/architecture.md, Stages).
 
 Nothing here assumes one rig. Every sensor's ``clip.yaml`` entry says its rate and how it is
 timed (``sync``): PPS-locked sensors stamp on a grid ``sec + phase + round(k * 1e9 / rate)``
