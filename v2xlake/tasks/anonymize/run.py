@@ -53,6 +53,7 @@ from v2xlake.tasks.anonymize.guide import (
 )
 from v2xlake.tasks.anonymize.guided import GuidedConfig, GuidedDetector
 from v2xlake.tasks.anonymize.images import decode_image, encode_image, to_bgr8
+from v2xlake.tasks.anonymize.plateread import PlateReadConfig
 from v2xlake.tasks.anonymize.temporal import fill_gaps
 from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
 from v2xlake.tasks.anonymize.timespace import (
@@ -166,6 +167,17 @@ class AnonymizeConfig(BaseModel):
     plate_max_aspect: float = Field(
         8.0, description="text line width / height at most (EU plate text ~4.5)")
     plate_max_tilt_deg: float = Field(40.0, description="text line tilt at most")
+    plate_read: bool = Field(
+        True, description="full-frame plan and safety pass: each candidate text line is read "
+        "by PP-OCRv4's recogniser and kept only when the reading looks like a plate (3-10 "
+        "upper-case letters / digits, plausible for the line's width, no words, dates or "
+        "repeated strokes: plateread.py); lines under 10 px tall are not judged. Off: "
+        "geometry only (facades, barriers, lettering and watermarks get blurred)")
+    plate_read_min_conf: float = Field(
+        0.5, description="mean recogniser confidence of a plate's characters")
+    plate_read_min_digits: int = Field(
+        1, ge=0, description="digits a reading needs (lettering has none; 0 also keeps "
+        "vanity plates without digits, 3 of 108 in plates_eu, and brand lettering)")
     temporal_fill: bool = Field(
         True, description="a face / plate found in the previous and next frame of a camera "
         "and missed in between is blurred there too")
@@ -237,7 +249,10 @@ class AnonymizeConfig(BaseModel):
         if "text" in self.plate_detector:
             plate = TextPlateDetector(TextPlateConfig(
                 box_threshold=self.plate_box_threshold, min_aspect=self.plate_min_aspect,
-                max_aspect=self.plate_max_aspect, max_tilt_deg=self.plate_max_tilt_deg))
+                max_aspect=self.plate_max_aspect, max_tilt_deg=self.plate_max_tilt_deg,
+                read=PlateReadConfig(min_conf=self.plate_read_min_conf,
+                                     min_digits=self.plate_read_min_digits)
+                if self.plate_read else None))
         extra: list[Detector] = []
         if "classic" in self.plate_detector:
             extra.append(ClassicPlateDetector(ClassicPlateConfig(upscale=self.plate_upscale)))

@@ -41,6 +41,7 @@ from v2xlake.tasks.anonymize.detectors import (
     nms,
     ort_session,
 )
+from v2xlake.tasks.anonymize.plateread import PlateReadConfig, PlateReader
 
 MODEL_SOURCE = "rapidocr_onnxruntime-1.4.4"
 MODEL_FILE = "ch_PP-OCRv4_det_infer.onnx"
@@ -76,6 +77,9 @@ class TextPlateConfig:
     )
     nms_iou: float = 0.3
     backend: Literal["onnxruntime", "cv2"] = "onnxruntime"
+    # read each candidate line with PP-OCRv4's recogniser and keep it only when the reading
+    # looks like a plate (plateread.py); None: geometry only
+    read: PlateReadConfig | None = field(default_factory=PlateReadConfig)
 
 
 def _rect_of(contour: np.ndarray) -> tuple[float, float, float, float, float]:
@@ -126,6 +130,9 @@ class TextPlateDetector:
             f"{_file_sha256(str(self.onnx_path))[:12]}"
             f":p{c.pixel_threshold:g}:b{c.box_threshold:g}:a{c.min_aspect:g}-{c.max_aspect:g}"
         )
+        self.reader = PlateReader(c.read) if c.read is not None else None
+        if self.reader is not None:
+            self.version += f"+{self.reader.version}"
         self._local = threading.local()
         self._session: Any = None
         if c.backend == "onnxruntime":
@@ -159,6 +166,13 @@ class TextPlateDetector:
         c = self.config
         return db_lines(self.prob_map(view), c.pixel_threshold, c.box_threshold, c.unclip_ratio)
 
+    def readable_plates(self, view: np.ndarray, lines: list[tuple[float, ...]]) -> list[bool]:
+        """Per text line of ``view`` (view pixels): does its reading look like a plate? (all
+        True without a reader; lines too small to read are not judged)."""
+        if self.reader is None or not lines:
+            return [True] * len(lines)
+        return [ok for ok, _why, _r in self.reader.judge(view, [ln[:5] for ln in lines])]
+
     def plate_ok(self, rect: tuple[float, ...], frame_w: int) -> bool:
         """The plate geometry checks on one text line (original pixels)."""
         c = self.config
@@ -189,10 +203,14 @@ class TextPlateDetector:
         h, w = image_bgr.shape[:2]
         dets: list[Detection] = []
         for view, s, x0, y0 in iter_views(image_bgr, scan):
+            cand = []
             for cx, cy, a, b, ang, score in self.lines_view(view):
                 rect = ((cx + x0) / s, (cy + y0) / s, a / s, b / s, ang)
-                if not self.plate_ok(rect, w):
-                    continue
-                box = _unmap(self.plate_box(rect), 1.0, 0, 0, w, h)
-                dets.append(Detection("plate", box, score, self.name))
+                if self.plate_ok(rect, w):
+                    cand.append(((cx, cy, a, b, ang), rect, score))
+            ok = self.readable_plates(view, [c[0] for c in cand])
+            for (_line, rect, score), keep in zip(cand, ok, strict=True):
+                if keep:
+                    box = _unmap(self.plate_box(rect), 1.0, 0, 0, w, h)
+                    dets.append(Detection("plate", box, score, self.name))
         return nms(dets, self.config.nms_iou)

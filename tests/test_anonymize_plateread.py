@@ -1,0 +1,175 @@
+"""Plate candidates verified by reading them (plateread.py): plates are plates.
+
+* the judgement is a pure function of a reading: plates pass (EU, Czech / Slovak plates whose
+  emblem reads as ':'), words, dates, times, repeated strokes and punctuation do not;
+* rendered on an image: a simulator-style plate is read and kept; lettering, a timestamp
+  watermark, a striped barrier and a lattice facade drawn the same way are dropped;
+* real photos: the labelled plates of ``plates_eu`` are kept natively (>= 0.95), and shrunk to
+  40 px wide with the x2.5 full-frame fine pass (>= 0.95, 0.85 at x2); the real street and
+  x2.5 pass finds 5.7 false plates per image on the real street images without reading; keep
+  at most 0.5 per image and none over 1 % of the frame.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.fixtures.real import requires_real_data
+from v2xlake.tasks.anonymize.plateread import (
+    PlateReadConfig,
+    PlateReader,
+    Reading,
+    line_crop,
+    plate_reading_ok,
+    read_text,
+    rec_onnx_path,
+)
+from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+CFG = PlateReadConfig()
+
+
+def _ok(text: str, aspect: float = 4.0, conf: float = 0.95) -> bool:
+    return plate_reading_ok(Reading(text, (conf,) * len(text)), aspect, CFG)[0]
+
+
+def test_ctc_decode_drops_blanks_and_repeats() -> None:
+    charset = ["<blank>", "A", "1", " "]
+    seq = [1, 1, 0, 1, 2, 2, 0, 0, 3, 2]
+    probs = np.full((len(seq), 4), 0.01, np.float32)
+    probs[np.arange(len(seq)), seq] = 0.97
+    r = read_text(probs, charset)
+    assert r.text == "AA1 1" and len(r.confs) == 5 and min(r.confs) > 0.9
+
+
+@pytest.mark.parametrize("text", ["RK-755AJ", "1B1:9839", "BZM 22-27", "OY09 FEU", "4B4：0262",
+                                  "BA3020Z", "W·053011"])
+def test_plates_pass(text: str) -> None:
+    assert _ok(text), plate_reading_ok(Reading(text, (0.95,) * len(text)), 4.0, CFG)
+
+
+@pytest.mark.parametrize(("text", "aspect"), [
+    ("CITROEN", 4.0), ("histogram of grey values", 7.6), ("Berlingo7", 3.6),
+    ("2023-05-12", 5.0), ("12:30:45", 4.0), ("12.05.2023", 5.0), ("IIIIIII", 4.0),
+    ("1111111", 4.0), ("瑞批厂", 4.4), ("", 4.0), ("RK", 2.5), ("RK-755AJ", 1.3),
+    ("AB12CD34EF56", 6.0), ("#,;|||-.", 4.0)])
+def test_non_plates_fail(text: str, aspect: float) -> None:
+    assert not _ok(text, aspect)
+
+
+def test_low_confidence_fails() -> None:
+    assert not _ok("RK-755AJ", conf=0.35) and _ok("RK-755AJ", conf=0.6)
+
+
+@pytest.fixture(scope="module")
+def reader() -> PlateReader:
+    return PlateReader()
+
+
+def test_model_ships_in_the_package(reader: PlateReader) -> None:
+    assert rec_onnx_path().name == "ch_PP-OCRv4_rec_infer.onnx"
+    assert "rapidocr_onnxruntime-1.4.4" in reader.version and "onnx-sha256:" in reader.version
+    assert len(reader.charset) > 6000 and "A" in reader.charset and "7" in reader.charset
+
+
+def _line(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 1.6,
+          colour: tuple[int, int, int] = (20, 20, 20)) -> tuple[float, ...]:
+    """Draw ``text`` and return its line as (cx, cy, long, short, tilt)."""
+    font, thick = cv2.FONT_HERSHEY_SIMPLEX, 4
+    (tw, th), base = cv2.getTextSize(text, font, scale, thick)
+    cv2.putText(img, text, org, font, scale, colour, thick, cv2.LINE_AA)
+    return (org[0] + tw / 2, org[1] - th / 2 + base / 4, tw + 0.6 * th, 1.6 * th, 0.0)
+
+
+def test_rendered_plate_kept_lettering_and_watermark_dropped(reader: PlateReader) -> None:
+    img = np.full((400, 900, 3), 235, np.uint8)
+    cv2.rectangle(img, (40, 30), (420, 120), (30, 30, 30), 4)
+    lines = {"plate": _line(img, "KA 47301", (70, 98)),
+             "lettering": _line(img, "Logistics", (480, 98)),
+             "watermark": _line(img, "2024-05-12 14:33:02", (40, 220), 1.3),
+             "brand": _line(img, "CITROEN", (40, 330))}
+    judged = dict(zip(lines, reader.judge(img, list(lines.values())), strict=True))
+    assert judged["plate"][0], judged["plate"]
+    for k in ("lettering", "watermark", "brand"):
+        assert not judged[k][0], (k, judged[k])
+
+
+def test_stripes_and_lattice_dropped(reader: PlateReader) -> None:
+    """A red-white striped barrier and a lattice facade, read as text lines of plate shape."""
+    barrier = np.full((60, 260, 3), 240, np.uint8)
+    for x in range(0, 260, 26):
+        cv2.fillConvexPoly(barrier, np.array([[x, 0], [x + 13, 0], [x + 1, 60], [x - 12, 60]]),
+                           (30, 30, 200))
+    lattice = np.full((60, 260, 3), 200, np.uint8)
+    lattice[:, ::14] = 40
+    lattice[::12] = 40
+    for img in (barrier, lattice):
+        ok, why, r = reader.judge(img, [(130.0, 30.0, 250.0, 50.0, 0.0)])[0]
+        assert not ok, (why, r)
+
+
+def test_line_crop_derotates() -> None:
+    """A line drawn at 20 deg comes out level: its rows' ink is concentrated in the middle."""
+    img = np.full((300, 400, 3), 255, np.uint8)
+    box = cv2.boxPoints(((200.0, 150.0), (200.0, 20.0), 20.0)).astype(np.int32)
+    cv2.fillPoly(img, [box], (0, 0, 0))
+    crop = line_crop(img, (200.0, 150.0, 200.0, 40.0, 20.0))
+    assert crop.shape[0] == 48 and 190 < crop.shape[1] < 280
+    ink = (crop[:, 20:-20, 0] < 128).mean(1)
+    assert ink[20:28].min() > 0.9 and ink[:6].max() < 0.1 and ink[-6:].max() < 0.1
+
+
+# ----------------------------------------------------------------------------- real photos
+def _scaled_recall(det: TextPlateDetector, width_px: float, fine: float | None) -> float:
+    from v2xlake.tasks.anonymize.detectors import ScanConfig
+    from v2xlake.tasks.anonymize.evaluate import match, plates_eu
+
+    scan = ScanConfig(max_side=None, fine_scale=fine, tile=2048, tile_overlap=160,
+                      upscale_min_side=0)
+    found = n = 0
+    for item in plates_eu(REAL / "plates_eu"):
+        img = cv2.imread(item.path, cv2.IMREAD_COLOR)
+        kind, box = item.truth[0]
+        s = width_px / (box[2] - box[0]) if width_px else 1.0
+        small = cv2.resize(img, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s != 1 \
+            else img
+        hit, _ = match([(kind, tuple(v * s for v in box))], det.detect_scan(small, scan), 0.3)
+        found += int(hit.sum())
+        n += 1
+    return found / n
+
+
+@requires_real_data("plates_eu")
+def test_real_plates_40px_found_with_the_fine_pass() -> None:
+    """Real plates shrunk to 40 px wide, the full-frame x2.5 fine pass, read: >= 0.95 (103/108
+    measured; the misses: vanity plates without a digit, one misread)."""
+    r = _scaled_recall(TextPlateDetector(), 40, 2.5)
+    print(f"plates_eu at 40 px, x2.5, read: {r:.3f}")
+    assert r >= 0.95, r
+
+
+@requires_real_data("images")
+def test_false_plates_on_real_streets_read_away() -> None:
+    """The x2.5 full-frame pass on the real street images: without reading 5.7 false plates
+    per image, up to 6 % of a frame (facades, shop signs, lettering); read: at most 0.5 per
+    image and none over 1 % of the frame."""
+    from v2xlake.tasks.anonymize.detectors import ScanConfig
+    from v2xlake.tasks.anonymize.evaluate import score_real, street_images
+
+    scan = ScanConfig(max_side=None, fine_scale=2.5, tile=2048, tile_overlap=160,
+                      upscale_min_side=0)
+    items = street_images(REAL / "images")
+    stats = {}
+    for name, det in (("geometry", TextPlateDetector(TextPlateConfig(read=None))),
+                      ("read", TextPlateDetector())):
+        stats[name] = score_real(items, lambda im, d=det: d.detect_scan(im, scan),
+                                 kinds=("plate",))
+    print({k: (s.false_per_image, max(s.false_area)) for k, s in stats.items()})
+    assert stats["geometry"].false_per_image >= 2  # the test can fail: there is much to drop
+    assert stats["read"].false_per_image <= 0.5, stats["read"]
+    assert max(stats["read"].false_area) <= 0.01, stats["read"]
