@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import inspect
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,27 +27,63 @@ log = logging.getLogger("v2xlake.flows")
 
 
 # ---------------------------------------------------------------- cache (storage.manifest)
+@dataclass(frozen=True)
+class StageFacts:
+    """What the manifest key of a stage needs to know about it: its name, whether it reads
+    the clip folder, the tables it reads, and whether it is a standard stage (code version
+    from its package) or a plugin (its own source file). ``flows.noop`` keeps these per
+    code version so that it need not import the stage."""
+
+    name: str
+    input: str
+    reads: tuple[tuple[str, str], ...]
+    code_paths: tuple[str, ...] | None  # None: a standard stage
+
+
+def facts_of(stage: Stage[Any]) -> StageFacts:
+    import sys
+
+    from v2xlake.flows.stage_names import STAGE_REFS
+
+    # the registry's own object (``flows.pipeline.STAGES``)? Its module is imported if so:
+    # a test double named like a standard stage must not import the real one to find out
+    mod, attr = STAGE_REFS.get(stage.name, ("", ""))
+    standard = getattr(sys.modules.get(mod), attr, None) is stage
+    code_paths: tuple[str, ...] | None = None
+    if not standard:  # a plugin or test double: hash its own source file
+        src = inspect.getsourcefile(stage.run)
+        code_paths = (src,) if src else ()
+    return StageFacts(stage.name, stage.input, tuple((t.zone, t.name) for t in stage.reads),
+                      code_paths)
+
+
 def stage_key(lake: Lake, clip_id: str, stage: Stage[Any], config: BaseModel,
               clip_dir: Path | None) -> manifest.StageKey:
     """storage.manifest's key: what the stage reads (files or tables), parameters, code."""
-    from v2xlake.flows.pipeline import STAGES
-
-    code_paths: list[str] | None = None
-    if stage not in STAGES:  # a plugin or test double: hash its own source file
-        src = inspect.getsourcefile(stage.run)
-        code_paths = [src] if src else []
+    facts = facts_of(stage)
     input_files: list[Path] | None = None
-    if stage.input == "clip_dir" and clip_dir is not None:
-        if stage in STAGES:
+    if facts.input == "clip_dir" and clip_dir is not None:
+        if facts.code_paths is None:
             from v2xlake.tasks.ingest import clip_inputs
 
             input_files = list(clip_inputs(clip_dir)[1])
         else:
-            input_files = sorted(p for p in Path(clip_dir).rglob("*") if p.is_file())
-    return manifest.stage_key(lake, clip_id, stage.name, config,
-                              input_files=input_files,
-                              read_tables=[(t.zone, t.name) for t in stage.reads],
-                              code_paths=code_paths)
+            input_files = plugin_input_files(clip_dir)
+    return key_from_facts(lake, clip_id, facts, config, input_files)
+
+
+def plugin_input_files(clip_dir: Path | str) -> list[Path]:
+    """A plugin that reads the clip folder: every file in it."""
+    return sorted(p for p in Path(clip_dir).rglob("*") if p.is_file())
+
+
+def key_from_facts(lake: Lake, clip_id: str, facts: StageFacts, config: Any,
+                   input_files: list[Path] | None) -> manifest.StageKey:
+    """The key itself; ``config`` a model or its ``model_dump(mode="json")`` (same hash)."""
+    return manifest.stage_key(lake, clip_id, facts.name, config, input_files=input_files,
+                              read_tables=list(facts.reads),
+                              code_paths=None if facts.code_paths is None
+                              else list(facts.code_paths))
 
 
 def cached_report(lake: Lake, clip_id: str, stage: str,

@@ -80,6 +80,11 @@ class Format(StrEnum):
     json = "json"
 
 
+class OutFormat(StrEnum):
+    table = "table"
+    json = "json"
+
+
 class ExportFormat(StrEnum):
     nuscenes = "nuscenes"
     eth3d = "eth3d"
@@ -201,9 +206,11 @@ def simulate(
 
 # ---------------------------------------------------------------- process
 class StageProgress:
-    """Rich progress bar fed by flows.process.PROGRESS_HOOK events (in-process runs)."""
+    """Progress of in-process clip flows, fed by ``flows.pipeline.PROGRESS_HOOK`` events: a
+    live bar on a terminal; elsewhere (a pipe, a CI log) one plain line per finished stage,
+    flushed at once, so a long run never looks hung."""
 
-    def __init__(self, total: int, console: Any) -> None:
+    def __init__(self, total: int, console: Any, live: bool | None = None) -> None:
         from rich.progress import (
             BarColumn,
             MofNCompleteColumn,
@@ -213,23 +220,42 @@ class StageProgress:
             TimeElapsedColumn,
         )
 
+        self.console = console
+        self.live = console.is_terminal if live is None else live
+        self.total = max(total, 1)
+        self.done = 0
+        self.t0 = time.perf_counter()
         self.progress = Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
                                  MofNCompleteColumn(), TimeElapsedColumn(), console=console,
-                                 transient=False)
-        self.task = self.progress.add_task("starting Prefect", total=max(total, 1))
+                                 transient=False, disable=not self.live)
+        self.task = self.progress.add_task("starting Prefect", total=self.total)
+
+    def line(self, text: str) -> None:
+        """One plain line (not a terminal), with the run's elapsed time."""
+        if not self.live:
+            self.console.print(f"[{time.perf_counter() - self.t0:6.1f} s] {_esc(text)}",
+                               highlight=False, markup=True)
+            self.console.file.flush()
 
     def __call__(self, event: dict[str, Any]) -> None:
         if event.get("event") == "stage_start":
             self.progress.update(self.task, description=f"{event['clip_id']}: {event['stage']}")
         elif event.get("event") == "stage_end":
+            self.done += 1
             self.progress.advance(self.task)
-            if event.get("status") == "failed":
+            status = event.get("status")
+            detail = event.get("reason") or ""
+            if status == "failed":
                 self.progress.console.print(
                     f"[red]{_esc(event['clip_id'])}: {event['stage']} failed[/] "
                     f"{_esc(event.get('error'))}")
+            self.line(f"{self.done}/{self.total} {event['clip_id']}: {event['stage']} "
+                      f"{status} in {float(event.get('seconds') or 0):.1f} s"
+                      + (f" ({detail})" if detail else ""))
 
     def __enter__(self) -> StageProgress:
         self.progress.start()
+        self.line(f"starting Prefect for {self.total} stage run(s) ...")
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -262,20 +288,38 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
                 stages: list[str] | None = None, params: Any = None,
                 pipeline: str | None = None, console: Any = None,
                 show_progress: bool = True) -> list[dict[str, Any]]:
-    """Process clips through Prefect with a progress display; returns the per-clip summaries."""
-    from v2xlake.flows import pipeline as pipeline_mod
-    from v2xlake.flows.params import parse_params
+    """Process clips through Prefect with a progress display; returns the per-clip summaries.
+
+    Clips whose chosen stages are all current are answered first, without Prefect
+    (``flows.noop``: the flow's own manifest check); Prefect starts only for the others, and
+    not at all when there are none. ``params``: a mapping (a ``--params`` file's YAML) or a
+    ``PipelineParams``."""
+    from pydantic import BaseModel
+
+    from v2xlake.flows.noop import current_summaries
     from v2xlake.flows.runners import needs_api_server, parse_runner
 
     console = console or _console()
-    run_params = parse_params(params)  # bad parameters: an error before any clip is touched
-    chosen = pipeline_mod.select(pipeline_mod.resolve_pipeline(pipeline), stages)
     parse_runner(runner)
+    raw = params.model_dump(mode="json") if isinstance(params, BaseModel) else params
+    answered = current_summaries(clip_dirs, lake, stages, raw, pipeline)
+    todo = [d for d, a in zip(clip_dirs, answered, strict=True) if a is None]
+    if len(todo) < len(clip_dirs):
+        console.print(f"{len(clip_dirs) - len(todo)} clip(s) already current (every stage's "
+                      "manifest matches): not run")
+    if not todo:
+        return [a for a in answered if a is not None]
+
+    from v2xlake.flows import pipeline as pipeline_mod
+    from v2xlake.flows.params import parse_params
+
+    run_params = parse_params(raw)  # bad parameters: an error before any clip is touched
+    chosen = pipeline_mod.select(pipeline_mod.resolve_pipeline(pipeline), stages)
 
     def go() -> list[dict[str, Any]]:
         with prefect_session():
             return list(pipeline_mod.process_clips(
-                list(clip_dirs), lake, stages, run_params.model_dump(mode="json"), pipeline,
+                list(todo), lake, stages, run_params.model_dump(mode="json"), pipeline,
                 runner))
 
     server_cm: Any = None
@@ -287,18 +331,34 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
     try:
         if server_cm is not None:
             server_cm.__enter__()
-        if show_progress and parse_runner(runner).kind == "local":
-            with StageProgress(len(chosen) * len(clip_dirs), console) as prog:
+        if show_progress:
+            # the clips' flows run in this process with either runner (with Dask only their
+            # stages run on the workers), so their stage events reach the display
+            with StageProgress(len(chosen) * len(todo), console) as prog:
                 pipeline_mod.PROGRESS_HOOK = prog
                 try:
-                    return go()
+                    ran = go()
                 finally:
                     pipeline_mod.PROGRESS_HOOK = None
-        with console.status(f"processing {len(clip_dirs)} clip(s) on {runner} ..."):
-            return go()
+        else:
+            with console.status(f"processing {len(todo)} clip(s) on {runner} ..."):
+                ran = go()
     finally:
         if server_cm is not None:
             server_cm.__exit__(None, None, None)
+    it = iter(ran)
+    return [a if a is not None else next(it) for a in answered]
+
+
+def process_json(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``--format json``: per clip its status and, per stage, status, seconds and metrics."""
+    return [{"clip_id": r["clip_id"], "clip_dir": r.get("clip_dir"), "status": r["status"],
+             "error": r.get("error"), "quarantine_report": r.get("quarantine_report"),
+             "stages": [{"stage": o["stage"], "status": o["status"],
+                         "seconds": round(float(o.get("seconds") or 0.0), 3),
+                         "reason": (o.get("report") or {}).get("reason"),
+                         "metrics": (o.get("report") or {}).get("metrics") or {}}
+                        for o in r.get("stages", [])]} for r in results]
 
 
 @app.command()
@@ -311,24 +371,31 @@ def process(
     stages: Annotated[str | None, typer.Option(help=f"comma subset of {STAGES_HELP}")] = None,
     params: ParamsOpt = None,
     pipeline: Annotated[str | None, typer.Option(hidden=True)] = None,  # module:STAGES
+    fmt: Annotated[OutFormat, typer.Option(
+        "--format", help="table (and progress) or json (one document on stdout, progress "
+                         "on stderr)")] = OutFormat.table,
 ) -> int:
-    """Run the stages on clip folders through Prefect."""
-    from v2xlake.flows.params import load_params
+    """Run the stages on clip folders through Prefect (clips already current: answered
+    from their manifests, without starting Prefect)."""
+    from v2xlake.flows.params import load_params_data
 
     missing = [str(d) for d in clip_dirs if not (d / "clip.yaml").is_file()]
     if missing:
         raise UserError(f"not a clip folder (no clip.yaml): {', '.join(missing)}")
-    console = _console()
+    console = _console(stderr=fmt is OutFormat.json)
     t0 = time.perf_counter()
     results = run_process([str(d) for d in clip_dirs], lake, runner, _csv(stages),
-                          load_params(params), pipeline, console)
+                          load_params_data(params), pipeline, console)
+    ok = sum(r["status"] == "ok" for r in results)
+    if fmt is OutFormat.json:
+        sys.stdout.write(json.dumps(process_json(results), indent=1, default=str) + "\n")
+        return 0 if ok == len(results) else 1
     for r in results:
         console.print(stage_table(r))
         if r["status"] != "ok":
             console.print(f"[red]{_esc(r['clip_id'])}: {r['status']}[/] {_esc(r.get('error'))}"
                           + (f"\n  report: {_esc(r['quarantine_report'])}"
                              if r.get("quarantine_report") else ""))
-    ok = sum(r["status"] == "ok" for r in results)
     console.print(f"{ok}/{len(results)} clip(s) ok in {time.perf_counter() - t0:.1f} s; "
                   f"lake: {_esc(lake)}")
     return 0 if ok == len(results) else 1
@@ -344,19 +411,26 @@ def params_show(
     """Print the effective parameters as YAML: defaults, then --params, then the clip's."""
     import yaml
 
-    from v2xlake.flows.params import clip_params, load_params
-    from v2xlake.flows.pipeline import STAGES
+    from v2xlake.flows.noop import FactsCache, cached_section, load_code_memo, save_code_memo
+    from v2xlake.flows.params import clip_params, load_params_data
+    from v2xlake.flows.stage_names import STAGE_NAMES, registry_stage
+    from v2xlake.storage.manifest import code_version
 
-    run = load_params(params)
-    data = run.model_dump(mode="json")
-    if clip is not None:
-        own = clip_params(clip)
-        for s in STAGES:
-            data[s.name] = run.for_stage(s, own).model_dump(mode="json")
+    # each section remembered per code version (flows.noop): the stage modules that define
+    # the config models (seconds of imports) are imported only when one changed
+    raw = load_params_data(params) or {}
+    names = [*STAGE_NAMES, "export"]
     if stage:
-        if stage not in data:
-            raise UserError(f"unknown section {stage!r}; known: {', '.join(data)}")
-        data = {stage: data[stage]}
+        if stage not in names:
+            raise UserError(f"unknown section {stage!r}; known: {', '.join(names)}")
+        names = [stage]
+    own = clip_params(clip) if clip is not None else None
+    cache = FactsCache()
+    load_code_memo(cache)
+    data = {n: cached_section(cache, n, code_version(n), raw, None if n == "export" else own,
+                              lambda n=n: registry_stage(n)) for n in names}  # type: ignore[misc]
+    save_code_memo(cache)
+    cache.save()
     sys.stdout.write(yaml.safe_dump(data, sort_keys=False))
     return 0
 

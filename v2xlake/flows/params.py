@@ -18,87 +18,34 @@ from __future__ import annotations
 
 import copy
 import functools
-import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ValidationError
 
 from v2xlake.schemas.clip import load_yaml
-from v2xlake.schemas.stage import Stage
-from v2xlake.tasks.align.stage import AlignConfig
-from v2xlake.tasks.annotate.core import AnnotateConfig
-from v2xlake.tasks.anonymize.run import AnonymizeConfig
-from v2xlake.tasks.deskew.stage import DeskewConfig
-from v2xlake.tasks.export.bev import BevConfig
-from v2xlake.tasks.export.eth3d import Eth3dConfig
-from v2xlake.tasks.export.nuscenes import NuScenesExportConfig
-from v2xlake.tasks.export.opencood import OpenCoodConfig
-from v2xlake.tasks.export.rosbag import RosbagExportConfig
-from v2xlake.tasks.export.scene_transfer import SceneTransferConfig
-from v2xlake.tasks.ingest.run import IngestConfig
-from v2xlake.tasks.qa.core import QaConfig
-from v2xlake.tasks.register.stage import RegisterConfig
+
+if TYPE_CHECKING:
+    from v2xlake.flows.params_model import ExportParams, PipelineParams
+
+__all__ = ["ExportParams", "ParamsError", "PipelineParams", "clip_params", "load_params",
+           "load_params_data", "parse_params"]
+
+
+def __getattr__(name: str) -> Any:
+    """``PipelineParams`` / ``ExportParams`` on first use: their module imports every
+    stage's config module (seconds), which ``params show --stage X``, the no-op check and
+    ``--help`` must not pay."""
+    if name in ("PipelineParams", "ExportParams"):
+        from v2xlake.flows import params_model
+
+        return getattr(params_model, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class ParamsError(ValueError):
     """Parameters that do not validate (unknown key, wrong type, out of range)."""
-
-
-class ExportParams(BaseModel):
-    """One section per export format (``scene-transfer`` is spelled ``scene_transfer``)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    nuscenes: NuScenesExportConfig = Field(default_factory=NuScenesExportConfig)
-    eth3d: Eth3dConfig = Field(default_factory=Eth3dConfig)
-    rosbag: RosbagExportConfig = Field(default_factory=RosbagExportConfig)
-    opencood: OpenCoodConfig = Field(default_factory=OpenCoodConfig)
-    bev: BevConfig = Field(default_factory=BevConfig)
-    scene_transfer: SceneTransferConfig = Field(default_factory=SceneTransferConfig)
-
-    def section(self, fmt: str) -> BaseModel:
-        section: BaseModel = getattr(self, fmt.replace("-", "_"))
-        return section
-
-
-# The section is named after its stage; ``register`` is also the name of ABCMeta's class
-# method, which pydantic warns a field shadows. Instances read the field as they should.
-warnings.filterwarnings("ignore", message='Field name "register" in "PipelineParams"')
-
-
-class PipelineParams(BaseModel):
-    """Every user-settable parameter of a pipeline run."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    ingest: IngestConfig = Field(default_factory=IngestConfig)
-    qa: QaConfig = Field(default_factory=QaConfig)
-    anonymize: AnonymizeConfig = Field(default_factory=AnonymizeConfig)
-    deskew: DeskewConfig = Field(default_factory=DeskewConfig)
-    register: RegisterConfig = Field(default_factory=RegisterConfig)
-    annotate: AnnotateConfig = Field(default_factory=AnnotateConfig)
-    align: AlignConfig = Field(default_factory=AlignConfig)
-    export: ExportParams = Field(default_factory=ExportParams)
-
-    def for_stage(self, stage: Stage[Any], clip_params: dict[str, Any] | None = None
-                  ) -> BaseModel:
-        """The effective config of one stage: this run's section, then the clip's block."""
-        base: BaseModel | None = getattr(self, stage.name, None)
-        # a stage outside the standard pipeline (a plugin, a test double) has its own model
-        values = base.model_dump() if isinstance(base, stage.config_model) else {}
-        own = (clip_params or {}).get(stage.name) or {}
-        if not isinstance(own, dict):
-            raise ParamsError(f"params.{stage.name} must be a mapping, got {type(own).__name__}")
-        forbidden = sorted(set(own) & getattr(stage.config_model, "OPERATOR_ONLY", frozenset()))
-        if forbidden:  # a clip is untrusted input: it may not widen what it may read
-            raise ParamsError(f"params.{stage.name}: {forbidden} can only be set by the "
-                              "operator (--params, a deployment), not by a clip's clip.yaml")
-        try:
-            return stage.config({**values, **own})
-        except ValidationError as e:
-            raise ParamsError(f"params.{stage.name}: {_short(e)}") from e
 
 
 def _short(e: ValidationError) -> str:
@@ -108,6 +55,8 @@ def _short(e: ValidationError) -> str:
 
 def parse_params(data: dict[str, Any] | PipelineParams | None) -> PipelineParams:
     """Validate user parameters (a mapping from YAML, a flow parameter, or a model)."""
+    from v2xlake.flows.params_model import PipelineParams
+
     if isinstance(data, PipelineParams):
         return data
     try:
@@ -118,8 +67,13 @@ def parse_params(data: dict[str, Any] | PipelineParams | None) -> PipelineParams
 
 def load_params(path: str | Path | None) -> PipelineParams:
     """``--params FILE.yaml``: a mapping with one optional section per stage / ``export``."""
+    return parse_params(load_params_data(path))
+
+
+def load_params_data(path: str | Path | None) -> dict[str, Any] | None:
+    """``--params FILE.yaml`` read but not validated (the mapping ``parse_params`` takes)."""
     if path is None:
-        return PipelineParams()
+        return None
     try:
         data = load_yaml(Path(path).read_text())
     except OSError as e:
@@ -128,7 +82,7 @@ def load_params(path: str | Path | None) -> PipelineParams:
         raise ParamsError(f"parameters file {path} is not valid YAML: {e}") from e
     if data is not None and not isinstance(data, dict):
         raise ParamsError(f"parameters file {path} must hold a mapping of sections")
-    return parse_params(data)
+    return data
 
 
 def clip_params(clip_dir: str | Path) -> dict[str, Any]:

@@ -23,16 +23,14 @@ clip has its own flow run and state, and one bad clip never stops the others.
 from __future__ import annotations
 
 import contextvars
-import importlib
 import re
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 from uuid import UUID
 
-import yaml
 from prefect import flow, get_run_logger, task
 from prefect.artifacts import (
     create_markdown_artifact,
@@ -44,7 +42,13 @@ from pydantic import BaseModel
 
 from v2xlake.flows import bookkeeping
 from v2xlake.flows.params import ParamsError, clip_params, parse_params
-from v2xlake.schemas.clip import load_yaml
+from v2xlake.flows.stage_names import STAGE_NAMES as REGISTRY_NAMES
+from v2xlake.flows.stage_names import (  # re-exported: they lived here before
+    UNREADABLE,
+    peek_clip_id,
+    resolve_pipeline,
+    select,
+)
 from v2xlake.schemas.errors import ClipError, DeliveryConflict, error_text
 from v2xlake.schemas.stage import Stage, StageReport
 from v2xlake.storage.lake import CLIP_ID, ClipBusy, Lake, LakeWriteError
@@ -59,31 +63,8 @@ from v2xlake.tasks.register.stage import REGISTER
 
 STAGES: tuple[Stage[Any], ...] = (INGEST, QA, ANONYMIZE, DESKEW, REGISTER, ANNOTATE, ALIGN)
 STAGE_NAMES = tuple(s.name for s in STAGES)
+assert STAGE_NAMES == REGISTRY_NAMES, "flows/stage_names.py must list STAGES, in order"
 
-
-def resolve_pipeline(pipeline: str | None = None) -> tuple[Stage[Any], ...]:
-    """The stages to run: ``STAGES``, or another tuple of Stage objects named as
-    ``module:ATTRIBUTE`` (test doubles and plugins that Dask workers and deployment
-    processes must import by name). Any import error propagates: nothing is skipped."""
-    if not pipeline:
-        return STAGES
-    mod, _, attr = pipeline.partition(":")
-    found = getattr(importlib.import_module(mod), attr)
-    if not isinstance(found, tuple | list) or not all(isinstance(s, Stage) for s in found):
-        raise TypeError(f"pipeline {pipeline!r} is not a sequence of Stage objects")
-    return tuple(found)
-
-
-def select(stages: Sequence[Stage[Any]], names: Iterable[str] | None) -> list[Stage[Any]]:
-    """Keep the pipeline order; unknown names are an error (typos must not pass silently)."""
-    if not names:
-        return list(stages)
-    wanted = list(names)
-    known = [s.name for s in stages]
-    unknown = [n for n in wanted if n not in known]
-    if unknown:
-        raise ValueError(f"unknown stage(s) {unknown}; known: {known}")
-    return [s for s in stages if s.name in wanted]
 
 # The CLI sets this to drive its progress display (only for in-process runs).
 ProgressHook = Callable[[dict[str, Any]], None]
@@ -111,24 +92,6 @@ class ClipFailed(Exception):
     @property
     def summary(self) -> dict[str, Any]:
         return dict(self.args[1])
-
-
-UNREADABLE = "_unreadable-"  # no clip id starts with "_": these never name a real clip
-
-
-def peek_clip_id(clip_dir: str | Path) -> str:
-    """The clip id from clip.yaml; when it has none (unreadable, invalid), a name that
-    cannot be any clip's id (``_unreadable-<folder>``): a broken delivery in a folder named
-    like an existing clip must never be taken for it."""
-    path = Path(clip_dir) / "clip.yaml"
-    try:
-        data = load_yaml(path.read_text())
-        cid = data.get("clip_id") if isinstance(data, dict) else None
-        if isinstance(cid, str) and CLIP_ID.fullmatch(cid):
-            return cid
-    except (OSError, yaml.YAMLError, UnicodeDecodeError):
-        pass
-    return UNREADABLE + Path(clip_dir).resolve().name
 
 
 def _artifact_key(*parts: str) -> str:

@@ -1,0 +1,172 @@
+"""Fixed cost of a call: the no-op re-run against a trivial Prefect flow, in the same run.
+
+    python tests/bench/bench_noop.py [--work DIR] [--clips 1000] [--repeat 3]
+
+A small simulated clip (preset small, 1 s) is processed through every stage once (kept in
+``--work``); ``--clips`` replicas of it make a lake where every clip is current
+(``bench_scale.build_lake``: files hard-linked, manifests recorded as the flow would).
+
+Each figure is one fresh process, timed from its start to its exit (best and median of
+``--repeat``), so imports and interpreter start count:
+
+* ``anchor 1 task`` / ``anchor 7 tasks``: a trivial Prefect flow (tests/trivial_flow.py; the
+  second has process-clip's shape, 7 tasks in a row) with Prefect's temporary server, then
+  with ``PREFECT_API_URL`` naming a running server;
+* ``v2xlake process CLIP`` on the processed clip (a no-op: answered by ``flows.noop``
+  before Prefect), with and without ``PREFECT_API_URL``;
+* ``flow no-op``: the same question asked the old way, ``process_clips`` (Prefect starts,
+  every stage is a task that finds its manifest current);
+* ``current_summaries`` over the ``--clips`` replicas: per clip, with the facts cache cold
+  (first call after a code change) and warm.
+
+Prints the figures and their ratios to the anchor. Not run by pytest.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parents[1]
+sys.path[:0] = [str(REPO), str(HERE), str(REPO / "tests")]
+
+import bench_scale  # noqa: E402
+
+TEMPLATE = bench_scale.TEMPLATE_ID
+
+
+def build_template(work: Path) -> Path:
+    """The small clip, processed (bench_scale's template layout, a 1 s small clip)."""
+    tdir = work / "template"
+    lake = tdir / "lake"
+    if (lake / "manifests" / TEMPLATE / "align.json").exists():
+        return lake
+    shutil.rmtree(tdir, ignore_errors=True)
+    tdir.mkdir(parents=True)
+    cli = [sys.executable, "-m", "v2xlake.flows.cli"]
+    print("building the template clip (small, 1 s, every stage) ...", flush=True)
+    subprocess.run([*cli, "simulate", str(tdir / "clip"), "--seconds", "1", "--seed", "7",
+                    "--clip-id", TEMPLATE], check=True, env=_env(), cwd=REPO)
+    subprocess.run([*cli, "process", str(tdir / "clip"), "--lake", str(lake)], check=True,
+                   env=_env(), cwd=REPO)
+    return lake
+
+
+def _env(**extra: str) -> dict[str, str]:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests")]))
+    env.pop("PREFECT_API_URL", None)
+    env.update(extra)
+    return env
+
+
+def timed(cmd: list[str], repeat: int, env: dict[str, str]) -> dict[str, float]:
+    walls = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        res = subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True)
+        walls.append(time.perf_counter() - t0)
+        if res.returncode != 0:
+            raise RuntimeError(f"{cmd} failed:\n{res.stdout[-2000:]}\n{res.stderr[-3000:]}")
+    return {"best": min(walls), "median": statistics.median(walls)}
+
+
+PER_CLIP = """
+import sys, time
+t0 = time.perf_counter()
+from pathlib import Path
+from v2xlake.flows.noop import current_summaries
+dirs = sorted(str(p) for p in Path(sys.argv[2]).iterdir())
+t1 = time.perf_counter()
+res = current_summaries(dirs, sys.argv[1])
+t2 = time.perf_counter()
+assert all(r is not None for r in res), sum(r is None for r in res)
+print(len(dirs), t1 - t0, t2 - t1)
+"""
+
+FLOW_NOOP = """
+import sys
+from v2xlake.flows.settings import prefect_session
+from v2xlake.flows.pipeline import process_clips
+with prefect_session():
+    r = process_clips([sys.argv[1]], sys.argv[2])
+assert all(o["status"] == "cached" for o in r[0]["stages"]), r
+"""
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "v2x-bench-noop")
+    ap.add_argument("--clips", type=int, default=1000)
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args()
+    work = args.work.resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("V2XLAKE_HOME", str(work / "home"))
+    os.environ["V2XLAKE_NOOP_CACHE"] = str(work / "noop-facts.json")
+    from v2xlake.flows.settings import configure_prefect
+
+    configure_prefect()
+    tlake = build_template(work)
+    clip = tlake.parent / "clip"
+    py = sys.executable
+    anchor1 = [py, str(REPO / "tests" / "trivial_flow.py")]
+    anchor7 = [py, "-c", "from trivial_flow import trivial_clip_flow; trivial_clip_flow()"]
+    process = [py, "-m", "v2xlake.flows.cli", "process", str(clip), "--lake", str(tlake)]
+    flow_noop = [py, "-c", FLOW_NOOP, str(clip), str(tlake)]
+    rows: dict[str, dict[str, float]] = {}
+    env = _env()
+    print(f"per call, {args.repeat} fresh processes each (wall s, best / median):", flush=True)
+    for name, cmd in (("anchor 1 task, temporary server", anchor1),
+                      ("anchor 7 tasks, temporary server", anchor7),
+                      ("v2xlake process (no-op), no API URL", process),
+                      ("flow no-op (process_clips), temporary server", flow_noop)):
+        rows[name] = timed(cmd, args.repeat, env)
+        print(f"  {name:48s} {rows[name]['best']:6.2f} / {rows[name]['median']:6.2f}",
+              flush=True)
+    from v2xlake.flows.server import start_server
+
+    server = start_server(work / "server")
+    try:
+        env_api = _env(PREFECT_API_URL=server.api_url)
+        for name, cmd in (("anchor 1 task, PREFECT_API_URL", anchor1),
+                          ("anchor 7 tasks, PREFECT_API_URL", anchor7),
+                          ("v2xlake process (no-op), PREFECT_API_URL", process),
+                          ("flow no-op (process_clips), PREFECT_API_URL", flow_noop)):
+            rows[name] = timed(cmd, args.repeat, env_api)
+            print(f"  {name:48s} {rows[name]['best']:6.2f} / {rows[name]['median']:6.2f}",
+                  flush=True)
+    finally:
+        server.stop()
+    for api in ("temporary server", "PREFECT_API_URL"):
+        a = rows[f"anchor 7 tasks, {api}"]["median"]
+        key = "no API URL" if api == "temporary server" else api
+        n = rows[f"v2xlake process (no-op), {key}"]["median"]
+        f = rows[f"flow no-op (process_clips), {api}"]["median"]
+        print(f"  ratios ({api}): v2xlake no-op / 7-task anchor = {n / a:.3f}; "
+              f"flow no-op / anchor = {f / a:.2f}; v2xlake no-op / flow no-op = {n / f:.3f}")
+    if args.clips:
+        root, inbox = bench_scale.build_lake(work, tlake, args.clips)
+        for variant in ("cold", "warm"):
+            if variant == "cold":
+                Path(os.environ["V2XLAKE_NOOP_CACHE"]).unlink(missing_ok=True)
+            out = subprocess.run([py, "-c", PER_CLIP, str(root), str(inbox)], env=env,
+                                 capture_output=True, text=True, cwd=REPO)
+            if out.returncode != 0:
+                raise RuntimeError(out.stderr[-3000:])
+            n, imp, check = out.stdout.split()[-3:]
+            print(f"  current_summaries over {n} clips, facts cache {variant}: "
+                  f"{float(check):.2f} s ({1000 * float(check) / int(n):.2f} ms per clip; "
+                  f"imports {float(imp):.2f} s)", flush=True)
+
+
+if __name__ == "__main__":
+    main()

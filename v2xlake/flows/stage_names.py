@@ -1,0 +1,83 @@
+"""The stage registry by name, and what the flow reads from a clip folder before any stage,
+without importing Prefect or any stage module.
+
+WHY a module of its own: the stage modules import NumPy, SciPy, Open3D, numba (4-8 s on two
+cores) and Prefect takes 2 s more; the no-op check (``flows.noop``) and ``v2xlake params show
+--stage X`` must answer before either is imported. ``flows.pipeline.STAGES`` imports the
+Stage objects named here (and checks that the two agree).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+#: The standard pipeline, in order: stage name -> (module, attribute) of its Stage object.
+STAGE_REFS: dict[str, tuple[str, str]] = {
+    "ingest": ("v2xlake.tasks.ingest.stage", "INGEST"),
+    "qa": ("v2xlake.tasks.qa.stage", "QA"),
+    "anonymize": ("v2xlake.tasks.anonymize.stage", "ANONYMIZE"),
+    "deskew": ("v2xlake.tasks.deskew.stage", "DESKEW"),
+    "register": ("v2xlake.tasks.register.stage", "REGISTER"),
+    "annotate": ("v2xlake.tasks.annotate.stage", "ANNOTATE"),
+    "align": ("v2xlake.tasks.align.stage", "ALIGN"),
+}
+STAGE_NAMES: tuple[str, ...] = tuple(STAGE_REFS)
+
+
+def resolve_pipeline(pipeline: str | None = None) -> tuple[Any, ...]:
+    """The stages to run: ``flows.pipeline.STAGES``, or another tuple of Stage objects
+    named as ``module:ATTRIBUTE`` (test doubles and plugins that Dask workers and deployment
+    processes must import by name). Any import error propagates: nothing is skipped."""
+    from v2xlake.schemas.stage import Stage
+
+    if not pipeline:
+        return tuple(registry_stage(n) for n in STAGE_NAMES)
+    mod, _, attr = pipeline.partition(":")
+    found = getattr(importlib.import_module(mod), attr)
+    if not isinstance(found, tuple | list) or not all(isinstance(s, Stage) for s in found):
+        raise TypeError(f"pipeline {pipeline!r} is not a sequence of Stage objects")
+    return tuple(found)
+
+
+def select(stages: Sequence[Any], names: Iterable[str] | None) -> list[Any]:
+    """Keep the pipeline order; unknown names are an error (typos must not pass silently)."""
+    if not names:
+        return list(stages)
+    wanted = list(names)
+    known = [s.name for s in stages]
+    unknown = [n for n in wanted if n not in known]
+    if unknown:
+        raise ValueError(f"unknown stage(s) {unknown}; known: {known}")
+    return [s for s in stages if s.name in wanted]
+
+
+def registry_stage(name: str) -> Any:
+    """One standard stage's Stage object (imports that stage's module only)."""
+    mod, attr = STAGE_REFS[name]
+    return getattr(importlib.import_module(mod), attr)
+
+
+UNREADABLE = "_unreadable-"  # no clip id starts with "_": these never name a real clip
+
+
+def peek_clip_id(clip_dir: str | Path) -> str:
+    """The clip id from clip.yaml; when it has none (unreadable, invalid), a name that
+    cannot be any clip's id (``_unreadable-<folder>``): a broken delivery in a folder named
+    like an existing clip must never be taken for it."""
+    from v2xlake.schemas.clip import load_yaml
+    from v2xlake.storage.lake import CLIP_ID
+
+    path = Path(clip_dir) / "clip.yaml"
+    try:
+        data = load_yaml(path.read_text())
+        cid = data.get("clip_id") if isinstance(data, dict) else None
+        if isinstance(cid, str) and CLIP_ID.fullmatch(cid):
+            return cid
+    except (OSError, yaml.YAMLError, UnicodeDecodeError):
+        pass
+    return UNREADABLE + Path(clip_dir).resolve().name
