@@ -192,6 +192,9 @@ def simulate(
     radar: Annotated[bool, typer.Option(help="a 20 Hz front 4D radar on each vehicle")] = False,
 ) -> int:
     """Write a simulated multi-agent clip folder."""
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise UserError(f"output folder {out} exists and is not empty: simulate writes a new "
+                        "clip folder and never overwrites (pick a new or empty folder)")
     from v2xlake.tasks.simulate import simulate as run_simulate
 
     cfg = sim_config(preset.value, seconds, storage.value if storage else None, seed, agents,
@@ -533,6 +536,8 @@ def export(
     storage: Annotated[Ros2Storage | None, typer.Option(
         help="rosbag only: sqlite3 or mcap (zstd chunks, /tf, markers: opens in Foxglove)")]
     = None,
+    fmt_out: Annotated[OutFormat, typer.Option(
+        "--format", help="table, or json (one document on stdout)")] = OutFormat.table,
 ) -> int:
     """Export clips to a dataset format."""
     from v2xlake.flows.bookkeeping import query as run_query
@@ -557,12 +562,34 @@ def export(
         raise UserError(f"output folder {out} is not empty; exports never overwrite")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    console = _console()
-    with console.status(f"exporting {len(clip_ids)} clip(s) as {fmt.value} -> {out} ..."):
+    console = _console(stderr=fmt_out is OutFormat.json)
+    what = f"exporting {len(clip_ids)} clip(s) as {fmt.value} -> {out}"
+    if not console.is_terminal:  # a pipe or a CI log: a plain line, not a spinner
+        console.print(f"{_esc(what)} ...")
+    with console.status(f"{_esc(what)} ..."):
         metrics = call_export(fmt.value, the_lake, clip_ids, out, config=cfg)
-    console.print(f"{fmt.value}: {len(clip_ids)} clip(s) -> {_esc(out)} in "
-                  f"{time.perf_counter() - t0:.1f} s {_esc(metrics)}")
+    seconds = time.perf_counter() - t0
+    if fmt_out is OutFormat.json:
+        sys.stdout.write(json.dumps({"format": fmt.value, "out": str(out), "clips": clip_ids,
+                                     "seconds": round(seconds, 3), "metrics": metrics},
+                                    indent=1, default=str) + "\n")
+        return 0
+    console.print(metric_table(f"{fmt.value}: {len(clip_ids)} clip(s) -> {out} in "
+                               f"{seconds:.1f} s", metrics))
     return 0
+
+
+def metric_table(title: str, metrics: dict[str, Any]) -> Any:
+    """A result's metrics as a two-column table (not a raw dict)."""
+    from rich.table import Table
+
+    table = Table(title=_esc(title), title_justify="left")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for k, v in metrics.items():
+        table.add_row(_esc(k), _num(int(v)) if isinstance(v, float) and v.is_integer()
+                      else _num(v))
+    return table
 
 
 def known_clip(lake: str, clip: str) -> Any:
@@ -859,8 +886,8 @@ def _is_user_error(e: Exception) -> bool:
     from v2xlake.schemas.errors import ClipError
     from v2xlake.storage.lake import LakeWriteError
 
-    if isinstance(e, UserError | ClipError | ValueError | FileNotFoundError | PermissionError
-                  | LakeWriteError):  # a full disk or read-only lake: one clear line
+    if isinstance(e, UserError | ClipError | ValueError | FileNotFoundError | FileExistsError
+                  | PermissionError | LakeWriteError):  # full disk, read-only lake: one line
         return True  # ParamsError is a ValueError
     if "duckdb" in type(e).__module__:  # bad SQL: the parser's message, no trace
         return True

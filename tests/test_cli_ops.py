@@ -1,0 +1,109 @@
+"""The command line as an operator uses it in a pipe or CI log: plain progress lines, result
+tables or JSON, clear one-line errors, and ``params show`` without importing the stages."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import test_flows_fakestages as fakes
+
+REPO = Path(__file__).resolve().parents[1]
+CLI = [sys.executable, "-m", "v2xlake.flows.cli"]
+
+
+def _env(tmp: Path, **extra: str) -> dict[str, str]:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests")]),
+               V2XLAKE_NOOP_CACHE=str(tmp / "noop.json"), COLUMNS="160")
+    env.update(extra)
+    return env
+
+
+def test_simulate_into_non_empty_folder_is_one_line(tmp_path: Path) -> None:
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "keep.txt").write_text("mine")
+    res = subprocess.run([*CLI, "simulate", str(tmp_path / "out"), "--seconds", "0.2"],
+                         env=_env(tmp_path), capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2
+    assert "Traceback" not in res.stderr and "not empty" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert (tmp_path / "out" / "keep.txt").read_text() == "mine"
+
+
+def test_stage_progress_plain_lines_off_a_terminal() -> None:
+    from rich.console import Console
+
+    from v2xlake.flows.cli import StageProgress
+
+    events = [{"event": "stage_start", "clip_id": "c1", "stage": "ingest"},
+              {"event": "stage_end", "clip_id": "c1", "stage": "ingest", "status": "done",
+               "seconds": 1.25},
+              {"event": "stage_start", "clip_id": "c1", "stage": "register"},
+              {"event": "stage_end", "clip_id": "c1", "stage": "register",
+               "status": "not_applicable", "seconds": 0.0, "reason": "one agent [x]"}]
+    buf = io.StringIO()
+    with StageProgress(2, Console(file=buf, width=200)) as prog:  # a pipe
+        for e in events:
+            prog(e)
+    lines = buf.getvalue().splitlines()
+    assert any("1/2 c1: ingest done in 1.2 s" in ln for ln in lines), lines
+    assert any("2/2 c1: register not_applicable in 0.0 s (one agent [x])" in ln
+               for ln in lines), lines
+    tty = io.StringIO()
+    with StageProgress(2, Console(file=tty, width=200, force_terminal=True)) as prog:
+        for e in events:
+            prog(e)
+    assert "1/2 c1: ingest done" not in tty.getvalue()  # the live bar instead
+
+
+def test_metric_table_not_a_dict() -> None:
+    from rich.console import Console
+
+    from v2xlake.flows.cli import metric_table
+
+    buf = io.StringIO()
+    Console(file=buf, width=120).print(metric_table("nuscenes: 1 clip(s)", {
+        "samples": 20.0, "boxes_dropped_no_points": 3.0, "mean_points": 1234.5678}))
+    out = buf.getvalue()
+    assert "{" not in out and "samples" in out and "20" in out and "1235" in out
+
+
+@pytest.mark.slow
+def test_process_piped_prints_a_line_per_stage(prefect_server: Any, tmp_path: Path) -> None:
+    clip = fakes.make_fake_clip(tmp_path / "in", "piped_clip")
+    lake = tmp_path / "lake"
+    cmd = [*CLI, "process", str(clip), "--lake", str(lake), "--pipeline", fakes.FAKES]
+    env = _env(tmp_path, PREFECT_API_URL=prefect_server.api_url)
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    for i, stage in enumerate(("ingest", "qa", "annotate"), 1):
+        assert f"{i}/3 piped_clip: {stage} done in" in res.stdout, res.stdout
+    assert "clip piped_clip: ok" in res.stdout
+    # again: answered from the manifests, no Prefect, as JSON
+    res = subprocess.run([*cmd, "--format", "json"], env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    doc = json.loads(res.stdout)
+    assert [s["status"] for s in doc[0]["stages"]] == ["cached"] * 3
+    assert "already current" in res.stderr
+
+
+def test_params_show_second_call_imports_no_stage(tmp_path: Path) -> None:
+    env = _env(tmp_path)
+    first = subprocess.run([*CLI, "params", "show"], env=env, capture_output=True, text=True,
+                           timeout=300)
+    assert first.returncode == 0, first.stderr[-2000:]
+    second = subprocess.run([sys.executable, "-X", "importtime", *CLI[1:], "params", "show"],
+                            env=env, capture_output=True, text=True, timeout=300)
+    assert second.returncode == 0 and second.stdout == first.stdout
+    imported = {ln.split("|")[-1].strip() for ln in second.stderr.splitlines() if "|" in ln}
+    heavy = sorted(m for m in imported if m.startswith(("v2xlake.tasks.", "prefect", "open3d",
+                                                        "scipy")))
+    assert heavy == [], heavy
+    assert "deskew:" in first.stdout and "export:" in first.stdout
