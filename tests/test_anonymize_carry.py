@@ -128,7 +128,8 @@ def test_a_found_face_is_blurred_whole() -> None:
     det = cfg.build_detector()
     img, truth = synth_scene(3, 1280, 720, face_sizes=(16, 24, 32, 48, 64, 96))
     dets = [d for d in det.detect(img) if d.kind == "face"]
-    done = blur_boxes(np.zeros_like(img), [d.box for d in dets], cfg.blur())
+    done = blur_boxes(np.zeros_like(img), [d.box for d in dets], cfg.blur(),
+                      [d.kind for d in dets])
     found, _ = match(truth, dets)
     assert found.all()
     shares = [blurred_share(whole_face(t), done, img.shape) for t in truth]

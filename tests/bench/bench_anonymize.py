@@ -378,7 +378,7 @@ def time_guided(frames: list, cfg: AnonymizeConfig, guided: bool = True, repeat:
             img = decode_image(path.read_bytes())
             dets = det.detect(to_bgr8(img), regions if guided else None)
             out = img.copy()
-            blur_boxes(out, [d.box for d in dets], blur)
+            blur_boxes(out, [d.box for d in dets], blur, [d.kind for d in dets])
             encode_png(out, cfg.png_compression)
         best = min(best, time.perf_counter() - t)
     return len(frames) / best

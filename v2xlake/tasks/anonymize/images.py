@@ -107,7 +107,7 @@ def anonymize_array(
     """Detect on an 8-bit view, blur the original pixels (any depth/channels); returns a copy."""
     dets = detector.detect(to_bgr8(img))
     out = img.copy()
-    blur_boxes(out, [d.box for d in dets], blur)
+    blur_boxes(out, [d.box for d in dets], blur, [d.kind for d in dets])
     return out, dets
 
 

@@ -214,7 +214,15 @@ class AnonymizeConfig(BaseModel):
         "nuScenes ships), or the format each image was delivered in")
     jpeg_quality: int = Field(95, ge=1, le=100)
     blur_method: Literal["pixelate+gaussian", "gaussian"] = "pixelate+gaussian"
-    blur_margin: float = 0.2
+    blur_margin: float = Field(0.2, description="a plate's box is grown by this share of its "
+                               "size on each side before blurring")
+    face_blur_margin_x: float = Field(
+        0.3, ge=0, description="a face's box is grown by this share of its width on each side "
+        "(ears: the whole face sticks out of CenterFace's box by up to 0.18 of its width)")
+    face_blur_margin_top: float = Field(
+        0.35, ge=0, description="... by this share of its height above (hairline: up to 0.17)")
+    face_blur_margin_bottom: float = Field(
+        0.25, ge=0, description="... and below (chin: up to 0.09)")
     png_compression: int = 1
     workers: int = 0  # threads decoding/detecting/encoding images; 0: one per CPU core
 
@@ -281,7 +289,10 @@ class AnonymizeConfig(BaseModel):
                            windows=self.region_windows)
 
     def blur(self) -> BlurConfig:
-        return BlurConfig(method=self.blur_method, margin=self.blur_margin)
+        return BlurConfig(method=self.blur_method, margin=self.blur_margin,
+                          face_margin_x=self.face_blur_margin_x,
+                          face_margin_top=self.face_blur_margin_top,
+                          face_margin_bottom=self.face_blur_margin_bottom)
 
 
 def _partition_files(
@@ -615,7 +626,7 @@ def _anonymize_images(
 
     def finish(img: np.ndarray, key: str, dets: list[Detection]) -> tuple[str, str]:
         out = img.copy()
-        blur_boxes(out, [d.box for d in dets], blur)
+        blur_boxes(out, [d.box for d in dets], blur, [d.kind for d in dets])
         data, clean_key = _encode(out, key, cfg)
         stage.write_blob("clean", clean_key, data)
         return hashlib.sha256(data).hexdigest(), clean_key
