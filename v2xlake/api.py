@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from v2xlake.collate import collate_fn as _collate_fn
 from v2xlake.storage.catalog import Catalog
 from v2xlake.storage.lake import Lake as _LakeIO
 from v2xlake.storage.lake import checked_clip_id
@@ -649,9 +650,11 @@ class CoopDataset:
     """Map-style dataset of cooperative samples, for PyTorch's ``DataLoader`` (or anything
     that calls ``len`` and ``[i]``); v2xlake itself never imports torch.
 
-    Item ``i`` is a dict of NumPy arrays (the default collate of torch turns them into
-    tensors; point clouds differ in size, so pass a ``collate_fn`` that keeps lists, or a
-    ``transform`` that voxelises): ``clip_id``, ``frame_idx`` (reference), ``t_ns``,
+    Item ``i`` is a dict of NumPy arrays. Point clouds and boxes differ in size, so torch's
+    default collate fails on them: pass ``collate_fn=v2xlake.collate.collate_fn`` (also
+    ``CoopDataset.collate_fn``: per-sample lists plus every point of the batch in one
+    ``points_cat`` array with sample and agent index), or a ``transform`` that voxelises.
+    The item: ``clip_id``, ``frame_idx`` (reference), ``t_ns``,
     ``agents`` (reference first), ``points`` {agent: (N, 4) x y z intensity in ``frame``},
     ``boxes`` {agent: Boxes as arrays}, ``T`` {agent: ``T_frame_Lagent``}, ``T_source``
     {agent: "registered" | "ins" | "reference"} and ``T_source_reason`` {agent: why not
@@ -706,6 +709,9 @@ class CoopDataset:
         if require_registered:
             index = [(cid, k) for cid, k in index if self._sample(cid, k).registered]
         self.index = index
+
+    #: ``DataLoader(ds, collate_fn=ds.collate_fn)``: see :mod:`v2xlake.collate`
+    collate_fn = staticmethod(_collate_fn)
 
     def _sample(self, cid: str, k: int) -> CoopSample:
         clip = self.lake.clip(cid)
