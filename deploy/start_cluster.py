@@ -39,6 +39,7 @@ from v2xlake.flows.cluster import (  # noqa: E402
     start_s3,
     wait_for_workers,
 )
+from v2xlake.flows.runners import thread_env, worker_threads  # noqa: E402
 from v2xlake.flows.server import start_server, start_worker, stop_process  # noqa: E402
 from v2xlake.flows.settings import v2xlake_home  # noqa: E402
 
@@ -99,6 +100,9 @@ def main() -> int:
                           PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL="INFO",
                           PYTHONPATH=os.pathsep.join(
                               p for p in (str(REPO), args.pythonpath) if p))
+        # all workers share this machine's cores: each gets cores // workers threads
+        # (numba, BLAS, the stages' pools; flows/runners.py), not every core
+        worker_env.update(thread_env(worker_threads(args.workers)))
         sched = start_dask_scheduler(home, env=worker_env)
         started.append(sched)
         for k in range(args.workers):

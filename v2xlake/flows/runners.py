@@ -9,6 +9,16 @@ as a task, and a chunked stage (``Stage.chunked``) as one task per chunk, so one
 uses every worker. Every Dask worker reports to the Prefect API named by
 ``PREFECT_API_URL``; without one each worker would start its own temporary server, so the
 CLI refuses ``dask`` without it (see NOTES.md).
+
+Thread budget (#26): a worker runs one task at a time, but the stages inside it size their
+own pools from the machine (anonymize's detector pool and ingest's PNG pool take
+``os.cpu_count()``, numba and OpenCV take every core, BLAS too unless told), so two workers
+on two cores ran four to eight busy threads. Each worker therefore gets ``cores // workers``
+threads (at least 1): ``NUMBA_NUM_THREADS``, OpenMP/BLAS/numexpr variables and
+``V2XLAKE_WORKER_THREADS`` in its environment (set by the nanny before the worker process
+starts, so before numba is imported), and at start-up (``flows.dask_budget.ThreadBudget``)
+``os.cpu_count()`` answering that budget (what Python 3.13's ``PYTHON_CPU_COUNT`` does),
+``cv2.setNumThreads`` and, on Linux for a local cluster, the worker pinned to its own cores.
 """
 
 from __future__ import annotations
@@ -18,6 +28,69 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
+
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+               "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS", "NUMBA_NUM_THREADS",
+               "V2XLAKE_WORKER_THREADS")
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its affinity mask, not the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def worker_threads(n_workers: int, cores: int | None = None) -> int:
+    """Threads per worker so that ``n_workers`` workers do not oversubscribe the cores."""
+    return max(1, (cores or available_cores()) // max(1, n_workers))
+
+
+def thread_env(threads: int) -> dict[str, str]:
+    """Environment of a worker process with a budget of ``threads`` threads."""
+    return {k: str(threads) for k in THREAD_VARS}
+
+
+def apply_thread_budget(threads: int, pin: list[int] | None = None) -> None:
+    """In the current process: thread variables, ``os.cpu_count``, OpenCV, affinity."""
+    os.environ.update(thread_env(threads))
+    os.cpu_count = lambda: threads  # the stages' pool sizes (Python 3.13: PYTHON_CPU_COUNT)
+    if pin:
+        with contextlib.suppress(AttributeError, OSError):
+            os.sched_setaffinity(0, pin)
+    with contextlib.suppress(Exception):  # OpenCV sizes its pool from the machine
+        import cv2
+
+        cv2.setNumThreads(threads)
+
+
+def local_cluster_kwargs(n_workers: int, cores: int | None = None) -> dict[str, Any]:
+    """``LocalCluster`` arguments: single-threaded workers, each with its thread budget."""
+    threads = worker_threads(n_workers, cores)
+    return {"n_workers": n_workers, "threads_per_worker": 1, "processes": True,
+            "dashboard_address": None, "env": thread_env(threads)}
+
+
+def pinning(n_workers: int) -> dict[str, list[int]]:
+    """Worker name -> its own cores (local clusters; none when there are fewer cores than
+    workers: then they share, and only the thread budget applies)."""
+    try:
+        cores = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return {}
+    per = len(cores) // max(1, n_workers)
+    if per < 1:
+        return {}
+    return {str(k): cores[k * per:(k + 1) * per] for k in range(n_workers)}
+
+
+def register_budget(client: Any, n_workers: int, *, pin: bool) -> None:
+    """Apply the budget on the client's workers (now and on any that join later)."""
+    from v2xlake.flows.dask_budget import ThreadBudget
+
+    threads = max(1, worker_threads(n_workers))
+    client.register_plugin(ThreadBudget(threads, pinning(n_workers) if pin else None))
 
 
 @dataclass(frozen=True)
@@ -55,8 +128,7 @@ def make_task_runner(text: str) -> Any:
         return DaskTaskRunner(address=spec.address)
     return DaskTaskRunner(
         cluster_class="distributed.LocalCluster",
-        cluster_kwargs={"n_workers": spec.n_workers, "threads_per_worker": 1,
-                        "processes": True, "dashboard_address": None},
+        cluster_kwargs=local_cluster_kwargs(spec.n_workers),
     )
 
 
@@ -71,8 +143,9 @@ def dask_cluster(spec: RunnerSpec) -> Iterator[tuple[str, int]]:
             threads = sum(client.nthreads().values())
         yield spec.address, max(threads, 1)
         return
-    with LocalCluster(n_workers=spec.n_workers, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster:
+    with LocalCluster(**local_cluster_kwargs(spec.n_workers)) as cluster, \
+            Client(cluster) as client:
+        register_budget(client, spec.n_workers, pin=True)
         yield cluster.scheduler_address, spec.n_workers
 
 
