@@ -206,9 +206,13 @@ class RegisterConfig(BaseModel):
         0.1, ge=0, le=1, description="... and at most this fraction of the frames the agent "
         "takes part in are leave-one-out outliers (a run of them is an unmodelled INS error)")
     refined_require_all: bool = Field(
-        True, description="refined calibration usable only when every component (rx ry rz "
-        "tx ty tz) was determined: a component that keeps the published value has that "
-        "value's unknown error, which the refined components' 1-sigma does not cover")
+        False, description="refined calibration usable only when every component (rx ry rz "
+        "tx ty tz) was determined. Off (default): the components the clip determined are used "
+        "and the others keep the published value (named in the reason; their unknown error is "
+        "not in the 1-sigma). Driving straight, a cooperative vehicle's extrinsic x / y cannot "
+        "be told from an INS offset while its yaw can: keeping the whole published extrinsic "
+        "then put the yaw error (0.4 deg on the boulevard) into every consumer of the agent's "
+        "pose, its cameras included")
     refined_significance: float = Field(
         2.0, gt=0, description="a correction whose Mahalanobis norm over the determined "
         "components is below this (in sigma, per chi^2 quantile of that dimension) is not "
