@@ -648,6 +648,11 @@ class Lake:
     def exists(self, path: str) -> bool:
         return bool(self.fs.get_file_info(path).type != pafs.FileType.NotFound)
 
+    def count_rows(self, path: str) -> int:
+        """Rows of one Parquet file, from its footer."""
+        with self.fs.open_input_file(path) as f:
+            return int(pq.ParquetFile(f).metadata.num_rows)
+
     def delete_dir(self, path: str) -> None:
         if self.exists(path):
             with self.writing(path):

@@ -21,7 +21,6 @@ from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.arrow import rows_to_table
@@ -29,6 +28,7 @@ from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import AlignmentRow
+from v2xlake.storage.files import read_parquet
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import CameraCalib, iter_point_frames, no_pose_report
 from v2xlake.tasks.align.boxes import BoxArray
@@ -106,7 +106,7 @@ def load_truth_boxes(truth_dir: Path, min_px: float = 0.0, min_pixels: int = 0,
     path = Path(truth_dir) / "boxes2d.parquet"
     if not path.exists():
         raise FileNotFoundError(f"no true 2D boxes at {path}")
-    t = pq.read_table(path)
+    t = read_parquet(path)
     names = set(t.column_names)
     cam_col = next((c for c in ("camera", "sensor") if c in names), None)
     agent_col = next((c for c in ("agent_id", "agent") if c in names), None)

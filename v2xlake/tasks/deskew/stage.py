@@ -29,13 +29,13 @@ from typing import Literal
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import Chunked, OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import DeskewFrameRow
+from v2xlake.storage.frames import iter_row_groups, partition_files, row_group_count
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import (
     pose_less_report,
@@ -132,17 +132,6 @@ def _pose_gaps(track: PoseTrack, max_gap: int) -> np.ndarray:
     return np.stack([track.t_ns[k], track.t_ns[k + 1]], axis=1)
 
 
-def _partition_files(lake: Lake, table: str, clip_id: str) -> list[tuple[str, str | None, str]]:
-    """(path, agent_id or None, file stem) of every file of ``table`` for the clip."""
-    root = lake.table_dir("clean", table, clip_id)
-    out = []
-    for path in lake.list_files(root, ".parquet"):
-        rel = path[len(root):].strip("/").split("/")
-        agent = next((s.split("=", 1)[1] for s in rel if s.startswith("agent_id=")), None)
-        out.append((path, agent, rel[-1][: -len(".parquet")]))
-    return out
-
-
 def _frame_parts(tbl: pa.Table) -> list[tuple[int, pa.Table]]:
     """(frame_idx, rows of that frame) in a row group; usually the row group IS one frame
     (zero-copy slices when rows are frame-sorted)."""
@@ -205,7 +194,7 @@ def plan_deskew(lake: Lake, clip_id: str, cfg: DeskewConfig) -> list[DeskewChunk
     agents_tbl = lake.read_table("clean", "agents", clip_id=clip_id)
     if agents_tbl.num_rows == 0:
         raise _fail(clip_id, "no clean 'agents' rows: run anonymize first")
-    point_files = _partition_files(lake, "lidar_points", clip_id)
+    point_files = partition_files(lake, "clean", "lidar_points", clip_id)
     if not point_files:
         raise _fail(clip_id, "no clean lidar_points: nothing to deskew")
     lake.delete_partition("clean", OUT_TABLE, clip_id)
@@ -219,7 +208,7 @@ def plan_deskew(lake: Lake, clip_id: str, cfg: DeskewConfig) -> list[DeskewChunk
     for path, agent, _ in point_files:
         if agent is None or agent in without:
             continue
-        n = pq.ParquetFile(path, filesystem=lake.fs).num_row_groups  # one per frame, usually
+        n = row_group_count(lake, path)  # one per frame, usually
         chunks += [DeskewChunk(agent, path, r, min(r + cfg.frames_per_file, n))
                    for r in range(0, n, cfg.frames_per_file)]
     return chunks
@@ -238,9 +227,8 @@ def deskew_chunk(lake: Lake, clip_id: str, cfg: DeskewConfig, chunk: DeskewChunk
         if fa.num_rows else {}
     part = DeskewPart([], {}, _Totals())
     pending: list[pa.Table] = []
-    pf = pq.ParquetFile(chunk.path, filesystem=lake.fs)
-    for rg in range(chunk.rg0, chunk.rg1):
-        for frame_idx, rows in _frame_parts(pf.read_row_group(rg)):
+    for group in iter_row_groups(lake, chunk.path, chunk.rg0, chunk.rg1):
+        for frame_idx, rows in _frame_parts(group):
             for sensor, sub in _sensor_parts(rows):
                 out = _deskew_frame(clip_id, agent, sensor, frame_idx, sub, track, extr, gaps,
                                     t_start, cfg, part.stats, part.tot)

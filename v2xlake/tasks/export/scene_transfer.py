@@ -23,11 +23,11 @@ from typing import Literal
 import cv2
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
+from v2xlake.storage.files import write_parquet
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.export.common import file_output
 from v2xlake.tasks.reader import load_clip
@@ -155,7 +155,7 @@ def export_scene_transfer(lake: Lake, clip_ids: Sequence[str], out_dir: Path | s
     report = StageReport(stage="export_scene_transfer", clip_id=",".join(clip_ids))
     table = pa.Table.from_pylist(rows) if rows else \
         pa.table({"location": pa.array([], pa.string())})
-    pq.write_table(table, out / "pairs.parquet")
+    write_parquet(out / "pairs.parquet", table, compression="snappy")
     with open(out / "pairs.csv", "w", newline="") as fh:
         if rows:
             w = csv.DictWriter(fh, fieldnames=list(rows[0]))

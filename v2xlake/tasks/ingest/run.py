@@ -1079,6 +1079,4 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
 
 
 def pq_rows(lake: Lake, path: str) -> int:
-    import pyarrow.parquet as pq
-    with lake.fs.open_input_file(path) as f:
-        return int(pq.ParquetFile(f).metadata.num_rows)
+    return lake.count_rows(path)

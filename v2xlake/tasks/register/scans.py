@@ -15,12 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 
 from v2xlake.schemas.errors import ClipError
+from v2xlake.storage.frames import PointFrameIndex
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import read_extrinsics
-from v2xlake.tasks.deskew.stage import OUT_TABLE as DESKEWED
+from v2xlake.storage.reader import DESKEWED, read_extrinsics
 from v2xlake.tasks.geometry import apply, invert
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.reader import load_pose_track
@@ -107,20 +106,8 @@ class AgentScans:
                 tr = ref_of.get((str(s), int(f)))
                 if s == sensor and tr is not None:
                     self.frames[int(f)] = (int(t0), int(tr))
-        self._lake = lake
-        self._groups: dict[int, list[tuple[str, int]]] = {}
-        for path in lake.list_files(lake.table_dir("clean", DESKEWED, clip_id, agent), ".parquet"):
-            pf = pq.ParquetFile(path, filesystem=lake.fs)
-            col = pf.schema_arrow.get_field_index("frame_idx")
-            for rg in range(pf.num_row_groups):
-                st = pf.metadata.row_group(rg).column(col).statistics
-                if st is not None and st.has_min_max and st.min == st.max:
-                    self._groups.setdefault(int(st.min), []).append((path, rg))
-                else:
-                    for f in np.unique(pf.read_row_group(rg, columns=["frame_idx"])
-                                       .column(0).to_numpy()):
-                        self._groups.setdefault(int(f), []).append((path, rg))
-        if not self._groups:
+        self._index = PointFrameIndex.build(lake, "clean", DESKEWED, clip_id, agent)
+        if not self._index:
             raise _fail(clip_id, f"no {DESKEWED} rows: run deskew first", agent)
         self._boxes = self._read_annotations(lake)
 
@@ -162,18 +149,11 @@ class AgentScans:
 
     def points_t(self, frame_idx: int) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) float32 points and (N,) int64 capture times of one deskewed frame."""
-        parts, times = [], []
-        for path, rg in self._groups.get(frame_idx, []):
-            t = pq.ParquetFile(path, filesystem=self._lake.fs).read_row_group(
-                rg, columns=["sensor", "frame_idx", "t_ns", "x", "y", "z"])
-            keep = pc.and_(pc.equal(t.column("frame_idx"), frame_idx),
-                           pc.equal(t.column("sensor").cast(pa.string()), self.sensor))
-            t = t.filter(keep)
-            parts.append(np.stack([t.column(c).to_numpy() for c in ("x", "y", "z")], axis=1))
-            times.append(np.asarray(t.column("t_ns").to_numpy(), dtype=np.int64))
-        if not parts:
+        t = self._index.read(frame_idx, self.sensor, ["t_ns", "x", "y", "z"])
+        if t is None:
             return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
-        return np.concatenate(parts), np.concatenate(times)
+        xyz = np.stack([t.column(c).to_numpy() for c in ("x", "y", "z")], axis=1)
+        return xyz, np.asarray(t.column("t_ns").to_numpy(), dtype=np.int64)
 
     def max_travel_per_scan(self) -> float:
         """How far the agent moves during one scan at its usual top speed (95th percentile of
