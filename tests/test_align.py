@@ -32,7 +32,6 @@ from v2xlake.tasks.align.methods import (
     scan_time,
 )
 from v2xlake.tasks.align.metrics import center_offset_px, summarize
-from v2xlake.tasks.align.projection import project_boxes_2d, project_points
 from v2xlake.tasks.align.stage import AlignConfig, load_truth_boxes, run_align
 from v2xlake.tasks.geometry import (
     box_corners,
@@ -40,6 +39,7 @@ from v2xlake.tasks.geometry import (
     iou_xyxy,
     points_in_boxes,
 )
+from v2xlake.tasks.projection import project_boxes_2d, project_points
 
 
 def _yawq(yaw: float) -> np.ndarray:

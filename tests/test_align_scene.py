@@ -38,8 +38,8 @@ from v2xlake.schemas.tables import (
 )
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.align.boxes import BoxArray
-from v2xlake.tasks.align.projection import Camera, project_boxes_2d
 from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.projection import Camera, project_boxes_2d
 
 V_EGO = 20.0
 YAW_RATE = 0.15  # rad/s

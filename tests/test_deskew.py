@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from v2xlake.tasks.deskew.core import DeskewResult, deskew_points
 from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.motion import DeskewResult, deskew_points
 
 INS_PERIOD_NS = 8_000_000  # 125 Hz
 SWEEP_NS = 100_000_000

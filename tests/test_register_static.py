@@ -158,8 +158,8 @@ def test_backend_failure_is_a_per_frame_reason() -> None:
 def test_redeskew_with_a_refined_extrinsic_equals_deskewing_with_it() -> None:
     """A scan deskewed with a wrong extrinsic, deskewed again with the right one (deskew's
     kernel backwards, then forwards), equals the scan deskewed with the right one."""
-    from v2xlake.tasks.deskew.core import deskew_points
     from v2xlake.tasks.interpolate import PoseTrack
+    from v2xlake.tasks.motion import deskew_points
     from v2xlake.tasks.register.scans import redeskew
 
     t = np.arange(0, 400_000_001, 8_000_000, dtype=np.int64)

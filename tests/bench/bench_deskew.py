@@ -37,9 +37,9 @@ from tests.test_deskew import (
     scipy_reference,
     true_lidar_matrices,
 )
-from v2xlake.tasks.deskew.core import deskew_points
 from v2xlake.tasks.geometry import transform as pose_matrices
 from v2xlake.tasks.interpolate import PoseTrack, interpolate_poses
+from v2xlake.tasks.motion import deskew_points
 
 
 def numpy_gather(xyz: np.ndarray, t_ns: np.ndarray, track: PoseTrack, e: np.ndarray,

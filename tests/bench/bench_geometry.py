@@ -95,7 +95,7 @@ def main() -> None:
                    .as_quat(scalar_first=True))
     rt = RigidTransform.from_matrix(T1)
 
-    def column_loop() -> np.ndarray:  # what v2xlake/tasks/align/projection.transform_points did
+    def column_loop() -> np.ndarray:  # what v2xlake/tasks/projection.transform_points did
         x = np.asarray(xyz, dtype=np.float64)
         out = np.empty((x.shape[0], 3))
         for i in range(3):

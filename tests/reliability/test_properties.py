@@ -14,9 +14,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from v2xlake.tasks.deskew.core import deskew_points
 from v2xlake.tasks.geometry import apply, compose, invert, quat_to_matrix, rotation_angle, transform
 from v2xlake.tasks.interpolate import PoseTrack, interpolate_poses
+from v2xlake.tasks.motion import deskew_points
 
 SCAN_NS = 100_000_000  # one 10 Hz sweep
 INS_NS = 8_000_000  # 125 Hz

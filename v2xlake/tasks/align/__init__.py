@@ -1,1 +1,2 @@
-"""Numeric core of temporal alignment: box geometry, projection, methods, metrics, overlay."""
+"""Temporal alignment (Sec. 5): box geometry, methods, metrics, overlay, the stage; camera
+projection is the shared :mod:`v2xlake.tasks.projection` (anonymize uses it too)."""

@@ -32,10 +32,10 @@ from typing import Literal
 import numpy as np
 
 from v2xlake.tasks.align.boxes import BoxArray
-from v2xlake.tasks.align.projection import Camera, points_in_fov, project_boxes_2d
-from v2xlake.tasks.deskew.core import deskew_points
 from v2xlake.tasks.geometry import compose, invert, points_in_boxes
 from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.motion import deskew_points
+from v2xlake.tasks.projection import Camera, points_in_fov, project_boxes_2d
 
 Method = Literal["stamp", "frame", "target"]
 METHODS: tuple[Method, ...] = ("stamp", "frame", "target")

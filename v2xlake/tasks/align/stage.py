@@ -47,9 +47,9 @@ from v2xlake.tasks.align.methods import (
 )
 from v2xlake.tasks.align.metrics import center_offset_px, summarize
 from v2xlake.tasks.align.overlay import OverlayBoxes, Panel, render_overlay
-from v2xlake.tasks.align.projection import Camera, points_in_fov, project_points
 from v2xlake.tasks.geometry import apply, compose, invert, iou_xyxy
 from v2xlake.tasks.interpolate import PoseCoverageError
+from v2xlake.tasks.projection import Camera, points_in_fov, project_points
 from v2xlake.tasks.reader import AgentData, load_clip
 
 STAGE = "align"

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from v2xlake.schemas.calibration import CameraIntrinsics
-from v2xlake.tasks.align.projection import project_boxes_2d, project_points
 from v2xlake.tasks.geometry import apply, invert, quat_to_matrix, transform_boxes
+from v2xlake.tasks.projection import project_boxes_2d, project_points
 
 VEHICLES = frozenset({"Car", "Van", "Truck", "Trailer", "Bus", "Others"})
 PEOPLE = frozenset({"Pedestrian", "Scooter", "Bicycle", "Motorcycle"})  # a rider's head on top

@@ -43,8 +43,8 @@ from v2xlake.storage.reader import (
     poses_missing,
     read_extrinsics,
 )
-from v2xlake.tasks.deskew.core import DeskewResult, deskew_points
 from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.motion import DeskewResult, deskew_points
 from v2xlake.tasks.reader import load_pose_track
 
 log = logging.getLogger(__name__)

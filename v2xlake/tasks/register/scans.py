@@ -180,7 +180,7 @@ def redeskew(xyz: np.ndarray, t_ns: np.ndarray, t_ref_ns: int, track: PoseTrack,
     kernel (eq. 3) run backwards (each point from the reference time to its own time, with
     the extrinsic that put it there), then forwards with the new one. Points the INS does not
     cover come back NaN (and are dropped by voxelisation)."""
-    from v2xlake.tasks.deskew.core import deskew_points
+    from v2xlake.tasks.motion import deskew_points
 
     t = np.asarray(t_ns, np.int64)
     raw = deskew_points(xyz, np.full(len(t), t_ref_ns, np.int64), track, T_used,
