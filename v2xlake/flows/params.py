@@ -97,6 +97,8 @@ def clip_params(clip_dir: str | Path) -> dict[str, Any]:
 @functools.lru_cache(maxsize=64)
 def _params_block(text: str) -> dict[str, Any]:
     """Once per distinct clip.yaml text: the flow asks before every stage of every clip."""
-    data = load_yaml(text)
+    from v2xlake.flows.stage_names import parse_clip_yaml
+
+    data = parse_clip_yaml(text)
     block = data.get("params") if isinstance(data, dict) else None
     return dict(block) if isinstance(block, dict) else {}

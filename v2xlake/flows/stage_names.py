@@ -9,6 +9,7 @@ Stage objects named here (and checks that the two agree).
 
 from __future__ import annotations
 
+import functools
 import importlib
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -65,16 +66,25 @@ def registry_stage(name: str) -> Any:
 UNREADABLE = "_unreadable-"  # no clip id starts with "_": these never name a real clip
 
 
+@functools.lru_cache(maxsize=64)
+def parse_clip_yaml(text: str) -> Any:
+    """``schemas.clip.load_yaml(text)``, once per distinct text (a large clip.yaml takes
+    ~10 ms; the clip id and the ``params:`` block are both read from it). Callers must not
+    modify the result."""
+    from v2xlake.schemas.clip import load_yaml
+
+    return load_yaml(text)
+
+
 def peek_clip_id(clip_dir: str | Path) -> str:
     """The clip id from clip.yaml; when it has none (unreadable, invalid), a name that
     cannot be any clip's id (``_unreadable-<folder>``): a broken delivery in a folder named
     like an existing clip must never be taken for it."""
-    from v2xlake.schemas.clip import load_yaml
     from v2xlake.storage.lake import CLIP_ID
 
     path = Path(clip_dir) / "clip.yaml"
     try:
-        data = load_yaml(path.read_text())
+        data = parse_clip_yaml(path.read_text())
         cid = data.get("clip_id") if isinstance(data, dict) else None
         if isinstance(cid, str) and CLIP_ID.fullmatch(cid):
             return cid
