@@ -178,6 +178,8 @@ COOP_VARIATIONS: dict[str, dict[str, Any]] = {
     "extrinsic 40 cm / 1.5 deg off": {"lidar_ext_err_xyz_m": (0.3, -0.25, 0.1),
                                       "lidar_ext_err_rpy_deg": (0.3, -0.2, 1.5)},
     "behind 5 m, no turn": {"coop_gap_m": -5.0, "turn_rate_radps": 0.0},
+    # a third agent: a roadside unit on a mast 70 m ahead, facing back (its row: "+ rsu")
+    "with a roadside unit": {"agents": ["red", "black", "rsu"]},
 }
 
 
@@ -263,6 +265,14 @@ def coop(args: argparse.Namespace) -> None:
             notes = [x for x in rep.notes if x.startswith("calibration black")]
             if notes:
                 print(f"{'':38s}{notes[0][:110]}")
+            if "rsu" in over.get("agents", ()):
+                e2 = registration_errors(lake, clip_dir, cid, other="rsu")
+                print(f"{'  + rsu':34s} {secs:3g} "
+                      f"{np.median([e.init_m for e in e2]) * 100:7.1f} "
+                      f"{sum(e.within() for e in e2):3d}/{len(e2):<3d} "
+                      f"{sum(e.accepted for e in e2):4d} "
+                      f"{sum(e.accepted and not e.within() for e in e2):5d} "
+                      f"{np.median([e.final_m for e in e2]) * 100:6.2f}")
 
 
 def main() -> None:
