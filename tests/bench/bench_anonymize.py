@@ -121,7 +121,8 @@ def real_plates() -> None:
     from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
 
     variants: dict[str, Detector] = {
-        "text-plate (PP-OCRv4 DB, native; default)": TextPlateDetector(),
+        "text-plate (PP-OCRv4 DB, native, read; default)": TextPlateDetector(),
+        "text-plate, geometry only (no reading)": TextPlateDetector(TextPlateConfig(read=None)),
         "text-plate, min aspect 1.3 (two-row plates)": TextPlateDetector(
             TextPlateConfig(min_aspect=1.3)
         ),
@@ -150,6 +151,66 @@ def real_plates() -> None:
         for pname, (photo, face) in real_faces().items():
             f, _ = match([("face", face)], [d for d in full.detect(photo) if d.kind == "face"])
             print(f"  default full-frame plan on {pname}: face {'found' if f.all() else 'MISSED'}")
+        real_faces_vs_deface(sets["street"])
+
+
+def real_faces_vs_deface(street: list) -> None:
+    """The two labelled real faces (whole face hairline to chin, ear to ear) at 24-160 px,
+    tilted -20 / 0 / 20 deg, pasted into the real street images: found, and >= 80 % of the
+    whole face blurred, by the default full-frame plan and by deface 1.5.0 (its CenterFace at
+    full resolution, threshold 0.2, its default mask scale 1.3), CPU s per image."""
+    from tests.test_anonymize_faceblur import _paste
+    from v2xlake.tasks.anonymize.blur import blur_boxes
+    from v2xlake.tasks.anonymize.detectors import Detection
+    from v2xlake.tasks.anonymize.evaluate import WHOLE_FACES, blurred_share
+
+    try:
+        from deface.centerface import CenterFace
+    except ImportError:
+        CenterFace = None
+    cfg = AnonymizeConfig()
+    ours = cfg.build_detector()
+    res: dict[str, list] = {"ours": [[], [], 0.0], "deface": [[], [], 0.0]}
+    nets: dict = {}
+    for item in street:
+        base = cv2.imread(item.path)
+        for name, (photo, _b) in sorted(real_faces().items()):
+            for h in (24, 48, 96, 160):
+                img, truth = base.copy(), []
+                for j, ang in enumerate((-20.0, 0.0, 20.0)):
+                    px, py = int((0.2 + 0.3 * j) * img.shape[1]), img.shape[0] // 2
+                    truth.append(("face", _paste(img, photo, WHOLE_FACES[name], h, ang, px, py)))
+                for who in ("ours", "deface"):
+                    if who == "deface" and CenterFace is None:
+                        continue
+                    t = time.process_time()
+                    if who == "ours":
+                        dets = [d for d in ours.detect(img) if d.kind == "face"]
+                        done = blur_boxes(np.zeros_like(img), [d.box for d in dets], cfg.blur(),
+                                          [d.kind for d in dets])
+                    else:
+                        hh, ww = img.shape[:2]
+                        cf = nets.setdefault((ww, hh), CenterFace(in_shape=None, backend="opencv"))
+                        raw, _ = cf(img[:, :, ::-1].copy(), threshold=0.2)
+                        dets = [Detection("face", tuple(float(v) for v in r[:4]), float(r[4]))
+                                for r in raw]
+                        done = []
+                        for d in dets:
+                            x0, y0, x1, y1 = d.box
+                            mx, my = 0.15 * (x1 - x0), 0.15 * (y1 - y0)
+                            done.append((int(max(0, x0 - mx)), int(max(0, y0 - my)),
+                                         int(min(ww, x1 + mx)), int(min(hh, y1 + my))))
+                    res[who][2] += time.process_time() - t
+                    found, _ = match(truth, dets, 0.1)
+                    res[who][0] += found.tolist()
+                    res[who][1] += [bool(f) and blurred_share(b, done, img.shape) >= 0.8
+                                    for (_k, b), f in zip(truth, found, strict=True)]
+    n_img = len(street) * 2 * 4
+    for who, (found, whole, cpu) in res.items():
+        if found:
+            print(f"  real faces 24-160 px tilted, in real streets, {who}: found "
+                  f"{sum(found)}/{len(found)}, >= 80 % of the whole face blurred "
+                  f"{sum(whole)}/{len(whole)}, {cpu / n_img:.2f} CPU s/image")
 
 
 def _iou(a, b) -> float:
