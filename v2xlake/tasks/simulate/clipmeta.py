@@ -41,6 +41,11 @@ def lidar_topic(agent: str) -> str:
     return f"/{agent}/lidar/points"
 
 
+def side_lidar_topic(agent: str) -> str:
+    """Topic of the optional second LiDAR (``SimConfig.side_lidar``, sensor LIDAR_LEFT)."""
+    return f"/{agent}/lidar_left/points"
+
+
 def radar_topic(agent: str) -> str:
     return f"/{agent}/radar/points"
 
@@ -72,6 +77,15 @@ def build_clip_config(cfg: SimConfig, rigs: dict[str, AgentRig],
                                time=PointTimeField(field="timestamp", unit=TimeUnit.S,
                                                    reference=TimeReference.ABSOLUTE)),
             rate_hz=cfg.lidar.rate_hz)]
+        if rig.T_ego_side_true is not None:
+            sensors.append(SensorConfig(
+                name="LIDAR_LEFT", modality=Modality.LIDAR, topic=side_lidar_topic(agent),
+                msg_type="sensor_msgs/msg/PointCloud2",
+                frame_id=frame_name(agent, "LIDAR_LEFT"),
+                fields=LidarFields(intensity="intensity", ring="ring", return_id="return_type",
+                                   time=PointTimeField(field="timestamp", unit=TimeUnit.S,
+                                                       reference=TimeReference.ABSOLUTE)),
+                rate_hz=cfg.side_lidar_spec.rate_hz))
         if cfg.radar and agent != "rsu":
             sensors.append(SensorConfig(
                 name="RADAR_FRONT", modality=Modality.RADAR, topic=radar_topic(agent),

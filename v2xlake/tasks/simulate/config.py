@@ -128,6 +128,21 @@ class SimConfig(BaseModel):
     write_lidar_truth: bool = True
     radar: bool = Field(False, description="a 20 Hz front 4D radar on each vehicle "
                         "(simulate.radar)")
+    side_lidar: bool = Field(False, description="a second LiDAR on each vehicle (issue #27): "
+                             "LIDAR_LEFT, sparse, mounted on the left and tilted down towards "
+                             "the near field, published with side_lidar_err_*; off: nothing "
+                             "else in the clip changes")
+    side_lidar_spec: LidarSpec = LidarSpec(beams=16, columns=600, dual_return=False,
+                                           max_range_m=60.0, elev_min_deg=-15.0,
+                                           elev_max_deg=15.0)
+    side_lidar_mount_rpy_deg: tuple[float, float, float] = Field(
+        (-40.0, 0.0, 90.0), description="true mounting of LIDAR_LEFT in base_link (roll pitch "
+        "yaw, deg, R = Rz Ry Rx): facing left, rolled 40 deg down")
+    side_lidar_mount_xyz_m: tuple[float, float, float] = (1.0, 0.9, 1.3)
+    side_lidar_err_rpy_deg: tuple[float, float, float] = Field(
+        (0.0, 0.0, 30.0), description="published LIDAR_LEFT rotation error (as "
+        "lidar_ext_err_rpy_deg); the real lidar2lidar rig's is ~45 deg")
+    side_lidar_err_xyz_m: tuple[float, float, float] = (0.05, -0.06, 0.04)
     pose_format: Literal["inspva", "odometry", "navsat-imu", "tf"] = Field(
         "inspva", description="how the vehicles' INS solution is written (simulate.navformats)")
     speed_mps: float = Field(18.0, description="nominal speed of the red agent")

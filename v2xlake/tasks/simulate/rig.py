@@ -92,6 +92,9 @@ class AgentRig:
     T_ego_lidar_true: np.ndarray
     T_ego_lidar_pub: np.ndarray
     cameras: dict[str, CameraRig]
+    # the optional second LiDAR (SimConfig.side_lidar): true and published T_ego_lidar_left
+    T_ego_side_true: np.ndarray | None = None
+    T_ego_side_pub: np.ndarray | None = None
 
 
 def build_rigs(cfg: SimConfig) -> dict[str, AgentRig]:
@@ -139,5 +142,12 @@ def build_rigs(cfg: SimConfig) -> dict[str, AgentRig]:
             c_true = rigid(r, t) @ cmount
             c_pub = c_true @ _error(rng, cfg.cam_ext_trans_err_m, cfg.cam_ext_rot_err_deg)
             cams[name] = CameraRig(name, intr, c_true, c_pub)
-        rigs[agent] = AgentRig(agent, lid_true, lid_pub, cams)
+        side_true = side_pub = None
+        if cfg.side_lidar and agent != "rsu":  # no random draws: the rest stays identical
+            side_true = rigid(Rotation.from_euler(
+                "ZYX", cfg.side_lidar_mount_rpy_deg[::-1], degrees=True).as_matrix(),
+                np.array(cfg.side_lidar_mount_xyz_m))
+            side_pub = explicit_error(side_true, cfg.side_lidar_err_xyz_m,
+                                      cfg.side_lidar_err_rpy_deg)
+        rigs[agent] = AgentRig(agent, lid_true, lid_pub, cams, side_true, side_pub)
     return rigs

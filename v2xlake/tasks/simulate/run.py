@@ -44,6 +44,7 @@ from v2xlake.tasks.simulate.clipmeta import (
     info_topic,
     lidar_topic,
     radar_topic,
+    side_lidar_topic,
     write_msg_definition,
 )
 from v2xlake.tasks.simulate.config import AGENT_NAMES, SimConfig
@@ -143,6 +144,7 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
 
     sinks: dict[str, BagSink] = {}
     casters: dict[str, LidarCaster] = {}
+    side_casters: dict[str, LidarCaster] = {}  # SimConfig.side_lidar: LIDAR_LEFT
     radars: dict[str, RadarSim] = {}
     renderers: dict[str, dict[str, CameraRenderer]] = {}
     errs = {a: ins_error(cfg, a) for a in cfg.agents}
@@ -162,6 +164,11 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
             sink.topic(f"/{agent}/gnss", "sensor_msgs/msg/NavSatFix")
         f = sink.f
         children = [(frame_name(agent, "LIDAR_TOP"), rig.T_ego_lidar_pub)]
+        if rig.T_ego_side_true is not None and rig.T_ego_side_pub is not None:
+            sink.topic(side_lidar_topic(agent), "sensor_msgs/msg/PointCloud2")
+            children.append((frame_name(agent, "LIDAR_LEFT"), rig.T_ego_side_pub))
+            side_casters[agent] = LidarCaster(world, agent, rig.T_ego_side_true,
+                                              cfg.side_lidar_spec, start_ns, cfg.seed + 1)
         if cfg.radar and agent != "rsu":
             sink.topic(radar_topic(agent), "sensor_msgs/msg/PointCloud2")
             children.append((frame_name(agent, "RADAR_FRONT"), T_EGO_RADAR))
@@ -212,6 +219,16 @@ def simulate(out_dir: str | Path, config: SimConfig | None = None) -> Path:
             sink.put(topic, ts + LAT_LIDAR_NS, sink.f.pointcloud2(
                 ts, frame_name(agent, "LIDAR_TOP"), pts, topic))
             annotations += _annotations(world, agent, caster, scan)
+            if agent in side_casters:
+                s_scan = side_casters[agent].cast(k)
+                n_points += len(s_scan.xyz)
+                sp = np.zeros(len(s_scan.xyz), POINT_DTYPE)
+                sp["x"], sp["y"], sp["z"] = s_scan.xyz[:, 0], s_scan.xyz[:, 1], s_scan.xyz[:, 2]
+                sp["intensity"], sp["ring"] = s_scan.intensity, s_scan.ring
+                sp["return_type"] = s_scan.return_type
+                sp["timestamp"] = s_scan.t_ns / 1e9
+                sink.put(side_lidar_topic(agent), ts + LAT_LIDAR_NS, sink.f.pointcloud2(
+                    ts, frame_name(agent, "LIDAR_LEFT"), sp, side_lidar_topic(agent)))
             if agent in radars:  # a 20 Hz radar: two scans per LiDAR period
                 n_r = round(RADAR_SPEC.rate_hz / cfg.lidar.rate_hz)
                 for j in range(k * n_r, (k + 1) * n_r):
@@ -319,6 +336,9 @@ def _write_truth(tdir: Path, cfg: SimConfig, world: World, rigs: dict, errs: dic
         ext["agents"][agent] = {
             "T_ego_lidar_true": transform_dict(rig.T_ego_lidar_true),
             "T_ego_lidar_published": transform_dict(rig.T_ego_lidar_pub),
+            **({"T_ego_lidar_left_true": transform_dict(rig.T_ego_side_true),
+                "T_ego_lidar_left_published": transform_dict(rig.T_ego_side_pub)}
+               if rig.T_ego_side_true is not None else {}),
             "cameras": {c: {"T_ego_cam_true": transform_dict(cr.T_ego_cam_true),
                             "T_ego_cam_published": transform_dict(cr.T_ego_cam_pub),
                             "intrinsics": cr.intrinsics.model_dump(mode="json")}
