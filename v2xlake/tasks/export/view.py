@@ -8,7 +8,7 @@ Two outputs, both from the clean zone:
   images at that time beside it;
 * an MCAP file that Foxglove opens as it is: every agent on one timeline (the clip's relative
   time), deskewed clouds, /tf from the poses, boxes as markers, images and calibration (the
-  rosbag export with ``combine_agents``; open ``<clip>_all/<clip>_all_0.mcap``, set the 3D
+  rosbag export with ``combine_agents``; open ``<clip>_all/<clip>_all.mcap``, set the 3D
   panel's display frame to ``map``).
 """
 

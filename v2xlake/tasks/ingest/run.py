@@ -907,7 +907,9 @@ class _AgentIngest:
         return rows
 
 
-PNG_WORKERS = min(8, os.cpu_count() or 1)
+# the cores this process may use (a Dask worker pinned to its share, a container), not the machine
+PNG_WORKERS = min(8, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                  else os.cpu_count() or 1)
 
 
 def _store_image(lake: Lake, key: str, msg: Any, compressed: bool, level: int
