@@ -47,13 +47,16 @@ PROBE = textwrap.dedent("""
     from v2xlake.storage import manifest as m
     from v2xlake.storage.lake import Lake
     from v2xlake.tasks.anonymize.detectors import centerface_onnx_path
+    from v2xlake.tasks.anonymize.plateread import rec_onnx_path
     from v2xlake.tasks.anonymize.textplate import text_det_onnx_path
 
     phase, lake_dir, stages = sys.argv[1], sys.argv[2], sys.argv[3].split(",")
     lake = Lake(lake_dir)
     out = {"file": v2xlake.__file__, "root": str(m.PACKAGE_ROOT),
            "versions": {s: m.code_version(s) for s in m.STAGE_MODULES},
-           "models": [str(centerface_onnx_path()), str(text_det_onnx_path())],
+           "models": [str(centerface_onnx_path()), str(text_det_onnx_path()),
+                      str(rec_onnx_path()),
+                      str(centerface_onnx_path().parent / "centerface_int8.onnx")],
            "closures": {s: [str(p) for p in m.module_closure(mod)]
                         for s, mod in m.STAGE_MODULES.items()}}
     current = {}
@@ -161,7 +164,8 @@ def test_installed_code_versions_match_the_checkout(installed: dict[str, Path]) 
     site = installed["site"]
     assert Path(out["file"]).is_relative_to(site), out["file"]
     assert Path(out["root"]) == site / "v2xlake"
-    assert all(Path(p).is_relative_to(site) for p in out["models"]), out["models"]
+    assert all(Path(p).is_relative_to(site) and Path(p).is_file() for p in out["models"]), \
+        out["models"]
     for stage, version in out["versions"].items():
         digest = version.split("+", 1)[1]
         assert digest != EMPTY_HASH, f"{stage}: code version of no files ({version})"

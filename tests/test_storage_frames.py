@@ -15,14 +15,6 @@ from v2xlake.storage.lake import Lake
 
 PACKAGE = Path(__file__).resolve().parents[1] / "v2xlake"
 
-# Modules outside storage/ that still open Parquet themselves (issue #24, item 3): each
-# must move to storage/ and leave this list; the test fails when one is added, and when one
-# is fixed but still listed.
-NOT_YET_MOVED = {
-    "tasks/anonymize/run.py",
-    "tasks/anonymize/audit.py",
-    "tasks/simulate/truth.py",
-}
 
 
 def _points(frames: list[int], sensor: str, n: int = 5) -> pa.Table:
@@ -91,5 +83,4 @@ def _opens_parquet(path: Path) -> bool:
 def test_no_parquet_is_opened_outside_storage() -> None:
     offenders = {str(p.relative_to(PACKAGE)) for p in PACKAGE.rglob("*.py")
                  if p.relative_to(PACKAGE).parts[0] != "storage" and _opens_parquet(p)}
-    assert offenders - NOT_YET_MOVED == set(), "open Parquet through v2xlake/storage/"
-    assert NOT_YET_MOVED - offenders == set(), "moved to storage/: drop it from NOT_YET_MOVED"
+    assert not offenders, "open Parquet through v2xlake/storage/"

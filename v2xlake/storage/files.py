@@ -10,6 +10,7 @@ import os
 from pathlib import Path
 
 import pyarrow as pa
+import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 
 
@@ -27,6 +28,16 @@ def write_parquet(path: str | os.PathLike[str], table: pa.Table, *,
     return int(table.num_rows)
 
 
-def read_parquet(path: str | os.PathLike[str]) -> pa.Table:
-    """A whole Parquet file outside the lake."""
-    return pq.read_table(Path(path))
+def read_parquet(path: str | os.PathLike[str], columns: list[str] | None = None,
+                 filesystem: pafs.FileSystem | None = None) -> pa.Table:
+    """A whole Parquet file (``columns`` only), local or on ``filesystem``."""
+    return pq.read_table(str(path) if filesystem is not None else Path(path), columns=columns,
+                         filesystem=filesystem)
+
+
+def read_parquet_head(path: str, row_groups: int,
+                      filesystem: pafs.FileSystem | None = None) -> pa.Table:
+    """The first ``row_groups`` row groups of a Parquet file (a points table's first frames):
+    what a scan of a release needs to judge a table's columns without reading all of it."""
+    pf = pq.ParquetFile(path, filesystem=filesystem)
+    return pf.read_row_groups(list(range(min(pf.num_row_groups, row_groups))))

@@ -102,12 +102,25 @@ def row_group_count(lake: Lake, path: str) -> int:
     return int(pq.ParquetFile(path, filesystem=lake.fs).num_row_groups)
 
 
-def iter_row_groups(lake: Lake, path: str, start: int, stop: int) -> Iterator[pa.Table]:
-    """Row groups ``start`` .. ``stop - 1`` of one points file, one table each (a chunk of a
-    stage's work: deskew splits a file into such ranges)."""
+def iter_row_groups(lake: Lake, path: str, start: int = 0, stop: int | None = None,
+                    columns: Sequence[str] | None = None) -> Iterator[pa.Table]:
+    """Row groups ``start`` .. ``stop - 1`` (all by default) of one points file, one table
+    each: a frame at a time (deskew splits a file into such ranges, anonymize streams it)."""
     pf = pq.ParquetFile(path, filesystem=lake.fs)
-    for rg in range(start, min(stop, pf.num_row_groups)):
-        yield pf.read_row_group(rg)
+    end = pf.num_row_groups if stop is None else min(stop, pf.num_row_groups)
+    for rg in range(start, end):
+        yield pf.read_row_group(rg, columns=None if columns is None else list(columns))
+
+
+def file_schema(lake: Lake, path: str) -> pa.Schema:
+    """The Arrow schema of one lake file (from its footer)."""
+    return pq.ParquetFile(path, filesystem=lake.fs).schema_arrow
+
+
+def read_file(lake: Lake, path: str, columns: Sequence[str] | None = None) -> pa.Table:
+    """One whole lake file (a small table: poses, GNSS, frame lists)."""
+    return pq.read_table(path, filesystem=lake.fs,
+                         columns=None if columns is None else list(columns))
 
 
 def partition_files(lake: Lake, zone: str, table: str,

@@ -64,8 +64,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.fs as pafs
-import pyarrow.parquet as pq
 
+from v2xlake.storage.files import read_parquet, read_parquet_head
 from v2xlake.storage.lake import Lake
 
 EPOCH_LO_S = 631_152_000  # 1990-01-01
@@ -789,7 +789,7 @@ def _ego_spans(files: _Files, paths: list[str]) -> list[float]:
     spans = []
     for p in paths:
         if "ego_poses" in p and p.endswith(".parquet"):
-            t = pq.read_table(p, filesystem=files.fs, columns=["x", "y"])
+            t = read_parquet(p, ["x", "y"], files.fs)
             if t.num_rows:
                 x, y = t.column("x").to_numpy(), t.column("y").to_numpy()
                 spans.append(float(max(np.ptp(x), np.ptp(y))))
@@ -881,9 +881,8 @@ def _audit(lake: Lake | None, zone: str | os.PathLike[str], files: _Files, sampl
                 report.findings.extend(scan_npy(files.read(p), rel))
             elif low.endswith(".parquet"):
                 report.n_tables += 1
-                pf = pq.ParquetFile(files.fs.open_input_file(p))
                 # points: first 3 row groups (frames) only; a column has one unit
-                t = pf.read_row_groups(list(range(min(pf.num_row_groups, 3))))
+                t = read_parquet_head(p, 3, files.fs)
                 report.findings.extend(scan_table(t, rel, cfg, value_rule, span_range))
             elif low.endswith(IMAGE_EXT):
                 data = files.read(p)

@@ -22,13 +22,13 @@ from typing import Literal
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import AnonymizationAuditRow
+from v2xlake.storage.frames import file_schema, iter_row_groups, partition_files, read_file
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import calibrations, pose_samples
 from v2xlake.tasks.anonymize.blur import BlurConfig, blur_boxes
@@ -300,23 +300,6 @@ class AnonymizeConfig(BaseModel):
                           face_margin_bottom=self.face_blur_margin_bottom)
 
 
-def _partition_files(
-    lake: Lake, zone: str, table: str, clip_id: str
-) -> list[tuple[str, str | None, str]]:
-    """(path, agent_id or None, file name stem) of every Parquet file of the clip's partition."""
-    root = lake.table_dir(zone, table, clip_id)
-    out = []
-    for path in lake.list_files(root, ".parquet"):
-        rel = path[len(root) :].strip("/").split("/")
-        agent = next((s.split("=", 1)[1] for s in rel[:-1] if s.startswith("agent_id=")), None)
-        out.append((path, agent, rel[-1][: -len(".parquet")]))
-    return out
-
-
-def _read_file(lake: Lake, path: str) -> pa.Table:
-    return pq.read_table(path, filesystem=lake.fs)
-
-
 def run_anonymize(
     lake: Lake,
     clip_id: str,
@@ -428,32 +411,32 @@ def _write_clean(
             checksum=stage.written[path][1] if checksum else None))
 
     for table in COPY_TABLES:
-        for path, agent, name in _partition_files(lake, "raw", table, clip_id):
+        for path, agent, name in partition_files(lake, "raw", table, clip_id):
             numeric = ("value", "threshold") if table == "qa_checks" else ()
-            write(table, scrub_table(_read_file(lake, path), t0, numeric), agent, name)
+            write(table, scrub_table(read_file(lake, path), t0, numeric), agent, name)
     for table in SHIFT_TABLES:
-        for path, agent, name in _partition_files(lake, "raw", table, clip_id):
+        for path, agent, name in partition_files(lake, "raw", table, clip_id):
             if table == "lidar_points":
                 rows, digest = _stream_points(lake, stage, path, clip_id, agent, name, t0)
                 report.outputs.append(OutputFile(path=final_path(table, agent, name), rows=rows,
                                                  checksum=digest))
             else:
-                write(table, shift_times(_read_file(lake, path), table, t0), agent, name)
+                write(table, shift_times(read_file(lake, path), table, t0), agent, name)
     ego: dict[str, list[pa.Table]] = {}  # the clean poses, for the guided scan plan
-    for path, agent, name in _partition_files(lake, "raw", "ins", clip_id):
+    for path, agent, name in partition_files(lake, "raw", "ins", clip_id):
         if frame is None:  # an empty ins partition (a clip without INS): nothing to convert
             continue
-        poses = ins_to_ego_poses(_read_file(lake, path), frame, t0)
+        poses = ins_to_ego_poses(read_file(lake, path), frame, t0)
         write("ego_poses", poses, agent, name)
         ego.setdefault(str(agent), []).append(poses)
-    for path, agent, name in _partition_files(lake, "raw", "ego_poses", clip_id):
+    for path, agent, name in partition_files(lake, "raw", "ego_poses", clip_id):
         if map_xy is None:  # empty partitions (every clip with an INS-style track)
             continue
-        poses = map_poses_to_world(_read_file(lake, path), map_xy, t0)
+        poses = map_poses_to_world(read_file(lake, path), map_xy, t0)
         write("ego_poses", poses, agent, name)
         ego.setdefault(str(agent), []).append(poses)
-    for path, agent, name in _partition_files(lake, "raw", "gnss", clip_id):
-        write("gnss", gnss_to_local(_read_file(lake, path), frame, t0), agent, name)
+    for path, agent, name in partition_files(lake, "raw", "gnss", clip_id):
+        write("gnss", gnss_to_local(read_file(lake, path), frame, t0), agent, name)
 
     guide = None
     n_cam = lake.read_table("raw", "camera_frames", clip_id=clip_id, columns=["frame_idx"]
@@ -480,12 +463,12 @@ def _stream_points(
     lake: Lake, stage: Lake, path: str, clip_id: str, agent: str | None, name: str, t0: int
 ) -> tuple[int, str | None]:
     """lidar_points row group by row group (a clip need not fit in memory), one group per frame."""
-    pf = pq.ParquetFile(lake.fs.open_input_file(path))
     with stage.open_writer(
-        "clean", "lidar_points", pf.schema_arrow, clip_id=clip_id, agent_id=agent, name=name
+        "clean", "lidar_points", file_schema(lake, path), clip_id=clip_id, agent_id=agent,
+        name=name
     ) as w:
-        for i in range(pf.num_row_groups):
-            data = shift_times(pf.read_row_group(i), "lidar_points", t0)
+        for group in iter_row_groups(lake, path):
+            data = shift_times(group, "lidar_points", t0)
             if data.num_rows == 0:
                 continue
             keys = data.column("frame_idx").to_numpy()
@@ -512,17 +495,15 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
     start = {(a, s, int(f)): int(t) for a, s, f, t in zip(
         fd["agent_id"], fd["sensor"], fd["frame_idx"], fd["t_start_ns"], strict=True)}
     out: dict[str, WorldBoxes] = {}
-    for path, agent, _name in _partition_files(lake, "raw", "lidar_points", clip_id):
+    for path, agent, _name in partition_files(lake, "raw", "lidar_points", clip_id):
         if agent is None or agent not in ego:
             continue
         samples = pose_samples(pa.concat_tables(ego[agent]), clip_id, agent)
         track = PoseTrack.create(samples.t_ns, samples.xyz, samples.quat_wxyz)
         sensors = calibrations(calib.filter(pc.equal(calib.column("agent_id"), agent)),
                                clip_id, agent)
-        pf = pq.ParquetFile(lake.fs.open_input_file(path))
         parts = []
-        for i in range(pf.num_row_groups):
-            g = pf.read_row_group(i, columns=["sensor", "frame_idx", "x", "y", "z"])
+        for g in iter_row_groups(lake, path, columns=["sensor", "frame_idx", "x", "y", "z"]):
             if g.num_rows == 0:
                 continue
             sensor, fidx = str(g.column("sensor")[0]), int(g.column("frame_idx")[0].as_py())
@@ -575,8 +556,8 @@ def _anonymize_images(
     """Every camera image: detect (guided when the guide has regions for it), fill temporal
     gaps per camera, blur, encode; frames of one camera go in time order, ``frames_per_chunk``
     at a time, detected with one frame of look-ahead so a chunk's last frame has its next."""
-    files = _partition_files(lake, "raw", "camera_frames", clip_id)
-    tables = [(agent, name, _read_file(lake, path)) for path, agent, name in files]
+    files = partition_files(lake, "raw", "camera_frames", clip_id)
+    tables = [(agent, name, read_file(lake, path)) for path, agent, name in files]
     total = sum(t.num_rows for _, _, t in tables)
     detector = cfg.build_detector()
     blur = cfg.blur()

@@ -45,9 +45,9 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from v2xlake.schemas.geometry import Transform
+from v2xlake.storage import files
 from v2xlake.tasks.geometry import matrix_to_quat, rigid
 from v2xlake.tasks.simulate.config import SimConfig
 from v2xlake.tasks.simulate.ins import InsError, ins_error
@@ -66,10 +66,7 @@ def pose_columns(m: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def write_parquet(path: Path, cols: dict[str, Any]) -> int:
-    table = pa.table(cols)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    pq.write_table(table, path, compression="zstd")
-    return table.num_rows
+    return files.write_parquet(path, pa.table(cols))
 
 
 def ins_matrix(err: InsError, T_true: np.ndarray, tau: np.ndarray) -> np.ndarray:
@@ -111,7 +108,7 @@ class SimTruth:
         return ins_error(self.cfg, agent).bias(self.tau(t_ns))
 
     def table(self, name: str) -> pa.Table:
-        return pq.read_table(self.clip_dir / "truth" / f"{name}.parquet")
+        return files.read_parquet(self.clip_dir / "truth" / f"{name}.parquet")
 
     def extrinsics(self) -> dict[str, Any]:
         return json.loads((self.clip_dir / "truth" / "extrinsics.json").read_text())
