@@ -138,3 +138,26 @@ def test_transform_boxes_moves_their_corners(center: np.ndarray, q: list[np.ndar
         moved = apply(T, box_corners(center, size, quat).reshape(-1, 3)).reshape(5, 8, 3)
         np.testing.assert_allclose(box_corners(c, size, qq), moved, atol=1e-8)
         np.testing.assert_allclose(v, vel @ T[:3, :3].T, atol=1e-9)
+
+
+def test_se3_adjoint_moves_a_perturbation_across_a_transform() -> None:
+    """``T exp(d) T^-1 = exp(Ad_T d)`` with the true SE(3) exponential, one and stacked."""
+    from scipy.linalg import expm
+
+    from v2xlake.tasks.geometry import se3_adjoint, so3_exp
+
+    def hat(d: np.ndarray) -> np.ndarray:  # [rot, trans] twist -> 4x4
+        w, v = d[:3], d[3:]
+        m = np.zeros((4, 4))
+        m[:3, :3] = [[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]
+        m[:3, 3] = v
+        return m
+
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(np.array([0.3, -0.5, 1.1]))
+    T[:3, 3] = [4.0, -2.0, 1.5]
+    d = np.array([0.02, -0.01, 0.03, 0.4, -0.2, 0.1])
+    lhs = T @ expm(hat(d)) @ np.linalg.inv(T)
+    np.testing.assert_allclose(lhs, expm(hat(se3_adjoint(T) @ d)), atol=1e-12)
+    np.testing.assert_allclose(se3_adjoint(np.stack([T, np.eye(4)]))[0], se3_adjoint(T))
+    np.testing.assert_allclose(se3_adjoint(np.eye(4)), np.eye(6))

@@ -309,10 +309,11 @@ def effective_calibration(published: dict[str, SensorCalib], refined: pa.Table,
 def read_calibration(lake: Lake, clip_id: str, agent_id: str,
                      choice: CalibrationChoice = CalibrationChoice()
                      ) -> tuple[dict[str, SensorCalib], dict[str, str]]:
-    """One agent's effective calibration (see ``effective_calibration``)."""
+    """One agent's effective calibration (see ``effective_calibration``); the register stage
+    writes ``calibration_refined`` per clip, so its rows are picked by ``agent_id``."""
     return effective_calibration(
         calibrations(read(lake, "calibrated_sensors", clip_id, agent_id), clip_id, agent_id),
-        read(lake, "calibration_refined", clip_id, agent_id), choice)
+        _of(read(lake, "calibration_refined", clip_id), "agent_id", agent_id), choice)
 
 
 def lidar_frames(frames: pa.Table, deskew: pa.Table) -> dict[str, LidarFrames]:

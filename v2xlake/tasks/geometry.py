@@ -227,3 +227,22 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore", divide="ignore"):
         f = np.where(s > 1e-12, th / s, 1.0)
     return v * f[..., None]
+
+
+def se3_adjoint(T: np.ndarray) -> np.ndarray:
+    """Adjoint of a transform (4, 4) or a stack (N, 4, 4) on ``[rot, trans]`` twists:
+    ``T exp(d) T^-1 = exp(Ad_T d)``, ``Ad_T = [[R, 0], [t^ R, R]]`` ((6, 6) or (N, 6, 6)).
+    It moves an information matrix or a perturbation from one frame to another."""
+    M = np.asarray(T, dtype=np.float64)
+    one = M.ndim == 2
+    M = M[None] if one else M
+    R, t = M[:, :3, :3], M[:, :3, 3]
+    tx = np.zeros((len(M), 3, 3))
+    tx[:, 0, 1], tx[:, 0, 2] = -t[:, 2], t[:, 1]
+    tx[:, 1, 0], tx[:, 1, 2] = t[:, 2], -t[:, 0]
+    tx[:, 2, 0], tx[:, 2, 1] = -t[:, 1], t[:, 0]
+    out = np.zeros((len(M), 6, 6))
+    out[:, :3, :3] = R
+    out[:, 3:, 3:] = R
+    out[:, 3:, :3] = tx @ R
+    return out[0] if one else out

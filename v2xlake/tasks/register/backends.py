@@ -24,6 +24,7 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 
+from v2xlake.tasks.geometry import se3_adjoint
 from v2xlake.tasks.register.voxel import voxel_downsample
 
 BackendName = Literal["small_gicp", "open3d"]
@@ -89,13 +90,7 @@ def _finite(pts: np.ndarray) -> np.ndarray:
 def right_to_left_information(H: np.ndarray, T: np.ndarray) -> np.ndarray:
     """A Hessian for ``T exp(d)`` ([rot, trans], source frame) as one for ``exp(xi) T``:
     ``xi = Ad_T d``, so ``H_left = Ad_T^-T H Ad_T^-1``."""
-    R, t = T[:3, :3], T[:3, 3]
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    ad = np.zeros((6, 6))
-    ad[:3, :3] = R
-    ad[3:, 3:] = R
-    ad[3:, :3] = tx @ R
-    inv = np.linalg.inv(ad)
+    inv = np.linalg.inv(se3_adjoint(T))
     out = inv.T @ H @ inv
     return np.asarray(0.5 * (out + out.T))
 

@@ -23,7 +23,7 @@ import numpy as np
 from v2xlake.schemas.tables import CalibrationRefinedRow
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import read_extrinsics
-from v2xlake.tasks.geometry import invert, matrix_to_quat, rotation_angle
+from v2xlake.tasks.geometry import invert, matrix_to_quat, rotation_angle, se3_adjoint
 from v2xlake.tasks.register.intra import IntraConfig, IntraResult, Pooled, combine, refine_extrinsic
 
 
@@ -55,17 +55,6 @@ def split_lidars(lidars: list[str], primary: str | None = None) -> tuple[str, li
     return p, [s for s in names if s != p]
 
 
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """Adjoint of ``T`` on [rot, trans] twists: ``exp(Ad_T xi) = T exp(xi) T^-1``."""
-    R, t = T[:3, :3], T[:3, 3]
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    ad = np.zeros((6, 6))
-    ad[:3, :3] = R
-    ad[3:, 3:] = R
-    ad[3:, :3] = tx @ R
-    return ad
-
-
 def frame_pairs(primary: dict[int, tuple[int, int]], secondary: dict[int, tuple[int, int]],
                 tolerance_ns: int, n: int) -> list[tuple[int, int]]:
     """Up to ``n`` (primary frame, secondary frame) pairs whose scan starts are within
@@ -88,7 +77,7 @@ def frame_pairs(primary: dict[int, tuple[int, int]], secondary: dict[int, tuple[
 def to_static(r: IntraResult, A: np.ndarray) -> IntraResult:
     """A frame pair's result (``T_P(t1)_S(t2)``) as the static ``T_P_S = A T``, with its
     covariance carried through (left perturbation in the primary frame)."""
-    ad = adjoint(A)
+    ad = se3_adjoint(A)
     return dataclasses.replace(r, T_init=A @ r.T_init, T=A @ r.T, cov=ad @ r.cov @ ad.T)
 
 
@@ -150,7 +139,7 @@ def _row(clip_id: str, agent: str, sensor: str, primary: str, T_pub: np.ndarray,
     if pooled.accepted and pooled.T is not None:
         T = T_ep @ pooled.T
         # left perturbation of T_P_S (primary frame) -> right perturbation of T_ego_S
-        ad = adjoint(invert(pooled.T))
+        ad = se3_adjoint(invert(pooled.T))
         cov = ad @ pooled.cov @ ad.T
         comps, std_m, std_deg = "rx ry rz tx ty tz", pooled.std_m, pooled.std_deg
     else:

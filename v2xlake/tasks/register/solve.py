@@ -62,7 +62,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import chi2
 
-from v2xlake.tasks.geometry import compose, invert, so3_exp, so3_log
+from v2xlake.tasks.geometry import compose, invert, se3_adjoint, so3_exp, so3_log
 
 
 # ------------------------------------------------------------------ small SE(3) kit
@@ -182,17 +182,6 @@ class ClipSolution:
 
 
 # ------------------------------------------------------------------ the problem
-def _adjoint(T: np.ndarray) -> np.ndarray:
-    """(N, 6, 6) adjoint of (N, 4, 4) transforms for ``[rot, trans]`` twists:
-    ``T exp(d) T^-1 = exp(Ad_T d)``, ``Ad = [[R, 0], [p^ R, R]]``."""
-    R, p = T[:, :3, :3], T[:, :3, 3]
-    out = np.zeros((len(T), 6, 6))
-    out[:, :3, :3] = R
-    out[:, 3:, 3:] = R
-    out[:, 3:, :3] = _hat(p) @ R
-    return out
-
-
 def _hat(p: np.ndarray) -> np.ndarray:
     K = np.zeros((len(p), 3, 3))
     K[:, 0, 1], K[:, 0, 2] = -p[:, 2], p[:, 1]
@@ -313,7 +302,7 @@ class _Problem:
         L = C @ (self.E[a] @ se3_exp(self.eps(th, a)))
         n = len(M)
         D = np.zeros((n, 6, self.per_agent))
-        D[:, :, :6] = _adjoint(L)  # eps: L exp(d) = exp(Ad_L d) L
+        D[:, :, :6] = se3_adjoint(L)  # eps: L exp(d) = exp(Ad_L d) L
         D[:, :3, 6:9] = np.eye(3)  # omega: a world rotation about the ego position
         D[:, 3:, 6:9] = _hat(C[:, :3, 3])
         r = np.arange(n)
@@ -359,7 +348,7 @@ class _Problem:
             L2[m], D2[m], _ = self.world_lidar(th, a, M2[m], t2[m])
         L1i = invert(L1)
         T = L1i @ L2
-        Ad = _adjoint(L1i)
+        Ad = se3_adjoint(L1i)
         g1 = -Ad @ D1  # a world twist on L1 moves T by -Ad(L1^-1) xi
         g2 = Ad @ D2
         r = np.arange(n)

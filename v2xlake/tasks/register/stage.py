@@ -25,7 +25,7 @@ from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import CalibrationRefinedRow, RegistrationRow
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import pose_missing
+from v2xlake.storage.reader import pose_missing, read_extrinsics
 from v2xlake.tasks.geometry import invert, matrix_to_quat, rotation_angle, transform
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.register.backends import GicpParams, Prepared, RegistrationBackend, make_backend
@@ -98,6 +98,9 @@ class RegisterConfig(BaseModel):
     bev_frame: int | None = Field(None, description="reference frame of the BEV picture "
                                                     "(default: the middle pair)")
     write_bev: bool = True
+    intra_agent: bool = Field(True, description="refine every secondary LiDAR of an agent "
+                              "against its primary (register.intra_stage, issue #27)")
+    intra_frames: int = Field(3, ge=1, description="frame pairs pooled per secondary LiDAR")
     # static scene only (issue #13): what moves is removed before GICP
     static_only: bool = Field(True, description="remove moving things before GICP")
     use_annotations: bool = Field(True, description="remove the scan's annotated boxes")
@@ -497,6 +500,11 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     lake.delete_partition("clean", "registrations", clip_id)
     lake.delete_partition("clean", "calibration_refined", clip_id)
     missing = {a: why for a in (ref_id, *other_ids) if (why := pose_missing(lake, clip_id, a))}
+    if not other_ids and ref_id not in missing and cfg.intra_agent \
+            and len(read_extrinsics(lake, clip_id, ref_id)) > 1:
+        report.notes.append(f"single agent ({ref_id}): its LiDARs registered to each other only")
+        _write_intra(lake, clip_id, cfg, [ref_id], [], report)
+        return report
     if ref_id in missing or len(missing) == len(other_ids):
         return StageReport.not_applicable(
             STAGE, clip_id, "registration needs the reference agent and at least one other "
@@ -506,6 +514,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     other_ids = [a for a in other_ids if a not in missing]
     if not other_ids:
         report.notes.append(f"single agent ({ref_id}): nothing to register")
+        _write_intra(lake, clip_id, cfg, [ref_id], [], report)
         return report
     ref = AgentScans(lake, clip_id, ref_id, cfg.sensor)
     others = [AgentScans(lake, clip_id, a, cfg.sensor) for a in other_ids]
@@ -559,10 +568,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     if ext is not None:
         cal = _calibration_rows(clip_id, ext, [ref, *others], cfg, len(measured), method,
                                 report.notes)
-        path, n = lake.write_table("clean", "calibration_refined",
-                                   rows_to_table(CalibrationRefinedRow, cal), clip_id=clip_id,
-                                   name="calibration_refined")
-        report.outputs.append(OutputFile(path=path, rows=n))
+    _write_intra(lake, clip_id, cfg, [ref_id, *other_ids], cal, report)
     bev_frame = cfg.bev_frame if cfg.bev_frame is not None else ref_frames[len(ref_frames) // 2]
     if cfg.write_bev:
         for p, r in zip(measured, rows, strict=True):
@@ -777,6 +783,29 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     for k in ("read", "voxel", "filter"):
         timing[f"{k}_s"] = sum(f.seconds[k] for f in filt.values())
     return out, odo, timing
+
+
+def _write_intra(lake: Lake, clip_id: str, cfg: RegisterConfig, agents: list[str],
+                 cal: list[CalibrationRefinedRow], report: StageReport) -> None:
+    """``calibration_refined``: the clip solve's rows (``cal``) plus, for every agent with
+    several LiDARs, its secondary LiDARs refined against its primary (issue #27), on top of
+    the primary's refined extrinsic where that one is usable."""
+    from v2xlake.tasks.register.intra_stage import IntraStageSettings, refine_agent_lidars
+
+    rows = list(cal)
+    if cfg.intra_agent:
+        st = IntraStageSettings(frames=cfg.intra_frames)
+        for a in agents:
+            prim = next((_matrix(c, "") for c in cal if c.agent_id == a and c.usable), None)
+            extra, notes = refine_agent_lidars(lake, clip_id, a, st, prim)
+            rows += [r for r in extra if r.sensor not in {c.sensor for c in cal
+                                                          if c.agent_id == a}]
+            report.notes.extend(notes)
+    if rows:
+        path, n = lake.write_table("clean", "calibration_refined",
+                                   rows_to_table(CalibrationRefinedRow, rows), clip_id=clip_id,
+                                   name="calibration_refined")
+        report.outputs.append(OutputFile(path=path, rows=n))
 
 
 def _matrix(r: RegistrationRow | CalibrationRefinedRow, p: str) -> np.ndarray:
