@@ -618,7 +618,9 @@ def _anonymize_images(
         return hashlib.sha256(data).hexdigest(), clean_key
 
     det_names = {d.name: f"{d.name}@{d.version}" for d in detector.detectors}
-    workers = cfg.workers if cfg.workers > 0 else (os.cpu_count() or 1)
+    # the cores this process may use (a Dask worker pinned to its share), not the machine
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    workers = cfg.workers if cfg.workers > 0 else (cores or 1)
     gap_ns = int(cfg.temporal_max_gap_ms * 1e6)
     key_ns = int(cfg.key_interval_ms * 1e6)
     if guide is not None and guide.source == "lidar clusters" and not cfg.carry_lidar_clusters:
