@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -27,6 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+from tests.fixtures.processes import stop_group
 
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
@@ -179,13 +180,7 @@ def s3_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[S3Info]:
                 time.sleep(0.3)
         yield info
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(5)
+        stop_group(proc, grace_s=20.0)
         log.close()
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -24,6 +23,8 @@ from typing import Any
 
 import pytest
 import test_flows_fakestages as fakes
+
+from tests.fixtures.processes import stop_group
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -49,13 +50,7 @@ def _start_cluster(tmp_path: Path, api_url: str) -> tuple[subprocess.Popen[str],
 
 
 def _stop_cluster(proc: subprocess.Popen[str]) -> None:
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(60)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(10)
+    stop_group(proc)
 
 
 def _alive(pid: int) -> bool:

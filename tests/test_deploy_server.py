@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -16,6 +15,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from tests.fixtures.processes import stop_group
 from v2xlake.flows.deployments import declared, deployments_on_server, missing
 from v2xlake.flows.server import free_port
 
@@ -100,10 +100,4 @@ def test_start_server_serves_ui_and_creates_every_deployment(tmp_path: Path) -> 
         assert "trivial-on-missing-pool (work pool 'no-such-pool')" in res.stderr, res.stderr
         assert "trivial-ok" in deployments_on_server(api)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(60)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(10)
+        stop_group(proc)
