@@ -340,12 +340,19 @@ def _row(clip_id: str, ref: str, p: _Pair, k: int, sol: ClipSolution | None,
         observability=None if np.isnan(r.observability) else float(r.observability), **extra)
 
 
+def _fit_consistent(cfg: RegisterConfig, sol: ClipSolution, agent: str) -> bool:
+    """The clip's fit explains its measurements (variance factor) and few of the agent's
+    frames are outliers: the condition for trusting its extrinsic correction at all."""
+    return sol.variance_factor <= cfg.refined_max_variance_factor \
+        and sol.outlier_fraction.get(agent, 0.0) <= cfg.refined_max_outlier_fraction
+
+
 def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
                       cfg: RegisterConfig, n_frames: int, method: str,
                       notes: list[str] | None = None) -> list[CalibrationRefinedRow]:
     """The clip's extrinsic corrections, applied in the components it determined and only
-    when significant; ``usable`` also needs every component determined and a consistent fit
-    (see the ``refined_*`` settings); why not goes to ``notes``."""
+    when significant; ``usable`` also needs a consistent fit and small enough 1-sigma (every
+    component determined with ``refined_require_all``); why not goes to ``notes``."""
     rows = []
     prior = np.array([np.radians(cfg.prior_ext_deg)] * 3 + [cfg.prior_ext_m] * 3)
     names = ("rx", "ry", "rz", "tx", "ty", "tz")
@@ -366,12 +373,10 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
         if not det.all():
             why.append("not determined (published kept): "
                        + " ".join(n for n, d in zip(names, det, strict=True) if not d))
-        vf = float(sol.variance_factor)
-        of = float(sol.outlier_fraction.get(a.agent, 0.0))
-        consistent = vf <= cfg.refined_max_variance_factor \
-            and of <= cfg.refined_max_outlier_fraction
+        consistent = _fit_consistent(cfg, sol, a.agent)
         if not consistent:
-            why.append(f"fit inconsistent (variance factor {vf:.2f}, outliers {of:.0%})")
+            why.append(f"fit inconsistent (variance factor {sol.variance_factor:.2f}, outliers "
+                       f"{sol.outlier_fraction.get(a.agent, 0.0):.0%})")
         T = a.T_ego_lidar @ se3_exp(applied)
         q, qp = matrix_to_quat(T[:3, :3]), matrix_to_quat(a.T_ego_lidar[:3, :3])
         std_m = float(std[3:][det[3:]].max()) if det[3:].any() else 0.0
@@ -408,8 +413,7 @@ def _redeskew_extrinsics(cfg: RegisterConfig, agents: list[AgentScans], sol: Cli
         if not {"rx", "ry", "rz"} <= set(c.refined_components.split()) \
                 or c.std_deg > cfg.refined_max_std_deg or c.correction_deg <= 0:
             continue
-        if sol.variance_factor > cfg.refined_max_variance_factor \
-                or sol.outlier_fraction.get(a.agent, 0.0) > cfg.refined_max_outlier_fraction:
+        if not _fit_consistent(cfg, sol, a.agent):
             continue
         shift = np.radians(c.correction_deg) * a.max_travel_per_scan()
         if shift >= cfg.redeskew_min_shift_m:
@@ -503,7 +507,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     if not other_ids and ref_id not in missing and cfg.intra_agent \
             and len(read_extrinsics(lake, clip_id, ref_id)) > 1:
         report.notes.append(f"single agent ({ref_id}): its LiDARs registered to each other only")
-        _write_intra(lake, clip_id, cfg, [ref_id], [], report)
+        _write_calibration(lake, clip_id, cfg, [ref_id], [], report)
         return report
     if ref_id in missing or len(missing) == len(other_ids):
         return StageReport.not_applicable(
@@ -514,7 +518,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     other_ids = [a for a in other_ids if a not in missing]
     if not other_ids:
         report.notes.append(f"single agent ({ref_id}): nothing to register")
-        _write_intra(lake, clip_id, cfg, [ref_id], [], report)
+        _write_calibration(lake, clip_id, cfg, [ref_id], [], report)
         return report
     ref = AgentScans(lake, clip_id, ref_id, cfg.sensor)
     others = [AgentScans(lake, clip_id, a, cfg.sensor) for a in other_ids]
@@ -568,7 +572,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     if ext is not None:
         cal = _calibration_rows(clip_id, ext, [ref, *others], cfg, len(measured), method,
                                 report.notes)
-    _write_intra(lake, clip_id, cfg, [ref_id, *other_ids], cal, report)
+    _write_calibration(lake, clip_id, cfg, [ref_id, *other_ids], cal, report)
     bev_frame = cfg.bev_frame if cfg.bev_frame is not None else ref_frames[len(ref_frames) // 2]
     if cfg.write_bev:
         for p, r in zip(measured, rows, strict=True):
@@ -785,11 +789,11 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     return out, odo, timing
 
 
-def _write_intra(lake: Lake, clip_id: str, cfg: RegisterConfig, agents: list[str],
+def _write_calibration(lake: Lake, clip_id: str, cfg: RegisterConfig, agents: list[str],
                  cal: list[CalibrationRefinedRow], report: StageReport) -> None:
-    """``calibration_refined``: the clip solve's rows (``cal``) plus, for every agent with
-    several LiDARs, its secondary LiDARs refined against its primary (issue #27), on top of
-    the primary's refined extrinsic where that one is usable."""
+    """Write ``calibration_refined``: the clip solve's rows (``cal``) plus, for every agent
+    with several LiDARs, its secondary LiDARs refined against its primary (issue #27), on top
+    of the primary's refined extrinsic where that one is usable."""
     from v2xlake.tasks.register.intra_stage import IntraStageSettings, refine_agent_lidars
 
     rows = list(cal)
@@ -798,8 +802,8 @@ def _write_intra(lake: Lake, clip_id: str, cfg: RegisterConfig, agents: list[str
         for a in agents:
             prim = next((_matrix(c, "") for c in cal if c.agent_id == a and c.usable), None)
             extra, notes = refine_agent_lidars(lake, clip_id, a, st, prim)
-            rows += [r for r in extra if r.sensor not in {c.sensor for c in cal
-                                                          if c.agent_id == a}]
+            solved = {c.sensor for c in cal if c.agent_id == a}
+            rows += [r for r in extra if r.sensor not in solved]
             report.notes.extend(notes)
     if rows:
         path, n = lake.write_table("clean", "calibration_refined",
