@@ -117,11 +117,6 @@ def file_schema(lake: Lake, path: str) -> pa.Schema:
     return pq.ParquetFile(path, filesystem=lake.fs).schema_arrow
 
 
-def read_file(lake: Lake, path: str, columns: Sequence[str] | None = None) -> pa.Table:
-    """One whole lake file (a small table: poses, GNSS, frame lists)."""
-    return pq.read_table(path, filesystem=lake.fs,
-                         columns=None if columns is None else list(columns))
-
 
 def partition_files(lake: Lake, zone: str, table: str,
                     clip_id: str) -> list[tuple[str, str | None, str]]:

@@ -28,7 +28,8 @@ from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import AnonymizationAuditRow
-from v2xlake.storage.frames import file_schema, iter_row_groups, partition_files, read_file
+from v2xlake.storage.files import read_parquet
+from v2xlake.storage.frames import file_schema, iter_row_groups, partition_files
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import calibrations, pose_samples
 from v2xlake.tasks.anonymize.blur import BlurConfig, blur_boxes
@@ -413,7 +414,8 @@ def _write_clean(
     for table in COPY_TABLES:
         for path, agent, name in partition_files(lake, "raw", table, clip_id):
             numeric = ("value", "threshold") if table == "qa_checks" else ()
-            write(table, scrub_table(read_file(lake, path), t0, numeric), agent, name)
+            raw = read_parquet(path, filesystem=lake.fs)
+            write(table, scrub_table(raw, t0, numeric), agent, name)
     for table in SHIFT_TABLES:
         for path, agent, name in partition_files(lake, "raw", table, clip_id):
             if table == "lidar_points":
@@ -421,22 +423,23 @@ def _write_clean(
                 report.outputs.append(OutputFile(path=final_path(table, agent, name), rows=rows,
                                                  checksum=digest))
             else:
-                write(table, shift_times(read_file(lake, path), table, t0), agent, name)
+                raw = read_parquet(path, filesystem=lake.fs)
+                write(table, shift_times(raw, table, t0), agent, name)
     ego: dict[str, list[pa.Table]] = {}  # the clean poses, for the guided scan plan
     for path, agent, name in partition_files(lake, "raw", "ins", clip_id):
         if frame is None:  # an empty ins partition (a clip without INS): nothing to convert
             continue
-        poses = ins_to_ego_poses(read_file(lake, path), frame, t0)
+        poses = ins_to_ego_poses(read_parquet(path, filesystem=lake.fs), frame, t0)
         write("ego_poses", poses, agent, name)
         ego.setdefault(str(agent), []).append(poses)
     for path, agent, name in partition_files(lake, "raw", "ego_poses", clip_id):
         if map_xy is None:  # empty partitions (every clip with an INS-style track)
             continue
-        poses = map_poses_to_world(read_file(lake, path), map_xy, t0)
+        poses = map_poses_to_world(read_parquet(path, filesystem=lake.fs), map_xy, t0)
         write("ego_poses", poses, agent, name)
         ego.setdefault(str(agent), []).append(poses)
     for path, agent, name in partition_files(lake, "raw", "gnss", clip_id):
-        write("gnss", gnss_to_local(read_file(lake, path), frame, t0), agent, name)
+        write("gnss", gnss_to_local(read_parquet(path, filesystem=lake.fs), frame, t0), agent, name)
 
     guide = None
     n_cam = lake.read_table("raw", "camera_frames", clip_id=clip_id, columns=["frame_idx"]
@@ -557,7 +560,7 @@ def _anonymize_images(
     gaps per camera, blur, encode; frames of one camera go in time order, ``frames_per_chunk``
     at a time, detected with one frame of look-ahead so a chunk's last frame has its next."""
     files = partition_files(lake, "raw", "camera_frames", clip_id)
-    tables = [(agent, name, read_file(lake, path)) for path, agent, name in files]
+    tables = [(agent, name, read_parquet(path, filesystem=lake.fs)) for path, agent, name in files]
     total = sum(t.num_rows for _, _, t in tables)
     detector = cfg.build_detector()
     blur = cfg.blur()
