@@ -151,25 +151,21 @@ def measure_calls(work: Path, repeat: int, env: dict[str, str], anchor1: list[st
     # first a call that refills the facts cache if the stages' code changed since the last
     # run (the figures below are for the cache as every later call finds it)
     subprocess.run(process, env=env, cwd=REPO, capture_output=True)
-    for name, cmd in (("anchor 1 task, temporary server", anchor1),
-                      ("anchor 7 tasks, temporary server", anchor7),
-                      ("v2xlake process (no-op), no API URL", process),
-                      ("flow no-op (process_clips), temporary server", flow_noop)):
-        rows[name] = timed(cmd, repeat, env)
-        print(f"  {name:48s} {rows[name]['best']:6.2f} / {rows[name]['median']:6.2f}",
-              flush=True)
+    def measure(run_env: dict[str, str], server: str, no_url: str) -> None:
+        for name, cmd in ((f"anchor 1 task, {server}", anchor1),
+                          (f"anchor 7 tasks, {server}", anchor7),
+                          (f"v2xlake process (no-op), {no_url}", process),
+                          (f"flow no-op (process_clips), {server}", flow_noop)):
+            rows[name] = timed(cmd, repeat, run_env)
+            print(f"  {name:48s} {rows[name]['best']:6.2f} / {rows[name]['median']:6.2f}",
+                  flush=True)
+
+    measure(env, "temporary server", "no API URL")
     from v2xlake.flows.server import start_server
 
     server = start_server(work / "server")
     try:
-        env_api = _env(PREFECT_API_URL=server.api_url)
-        for name, cmd in (("anchor 1 task, PREFECT_API_URL", anchor1),
-                          ("anchor 7 tasks, PREFECT_API_URL", anchor7),
-                          ("v2xlake process (no-op), PREFECT_API_URL", process),
-                          ("flow no-op (process_clips), PREFECT_API_URL", flow_noop)):
-            rows[name] = timed(cmd, repeat, env_api)
-            print(f"  {name:48s} {rows[name]['best']:6.2f} / {rows[name]['median']:6.2f}",
-                  flush=True)
+        measure(_env(PREFECT_API_URL=server.api_url), "PREFECT_API_URL", "PREFECT_API_URL")
     finally:
         server.stop()
     for api in ("temporary server", "PREFECT_API_URL"):
