@@ -12,6 +12,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from v2xlake.flows.params import ParamsError, _short
+from v2xlake.schemas.config import merge_params
 from v2xlake.schemas.stage import Stage
 from v2xlake.tasks.align.stage import AlignConfig
 from v2xlake.tasks.annotate.core import AnnotateConfig
@@ -78,6 +79,6 @@ class PipelineParams(BaseModel):
             raise ParamsError(f"params.{stage.name}: {forbidden} can only be set by the "
                               "operator (--params, a deployment), not by a clip's clip.yaml")
         try:
-            return stage.config({**values, **own})
+            return stage.config(merge_params(values, own))
         except ValidationError as e:
             raise ParamsError(f"params.{stage.name}: {_short(e)}") from e
