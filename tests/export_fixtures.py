@@ -390,7 +390,7 @@ def build_clean_clip(lake: Lake, clip_id: str = "clip-a", *, weather: str = "ove
     lake.write_table("clean", "instances", rows_to_table(LAKE_TABLES["instances"],
                                                          list(inst.values())), clip_id=clip_id)
     if with_deskewed:  # what the pipeline does next: annotate counts the points per box
-        from v2xlake.tasks.annotate.core import run_annotate
+        from v2xlake.tasks.annotate.stage import run_annotate
 
         run_annotate(lake, clip_id)
 

@@ -15,7 +15,9 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.geometry import matrix_to_quat
 from v2xlake.schemas.tables import AgentRow, CalibratedSensorRow, EgoPoseRow
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.annotate.core import AnnotateConfig, cross_agent_distances, run_annotate
+from v2xlake.tasks.annotate.config import AnnotateConfig, LinkConfig
+from v2xlake.tasks.annotate.consistency import cross_agent_distances
+from v2xlake.tasks.annotate.stage import run_annotate
 
 # black rides rigidly next to red: 3.5 m to the left, 0.5 m behind, yawed 10 degrees
 D = np.eye(4)
@@ -149,7 +151,7 @@ def test_bad_links_and_categories_are_clip_errors(tmp_path: Path) -> None:
     lake, _, _ = write_lake(tmp_path / "far")
     _edit_annotations(lake, lambda t: _set_links(t, "trailer-parked", ["car-oncoming"]))
     with pytest.raises(ClipError, match="too far apart"):
-        run_annotate(lake, CLIP, AnnotateConfig(link_policy="error"))
+        run_annotate(lake, CLIP, AnnotateConfig(links=LinkConfig(policy="error")))
     # by default a plausibility finding is reported, never a reason to quarantine (#15)
     rep = run_annotate(lake, CLIP)
     assert rep.status == "done" and rep.metrics["links.n_far"] == 3

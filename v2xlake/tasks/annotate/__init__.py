@@ -1,1 +1,3 @@
-"""The annotate stage: numeric core in core.py, the lake stage in stage.py."""
+"""The annotate stage: ``config.py`` its parameters, ``consistency.py`` the checks on arrays
+(world-frame boxes, cross-agent distances, links), ``stage.py`` the lake I/O and the
+``ANNOTATE`` Stage object."""
