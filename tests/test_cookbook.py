@@ -38,7 +38,7 @@ from tests.test_pose_sources import (
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.geodesy import R_ecef_enu, geodetic_to_utm, matrix_to_attitude, rot_z
 from v2xlake.tasks.ingest import run_ingest
-from v2xlake.tasks.qa.core import run_qa
+from v2xlake.tasks.qa.stage import run_qa
 
 REPO = Path(__file__).resolve().parents[1]
 MSGS = REPO / "tests" / "fixtures" / "cookbook" / "msgs"

@@ -12,7 +12,8 @@ from v2xlake.storage import manifest as mf
 from v2xlake.storage.catalog import Catalog
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.ingest import IngestConfig, clip_inputs, run_ingest
-from v2xlake.tasks.qa.core import QaConfig, run_qa
+from v2xlake.tasks.qa.config import GridTolerance, QaConfig
+from v2xlake.tasks.qa.stage import run_qa
 
 simulate_mod = pytest.importorskip("v2xlake.tasks.simulate")
 
@@ -84,4 +85,4 @@ def test_unchanged_simulated_clip_is_current(lake_with_sims: tuple[Lake, dict[st
     assert mf.is_current(lake, cid, "ingest", key)
     assert mf.is_current(lake, cid, "qa", mf.stage_key(lake, cid, "qa", QaConfig(), ("ingest",)))
     assert not mf.is_current(lake, cid, "qa", mf.stage_key(
-        lake, cid, "qa", QaConfig(lidar_tolerance_ms=2.0), ("ingest",)))
+        lake, cid, "qa", QaConfig(tolerance_ms=GridTolerance(lidar=2.0)), ("ingest",)))

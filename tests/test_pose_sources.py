@@ -50,7 +50,7 @@ from v2xlake.tasks.geodesy import (
     rot_z,
 )
 from v2xlake.tasks.ingest import run_ingest
-from v2xlake.tasks.qa.core import run_qa
+from v2xlake.tasks.qa.stage import run_qa
 from v2xlake.tasks.reader import load_pose_track
 
 T0 = 1_700_000_000 * 1_000_000_000

@@ -16,13 +16,13 @@ from v2xlake.storage.catalog import Catalog
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.quarantine import is_quarantined, quarantine, read_report
 from v2xlake.tasks.ingest import run_ingest
-from v2xlake.tasks.qa.core import (
-    QaConfig,
+from v2xlake.tasks.qa.config import GridTolerance, QaConfig
+from v2xlake.tasks.qa.stage import run_qa
+from v2xlake.tasks.qa.timing import (
     camera_offsets_ns,
     dropped_frames,
     grid_offsets_ns,
     ins_uncovered,
-    run_qa,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -112,7 +112,8 @@ def test_camera_off_grid_is_an_error(tmp_path: Path) -> None:
                        r"off the PPS \+ 5 ms \+ k x 33.333 ms grid"):
         run_qa(lake, "cam")
     # a tolerance that covers the offset (a per-clip QA parameter) lets them pass
-    assert run_qa(lake, "cam", QaConfig(camera_tolerance_ms=6.0)).metrics["errors"] == 0
+    wide = QaConfig(tolerance_ms=GridTolerance(camera=6.0))
+    assert run_qa(lake, "cam", wide).metrics["errors"] == 0
 
 
 

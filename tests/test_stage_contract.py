@@ -164,22 +164,26 @@ def test_every_parameter_section_is_strict() -> None:
 
 def test_params_file_clip_block_and_precedence(tmp_path: Path) -> None:
     f = tmp_path / "p.yaml"
-    f.write_text(yaml.safe_dump({"qa": {"max_dropped_fraction": 0.2, "lidar_tolerance_ms": 2.0},
+    f.write_text(yaml.safe_dump({"qa": {"stream": {"max_dropped_fraction": 0.2},
+                                        "tolerance_ms": {"lidar": 2.0}},
                                  "export": {"nuscenes": {}}}))
     run = load_params(f)
     clip = fakes.make_fake_clip(tmp_path / "in", "c1")
     meta = yaml.safe_load((clip / "clip.yaml").read_text())
-    meta["params"] = {"qa": {"max_dropped_fraction": 0.1}}
+    meta["params"] = {"qa": {"max_dropped_fraction": 0.1}}  # a flat key of earlier versions
     (clip / "clip.yaml").write_text(yaml.safe_dump(meta))
     qa = next(s for s in STAGES if s.name == "qa")
-    eff = run.for_stage(qa, clip_params(clip))
-    assert eff.max_dropped_fraction == 0.1  # type: ignore[attr-defined]  # the clip's own block wins
-    assert eff.lidar_tolerance_ms == 2.0  # type: ignore[attr-defined]  # then the run's
+    with pytest.warns(DeprecationWarning, match="'max_dropped_fraction' is now "
+                      "'stream.max_dropped_fraction'"):
+        eff = run.for_stage(qa, clip_params(clip))
+    assert eff.stream.max_dropped_fraction == 0.1  # type: ignore[attr-defined]  # the clip's own block wins
+    assert eff.tolerance_ms.lidar == 2.0  # type: ignore[attr-defined]  # then the run's
+    assert eff.tolerance_ms.camera == 1.0  # type: ignore[attr-defined]  # then the default
     f.write_text(yaml.safe_dump({"qa": {"camera_fsp": 20}}))
     with pytest.raises(ParamsError, match="camera_fsp"):
         load_params(f)
     with pytest.raises(ParamsError, match=r"params\.qa"):
-        run.for_stage(qa, {"qa": {"lidar_tolerance_ms": -1}})
+        run.for_stage(qa, {"qa": {"tolerance_ms": {"lidar": -1}}})
 
 
 @pytest.mark.slow

@@ -24,7 +24,8 @@ from v2xlake.storage.lake import Lake
 from v2xlake.tasks.anonymize.images import decode_image
 from v2xlake.tasks.ingest import run_ingest
 from v2xlake.tasks.ingest.images import jpeg_size
-from v2xlake.tasks.qa.core import QaConfig, run_qa
+from v2xlake.tasks.qa.config import QaConfig, ScanSpan
+from v2xlake.tasks.qa.stage import run_qa
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 Q_LIDAR = Rotation.from_matrix(T_EGO_LIDAR[:3, :3]).as_quat(scalar_first=True).tolist()
@@ -178,12 +179,12 @@ def test_fov_limited_scans_pass_when_declared(tmp_path: Path) -> None:
     run_ingest(lake, d)
     with pytest.raises(ClipError, match=r"scan_time_span: .*median 49\.86 ms, expected "
                        r"100\.0\.\.105\.0 ms"):
-        run_qa(lake, "fov", QaConfig(scan_span_min=1.0))
+        run_qa(lake, "fov", QaConfig(scan_span=ScanSpan(min=1.0)))
     cfg = yaml.safe_load((d / "clip.yaml").read_text())
     cfg["agents"][0]["sensors"][0]["scan_fov_deg"] = 180
     (d / "clip.yaml").write_text(yaml.safe_dump(cfg))
     run_ingest(lake, d)
-    assert run_qa(lake, "fov", QaConfig(scan_span_min=0.9)).metrics["errors"] == 0
+    assert run_qa(lake, "fov", QaConfig(scan_span=ScanSpan(min=0.9))).metrics["errors"] == 0
 
 
 # --------------------------------------------------------------------------- time and order

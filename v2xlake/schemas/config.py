@@ -20,6 +20,10 @@ from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict, model_validator
 
+#: A pose gap is longer than this many periods of its pose track: QA flags a LiDAR scan it
+#: leaves uncovered, deskew does not interpolate across it (one default for both stages).
+POSE_GAP_PERIODS = 2.5
+
 
 class Section(BaseModel):
     """A group of parameters: frozen (a core may keep it), unknown keys refused."""

@@ -1,1 +1,3 @@
-"""The qa stage: numeric core in core.py, the lake stage in stage.py."""
+"""The qa stage: ``config.py`` its thresholds, ``timing.py`` the checks on stamp arrays (PPS
+grids, jitter, rates, dropped frames, pose coverage), ``stage.py`` the lake I/O (reads the
+raw zone, writes ``qa_checks``) and the ``QA`` Stage object."""
