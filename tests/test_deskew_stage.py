@@ -29,7 +29,8 @@ from v2xlake.schemas.tables import (
     LidarPointRow,
 )
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.deskew.stage import OUT_TABLE, DeskewConfig, run_deskew
+from v2xlake.tasks.deskew.config import DeskewConfig, PoseGaps, UncoveredPolicy
+from v2xlake.tasks.deskew.stage import OUT_TABLE, run_deskew
 from v2xlake.tasks.ingest.rows import table_of
 
 CLIP = "clipA"
@@ -124,7 +125,7 @@ def test_frame_past_the_ins_end_is_skipped_at_the_edge_or_an_error(tmp_path: Pat
     out = lake.read_table("clean", OUT_TABLE, clip_id=CLIP)
     assert set(out.column("frame_idx").to_pylist()) == {0, 1}
     with pytest.raises(ClipError) as ei:
-        run_deskew(lake, CLIP, DeskewConfig(on_uncovered="error"))
+        run_deskew(lake, CLIP, DeskewConfig(uncovered=UncoveredPolicy(policy="error")))
     msg = str(ei.value)
     assert "frame 2" in msg and "INS covers only up to 452000000 ns" in msg and "red" in msg
     assert "points span [400000000," in msg
@@ -147,8 +148,9 @@ def test_a_10_hz_pose_source_is_not_a_gap(tmp_path: Path,
     write_agent(lake, "red", Motion(), (0, 700_000_000))
     rep = run_deskew(lake, CLIP)
     assert rep.status == "done" and rep.metrics["n_frames"] == 3
-    with pytest.raises(ClipError, match=r"max 50\.0 ms: deskew.max_pose_gap_ns"):
-        run_deskew(lake, CLIP, DeskewConfig(max_pose_gap_ns=50_000_000, on_uncovered="error"))
+    with pytest.raises(ClipError, match=r"max 50\.0 ms: deskew.pose_gaps.max_ns"):
+        run_deskew(lake, CLIP, DeskewConfig(pose_gaps=PoseGaps(max_ns=50_000_000),
+                                           uncovered=UncoveredPolicy(policy="error")))
 
 
 def test_agent_without_ins_says_so(tmp_path: Path) -> None:

@@ -206,11 +206,11 @@ def test_a_parameter_reaches_the_stage_and_its_manifest(prefect_server: Any, tmp
     assert l_.read_table("clean", "annotations", clip_id="pclip").num_rows == 5
     # the real pipeline's sections from a file, shown by `params show`
     pfile = tmp_path / "run.yaml"
-    pfile.write_text(yaml.safe_dump({"deskew": {"max_pose_gap_ns": 30_000_000}}))
+    pfile.write_text(yaml.safe_dump({"deskew": {"pose_gaps": {"max_ns": 30_000_000}}}))
     capsys.readouterr()
     assert main(["params", "show", "--params", str(pfile), "--stage", "deskew"]) == 0
     shown = yaml.safe_load(capsys.readouterr().out)
-    assert shown["deskew"]["max_pose_gap_ns"] == 30_000_000
+    assert shown["deskew"]["pose_gaps"] == {"max_ns": 30_000_000, "periods": 2.5}
     pfile.write_text(yaml.safe_dump({"deskew": {"max_pose_gap": 1}}))
     assert main(["params", "show", "--params", str(pfile)]) == 2  # a usage error, no trace
     assert "max_pose_gap" in capsys.readouterr().err

@@ -1,2 +1,4 @@
-"""The deskew stage (``stage.py``: config, chunks, the lake). Its numeric core, per-point motion
-compensation, is :mod:`v2xlake.tasks.motion`, shared with register (re-deskew) and align."""
+"""The deskew stage: ``config.py`` its parameters, ``coverage.py`` which scans a pose track
+can compensate (on arrays), ``stage.py`` the lake I/O (chunks, the output tables) and the
+``DESKEW`` Stage object. Its numeric core, per-point motion compensation, is
+:mod:`v2xlake.tasks.motion`, shared with register (re-deskew) and align."""

@@ -2,7 +2,7 @@
 
 Reads per agent the clean ``ego_poses`` (``T_world_ego``), the LiDAR extrinsic from
 ``calibrated_sensors`` and each scan's start time from ``lidar_frames``; moves every point
-into the LiDAR frame at its scan start (supplementary A.4, :func:`tasks.deskew.deskew_points`)
+into the LiDAR frame at its scan start (supplementary A.4, :func:`tasks.motion.deskew_points`)
 and writes them with the same schema as ``lidar_points`` (one row group per frame). The
 per-frame figures (points outside INS coverage, reference time, max / RMS shift) go into
 deskew's own ``deskew_frames``; the catalog's ``lidar_frames`` view joins them, so the
@@ -24,12 +24,10 @@ import itertools
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from pydantic import BaseModel, ConfigDict, Field
 
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.errors import ClipError
@@ -43,6 +41,8 @@ from v2xlake.storage.reader import (
     poses_missing,
     read_extrinsics,
 )
+from v2xlake.tasks.deskew.config import DeskewConfig
+from v2xlake.tasks.deskew.coverage import max_pose_gap, pose_gaps, uncompensable
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.motion import DeskewResult, deskew_points
 from v2xlake.tasks.reader import load_pose_track
@@ -52,34 +52,6 @@ log = logging.getLogger(__name__)
 STAGE = "deskew"
 OUT_TABLE = "lidar_points_deskewed"
 FRAMES_TABLE = "deskew_frames"
-
-
-class DeskewConfig(BaseModel):
-    """Parameters of the deskew stage (hashed into the manifest)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    reference: Literal["scan_start", "first_point"] = Field(
-        "scan_start", description="t_r of eq. 3: lidar_frames.t_start_ns, or the earliest point")
-    max_uncovered_fraction: float = Field(
-        0.0, ge=0.0, le=1.0,
-        description="a frame with more of its points outside INS coverage cannot be compensated")
-    on_uncovered: Literal["error", "skip_edge", "skip"] = Field(
-        "skip_edge",
-        description="uncompensable frames: error always; skip those at the clip's edges "
-                    "(INS starts late / stops early) and error in the middle; or skip all")
-    max_pose_gap_ns: int | None = Field(
-        None, gt=0,
-        description="pose samples further apart than this are a gap, not something to "
-                    "interpolate across; default: pose_gap_periods of the pose track's "
-                    "median period, at least 50 ms (125 Hz INS: 50 ms; a 10 Hz "
-                    "localisation: 250 ms), as QA judges it")
-    pose_gap_periods: float = Field(
-        2.5, gt=1, description="with max_pose_gap_ns unset: a gap is longer than this many "
-                               "periods of the pose track")
-    frames_per_file: int = Field(
-        100, ge=1, description="frames per output file and per chunk of work (bounds memory; "
-                               "chunks are what a distributed run spreads over workers)")
 
 
 @dataclass
@@ -112,24 +84,6 @@ def _fail(clip_id: str, reason: str, agent_id: str | None = None) -> ClipError:
 
 def _col(t: pa.Table, name: str) -> np.ndarray:
     return np.asarray(t.column(name).to_numpy(zero_copy_only=False))
-
-
-def max_pose_gap(track: PoseTrack, cfg: DeskewConfig) -> int:
-    """The longest pose interval deskew interpolates across: the configured one, else
-    ``pose_gap_periods`` of the track's median period and at least 50 ms. A fixed 50 ms
-    made every 10 Hz pose source (localisation stacks, Odometry) a gap at every sample."""
-    if cfg.max_pose_gap_ns is not None:
-        return cfg.max_pose_gap_ns
-    d = np.diff(track.t_ns)
-    period = float(np.median(d)) if d.size else 0.0
-    return int(max(50_000_000, cfg.pose_gap_periods * period))
-
-
-def _pose_gaps(track: PoseTrack, max_gap: int) -> np.ndarray:
-    """(K, 2) [t_a, t_b] of consecutive INS samples further apart than ``max_gap``."""
-    d = np.diff(track.t_ns)
-    k = np.flatnonzero(d > max_gap)
-    return np.stack([track.t_ns[k], track.t_ns[k + 1]], axis=1)
 
 
 def _frame_parts(tbl: pa.Table) -> list[tuple[int, pa.Table]]:
@@ -220,7 +174,7 @@ def deskew_chunk(lake: Lake, clip_id: str, cfg: DeskewConfig, chunk: DeskewChunk
     agent = chunk.agent
     track = load_pose_track(lake, clip_id, agent)
     extr = read_extrinsics(lake, clip_id, agent)
-    gaps = _pose_gaps(track, max_pose_gap(track, cfg))
+    gaps = pose_gaps(track, max_pose_gap(track, cfg.pose_gaps))
     fa = lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent)
     t_start = {(str(s), int(f)): int(t0) for s, f, t0 in zip(
         _col(fa, "sensor"), _col(fa, "frame_idx"), _col(fa, "t_start_ns"), strict=True)} \
@@ -319,14 +273,15 @@ def _deskew_frame(clip_id: str, agent: str, sensor: str, frame_idx: int, part: p
     if n == 0:
         stats[(agent, sensor, frame_idx)] = _FrameStat(0, res.t_ref_ns, None, None)
         return None
-    problem = _uncompensable(res, track, gaps, cfg)
+    problem = uncompensable(res, track, gaps, cfg.uncovered, cfg.pose_gaps)
     if problem is not None:
         # at the clip's edge = the scan reaches outside the INS span (INS started late or
         # stopped early); otherwise the INS has a hole in the middle of the clip
         lo = min(res.t_min_ns or track.t_min, res.t_ref_ns or track.t_min)
         hi = max(res.t_max_ns or track.t_max, res.t_ref_ns or track.t_max)
         edge = lo < track.t_min or hi > track.t_max
-        if cfg.on_uncovered == "error" or (cfg.on_uncovered == "skip_edge" and not edge):
+        if cfg.uncovered.policy == "error" or (cfg.uncovered.policy == "skip_edge"
+                                                 and not edge):
             raise _fail(clip_id, f"{sensor} frame {frame_idx}: {problem}", agent)
         tot.skipped += 1
         tot.skipped_points += n - res.n_nan
@@ -350,33 +305,6 @@ def _deskew_frame(clip_id: str, agent: str, sensor: str, frame_idx: int, part: p
         out = out.set_column(out.schema.get_field_index(c), c,
                              pa.array(np.ascontiguousarray(kept[:, j]), pa.float32()))
     return out
-
-
-def _uncompensable(res: DeskewResult, track: PoseTrack, gaps: np.ndarray,
-                   cfg: DeskewConfig) -> str | None:
-    """Why this frame cannot be compensated, or None."""
-    finite = res.n_points - res.n_nan
-    if finite == 0:
-        return None
-    span = f"points span [{res.t_min_ns}, {res.t_max_ns}] ns"
-    if res.t_ref_ns is not None and not bool(track.covers(res.t_ref_ns)):
-        return (f"reference time {res.t_ref_ns} ns is outside the INS coverage "
-                f"[{track.t_min}, {track.t_max}] ns")
-    if res.n_uncovered > cfg.max_uncovered_fraction * finite:
-        if res.uncovered_max_ns is not None and res.uncovered_max_ns > track.t_max:
-            cover = f"INS covers only up to {track.t_max} ns"
-        else:
-            cover = f"INS covers only from {track.t_min} ns"
-        return (f"{span} but {cover} ({res.n_uncovered} of {finite} points uncovered, "
-                f"times [{res.uncovered_min_ns}, {res.uncovered_max_ns}] ns)")
-    assert res.t_min_ns is not None and res.t_max_ns is not None
-    for a, b in gaps:
-        if a < res.t_max_ns and b > res.t_min_ns:
-            limit = max_pose_gap(track, cfg) / 1e6
-            return (f"{span} but the INS has a gap of {(b - a) / 1e6:.1f} ms between {a} and "
-                    f"{b} ns (max {limit:.1f} ms: deskew.max_pose_gap_ns or "
-                    "deskew.pose_gap_periods sets it)")
-    return None
 
 
 def _write_frames(lake: Lake, clip_id: str, stats: dict[tuple[str, str, int], _FrameStat],
