@@ -23,8 +23,8 @@ from tests.test_align_scene import (
     write_lake,
 )
 from v2xlake.schemas.calibration import CameraIntrinsics
+from v2xlake.tasks.align.config import AlignConfig, AssociationConfig
 from v2xlake.tasks.align.methods import (
-    AlignParams,
     CameraStream,
     LidarScan,
     align_all,
@@ -32,7 +32,7 @@ from v2xlake.tasks.align.methods import (
     scan_time,
 )
 from v2xlake.tasks.align.metrics import center_offset_px, summarize
-from v2xlake.tasks.align.stage import AlignConfig, load_truth_boxes, run_align
+from v2xlake.tasks.align.stage import load_truth_boxes, run_align
 from v2xlake.tasks.geometry import (
     box_corners,
     count_points_in_boxes,
@@ -151,7 +151,7 @@ def test_compensate_points_is_ego_motion_between_t0_and_camera() -> None:
 
 
 # ------------------------------------------------------------------ the three methods
-def _evaluate_synthetic(params: AlignParams) -> dict[str, dict[str, float]]:
+def _evaluate_synthetic(params: AssociationConfig) -> dict[str, dict[str, float]]:
     rng = np.random.default_rng(0)
     tr = pose_track()
     cam = camera()
@@ -173,7 +173,7 @@ def _evaluate_synthetic(params: AlignParams) -> dict[str, dict[str, float]]:
 
 
 def test_three_methods_on_timed_synthetic_scene() -> None:
-    res = _evaluate_synthetic(AlignParams())
+    res = _evaluate_synthetic(AssociationConfig())
     for m, r in res.items():
         print(f"synthetic {m:6s} IoU {r['mean_iou']:.4f}  R@.3 {r['recall@0.3']:.3f}  "
               f"R@.5 {r['recall@0.5']:.3f}  R@.7 {r['recall@0.7']:.3f}  "
@@ -187,7 +187,7 @@ def test_three_methods_on_timed_synthetic_scene() -> None:
     # target-based with the annotated velocity puts objects where the camera saw them
     assert res["target"]["mean_iou"] > 0.95
     # without velocities the target method still associates per object, and beats stamp
-    no_v = _evaluate_synthetic(AlignParams(use_velocity=False))
+    no_v = _evaluate_synthetic(AssociationConfig(use_velocity=False))
     assert no_v["target"]["mean_iou"] > res["stamp"]["mean_iou"] + 0.05
 
 
@@ -196,7 +196,7 @@ def test_frame_method_picks_the_frame_that_saw_the_left_side() -> None:
     s = make_scan(T0S[1], rng)
     stream = CameraStream(camera(), np.arange(len(CAM_STAMPS)), CAM_STAMPS)
     res = align_all(LidarScan(1, T0S[1], s.xyz, s.t_ns), s.boxes, stream, pose_track(),
-                    T_EGO_LIDAR, AlignParams())
+                    T_EGO_LIDAR, AssociationConfig())
     # left camera: points swept ~62-88 ms into the scan -> the t0 + 66.7 ms frame
     assert CAM_STAMPS[res["stamp"].scan_frame_pos] == T0S[1]
     assert CAM_STAMPS[res["frame"].scan_frame_pos] == T0S[1] + round(2e9 / 30)
@@ -235,7 +235,7 @@ def test_run_align_estimates_missing_velocities_from_tracks(tmp_path: Path) -> N
                                                                         pa.float64()))
     lake.write_table("clean", "annotations", ann, clip_id=CLIP, agent_id="red")
     with_track = run_align(lake, CLIP, AlignConfig(), truth_dir=truth_dir).metrics
-    without = run_align(lake, CLIP, AlignConfig(velocity_from_track=False),
-                        truth_dir=truth_dir).metrics
+    no_track = AlignConfig(association=AssociationConfig(velocity_from_track=False))
+    without = run_align(lake, CLIP, no_track, truth_dir=truth_dir).metrics
     assert with_track["target.mean_iou"] > without["target.mean_iou"]
     assert with_track["target.mean_iou"] > 0.93

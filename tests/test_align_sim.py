@@ -18,7 +18,8 @@ import pytest
 
 from v2xlake.schemas.annotation import AnnotationFile
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.align.stage import AlignConfig, run_align
+from v2xlake.tasks.align.config import AlignConfig
+from v2xlake.tasks.align.stage import run_align
 from v2xlake.tasks.annotate.stage import run_annotate
 
 CAMERAS = ("CAM_FRONT", "CAM_BACK", "CAM_FRONT_LEFT")

@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from v2xlake.flows.params import ParamsError, _short
 from v2xlake.schemas.config import merge_params
 from v2xlake.schemas.stage import Stage
-from v2xlake.tasks.align.stage import AlignConfig
+from v2xlake.tasks.align.config import AlignConfig
 from v2xlake.tasks.annotate.config import AnnotateConfig
 from v2xlake.tasks.anonymize.run import AnonymizeConfig
 from v2xlake.tasks.deskew.stage import DeskewConfig

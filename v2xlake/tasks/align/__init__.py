@@ -1,2 +1,4 @@
-"""Temporal alignment (Sec. 5): box geometry, methods, metrics, overlay, the stage; camera
-projection is the shared :mod:`v2xlake.tasks.projection` (anonymize uses it too)."""
+"""Temporal alignment (Sec. 5): ``config.py`` its parameters, ``methods.py`` the three methods,
+``boxes.py`` box geometry, ``metrics.py`` scores against true boxes, ``overlay.py`` the
+picture (all pure, on arrays), ``stage.py`` the lake I/O and the ``ALIGN`` Stage object.
+Camera projection is the shared :mod:`v2xlake.tasks.projection` (anonymize uses it too)."""

@@ -21,7 +21,7 @@ camera pose at ``t_cam``:
   object's velocity is known (annotated, else from its track), the object moved from its
   box time to t_cam, so that it sits where the camera saw it.
 
-All functions are pure (arrays in, arrays out); the lake I/O lives in ``tasks/align.py``.
+All functions are pure (arrays in, arrays out); the lake I/O lives in ``stage.py``.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from typing import Literal
 import numpy as np
 
 from v2xlake.tasks.align.boxes import BoxArray
+from v2xlake.tasks.align.config import AssociationConfig, TimeStat
 from v2xlake.tasks.geometry import compose, invert, points_in_boxes
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.motion import deskew_points
@@ -39,7 +40,6 @@ from v2xlake.tasks.projection import Camera, points_in_fov, project_boxes_2d
 
 Method = Literal["stamp", "frame", "target"]
 METHODS: tuple[Method, ...] = ("stamp", "frame", "target")
-TimeStat = Literal["vote", "median", "mean"]
 
 
 @dataclass(frozen=True)
@@ -71,23 +71,6 @@ class LidarScan:
     xyz: np.ndarray  # (N, 3) in L0
     t_ns: np.ndarray  # (N,) int64 per-point acquisition time
     period_ns: int = 100_000_000
-
-
-@dataclass(frozen=True)
-class AlignParams:
-    """Numeric knobs of the three methods (``AlignConfig`` carries them into the stage)."""
-
-    frame_time_stat: TimeStat = "vote"
-    target_time_stat: TimeStat = "vote"
-    unwrap_seam: bool = True  # median / mean: treat point times as phases (see scan_time)
-    # frame-based, camera whose view contains the scan seam (points from both the first and
-    # the last ``seam_window`` of the scan): "start" aligns it with the scan start, as the
-    # paper does for its forward cameras (Sec. 5.2, Fig. 6); "points" lets the points decide
-    seam_camera: Literal["start", "points"] = "start"
-    seam_window: float = 0.05  # fraction of the scan period
-    fov_near_m: float = 0.5
-    box_margin_m: float = 0.2  # grow boxes when collecting an object's points
-    use_velocity: bool = True  # target-based: move objects to t_cam with their velocity
 
 
 @dataclass(frozen=True)
@@ -214,7 +197,7 @@ def align_stamp(scan: LidarScan, boxes: BoxArray, stream: CameraStream,
 
 
 def frame_association(scan: LidarScan, stream: CameraStream, T_ego_lidar: np.ndarray,
-                      params: AlignParams) -> tuple[int, int, int]:
+                      params: AssociationConfig) -> tuple[int, int, int]:
     """Frame-based choice for one camera: (frame position, association time, FOV points)."""
     T_cam_lidar = compose(invert(stream.camera.T_ego_cam), T_ego_lidar)
     fov = points_in_fov(scan.xyz, T_cam_lidar, stream.camera.intrinsics, params.fov_near_m)
@@ -233,7 +216,7 @@ def frame_association(scan: LidarScan, stream: CameraStream, T_ego_lidar: np.nda
 
 
 def align_frame(scan: LidarScan, boxes: BoxArray, stream: CameraStream, traj: PoseTrack,
-                T_ego_lidar: np.ndarray, params: AlignParams) -> Association:
+                T_ego_lidar: np.ndarray, params: AssociationConfig) -> Association:
     m = len(boxes)
     p0, t_fov, n = frame_association(scan, stream, T_ego_lidar, params)
     pos = np.full(m, p0, dtype=np.int64)
@@ -242,13 +225,13 @@ def align_frame(scan: LidarScan, boxes: BoxArray, stream: CameraStream, traj: Po
                        b2d, np.full(m, n, dtype=np.int64), p0, t_fov)
 
 
-def object_points(scan: LidarScan, boxes: BoxArray, params: AlignParams) -> list[np.ndarray]:
+def object_points(scan: LidarScan, boxes: BoxArray, params: AssociationConfig) -> list[np.ndarray]:
     """Indices of each object's points (its box grown by ``box_margin_m``)."""
     return points_in_boxes(scan.xyz, boxes.center, boxes.size, boxes.quat, params.box_margin_m)
 
 
 def align_target(scan: LidarScan, boxes: BoxArray, stream: CameraStream, traj: PoseTrack,
-                 T_ego_lidar: np.ndarray, params: AlignParams,
+                 T_ego_lidar: np.ndarray, params: AssociationConfig,
                  obj_idx: list[np.ndarray] | None = None) -> Association:
     m = len(boxes)
     idx = obj_idx if obj_idx is not None else object_points(scan, boxes, params)
@@ -268,7 +251,7 @@ def align_target(scan: LidarScan, boxes: BoxArray, stream: CameraStream, traj: P
 
 
 def align_all(scan: LidarScan, boxes: BoxArray, stream: CameraStream, traj: PoseTrack,
-              T_ego_lidar: np.ndarray, params: AlignParams,
+              T_ego_lidar: np.ndarray, params: AssociationConfig,
               obj_idx: list[np.ndarray] | None = None) -> dict[str, Association]:
     """The three methods for one scan and one camera."""
     return {

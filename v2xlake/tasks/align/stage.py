@@ -10,7 +10,9 @@ static / moving objects). One overlay PNG per agent (the frame and camera with t
 boxes) shows the three methods' boxes, the true boxes and the LiDAR points on the images the
 methods chose (two panels when the stamp method chose another image than the frame method).
 
-The numeric core is in :mod:`v2xlake.tasks.align`; this module only reads and writes the lake.
+The numeric core is ``methods.py`` (the three methods), ``boxes.py``, ``metrics.py`` and
+``overlay.py`` (pure, on arrays), the parameters ``config.py``; this module reads and writes the
+lake and defines ``ALIGN``.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel
 
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
@@ -32,9 +34,9 @@ from v2xlake.storage.files import read_parquet
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import CameraCalib, iter_point_frames, no_pose_report
 from v2xlake.tasks.align.boxes import BoxArray
+from v2xlake.tasks.align.config import AlignConfig, AssociationConfig
 from v2xlake.tasks.align.methods import (
     METHODS,
-    AlignParams,
     Association,
     CameraStream,
     LidarScan,
@@ -53,40 +55,6 @@ from v2xlake.tasks.projection import Camera, points_in_fov, project_points
 from v2xlake.tasks.reader import AgentData, load_clip
 
 STAGE = "align"
-
-
-class AlignConfig(BaseModel):
-    """Parameters of the align stage (hashed into the manifest)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    lidar_sensor: str = "LIDAR_TOP"
-    cameras: list[str] | None = Field(default=None, description="None: every camera")
-    frame_time_stat: Literal["vote", "median", "mean"] = "vote"
-    target_time_stat: Literal["vote", "median", "mean"] = "vote"
-    unwrap_seam: bool = True
-    seam_camera: Literal["start", "points"] = "start"
-    seam_window: float = Field(default=0.05, gt=0, lt=0.5)
-    fov_near_m: float = Field(default=0.5, gt=0)
-    box_margin_m: float = Field(default=0.2, ge=0)
-    use_velocity: bool = True
-    velocity_from_track: bool = Field(
-        default=True, description="estimate missing velocities from the instance's track")
-    max_camera_dt_ms: float = Field(
-        default=50.0, gt=0, description="no camera frame this close to the association time: skip")
-    min_truth_box_px: float = Field(default=4.0, ge=0, description="ignore smaller true boxes")
-    min_truth_pixels: int = Field(default=50, ge=0,
-                                  description="ignore true objects with fewer visible pixels")
-    truth_box: Literal["amodal", "visible"] = "amodal"
-    overlay: bool = True
-
-    def params(self) -> AlignParams:
-        return AlignParams(
-            frame_time_stat=self.frame_time_stat, target_time_stat=self.target_time_stat,
-            unwrap_seam=self.unwrap_seam, seam_camera=self.seam_camera,
-            seam_window=self.seam_window, fov_near_m=self.fov_near_m,
-            box_margin_m=self.box_margin_m, use_velocity=self.use_velocity,
-        )
 
 
 # ------------------------------------------------------------------------------ truth
@@ -218,12 +186,12 @@ def run_align(lake: Lake, clip_id: str, config: AlignConfig = AlignConfig(),  # 
         clip = load_clip(lake, clip_id)
     except ClipError as e:
         raise ClipError(clip_id, e.reason, agent_id=e.agent_id, path=e.path, stage=STAGE) from e
-    params = config.params()
-    truth = (load_truth_boxes(truth_dir, config.min_truth_box_px, config.min_truth_pixels,
-                              config.truth_box) if truth_dir else None)
+    params = config.association
+    truth = (load_truth_boxes(truth_dir, config.truth.min_box_px, config.truth.min_pixels,
+                              config.truth.box) if truth_dir else None)
     report = StageReport(stage=STAGE, clip_id=clip_id)
     evals: dict[str, _Eval] = {m: _Eval() for m in METHODS}
-    max_dt = int(config.max_camera_dt_ms * 1e6)
+    max_dt = int(config.association.max_camera_dt_ms * 1e6)
     n_skipped = 0
 
     for aid, agent in clip.agents.items():
@@ -259,7 +227,7 @@ def run_align(lake: Lake, clip_id: str, config: AlignConfig = AlignConfig(),  # 
             ann = ann.filter(pa.compute.equal(ann["sensor"], config.lidar_sensor))
         try:
             vel_fill = (_fill_velocities(agent, config.lidar_sensor, ann, clip_id)
-                        if config.velocity_from_track and ann.num_rows else {})
+                        if config.association.velocity_from_track and ann.num_rows else {})
         except ClipError as e:
             raise ClipError(clip_id, e.reason, agent_id=aid, stage=STAGE) from e
         ann_frames = ann["frame_idx"].to_numpy().astype(np.int64) if ann.num_rows else \
@@ -410,7 +378,7 @@ def _rows_and_eval(
 
 
 def _overlay_points(scan: LidarScan, st: CameraStream, agent: AgentData, T_el: np.ndarray,
-                    pos: int, compensate: bool, params: AlignParams) -> np.ndarray:
+                    pos: int, compensate: bool, params: AssociationConfig) -> np.ndarray:
     """(K, 3) u, v, depth of the scan's points in this camera's view (Fig. 10 style).
 
     ``compensate``: ego-motion compensated from t0 to the image's stamp (frame-based);
@@ -428,7 +396,7 @@ def _overlay_points(scan: LidarScan, st: CameraStream, agent: AgentData, T_el: n
 
 
 def _write_overlay(lake: Lake, clip_id: str, aid: str, agent: AgentData, T_el: np.ndarray,
-                   d: dict[str, Any], params: AlignParams) -> str:
+                   d: dict[str, Any], params: AssociationConfig) -> str:
     cam = d["camera"]
     frames = agent.cameras[cam]
     panels = []
