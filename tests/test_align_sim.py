@@ -29,7 +29,7 @@ CAMERAS = ("CAM_FRONT", "CAM_BACK", "CAM_FRONT_LEFT")
 def sim_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, str, Path]:
     from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
     from v2xlake.tasks.deskew.stage import run_deskew
-    from v2xlake.tasks.ingest.run import run_ingest
+    from v2xlake.tasks.ingest.stage import run_ingest
     from v2xlake.tasks.simulate.config import SimConfig
     from v2xlake.tasks.simulate.run import simulate
 

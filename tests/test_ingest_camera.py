@@ -17,7 +17,7 @@ from tests.fixtures.minibag import T0
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.ingest import run_ingest
-from v2xlake.tasks.ingest.run import PNG_WORKERS
+from v2xlake.tasks.ingest.stage import PNG_WORKERS
 
 W, H = 32, 24
 PERIOD = 33_333_333

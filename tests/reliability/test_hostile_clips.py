@@ -26,7 +26,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.ingest import run_ingest
 from v2xlake.tasks.ingest.calibration import intrinsics_from_camera_info
-from v2xlake.tasks.ingest.run import load_clip_config
+from v2xlake.tasks.ingest.clipdir import load_clip_config
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -128,7 +128,7 @@ def test_a_deeply_nested_clip_yaml_is_a_clip_error(tmp_path: Path, shape: str) -
     out = _in_a_child(
         "import sys\nfrom pathlib import Path\n"
         "from v2xlake.schemas.errors import ClipError\n"
-        "from v2xlake.tasks.ingest.run import load_clip_config\n"
+        "from v2xlake.tasks.ingest.clipdir import load_clip_config\n"
         f"try:\n    load_clip_config(Path({str(clip)!r}))\n"
         "except ClipError as e:\n    print('CLIPERROR', e)\n")
     assert out.returncode == 0, f"child died ({out.returncode}): {out.stderr[-2000:]}"

@@ -34,7 +34,7 @@ from v2xlake.storage.catalog import Catalog, QueryRefused, QueryTimeout
 from v2xlake.storage.lake import ClipBusy, Lake, safe_name
 from v2xlake.storage.quarantine import quarantine, read_report
 from v2xlake.tasks.ingest import run_ingest
-from v2xlake.tasks.ingest.run import load_clip_config
+from v2xlake.tasks.ingest.clipdir import load_clip_config
 from v2xlake.tasks.qa.stage import run_qa
 
 REPO = Path(__file__).resolve().parents[2]

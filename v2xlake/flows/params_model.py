@@ -24,7 +24,7 @@ from v2xlake.tasks.export.nuscenes import NuScenesExportConfig
 from v2xlake.tasks.export.opencood import OpenCoodConfig
 from v2xlake.tasks.export.rosbag import RosbagExportConfig
 from v2xlake.tasks.export.scene_transfer import SceneTransferConfig
-from v2xlake.tasks.ingest.run import IngestConfig
+from v2xlake.tasks.ingest.config import IngestConfig
 from v2xlake.tasks.qa.config import QaConfig
 from v2xlake.tasks.register.stage import RegisterConfig
 

@@ -1,6 +1,12 @@
 """The ingest stage: one clip folder -> landing copy + raw-zone tables
 (docs/architecture.md, Stages).
 
+This module is the stage's lake I/O and its ``INGEST`` Stage object; the parameters are
+``config.py``, the clip folder (clip.yaml, the files it names, the landing rule)
+``clipdir.py``, and decoding is in ``bagopen.py``, ``payloads.py``, ``rawmsg.py``,
+``pointcloud.py``, ``images.py``, ``ins.py``, ``pose.py``, ``calibration.py``,
+``annotations.py`` (bags and messages in, arrays and rows out).
+
 Driven only by ``clip.yaml``. Each agent's bag is read in a single pass over the configured
 topics; LiDAR frames stream into one Parquet row group each (never the whole clip in memory),
 images go to PNG blobs. Throughput (``tests/bench/bench_ingest.py``): payloads of ROS 2 bags
@@ -17,11 +23,9 @@ partial output.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import os
-import re
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
@@ -29,28 +33,27 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
 import xxhash
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ValidationError
 
 from v2xlake.schemas.arrow import arrow_schema, columns_to_table
 from v2xlake.schemas.clip import (
-    ID_PATTERN,
     MAX_SENSOR_OFFSET_M,
     AgentConfig,
     ClipConfig,
     Modality,
     SensorConfig,
-    load_yaml,
 )
 from v2xlake.schemas.errors import ClipError, DeliveryConflict
 from v2xlake.schemas.geometry import Transform
-from v2xlake.schemas.stage import OutputFile, StageReport
+from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import (
+    INGEST_TABLES,
     AgentRow,
     CalibratedSensorRow,
     CameraFrameRow,
@@ -77,6 +80,14 @@ from v2xlake.tasks.ingest.bagopen import (
     resolve,
 )
 from v2xlake.tasks.ingest.calibration import TfTree, intrinsics_from_camera_info
+from v2xlake.tasks.ingest.clipdir import (
+    bag_files,
+    check_inputs,
+    delivery_roots,
+    load_clip_config,
+    plain_files,
+)
+from v2xlake.tasks.ingest.config import IngestConfig
 from v2xlake.tasks.ingest.images import JPEG_MAGIC, compressed_image, image_to_png
 from v2xlake.tasks.ingest.ins import GnssDecoder, ImuDecoder
 from v2xlake.tasks.ingest.payloads import messages as in_place_messages
@@ -101,46 +112,6 @@ ACCEPTED: dict[Modality, tuple[str, ...]] = {
 }
 
 
-class IngestConfig(BaseModel):
-    """Ingest parameters (hashed into the manifest)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    png_compression: int = Field(default=1, ge=0, le=9,
-                                 description="zlib level for images re-encoded to PNG "
-                                 "(tasks.pngcodec: with its RLE strategy the level "
-                                 "hardly changes size or time)")
-    recover_empty_storage_id: bool = Field(
-        default=True, description="read a ROS 2 bag whose metadata.yaml has an empty "
-        "storage_identifier as the storage its files are (sqlite3/MCAP by magic bytes)")
-    copy_to_landing: bool = True
-    allowed_bag_roots: tuple[str, ...] = Field(
-        default=(), description="folders outside the clip folder that clip.yaml may name bags, "
-        ".msg or annotation files in (after symlinks); by default a clip reads only its own "
-        "folder. An operator setting: a clip's own params: block cannot set it")
-
-    replace_existing: bool = Field(
-        default=False, description="accept a delivery whose bags differ from those already "
-        "ingested under the same clip id (it replaces that clip); otherwise it is refused")
-    quat_tolerance: float = Field(
-        default=1e-3, gt=0, description="largest |norm - 1| of a tf_static or pose "
-        "quaternion; a larger one is an error (never silently normalised)")
-    max_point_time_offset_s: float = Field(
-        default=1.0, gt=0, description="per-point times declared absolute must lie within "
-        "this of the header stamp, and header-relative ones be smaller than this: a time "
-        "reference that contradicts the values is an error")
-    min_range_m: float = Field(
-        default=0.0, ge=0, description="points at or below this range are no-return points "
-        "(drivers emit them at the origin): dropped and counted in lidar_frames.n_zero")
-    min_agent_overlap_s: float = Field(
-        default=0.0, ge=0, description="every agent's recording must overlap the reference "
-        "agent's by more than this; agents that never recorded together are not a clip")
-
-    # settings a clip.yaml's params: block may not change (the clip is untrusted input)
-    OPERATOR_ONLY: ClassVar[frozenset[str]] = frozenset({"allowed_bag_roots",
-                                                         "replace_existing"})
-
-
 def _payload_digest(msg: Any) -> bytes:
     """Digest of what a LiDAR / camera / radar message carries (its data bytes and
     layout, not its header: a re-published frame may get a new sequence number)."""
@@ -154,149 +125,6 @@ def _payload_digest(msg: Any) -> bytes:
     data = getattr(msg, "data", b"")
     h.update(memoryview(data).cast("B") if not isinstance(data, bytes | bytearray) else data)
     return h.digest()
-
-
-def load_clip_config(clip_dir: Path) -> ClipConfig:
-    path = clip_dir / "clip.yaml"
-    if not path.is_file():
-        raise ClipError(clip_dir.name, "clip folder has no clip.yaml", path=str(path), stage=STAGE)
-    try:
-        text = path.read_text()
-        return _parsed_clip_config(text).model_copy(deep=True)
-    except (yaml.YAMLError, OSError, UnicodeDecodeError) as e:
-        raise ClipError(clip_dir.name, f"clip.yaml is not readable YAML: {e}", path=str(path),
-                        stage=STAGE) from e
-    except ValidationError as e:
-        data = load_yaml(text)
-        cid, agent, reason = explain_invalid(data, e)
-        # not chained: a pydantic error renders its input, and whatever formats the
-        # traceback (Prefect's log handler) would render all of it
-        raise ClipError(cid or clip_dir.name, f"invalid clip.yaml: {reason}", agent_id=agent,
-                        path=str(path), stage=STAGE) from None
-    except ValueError as e:
-        raise ClipError(clip_dir.name, f"invalid clip.yaml: {e}", path=str(path),
-                        stage=STAGE) from e
-
-
-@functools.lru_cache(maxsize=64)
-def _parsed_clip_config(text: str) -> ClipConfig:
-    """Parsed and validated once per distinct text: every no-op check of a clip reads its
-    clip.yaml, and parsing a large one is most of the check's cost (callers get a copy)."""
-    return ClipConfig.model_validate(load_yaml(text))
-
-
-def explain_invalid(data: Any, e: ValidationError) -> tuple[str | None, str | None, str]:
-    """(clip id, agent id, reason) of a clip.yaml that does not validate: each problem with
-    its place written as keys (``agents[red].sensors[LIDAR_TOP].extrinsics``), an unknown
-    key named with the closest known one."""
-    import difflib
-
-    cid = data.get("clip_id") if isinstance(data, dict) else None
-    cid = cid if isinstance(cid, str) and re.fullmatch(ID_PATTERN, cid) else None
-    agents: set[str] = set()
-    parts = []
-    for err in e.errors():
-        loc, node, where = err["loc"], data, []
-        for i, key in enumerate(loc):
-            if isinstance(key, int) and isinstance(node, list) and key < len(node):
-                node = node[key]
-                named = node.get("agent_id") or node.get("name") if isinstance(node, dict) \
-                    else None
-                where.append(f"[{named}]" if isinstance(named, str) else f"[{key}]")
-                if i > 0 and loc[i - 1] == "agents" and isinstance(named, str):
-                    agents.add(named)
-            elif isinstance(node, dict) and key in node and not (
-                    err["type"] == "extra_forbidden" and i == len(loc) - 1):
-                node = node[key]
-                where.append(f".{key}")
-            else:
-                continue  # a union member's tag (pose kinds), or the unknown key itself
-        place = "".join(where).lstrip(".") or "(top level)"
-        if err["type"] == "extra_forbidden":
-            key = str(loc[-1])
-            known = _known_keys(loc, data)
-            near = difflib.get_close_matches(key, known, n=1)
-            hint = f" (did you mean {near[0]!r}?)" if near else (
-                f" (known keys: {', '.join(sorted(known))})" if known else "")
-            parts.append(f"{place}: unknown key {key!r}{hint}")
-        elif err["type"] == "missing":
-            parts.append(f"{place}: missing key {str(loc[-1])!r}")
-        else:
-            parts.append(f"{place}: {err['msg']}")
-    agent = next(iter(agents)) if len(agents) == 1 else None
-    return cid, agent, "; ".join(parts)
-
-
-def _known_keys(loc: tuple[Any, ...], data: Any) -> list[str]:
-    """The keys the model at ``loc[:-1]`` accepts (for a 'did you mean')."""
-    from v2xlake.schemas import clip as clipschema
-
-    model: Any = ClipConfig
-    for key in loc[:-1]:
-        if isinstance(key, int) or model is None:
-            continue
-        fields = getattr(model, "model_fields", {})
-        if key in fields:
-            model = _model_of(fields[key].annotation)
-        else:  # a union tag, e.g. the pose kind 'odometry'
-            model = next((m for m in vars(clipschema).values() if isinstance(m, type)
-                          and issubclass(m, BaseModel) and "kind" in m.model_fields
-                          and m.model_fields["kind"].default == key), None)
-    return list(getattr(model, "model_fields", {}))
-
-
-def _model_of(annotation: Any) -> Any:
-    """The pydantic model inside ``X | None`` / ``list[X]`` (None for plain values)."""
-    import typing
-
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in typing.get_args(annotation):
-        m = _model_of(arg)
-        if m is not None:
-            return m
-    return None
-
-
-def bag_files(bag: Path) -> list[Path]:
-    if bag.is_dir():
-        return sorted(p for p in bag.rglob("*") if p.is_file() and not p.name.startswith("."))
-    return [bag]
-
-
-def clip_inputs(clip_dir: str | Path) -> tuple[str, list[Path]]:
-    """The clip id and every input file of the ingest stage (clip.yaml, bags, message
-    definitions, annotation file) so the flow can hash them for the manifest before running."""
-    d = Path(clip_dir).resolve()
-    cfg = load_clip_config(d)
-    files = [d / "clip.yaml"]
-    for a in cfg.agents:
-        files.extend(bag_files(resolve(d, a.bag)))
-    files.extend(resolve(d, m) for m in cfg.message_definitions)
-    if cfg.annotations:
-        files.append(resolve(d, cfg.annotations))
-    return cfg.clip_id, [f for f in files if f.exists()]
-
-
-def check_inputs(clip_dir: Path, cfg: ClipConfig, allowed_roots: Sequence[str] = ()) -> None:
-    """Every file clip.yaml names must exist and resolve (after symlinks) inside the clip
-    folder or an operator-allowed root: a clip folder is untrusted input, and nothing
-    outside it may be read, linked or copied into the lake because a clip.yaml says so."""
-    roots = _roots(clip_dir, allowed_roots)
-    named: list[tuple[str | None, str, str]] = [(a.agent_id, "bag", a.bag) for a in cfg.agents]
-    named += [(None, "message definition", m) for m in cfg.message_definitions]
-    if cfg.annotations:
-        named.append((None, "annotation file", cfg.annotations))
-    for agent_id, what, rel in named:
-        p = resolve(clip_dir, rel)
-        real = os.path.realpath(p)
-        if not _inside(real, roots):
-            raise ClipError(cfg.clip_id, f"{what} {rel!r} resolves to {real}, outside the clip "
-                            "folder (an operator may allow a root: ingest.allowed_bag_roots)",
-                            agent_id=agent_id, path=str(p), stage=STAGE)
-        if not p.exists():
-            raise ClipError(cfg.clip_id, f"{what} named in clip.yaml does not exist",
-                            agent_id=agent_id, path=str(p), stage=STAGE)
 
 
 DELIVERY = "delivery.json"
@@ -336,64 +164,6 @@ def check_delivery(lake: Lake, clip_dir: Path, cfg: ClipConfig, replace: bool
     return mine
 
 
-# --------------------------------------------------------------------------- landing
-def _roots(clip_dir: Path, allowed_roots: Sequence[str]) -> list[str]:
-    """Where a delivery's files may resolve to: the clip folder and operator-allowed roots."""
-    return [os.path.realpath(clip_dir), *(os.path.realpath(r) for r in allowed_roots)]
-
-
-def _inside(real: str, roots: Sequence[str]) -> bool:
-    return any(os.path.commonpath([r, real]) == r for r in roots)
-
-
-def plain_files(top: Path, roots: Sequence[str], clip_id: str, *,
-                skip_top: frozenset[str] = frozenset(), agent_id: str | None = None
-                ) -> list[tuple[str, str]]:
-    """``(relative path, real path)`` of every visible regular file under ``top``, for the
-    landing copy, which must hold plain files only: ``v2xlake query`` may read the lake's
-    folders, and a symlink copied (or hard-linked: ``link()`` links the symlink itself) into
-    the lake would let it read whatever the link points at.
-
-    A symlink in a delivery is untrusted like a path in clip.yaml, so the same rule as
-    ``check_inputs``: a file symlink that resolves inside ``roots`` (the clip folder, an
-    operator-allowed root) is taken as the file it points at; one that resolves elsewhere
-    is refused with a ``ClipError`` even when clip.yaml does not name it (a delivery has no
-    business pointing outside itself, and skipping it silently would hide the attempt).
-    A symlinked folder is never walked: pointing outside ``roots`` it is refused the same
-    way; inside, it is the same files again (a bag clip.yaml names through it is resolved
-    and copied as an external bag). Hidden names, ``skip_top`` entries at the top level,
-    dangling links and non-regular files (FIFOs, sockets, devices) are left out."""
-    out: list[tuple[str, str]] = []
-    todo: list[Path] = [top]
-    while todo:
-        folder = todo.pop()
-        try:
-            entries = sorted(os.scandir(folder), key=lambda e: e.name)
-        except OSError as e:
-            raise ClipError(clip_id, f"cannot list {folder}: {e.strerror}", agent_id=agent_id,
-                            path=str(folder), stage=STAGE) from e
-        for entry in entries:
-            path = Path(entry.path)
-            rel = path.relative_to(top).as_posix()
-            if entry.name.startswith(".") or (folder == top and entry.name in skip_top):
-                continue
-            if entry.is_symlink():
-                real = os.path.realpath(path)
-                if not _inside(real, roots):
-                    raise ClipError(
-                        clip_id, f"{rel!r} is a symlink to {real}, outside the clip folder: "
-                        "refused (the landing copy holds the delivery's own files only; an "
-                        "operator may allow a root: ingest.allowed_bag_roots)",
-                        agent_id=agent_id, path=str(path), stage=STAGE)
-                if os.path.isfile(real):
-                    out.append((rel, real))
-            elif entry.is_dir(follow_symlinks=False):
-                todo.append(path)
-            elif entry.is_file(follow_symlinks=False):
-                out.append((rel, entry.path))
-    return sorted(out)
-
-
 def copy_to_landing(lake: Lake, clip_dir: Path, cfg: ClipConfig,
                     allowed_roots: Sequence[str] = ()) -> int:
     """Copy the clip as delivered into ``landing/<clip_id>/`` (the simulator's ``truth/`` is
@@ -404,7 +174,7 @@ def copy_to_landing(lake: Lake, clip_dir: Path, cfg: ClipConfig,
     cost more than ingesting it), otherwise copied. Landing holds regular files only: every
     symlink is resolved first and refused when it points outside the clip folder and the
     operator-allowed roots (``plain_files``), before the old landing copy is touched."""
-    roots = _roots(clip_dir, allowed_roots)
+    roots = delivery_roots(clip_dir, allowed_roots)
     files = plain_files(clip_dir, roots, cfg.clip_id, skip_top=frozenset({"truth"}))
     rewrite: dict[str, str] = {}
     for a in cfg.agents:
@@ -1082,3 +852,9 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
 
 def pq_rows(lake: Lake, path: str) -> int:
     return lake.count_rows(path)
+
+
+INGEST = Stage(
+    name="ingest", config_model=IngestConfig, input="clip_dir",
+    reads=(), owns=tables("raw", *INGEST_TABLES), run=run_ingest, atomic=False,
+    doc="bags -> raw tables (points with per-point time, images, poses, calibration)")
