@@ -1,11 +1,15 @@
-"""The layering the architecture document promises (docs/architecture.md, Layers), checked on
-the source: a stage package never imports another stage's package (what two stages share
-lives in a module below both, e.g. ``tasks/motion.py``, ``tasks/projection.py``), and the
-lower layers never import the upper ones."""
+"""The layering the architecture document promises (docs/architecture.md, Layers and Stage
+package shape), checked on the source: a stage package never imports another stage's
+package (what two stages share lives in a module below both, e.g. ``tasks/motion.py``,
+``tasks/projection.py``), the lower layers never import the upper ones, and every stage
+package has the same shape: ``config.py`` (pydantic only), ``stage.py`` (the only module
+that touches the lake) and pure modules, all named in the package docstring."""
 
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "v2xlake"
@@ -19,6 +23,15 @@ FORBIDDEN = {"schemas": ("v2xlake.storage", "v2xlake.tasks", "v2xlake.flows"),
 # the privacy audit is a tool, not the anonymize stage, and checks release names with the
 # release flow's rule; it is to become its own package (issue #24, item 4)
 NOT_YET_MOVED = {"tasks/anonymize/audit.py imports v2xlake.flows.release"}
+
+
+# the stage packages with the shape below; anonymize and register are pending (issue #24:
+# converted by their owners), and drop out of this set when they are
+SHAPE_PENDING = {"anonymize", "register"}
+SHAPED = tuple(s for s in STAGES if s not in SHAPE_PENDING)
+NUMERIC = ("numpy", "numba", "scipy", "pyarrow", "cv2", "open3d", "rosbags", "onnxruntime")
+# what touches the lake: storage, and the shared clip reader built on it
+LAKE = ("v2xlake.storage", "v2xlake.tasks.reader")
 
 
 def _imports(path: Path) -> set[str]:
@@ -58,3 +71,55 @@ def test_lower_layers_do_not_import_upper_ones() -> None:
            for m in _imports(p) if m.startswith(upper)}
     assert bad - NOT_YET_MOVED == set(), bad
     assert NOT_YET_MOVED - bad == set(), "fixed: drop it from NOT_YET_MOVED"
+
+
+def _touches(mods: set[str], prefixes: tuple[str, ...]) -> bool:
+    return any(m == p or m.startswith(f"{p}.") for m in mods for p in prefixes)
+
+
+def test_stage_packages_have_one_shape() -> None:
+    """config.py imports no numeric library; stage.py is the only module of the package that
+    imports the lake (storage or the shared reader)."""
+    bad = []
+    for stage in SHAPED:
+        pkg = PACKAGE / "tasks" / stage
+        for need in ("config.py", "stage.py"):
+            if not (pkg / need).is_file():
+                bad.append(f"tasks/{stage} has no {need}")
+        for p in sorted(pkg.rglob("*.py")):
+            mods = _imports(p)
+            if p.name == "config.py" and _touches(mods, NUMERIC):
+                bad.append(f"tasks/{stage}/config.py imports a numeric library")
+            if p.name == "config.py" and _touches(mods, ("v2xlake.tasks", "v2xlake.storage")) \
+                    and not all(m.endswith(".config") for m in mods
+                                if m.startswith(("v2xlake.tasks", "v2xlake.storage"))):
+                bad.append(f"tasks/{stage}/config.py imports more than other config modules")
+            if p.name != "stage.py" and _touches(mods, LAKE):
+                bad.append(f"tasks/{stage}/{p.relative_to(pkg)} touches the lake")
+    assert not bad, bad
+
+
+def test_stage_package_docstrings_name_their_files() -> None:
+    """A package docstring that names a file the package lacks, or leaves one out, misleads
+    the next reader (qa's and annotate's once described files they did not have)."""
+    bad = []
+    for stage in SHAPED:
+        pkg = PACKAGE / "tasks" / stage
+        doc = ast.get_docstring(ast.parse((pkg / "__init__.py").read_text())) or ""
+        files = {p.name for p in pkg.glob("*.py") if p.name != "__init__.py"}
+        named = {w.strip("`,.:;()") for w in doc.split() if w.strip("`,.:;()").endswith(".py")}
+        bad += [f"tasks/{stage}: docstring does not name {f}" for f in sorted(files - named)]
+        bad += [f"tasks/{stage}: docstring names {f}, not in the package"
+                for f in sorted(named - files)]
+    assert not bad, bad
+
+
+def test_config_modules_import_light() -> None:
+    """``v2xlake params show`` imports the stages' config modules: none may pull in a
+    numeric library (seconds on two cores), through the package or itself."""
+    code = ("import sys\n"
+            + "".join(f"import v2xlake.tasks.{s}.config\n" for s in SHAPED)
+            + f"print(sorted(m for m in sys.modules if m.split('.')[0] in {NUMERIC!r}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=PACKAGE.parent)
+    assert out.stdout.strip() == "[]", out.stdout

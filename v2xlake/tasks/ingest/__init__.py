@@ -1,8 +1,12 @@
 """Ingest: a clip folder (clip.yaml + one bag per agent) -> landing copy + raw-zone tables.
 
 ``config.py`` its parameters, ``clipdir.py`` the clip folder (clip.yaml, the files it names,
-the landing rule), ``stage.py`` the lake I/O and the ``INGEST`` Stage object; the other
-modules decode bags and messages into arrays and rows.
+the landing rule), ``stage.py`` the lake I/O and the ``INGEST`` Stage object. The others read
+bags and turn messages into arrays and rows, no lake: ``bagopen.py`` opens a bag,
+``payloads.py`` reads ROS 2 payloads in place, ``rawmsg.py`` parses the bulky messages from
+their wire format, ``pointcloud.py`` decodes points, ``images.py`` camera images,
+``ins.py`` IMU and GNSS, ``pose.py`` the agent's pose track, ``calibration.py`` tf_static and
+CameraInfo, ``annotations.py`` the annotation file, ``rows.py`` row-model helpers.
 
 The names below are imported on first use: importing ``tasks.ingest.config`` (``v2xlake
 params show``) must not import the decoders (NumPy, numba, rosbags) through this package.
