@@ -92,6 +92,10 @@ class NuScenesExportConfig(BaseModel):
     map_margin_m: float = Field(60.0, ge=0.0, description=(
         "map raster margin around every ego pose (the devkit renders 40 m around the ego)"))
     write_lake_tables: bool = True
+    all_lidars: bool = Field(True, description=(
+        "one LIDAR_* channel per LiDAR of an agent (issue #27: LIDAR_TOP, LIDAR_LEFT...), each "
+        "with its own calibrated_sensor holding the effective extrinsic (register's refined "
+        "one where it is usable); False: only ``lidar_sensor``"))
     write_radar: bool = Field(True, description=(
         "a RADAR_* channel for every radar the clip has (nothing when it has none); False "
         "leaves radars out and every num_radar_pts at 0"))
@@ -366,6 +370,40 @@ def _following(sample_times: np.ndarray, t: int) -> int:
     return min(int(np.searchsorted(sample_times, t, side="left")), len(sample_times) - 1)
 
 
+def _secondary_lidar(lake: Lake, cid: str, agent: AgentData, sensor: str,
+                     sample_times: np.ndarray,
+                     cfg: NuScenesExportConfig, scene: str, notes: list[str],
+                     add_sensor: Any, add_chain: Any, file_names: Any, root: Path) -> int:
+    """One more LiDAR of the agent as its own channel (issue #27), as nuScenes has one
+    channel per sensor: every deskewed scan inside pose coverage, the scan nearest each
+    sample its keyframe (like a camera), points in that LiDAR's own frame at its own
+    ``points_t_ns`` and its ``calibrated_sensor`` the effective extrinsic, so the devkit's
+    ``get_sample_data`` / ``LidarPointCloud`` put them where the primary's points are.
+    Returns the number of files written."""
+    aid = agent.agent_id
+    if sensor not in agent.sensors:
+        notes.append(f"{scene}: LiDAR {sensor} has no calibration, skipped")
+        return 0
+    lf = agent.lidar[sensor]
+    have = available_frames(lake, cid, aid, sensor=sensor)
+    keep = agent.poses.covers(lf.points_t_ns) & np.isin(lf.frame_idx, list(have))
+    idx = np.flatnonzero(keep)
+    if len(idx) < len(lf):
+        notes.append(f"{scene}: {len(lf) - len(idx)} {sensor} frames without deskewed points "
+                     "or outside pose coverage dropped")
+    if len(idx) == 0:
+        return 0
+    t = lf.points_t_ns[idx]
+    key = _key_of(t, sample_times, cfg.keyframe_tolerance_ms * 1e6)
+    add_sensor(sensor, "lidar", None)
+    files = file_names(sensor, t, key, "pcd.bin")
+    pos = {int(f): k for k, f in enumerate(lf.frame_idx[idx])}
+    for fr in iter_point_frames(lake, cid, aid, sensor=sensor, frames=list(pos)):
+        write_pcd_bin(root / files[pos[fr.frame_idx]], fr.xyz, fr.intensity, fr.ring)
+    add_chain(sensor, t, key, files, "pcd", (0, 0), lf.frame_idx[idx])
+    return len(idx)
+
+
 def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.ndarray,
                   root: Path, cfg: NuScenesExportConfig, tabs: _Tables, cmap: ClipMap,
                   notes: list[str], global_ids: dict[str, dict[str, Any]],
@@ -466,9 +504,14 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
     lfiles = file_names(sensor, t_lidar, lkey, "pcd.bin")
     add_chain(sensor, t_lidar, lkey, lfiles, "pcd", (0, 0), lf.frame_idx[li])
 
+    # ---- the agent's other LiDARs: a channel each, keyed like a camera
+    n_files = len(li)
+    for s in (sorted(x for x in agent.lidar if x != sensor) if cfg.all_lidars else ()):
+        n_files += _secondary_lidar(lake, cid, agent, s, sample_times, cfg, name, notes,
+                                    add_sensor, add_chain, file_names, root)
+
     # ---- cameras
     cam_for_vis: list[tuple[str, CameraCalib, np.ndarray]] = []
-    n_files = len(li)
     for ch, frames in agent.cameras.items():
         cam = agent.sensors.get(ch)
         if not isinstance(cam, CameraCalib):

@@ -31,6 +31,13 @@ What the V2V4Real loader expects, and why each choice here:
   = box centre, ``center`` = 0, ``angle`` = [roll, yaw, pitch] in degrees in OpenCOOD's
   ``x_to_world`` convention, ``extent`` = half (l, w, h), ``ass_id`` = one integer per global
   instance id, shared across agents;
+* several LiDARs on one agent (issue #27): OpenCOOD has one LiDAR per agent, so with
+  ``merge_lidars`` each frame's PCD is the agent's merged cloud in its primary LiDAR's frame
+  at t0: every other LiDAR's deskewed scan nearest in time (within ``merge_tolerance_ms``)
+  moved by ``T_world_primary(t0)^-1 @ T_world_other(t_other)`` -- the effective extrinsics
+  (register's refined ones where usable) and the ego motion between the two scans' instants
+  -- and appended; ``lidars`` in the YAML says which scan of which LiDAR, with which
+  calibration, gave how many of the points (the loader ignores it);
 * PCD: the deskewed points in the LiDAR frame at t0, intensity in the colour channel (the
   loader reads ``np.asarray(pcd.colors)[:, 0]``; a plain ``x y z intensity`` PCD crashes it).
   Open3D stores colours as 8-bit RGB, so intensity is quantised to 1/255.
@@ -40,8 +47,10 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -51,14 +60,17 @@ from pydantic import BaseModel, ConfigDict
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import available_frames, iter_point_frames
+from v2xlake.storage.reader import PointFrame, available_frames, iter_point_frames
 from v2xlake.tasks.export.common import file_output
+from v2xlake.tasks.geometry import apply, invert
 from v2xlake.tasks.reader import (
+    AgentData,
     ClipData,
     boxes_matrices,
     lidar_world_poses,
     load_clip,
     match_agents,
+    nearest_index,
     relative_transform,
 )
 
@@ -73,6 +85,9 @@ class OpenCoodConfig(BaseModel):
     intensity_scale: float | None = None  # None: divide by 255 if intensities exceed 1
     match_tolerance_ms: float = 50.0
     use_registrations: bool = True
+    # issue #27: append the agent's other LiDARs' scans to the primary one's, in its frame
+    merge_lidars: bool = True
+    merge_tolerance_ms: float = 50.0
 
 
 def matrix_to_opencood_angles(R: np.ndarray) -> list[float]:
@@ -117,6 +132,73 @@ def write_pcd(path: Path, xyz: np.ndarray, intensity01: np.ndarray) -> None:
                                        compressed=False)
     if not written:
         raise OSError(f"open3d could not write {path}")
+
+
+@dataclass
+class _Secondary:
+    """Another LiDAR of an agent, streamed in frame order for merging (the primary's frames
+    arrive in order and the nearest-in-time scan of this one never goes backwards)."""
+
+    sensor: str
+    t_ns: np.ndarray  # points_t_ns of the usable frames, sorted
+    frame_idx: np.ndarray
+    frames: Iterator[PointFrame]
+    current: PointFrame | None = None
+
+    def take(self, frame_idx: int) -> PointFrame | None:
+        while self.current is None or self.current.frame_idx < frame_idx:
+            nxt = next(self.frames, None)
+            if nxt is None:
+                return None
+            self.current = nxt
+        return self.current if self.current.frame_idx == frame_idx else None
+
+
+def _secondaries(lake: Lake, clip_id: str, agent: AgentData, primary: str) -> list[_Secondary]:
+    """The agent's other LiDARs that have a calibration, deskewed frames and pose coverage."""
+    out = []
+    for s in sorted(x for x in agent.lidar if x != primary):
+        if s not in agent.sensors:
+            continue
+        lf = agent.lidar[s]
+        have = available_frames(lake, clip_id, agent.agent_id, sensor=s)
+        keep = agent.poses.covers(lf.points_t_ns) & np.isin(lf.frame_idx, list(have))
+        if not keep.any():
+            continue
+        t, f = lf.points_t_ns[keep], lf.frame_idx[keep]
+        o = np.argsort(t, kind="stable")
+        fi = [int(x) for x in f[o]]
+        out.append(_Secondary(s, t[o], f[o], iter_point_frames(
+            lake, clip_id, agent.agent_id, sensor=s, frames=fi)))
+    return out
+
+
+def merge_lidars(agent: AgentData, clip_id: str, primary: str, t_primary_ns: int,
+                 xyz: np.ndarray, intensity: np.ndarray, others: list[_Secondary],
+                 tolerance_ns: float) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """The primary scan plus each other LiDAR's scan nearest ``t_primary_ns`` (within
+    ``tolerance_ns``), moved into the primary LiDAR frame at ``t_primary_ns``:
+    ``T_world_primary(t_p)^-1 @ T_world_other(t_o)`` (effective extrinsics, ego motion
+    between the instants). Returns (xyz, intensity, what went in per LiDAR)."""
+    parts, ints = [np.asarray(xyz, np.float64)], [np.asarray(intensity, np.float64)]
+    info: dict[str, Any] = {primary: {
+        "points": len(xyz), "calibration": agent.calibration_source.get(primary, "published"),
+        "timestamp_ns": int(t_primary_ns)}}
+    T_wp = lidar_world_poses(agent, primary, np.array([t_primary_ns]), clip_id)[0]
+    for o in others:
+        k = int(nearest_index(o.t_ns, t_primary_ns)[0])
+        if abs(int(o.t_ns[k]) - int(t_primary_ns)) > tolerance_ns:
+            continue
+        fr = o.take(int(o.frame_idx[k]))
+        if fr is None:
+            continue
+        T_ws = lidar_world_poses(agent, o.sensor, o.t_ns[k:k + 1], clip_id)[0]
+        parts.append(apply(invert(T_wp) @ T_ws, fr.xyz.astype(np.float64)))
+        ints.append(fr.intensity.astype(np.float64))
+        info[o.sensor] = {"points": len(fr.xyz), "frame_idx": fr.frame_idx,
+                          "calibration": agent.calibration_source.get(o.sensor, "published"),
+                          "timestamp_ns": int(o.t_ns[k])}
+    return np.concatenate(parts), np.concatenate(ints), info
 
 
 def opencood_cav_ids(clip: ClipData) -> dict[str, int]:
@@ -192,6 +274,7 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
             T_wl = lidar_world_poses(agent, sensor, lf.points_t_ns[near[ok]], cid)
             T_by_frame = dict(zip([int(f) for f in lf.frame_idx[near[ok]]], T_wl, strict=True))
             ann = agent.annotations
+            others = _secondaries(lake, cid, agent, sensor) if config.merge_lidars else []
             for fr in iter_point_frames(lake, cid, aid, sensor=sensor, frames=list(want)):
                 k = want[fr.frame_idx]
                 ref_fi = int(ref_frames.frame_idx[k])
@@ -201,10 +284,13 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                                          use_registration=config.use_registrations)
                 if rel.T is not None:
                     T = T_wl_ref[k] @ rel.T
-                inten = fr.intensity.astype(np.float64)
+                t_p = int(lf.points_t_ns[lf.frame_idx == fr.frame_idx][0])
+                xyz, inten, lidars = merge_lidars(
+                    agent, cid, sensor, t_p, fr.xyz, fr.intensity, others,
+                    config.merge_tolerance_ms * 1e6)
                 scale = config.intensity_scale if config.intensity_scale is not None else (
                     255.0 if inten.size and float(inten.max()) > 1.0 else 1.0)
-                write_pcd(d / f"{name}.pcd", fr.xyz, inten / scale)
+                write_pcd(d / f"{name}.pcd", xyz, inten / scale)
                 vehicles: dict[int, dict[str, object]] = {}
                 if ann.num_rows:
                     a = ann.filter(ann["frame_idx"].to_numpy() == fr.frame_idx)
@@ -224,7 +310,9 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                        "lidar_pose_matrix": [[float(v) for v in row] for row in T],
                        "vehicles": vehicles, "agent_id": aid,
                        "pose_source": rel.source, "pose_source_reason": rel.reason,
-                       "timestamp_ns": int(lf.points_t_ns[lf.frame_idx == fr.frame_idx][0])}
+                       "timestamp_ns": t_p}
+                if len(lidars) > 1:
+                    doc["lidars"] = lidars
                 yp = d / f"{name}.yaml"
                 yp.write_text(yaml.safe_dump(doc, sort_keys=False))
                 n_frames += 1
