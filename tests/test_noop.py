@@ -37,6 +37,9 @@ def test_current_clips_answered_before_prefect(prefect_server: Any, tmp_path: Pa
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     monkeypatch.setenv("V2XLAKE_NOOP_CACHE", str(tmp_path / "noop.json"))
     monkeypatch.setenv("COLUMNS", "200")
+    import v2xlake.flows.noop as noop
+
+    monkeypatch.setattr(noop, "RACY_S", 0.0)  # the files were written seconds ago
     _no_temporary_server(monkeypatch)  # PREFECT_API_URL is set: the real server only
     a = fakes.make_fake_clip(tmp_path / "in", "noop_a")
     b = fakes.make_fake_clip(tmp_path / "in", "noop_b")
@@ -56,6 +59,9 @@ def test_current_clips_answered_before_prefect(prefect_server: Any, tmp_path: Pa
     assert fast[0] is not None and fast[1] is not None
     assert fast[0]["stages"] == flow_says["stages"] and fast[0]["status"] == "ok"
     assert dt < 5.0
+    # remembered with the stat of what the check read, and answered the same from there
+    assert len(list(noop.answers_dir().glob("*.json"))) == 2
+    assert current_summaries([a, b], lake, pipeline=fakes.FAKES) == fast
     # the CLI answers without any flow (process_clips would fail the test)
     import v2xlake.flows.pipeline as pipeline_mod
 
@@ -79,11 +85,13 @@ def test_current_clips_answered_before_prefect(prefect_server: Any, tmp_path: Pa
     assert fast[0] is not None and [o["stage"] for o in fast[0]["stages"]] == ["qa"]
     with pytest.raises(ValueError, match="unknown stage"):
         current_summaries([a], lake, ["qaa"], pipeline=fakes.FAKES)
-    # in a fresh process: neither Prefect nor any stage module is imported
+    # in a fresh process: neither Prefect nor any stage module is imported, and for a
+    # remembered answer not even the lake's modules (pydantic, NumPy, pyarrow)
     probe = ("import sys, json; from v2xlake.flows.noop import current_summaries; "
              f"r = current_summaries([{str(a)!r}], {lake!r}, pipeline={fakes.FAKES!r}); "
              "print(json.dumps([r[0] is not None, sorted(m for m in sys.modules "
-             "if m == 'prefect' or m.startswith('v2xlake.tasks'))]))")
+             "if m in ('prefect', 'pydantic', 'numpy', 'pyarrow') "
+             "or m.startswith('v2xlake.tasks'))]))")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests")]))
     res = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
                          text=True, timeout=120)

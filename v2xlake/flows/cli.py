@@ -297,14 +297,14 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
     (``flows.noop``: the flow's own manifest check); Prefect starts only for the others, and
     not at all when there are none. ``params``: a mapping (a ``--params`` file's YAML) or a
     ``PipelineParams``."""
-    from pydantic import BaseModel
-
     from v2xlake.flows.noop import current_summaries
     from v2xlake.flows.runners import needs_api_server, parse_runner
 
     console = console or _console()
     parse_runner(runner)
-    raw = params.model_dump(mode="json") if isinstance(params, BaseModel) else params
+    # a PipelineParams or a mapping; not isinstance(BaseModel): pydantic is not imported
+    # when the answer is remembered (flows.noop)
+    raw = params.model_dump(mode="json") if hasattr(params, "model_dump") else params
     answered = current_summaries(clip_dirs, lake, stages, raw, pipeline)
     todo = [d for d, a in zip(clip_dirs, answered, strict=True) if a is None]
     if len(todo) < len(clip_dirs):
@@ -380,15 +380,19 @@ def process(
 ) -> int:
     """Run the stages on clip folders through Prefect (clips already current: answered
     from their manifests, without starting Prefect)."""
-    from v2xlake.flows.params import load_params_data
-
     missing = [str(d) for d in clip_dirs if not (d / "clip.yaml").is_file()]
     if missing:
         raise UserError(f"not a clip folder (no clip.yaml): {', '.join(missing)}")
     console = _console(stderr=fmt is OutFormat.json)
     t0 = time.perf_counter()
+    if params is not None:  # flows.params imports the clip contract's models (0.3 s)
+        from v2xlake.flows.params import load_params_data
+
+        params_data = load_params_data(params)
+    else:
+        params_data = None
     results = run_process([str(d) for d in clip_dirs], lake, runner, _csv(stages),
-                          load_params_data(params), pipeline, console)
+                          params_data, pipeline, console)
     ok = sum(r["status"] == "ok" for r in results)
     if fmt is OutFormat.json:
         sys.stdout.write(json.dumps(process_json(results), indent=1, default=str) + "\n")

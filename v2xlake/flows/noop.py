@@ -31,13 +31,13 @@ import tempfile
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from v2xlake.flows.bookkeeping import StageFacts, cached_report, key_from_facts
 from v2xlake.flows.settings import v2xlake_home
-from v2xlake.flows.stage_names import STAGE_NAMES, peek_clip_id
-from v2xlake.storage import manifest
-from v2xlake.storage.lake import CLIP_ID, Lake
+
+if TYPE_CHECKING:  # imported where used: a remembered answer needs none of them (0.6 s)
+    from v2xlake.flows.bookkeeping import StageFacts
+    from v2xlake.storage.lake import Lake
 
 CACHE_VERSION = 1
 _LOCK = threading.Lock()
@@ -98,6 +98,8 @@ def flows_code() -> str:
     remembered config's key, beside the stage's own code version)."""
     import pydantic
 
+    from v2xlake.storage import manifest
+
     files = [_FLOWS / f for f in ("params.py", "params_model.py", "noop.py", "stage_names.py",
                                   "bookkeeping.py")] + [_FLOWS.parent / "schemas" / "clip.py"]
     return f"{pydantic.VERSION}+{manifest.code_hash(files)}"
@@ -130,6 +132,8 @@ def load_code_memo(cache: FactsCache) -> None:
     all on a loaded machine); the memo re-checks every remembered entry by the (mtime,
     size) of its files and folders before using it (``manifest.code_version``), so an entry
     from an earlier process is as safe as one from this process."""
+    from v2xlake.storage import manifest
+
     for k, (files, stamp, version) in (cache.data.get("code") or {}).items():
         stage, paths = json.loads(k)
         key = (stage, None if paths is None else tuple(paths))
@@ -139,6 +143,8 @@ def load_code_memo(cache: FactsCache) -> None:
 
 def save_code_memo(cache: FactsCache) -> None:
     """The memo's entries of this process into the cache file (written if they changed)."""
+    from v2xlake.storage import manifest
+
     have = cache.data.get("code") or {}
     for (stage, paths), (files, stamp, version) in list(manifest._CODE_MEMO.items()):
         k = json.dumps([stage, None if paths is None else list(paths)])
@@ -178,6 +184,8 @@ class Checker:
     # ------------------------------------------------------------ the stages, unimported
     def _pipeline_names(self) -> list[str]:
         if not self.pipeline:
+            from v2xlake.flows.stage_names import STAGE_NAMES
+
             return list(STAGE_NAMES)
         from v2xlake.flows.stage_names import resolve_pipeline  # a plugin: imported anyway
 
@@ -192,6 +200,8 @@ class Checker:
         return registry_stage(name)
 
     def _code_version(self, name: str) -> str:
+        from v2xlake.storage import manifest
+
         if self._plugin is None:
             return manifest.code_version(name)
         from v2xlake.flows.bookkeeping import facts_of
@@ -200,6 +210,8 @@ class Checker:
         return manifest.code_version(name, None if paths is None else list(paths))
 
     def _facts(self, name: str) -> StageFacts:
+        from v2xlake.flows.bookkeeping import StageFacts
+
         if self._plugin is not None:
             from v2xlake.flows.bookkeeping import facts_of
 
@@ -247,6 +259,8 @@ class Checker:
         hit = self.cache.get("clip_yaml", key)
         if hit is None:
             from v2xlake.flows.params import clip_params
+            from v2xlake.flows.stage_names import peek_clip_id
+            from v2xlake.storage.lake import CLIP_ID
 
             cid = peek_clip_id(d)
             hit = {"clip_id": cid if CLIP_ID.fullmatch(cid) else None,
@@ -258,6 +272,8 @@ class Checker:
     def check(self, lake: Lake, clip_dir: str | Path) -> dict[str, Any] | None:
         """The clip's summary (every stage ``cached``) when all chosen stages are current,
         else None (the flow must run; also for a clip folder that cannot be read)."""
+        from v2xlake.flows.bookkeeping import cached_report, key_from_facts
+
         d = Path(clip_dir).resolve()
         ident = self._clip_yaml(d)
         if ident is None or not self.names:
@@ -299,6 +315,8 @@ def _code_versions_as_of(checker: Checker) -> Iterator[None]:
     known = {(n, None if checker.facts[n].code_paths is None
               else tuple(str(p) for p in checker.facts[n].code_paths or ())): v
              for n, v in checker.code.items()}
+    from v2xlake.storage import manifest
+
     real = manifest.code_version
 
     def as_of(stage: str, code_paths: Sequence[str | Path] | None = None) -> str:
@@ -312,6 +330,137 @@ def _code_versions_as_of(checker: Checker) -> Iterator[None]:
         manifest.code_version = real
 
 
+# ------------------------------------------------------------ remembered answers
+# WHY: the check above needs the lake, manifest and bookkeeping modules (pydantic models,
+# NumPy, pyarrow: 0.6-0.9 s of imports) for an answer that is the same as long as nothing it
+# read changed. So a clip found current is remembered, per (lake, clip folder, stages, run
+# parameters), with the stat (device, inode, size, mtime) of every file and folder the check
+# read: clip.yaml, ingest's input files and their folders, the clip's manifests, every file
+# and folder of the tables its stages read, their recorded outputs, each stage's source
+# closure and the flow modules; plus the v2xlake and pydantic versions. The same stat test
+# ``storage.statcache`` trusts for checksums. A file changed less than ``RACY_S`` before the
+# check began is not trusted (its stat may not show a later edit): that answer is not
+# remembered. Local lakes only. A plugin pipeline (``module:ATTR``) is remembered with its
+# module's file and its stages' source files, the code the flow's key hashes for it.
+
+ANSWERS_VERSION = 1
+RACY_S = 2.0
+
+
+def answers_dir() -> Path:
+    """One small JSON file per remembered clip answer, beside the facts cache."""
+    p = cache_path()
+    return p.parent / f"{p.stem}-answers"
+
+
+def _env_versions() -> list[str]:
+    from importlib import metadata
+
+    out = []
+    for dist in ("v2xlake", "pydantic"):
+        try:
+            out.append(metadata.version(dist))
+        except metadata.PackageNotFoundError:
+            out.append("-")
+    return out
+
+
+def _answer_file(lake: str, clip_dir: Path, stages: Sequence[str] | None,
+                 params: dict[str, Any] | None, pipeline: str | None) -> Path | None:
+    """Where the answer for this question is remembered; None: not remembered (a lake URI)."""
+    if "://" in lake:
+        return None
+    key = _digest([os.path.abspath(lake), str(clip_dir), list(stages) if stages else None,
+                   params or {}, pipeline])
+    return answers_dir() / f"{key}.json"
+
+
+def _stat_of(path: str, seen: dict[str, list[int] | None]) -> list[int] | None:
+    if path not in seen:
+        try:
+            st = os.stat(path)
+            seen[path] = [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns]
+        except OSError:
+            seen[path] = None
+    return seen[path]
+
+
+def _remembered(file: Path, seen: dict[str, list[int] | None],
+                env: list[str]) -> dict[str, Any] | None:
+    try:
+        memo = json.loads(file.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(memo, dict) or memo.get("v") != ANSWERS_VERSION or memo.get("env") != env:
+        return None
+    for path, stamp in zip(memo["paths"], memo["stamps"], strict=True):
+        if _stat_of(path, seen) != stamp:
+            return None
+    summary: dict[str, Any] = memo["summary"]
+    return summary
+
+
+def _read_paths(checker: Checker, lake: Lake, clip_dir: Path,
+                summary: dict[str, Any]) -> list[str]:
+    """Every file and folder whose content the check of this clip depended on."""
+    from v2xlake.storage import manifest
+
+    clip_id = summary["clip_id"]
+    paths = {str(clip_dir), str(clip_dir / "clip.yaml")}
+    if checker.pipeline:
+        import sys
+
+        module = sys.modules[checker.pipeline.partition(":")[0]]
+        paths.add(str(module.__file__))
+    for name in checker.names:
+        facts = checker.facts[name]
+        if facts.input == "clip_dir":
+            files = (checker._ingest_inputs(clip_dir, checker.code[name])
+                     if facts.code_paths is None else _plugin_files(clip_dir))
+            paths.update(str(f) for f in files)
+            paths.update(str(f.parent) for f in files)
+        for zone, table in facts.reads:
+            root = lake.table_dir(zone, table, clip_id)
+            paths.add(root)
+            for top, subdirs, names in os.walk(root):
+                paths.update(os.path.join(top, x) for x in (*subdirs, *names))
+        memo = manifest._CODE_MEMO.get(
+            (name, None if facts.code_paths is None else tuple(map(str, facts.code_paths))))
+        if memo is None:  # not known as this process computed it: do not remember
+            raise LookupError(name)
+        paths.update(str(f) for f in memo[0])
+        paths.update(str(f.parent) for f in memo[0])
+    mdir = lake.path("manifests", clip_id)
+    paths.add(mdir)
+    paths.update(os.path.join(mdir, f) for f in os.listdir(mdir))
+    for o in summary["stages"]:
+        for out in (o["report"] or {}).get("outputs") or []:
+            rel = out["path"]
+            paths.add(rel if rel.startswith(lake.base) else lake.path(rel))
+    paths.update(str(_FLOWS / f) for f in ("params.py", "params_model.py", "noop.py",
+                                           "stage_names.py", "bookkeeping.py"))
+    paths.add(str(_FLOWS.parent / "schemas" / "clip.py"))
+    return sorted(paths)
+
+
+def _remember(file: Path, paths: list[str], env: list[str], summary: dict[str, Any],
+              since_ns: int) -> None:
+    """Write the answer unless a file it read changed too recently to trust its stat."""
+    seen: dict[str, list[int] | None] = {}
+    stamps = [_stat_of(p, seen) for p in paths]
+    if any(st is not None and st[3] >= since_ns - int(RACY_S * 1e9) for st in stamps):
+        return
+    try:
+        file.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=file.parent, prefix=".answer-", suffix=".json")
+        with os.fdopen(fd, "w") as f:
+            json.dump({"v": ANSWERS_VERSION, "env": env, "paths": paths, "stamps": stamps,
+                       "summary": summary}, f)
+        os.replace(tmp, file)
+    except OSError:  # an answer that cannot be remembered only costs time
+        pass
+
+
 def current_summaries(clip_dirs: Sequence[str | Path], lake: str,
                       stages: Sequence[str] | None = None,
                       params: dict[str, Any] | None = None, pipeline: str | None = None
@@ -319,15 +468,46 @@ def current_summaries(clip_dirs: Sequence[str | Path], lake: str,
     """For each clip folder: its summary when every chosen stage is current, else None.
 
     ``params`` is the run's parameters as given (a mapping, e.g. a ``--params`` file's
-    YAML), not yet validated. A lake that does not exist yet: every clip must run."""
+    YAML), not yet validated. A lake that does not exist yet: every clip must run.
+    Remembered answers whose files are unchanged come first; the others are checked."""
+    dirs = [Path(d).resolve() for d in clip_dirs]
+    files = [_answer_file(lake, d, stages, params, pipeline) for d in dirs]
+    env = _env_versions() if any(files) else []
+    seen: dict[str, list[int] | None] = {}
+    out: list[dict[str, Any] | None] = [
+        None if f is None else _remembered(f, seen, env) for f in files]
+    todo = [i for i, a in enumerate(out) if a is None]
+    if todo:
+        for i, summary in zip(todo, _check([dirs[i] for i in todo], lake, stages, params,
+                                           pipeline, [files[i] for i in todo], env),
+                              strict=True):
+            out[i] = summary
+    return out
+
+
+def _check(dirs: list[Path], lake: str, stages: Sequence[str] | None,
+           params: dict[str, Any] | None, pipeline: str | None,
+           files: list[Path | None], env: list[str]) -> list[dict[str, Any] | None]:
+    """The check itself (the flow's key and manifests), remembering what it finds current."""
+    import time
+
+    from v2xlake.storage.lake import Lake
+
     the_lake = Lake(lake, create=False)
     if not the_lake.looks_like_lake():
-        return [None] * len(clip_dirs)
+        return [None] * len(dirs)
+    since = time.time_ns()
     with _LOCK:
         checker = Checker(stages, params, pipeline)
         try:
             with _code_versions_as_of(checker):
-                return [checker.check(the_lake, d) for d in clip_dirs]
+                out = [checker.check(the_lake, d) for d in dirs]
+            for d, f, summary in zip(dirs, files, out, strict=True):
+                if summary is not None and f is not None and the_lake.is_local:
+                    with contextlib.suppress(LookupError, OSError):
+                        _remember(f, _read_paths(checker, the_lake, d, summary), env,
+                                  summary, since)
+            return out
         finally:
             save_code_memo(checker.cache)
             checker.cache.save()
