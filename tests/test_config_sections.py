@@ -3,12 +3,16 @@ warning naming the new key; a clip's partial section keeps the run's other keys.
 
 from __future__ import annotations
 
-from typing import ClassVar
+import importlib
+from typing import Any, ClassVar
 
 import pytest
-from pydantic import Field, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 
 from v2xlake.schemas.config import Section, StageConfig, merge_params
+
+# the stages whose parameters are nested sections (tests/test_layers.py, SHAPED)
+CONVERTED = ("ingest", "qa", "deskew", "annotate", "align")
 
 
 class _Gicp(Section):
@@ -42,3 +46,42 @@ def test_a_partial_section_keeps_the_other_keys() -> None:
     cfg = _Toy.model_validate(merge_params(run, clip))
     assert cfg.gicp.voxel_m == 0.6 and cfg.gicp.max_iterations == 3
     assert run["gicp"]["max_iterations"] == 7  # the run's values are not modified
+
+
+def _config_model(stage: str) -> type[StageConfig]:
+    module = importlib.import_module(f"v2xlake.tasks.{stage}.config")
+    found = [v for v in vars(module).values() if isinstance(v, type)
+             and issubclass(v, StageConfig) and v is not StageConfig]
+    assert len(found) == 1, found
+    return found[0]
+
+
+def _leaves(model: type[BaseModel], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, f in model.model_fields.items():
+        t = f.annotation
+        if isinstance(t, type) and issubclass(t, Section):
+            out.update(_leaves(t, f"{prefix}{name}."))
+        else:
+            out[f"{prefix}{name}"] = f
+    return out
+
+
+@pytest.mark.parametrize("stage", CONVERTED)
+def test_every_parameter_is_described_and_every_old_key_lands(stage: str) -> None:
+    model = _config_model(stage)
+    leaves = _leaves(model)
+    assert [k for k, f in leaves.items() if not f.description] == []
+    assert set(model.RENAMED.values()) <= set(leaves), "a RENAMED key points nowhere"
+    assert not set(model.RENAMED) & set(model.model_fields), "an old key is still a field"
+    default = model().model_dump()
+    for old, new in model.RENAMED.items():
+        with pytest.warns(DeprecationWarning, match=f"'{old}' is now '{new}'"):
+            cfg = model.model_validate({old: _get(default, new)})
+        assert cfg.model_dump() == default  # the same value, in its new place
+
+
+def _get(tree: dict[str, Any], path: str) -> Any:
+    for name in path.split("."):
+        tree = tree[name]
+    return tree

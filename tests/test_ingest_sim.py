@@ -86,3 +86,7 @@ def test_unchanged_simulated_clip_is_current(lake_with_sims: tuple[Lake, dict[st
     assert mf.is_current(lake, cid, "qa", mf.stage_key(lake, cid, "qa", QaConfig(), ("ingest",)))
     assert not mf.is_current(lake, cid, "qa", mf.stage_key(
         lake, cid, "qa", QaConfig(tolerance_ms=GridTolerance(lidar=2.0)), ("ingest",)))
+    # the same values spelled with an old flat key hash the same: nothing re-runs
+    with pytest.warns(DeprecationWarning, match="tolerance_ms.lidar"):
+        flat = QaConfig.model_validate({"lidar_tolerance_ms": 1.0})
+    assert mf.is_current(lake, cid, "qa", mf.stage_key(lake, cid, "qa", flat, ("ingest",)))
