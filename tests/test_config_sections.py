@@ -3,12 +3,13 @@ warning naming the new key; a clip's partial section keeps the run's other keys.
 
 from __future__ import annotations
 
-import importlib
 from typing import Any, ClassVar
 
 import pytest
+import yaml
 from pydantic import BaseModel, Field, ValidationError
 
+from v2xlake.flows.params import config_model, describe_params
 from v2xlake.schemas.config import Section, StageConfig, merge_params
 
 # the stages whose parameters are nested sections (tests/test_layers.py, SHAPED)
@@ -48,14 +49,6 @@ def test_a_partial_section_keeps_the_other_keys() -> None:
     assert run["gicp"]["max_iterations"] == 7  # the run's values are not modified
 
 
-def _config_model(stage: str) -> type[StageConfig]:
-    module = importlib.import_module(f"v2xlake.tasks.{stage}.config")
-    found = [v for v in vars(module).values() if isinstance(v, type)
-             and issubclass(v, StageConfig) and v is not StageConfig]
-    assert len(found) == 1, found
-    return found[0]
-
-
 def _leaves(model: type[BaseModel], prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, f in model.model_fields.items():
@@ -69,7 +62,8 @@ def _leaves(model: type[BaseModel], prefix: str = "") -> dict[str, Any]:
 
 @pytest.mark.parametrize("stage", CONVERTED)
 def test_every_parameter_is_described_and_every_old_key_lands(stage: str) -> None:
-    model = _config_model(stage)
+    model = config_model(stage)
+    assert issubclass(model, StageConfig)
     leaves = _leaves(model)
     assert [k for k, f in leaves.items() if not f.description] == []
     assert set(model.RENAMED.values()) <= set(leaves), "a RENAMED key points nowhere"
@@ -85,3 +79,14 @@ def _get(tree: dict[str, Any], path: str) -> Any:
     for name in path.split("."):
         tree = tree[name]
     return tree
+
+
+def test_params_show_text_is_the_tree_with_descriptions() -> None:
+    """What ``v2xlake params show`` prints: YAML that loads back to the values, with each
+    section's and parameter's description beside it."""
+    data = {s: config_model(s)().model_dump(mode="json") for s in CONVERTED}
+    data["deskew"]["pose_gaps"]["max_ns"] = 30_000_000
+    text = describe_params(data)
+    assert yaml.safe_load(text) == data
+    assert "    max_ns: 30000000  # pose samples further apart than this are a gap" in text
+    assert "  pose_gaps:  # Pose samples too far apart to interpolate across." in text

@@ -18,19 +18,21 @@ from __future__ import annotations
 
 import copy
 import functools
+import importlib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import yaml
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from v2xlake.schemas.clip import load_yaml
 
 if TYPE_CHECKING:
     from v2xlake.flows.params_model import ExportParams, PipelineParams
 
-__all__ = ["ExportParams", "ParamsError", "PipelineParams", "clip_params", "load_params",
-           "load_params_data", "parse_params"]
+__all__ = ["ExportParams", "ParamsError", "PipelineParams", "clip_params", "config_model",
+           "describe_params", "load_params", "load_params_data", "parse_params"]
 
 
 def __getattr__(name: str) -> Any:
@@ -102,3 +104,65 @@ def _params_block(text: str) -> dict[str, Any]:
     data = parse_clip_yaml(text)
     block = data.get("params") if isinstance(data, dict) else None
     return dict(block) if isinstance(block, dict) else {}
+
+
+def config_model(section: str) -> type[BaseModel]:
+    """The model of one section of ``PipelineParams``: a stage's ``StageConfig`` from its
+    package's ``config.py`` (pydantic only: milliseconds), else (a stage not converted yet)
+    from its Stage object; ``export``: ``ExportParams``."""
+    from v2xlake.schemas.config import StageConfig
+
+    if section == "export":
+        from v2xlake.flows.params_model import ExportParams
+
+        return ExportParams
+    name = f"v2xlake.tasks.{section}.config"
+    try:
+        module = importlib.import_module(name)
+    except ModuleNotFoundError as e:
+        if e.name != name:
+            raise
+        from v2xlake.flows.stage_names import registry_stage
+
+        model: type[BaseModel] = registry_stage(section).config_model
+        return model
+    found = [v for v in vars(module).values() if isinstance(v, type)
+             and issubclass(v, StageConfig) and v.__module__ == name]
+    if len(found) != 1:
+        raise TypeError(f"{name} must define one StageConfig, found {found}")
+    return found[0]
+
+
+def describe_params(data: Mapping[str, Any]) -> str:
+    """``v2xlake params show``: the effective parameters as YAML, nested sections as they
+    are, each parameter and section followed by its description as a comment (the text a
+    user otherwise finds only in the source). ``data`` maps section names (``qa``,
+    ``export``...) to their values; the result loads back to ``data``."""
+    lines: list[str] = []
+    for name, values in data.items():
+        _describe(config_model(name), name, values, 0, lines)
+    return "\n".join(lines) + "\n"
+
+
+def _scalar(value: Any) -> str:
+    text: str = yaml.safe_dump(value, default_flow_style=True, width=10_000)
+    return text.removesuffix("\n").removesuffix("\n...")
+
+
+def _describe(model: type[BaseModel], key: str, values: Any, depth: int,
+              lines: list[str]) -> None:
+    pad = "  " * depth
+    doc = " ".join((model.__doc__ or "").strip().split("\n\n")[0].split())
+    if not isinstance(values, dict) or not values:
+        lines.append(f"{pad}{key}: {_scalar(values)}" + (f"  # {doc}" if doc else ""))
+        return
+    lines.append(f"{pad}{key}:" + (f"  # {doc}" if doc else ""))
+    for name, value in values.items():
+        field = model.model_fields.get(name)
+        sub = field.annotation if field is not None else None
+        if isinstance(sub, type) and issubclass(sub, BaseModel) and isinstance(value, dict):
+            _describe(sub, name, value, depth + 1, lines)
+            continue
+        text = field.description if field is not None and field.description else ""
+        lines.append(f"{pad}  {name}: {_scalar(value)}"
+                     + (f"  # {' '.join(text.split())}" if text else ""))
