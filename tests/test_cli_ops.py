@@ -74,6 +74,44 @@ def test_metric_table_not_a_dict() -> None:
     assert "{" not in out and "samples" in out and "20" in out and "1235" in out
 
 
+def test_export_steps_reach_the_cli_as_lines_or_a_bar() -> None:
+    """Exporters call ``report_step``; under ``export_progress`` the CLI's listener prints
+    one plain line per step finished, per ``every`` units and per unit of a short step (a few
+    clips) off a terminal, a bar on one;
+    with no listener the call does nothing (release builds, tests)."""
+    from rich.console import Console
+
+    from v2xlake.flows.cli import StepProgress
+    from v2xlake.tasks.export.common import export_progress, report_step
+    from v2xlake.tasks.export.exporters import _per_clip
+
+    def one_clip(cid: str) -> Any:
+        for k in range(1, 8):
+            report_step(f"bev {cid}/car: scans", k, 7)
+        return cid
+
+    report_step("nobody listens", 1, 1)  # no hook: nothing, no error
+    buf = io.StringIO()
+    with StepProgress(Console(file=buf, width=200), every=2) as prog, export_progress(prog):
+        assert _per_clip("bev", ["c1", "c2"], one_clip) == ["c1", "c2"]
+        for n in range(1, 4):
+            report_step("rosbag c1_all: messages", n)  # total unknown: every 2nd
+    report_step("after the block", 1, 1)
+    lines = buf.getvalue().splitlines()
+    assert sum("bev c1/car: scans 7/7 done" in ln for ln in lines) == 1, lines
+    assert any("bev c1/car: scans 6/7" in ln for ln in lines)
+    assert not any("bev c1/car: scans 3/7" in ln for ln in lines)
+    assert any("bev: clips 1/2" in ln for ln in lines) and any("bev: clips 2/2 done" in ln
+                                                               for ln in lines)
+    assert any("rosbag c1_all: messages 2" in ln for ln in lines)
+    assert not any("after the block" in ln or "nobody" in ln for ln in lines)
+    tty = io.StringIO()
+    with StepProgress(Console(file=tty, width=200, force_terminal=True)) as prog, \
+            export_progress(prog):
+        _per_clip("bev", ["c1"], one_clip)
+    assert "done" not in tty.getvalue() and "bev: clips" in tty.getvalue()  # the bar
+
+
 @pytest.mark.slow
 def test_process_piped_prints_a_line_per_stage(prefect_server: Any, tmp_path: Path) -> None:
     clip = fakes.make_fake_clip(tmp_path / "in", "piped_clip")

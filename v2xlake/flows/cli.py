@@ -266,6 +266,56 @@ class StageProgress:
         self.progress.stop()
 
 
+class StepProgress:
+    """Progress of an export, fed by its steps (``tasks.export.common.report_step``: what,
+    units done, units in all): a live bar per step on a terminal; elsewhere one plain line
+    per step finished and one per ``every`` units (clips, images, scans, messages; every unit
+    of a step of at most ``each_up_to``), flushed
+    at once, so a long export never looks hung in a pipe or a CI log."""
+
+    def __init__(self, console: Any, live: bool | None = None, every: int = 100,
+                 each_up_to: int = 5) -> None:
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            SpinnerColumn,
+            TextColumn,
+            TimeElapsedColumn,
+        )
+
+        self.console = console
+        self.live = console.is_terminal if live is None else live
+        self.every = max(1, every)
+        self.each_up_to = each_up_to
+        self.t0 = time.perf_counter()
+        self.progress = Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
+                                 MofNCompleteColumn(), TimeElapsedColumn(), console=console,
+                                 transient=False, disable=not self.live)
+        self.tasks: dict[str, Any] = {}
+
+    def __call__(self, what: str, done: int, total: int | None = None) -> None:
+        if self.live:
+            if what not in self.tasks:
+                self.tasks[what] = self.progress.add_task(_esc(what), total=total)
+            self.progress.update(self.tasks[what], completed=done, total=total)
+            return
+        finished = total is not None and done >= total
+        few = total is not None and total <= self.each_up_to  # a few clips: a line each
+        if finished or few or done % self.every == 0:
+            self.console.print(f"[{time.perf_counter() - self.t0:6.1f} s] {_esc(what)} "
+                               f"{done}" + (f"/{total}" if total is not None else "")
+                               + (" done" if finished else ""), highlight=False)
+            self.console.file.flush()
+
+    def __enter__(self) -> StepProgress:
+        self.progress.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.progress.stop()
+
+
 def stage_table(summary: dict[str, Any]) -> Any:
     from rich.table import Table
 
@@ -567,10 +617,10 @@ def export(
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     console = _console(stderr=fmt_out is OutFormat.json)
-    what = f"exporting {len(clip_ids)} clip(s) as {fmt.value} -> {out}"
-    if not console.is_terminal:  # a pipe or a CI log: a plain line, not a spinner
-        console.print(f"{_esc(what)} ...")
-    with console.status(f"{_esc(what)} ..."):
+    console.print(f"{_esc(f'exporting {len(clip_ids)} clip(s) as {fmt.value} -> {out}')} ...")
+    from v2xlake.tasks.export.common import export_progress
+
+    with StepProgress(console) as prog, export_progress(prog):
         metrics = call_export(fmt.value, the_lake, clip_ids, out, config=cfg)
     seconds = time.perf_counter() - t0
     if fmt_out is OutFormat.json:
@@ -621,10 +671,12 @@ def view(
     = None,
 ) -> int:
     """Look at a clip: a PNG of one cooperative sample and an MCAP that Foxglove opens."""
+    from v2xlake.tasks.export.common import export_progress
     from v2xlake.tasks.export.view import ViewConfig, view_clip
 
     the_lake = known_clip(lake, clip)
-    paths = view_clip(the_lake, clip, out, ViewConfig(png=png, mcap=mcap, sample=sample))
+    with StepProgress(_console(stderr=True)) as prog, export_progress(prog):
+        paths = view_clip(the_lake, clip, out, ViewConfig(png=png, mcap=mcap, sample=sample))
     for p in paths:
         _console().print(_esc(p))
     return 0

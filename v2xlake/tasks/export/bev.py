@@ -20,7 +20,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import iter_point_frames
-from v2xlake.tasks.export.common import file_output
+from v2xlake.tasks.export.common import file_output, report_step
 from v2xlake.tasks.geometry import apply
 from v2xlake.tasks.reader import lidar_world_poses, load_clip
 
@@ -124,7 +124,8 @@ def accumulate(lake: Lake, clip_id: str, config: BevConfig,
         lf = agent.lidar[sensor]
         sel = lf.frame_idx[::config.frame_stride]
         t0 = dict(zip(lf.frame_idx.tolist(), lf.points_t_ns.tolist(), strict=True))
-        for fr in iter_point_frames(lake, clip_id, aid, sensor=sensor, frames=sel.tolist()):
+        for k, fr in enumerate(iter_point_frames(lake, clip_id, aid, sensor=sensor,
+                                                 frames=sel.tolist()), start=1):
             T = lidar_world_poses(agent, sensor, np.array([t0[fr.frame_idx]]), clip_id)[0]
             w = apply(T, fr.xyz)
             z_ego = float(agent.T_world_ego(t0[fr.frame_idx], clip_id=clip_id)[0, 2, 3])
@@ -132,6 +133,7 @@ def accumulate(lake: Lake, clip_id: str, config: BevConfig,
             keep = (dz >= config.z_range[0]) & (dz <= config.z_range[1])
             grid.add(w[keep], fr.intensity[keep])
             n += int(keep.sum())
+            report_step(f"bev {clip_id}/{aid}: scans", k, len(sel))
     return grid, n
 
 

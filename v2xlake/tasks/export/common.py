@@ -1,5 +1,5 @@
 """What every export shares besides the clean-zone reader (``tasks/reader.py``): tokens,
-output file records, atomic file writes, camera undistortion.
+output file records, atomic file writes, camera undistortion, progress steps.
 
 Tokens are deterministic (uuid5 of a readable name) so that re-exporting a clip gives
 byte-identical tables and a token can be recomputed from the names alone.
@@ -10,6 +10,8 @@ from __future__ import annotations
 import contextlib
 import os
 import uuid
+from collections.abc import Callable, Iterator
+from contextvars import ContextVar
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +21,8 @@ from v2xlake.storage import checksum
 from v2xlake.storage.reader import CameraCalib
 from v2xlake.tasks.pngcodec import encode_png
 
-__all__ = ["Undistorter", "file_output", "token", "write_atomic"]
+__all__ = ["ExportStep", "Undistorter", "export_progress", "file_output", "report_step", "token",
+           "write_atomic"]
 
 _NAMESPACE = uuid.UUID("6f1b2c1e-3f55-5d1c-9a7e-7632786c616b")  # "v2xlake" export namespace
 
@@ -42,6 +45,36 @@ def write_atomic(path: Path, data: bytes | memoryview) -> None:
         with contextlib.suppress(OSError):
             os.remove(tmp)
         raise
+
+
+ExportStep = Callable[[str, int, "int | None"], None]
+"""``(what, done, total)``: ``done`` of ``total`` units (clips, images, scans; ``total`` None
+when not known in advance, e.g. a bag's messages) of the step named ``what``."""
+
+_PROGRESS: ContextVar[ExportStep | None] = ContextVar("v2xlake_export_progress", default=None)
+
+
+@contextlib.contextmanager
+def export_progress(hook: ExportStep) -> Iterator[None]:
+    """Within the block, every :func:`report_step` of an exporter reaches ``hook``.
+
+    WHY a context variable and not a parameter: exports run for minutes, and the CLI (a bar
+    on a terminal, plain lines in a pipe or CI log) is only one of their callers; release
+    builds and tests call the same functions with no one listening, and no exporter's
+    signature changes."""
+    token = _PROGRESS.set(hook)
+    try:
+        yield
+    finally:
+        _PROGRESS.reset(token)
+
+
+def report_step(what: str, done: int, total: int | None = None) -> None:
+    """An exporter's progress: ``done`` units of the step ``what`` finished (call it per
+    unit; the listener decides how often to show it). Nothing when no one listens."""
+    hook = _PROGRESS.get()
+    if hook is not None:
+        hook(what, done, total)
 
 
 def file_output(path: Path, rows: int | None = None) -> OutputFile:

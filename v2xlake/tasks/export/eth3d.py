@@ -37,7 +37,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import CameraCalib, iter_point_frames
-from v2xlake.tasks.export.common import Undistorter, file_output
+from v2xlake.tasks.export.common import Undistorter, file_output, report_step
 from v2xlake.tasks.geometry import apply, invert, matrix_to_quat
 from v2xlake.tasks.reader import AgentData, ClipData, boxes_matrices, lidar_world_poses, load_clip
 
@@ -195,6 +195,7 @@ def _export_agent(lake: Lake, clip: ClipData, agent: AgentData, out: Path, cfg: 
                                cfg.min_depth_m, cfg.max_depth_m)
                 np.save(base / "depth" / name.replace(".png", ".npy"), dm)
                 cv2.imwrite(str(base / "depth_preview" / name), depth_preview(dm))
+            report_step(f"eth3d {clip.clip_id}/{agent.agent_id}/{ch}: images", k + 1, len(sel))
     (calib_dir / "cameras.txt").write_text(
         "# Camera list with one line of data per camera:\n"
         "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n" + "\n".join(cam_lines) + "\n")

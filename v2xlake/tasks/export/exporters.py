@@ -18,6 +18,7 @@ from pydantic import BaseModel
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.export.bev import BevConfig, export_bev
+from v2xlake.tasks.export.common import report_step
 from v2xlake.tasks.export.eth3d import Eth3dConfig, export_eth3d
 from v2xlake.tasks.export.nuscenes import NuScenesExportConfig, export_nuscenes
 from v2xlake.tasks.export.opencood import OpenCoodConfig, export_opencood
@@ -62,14 +63,23 @@ def _scene_transfer(lake: Lake, ids: list[str], out: Path, cfg: SceneTransferCon
     return [export_scene_transfer(lake, ids, out, cfg)]
 
 
+def _per_clip(fmt: str, ids: list[str], one: Callable[[str], StageReport]) -> list[StageReport]:
+    """A per-clip format over several clips, one progress step per clip done."""
+    reports = []
+    for n, cid in enumerate(ids, start=1):
+        reports.append(one(cid))
+        report_step(f"{fmt}: clips", n, len(ids))
+    return reports
+
+
 def _bev(lake: Lake, ids: list[str], out: Path, cfg: BevConfig,
          splits: dict[str, str] | None) -> list[StageReport]:
-    return [export_bev(lake, cid, out, cfg) for cid in ids]
+    return _per_clip("bev", ids, lambda cid: export_bev(lake, cid, out, cfg))
 
 
 def _rosbag(lake: Lake, ids: list[str], out: Path, cfg: RosbagExportConfig,
             splits: dict[str, str] | None) -> list[StageReport]:
-    return [export_rosbag(lake, cid, None, out, config=cfg) for cid in ids]
+    return _per_clip("rosbag", ids, lambda cid: export_rosbag(lake, cid, None, out, config=cfg))
 
 
 EXPORTERS: dict[str, FormatExporter] = {e.name: e for e in (

@@ -62,7 +62,7 @@ from v2xlake.storage.reader import (
     iter_point_frames,
     read_radar_scans,
 )
-from v2xlake.tasks.export.common import file_output
+from v2xlake.tasks.export.common import file_output, report_step
 from v2xlake.tasks.geometry import matrix_to_quat
 from v2xlake.tasks.reader import AgentData, ClipData, boxes_matrices, load_clip
 
@@ -445,9 +445,13 @@ def export_rosbag(lake: Lake, clip_id: str, agent_id: str | None, out_dir: Path 
                         offered_qos_profiles=_static_qos() if topic == "/tf_static" else ())
             conns = [by_topic[topic] for topic, _, _ in streams]
             tagged = [_tag(i, it) for i, (_, _, it) in enumerate(streams)]
-            for t, i, msg in heapq.merge(*tagged, key=lambda x: (x[0], x[1])):
+            step = f"rosbag {clip_id}_{name}: messages"
+            for n_written, (t, i, msg) in enumerate(
+                    heapq.merge(*tagged, key=lambda x: (x[0], x[1])), start=1):
                 w.write(conns[i], t, ts.serialize_cdr(msg, streams[i][1]))
                 counts[streams[i][0]] = counts.get(streams[i][0], 0) + 1
+                report_step(step, n_written)  # the total is known once the bag is written
+        report_step(step, sum(counts.values()), sum(counts.values()))
         for f in sorted(p for p in dst.iterdir() if p.is_file()):
             report.outputs.append(file_output(f))
         for topic, n in counts.items():

@@ -29,7 +29,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.files import write_parquet
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.export.common import file_output
+from v2xlake.tasks.export.common import file_output, report_step
 from v2xlake.tasks.reader import load_clip
 
 
@@ -121,12 +121,13 @@ def export_scene_transfer(lake: Lake, clip_ids: Sequence[str], out_dir: Path | s
     out.mkdir(parents=True, exist_ok=True)
     by_loc: dict[str, dict[str, list[_Frames]]] = defaultdict(lambda: defaultdict(list))
     refs: dict[str, list[_Frames]] = defaultdict(list)
-    for cid in clip_ids:
+    for n_loaded, cid in enumerate(clip_ids, start=1):
         clip_info = load_clip(lake, cid).info
         is_ref = str(clip_info.get("weather")) == cfg.reference_weather
         loc, _, frames = _load(lake, cid, cfg, is_ref)
         for f in frames:
             (refs[loc] if is_ref else by_loc[loc][f.condition]).append(f)
+        report_step("scene-transfer: clips' edge maps", n_loaded, len(clip_ids))
     rows: list[dict[str, object]] = []
     for loc, ref_list in refs.items():
         for cond, cands in by_loc.get(loc, {}).items():
@@ -164,13 +165,14 @@ def export_scene_transfer(lake: Lake, clip_ids: Sequence[str], out_dir: Path | s
     report.outputs += [file_output(out / "pairs.parquet", len(rows)),
                        file_output(out / "pairs.csv", len(rows))]
     if cfg.copy_images:
-        for r_ in rows:
+        for n_copied, r_ in enumerate(rows, start=1):
             d = out / "pairs" / str(r_["location"]) / f"{r_['ref_clip']}_{r_['ref_agent']}_" \
                 f"{int(r_['ref_frame_idx']):06d}"  # type: ignore[call-overload]
             d.mkdir(parents=True, exist_ok=True)
             (d / "reference.png").write_bytes(lake.read_blob("clean", str(r_["ref_blob"])))
             (d / f"{str(r_['condition']).replace('/', '_')}.png").write_bytes(
                 lake.read_blob("clean", str(r_["match_blob"])))
+            report_step("scene-transfer: image pairs copied", n_copied, len(rows))
     if rows:
         sheet = _contact_sheet(lake, rows[:cfg.contact_sheet_rows])
         cv2.imwrite(str(out / "contact_sheet.png"), sheet)

@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import DESKEWED, read_point_frame
+from v2xlake.tasks.export.common import report_step
 from v2xlake.tasks.geometry import apply, box_corners, quat_wxyz_of
 from v2xlake.tasks.reader import boxes_matrices, load_clip, match_agents, registered_T
 
@@ -146,6 +147,7 @@ def view_clip(lake: Lake, clip_id: str, out_dir: Path | str,
     paths: list[Path] = []
     if config.png:
         paths.append(render_png(lake, clip_id, out / f"{clip_id}.png", config))
+        report_step(f"view {clip_id}: picture", 1, 1)
     if config.mcap:
         rep = export_rosbag(lake, clip_id, None, out, config=RosbagExportConfig(
             storage="mcap", combine_agents=True, lidar_table=DESKEWED,
