@@ -19,7 +19,7 @@ from v2xlake.schemas.clip import PointTimeField, TimeReference, TimeUnit
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.catalog import Catalog
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.ingest import clip_inputs, run_ingest
+from v2xlake.tasks.ingest import IngestConfig, clip_inputs, run_ingest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -325,7 +325,7 @@ def test_tf_chain_lookup() -> None:
     from v2xlake.schemas.geometry import Transform
     from v2xlake.tasks.ingest.calibration import TfTree
 
-    tree = TfTree()
+    tree = TfTree(IngestConfig().quat_tolerance)
     T_base_mount = Transform(translation=[1, 0, 2], rotation=[0.7071067811865476, 0, 0,
                                                                0.7071067811865476]).matrix()
     T_mount_lidar = Transform(translation=[0, 0.5, 0], rotation=[1, 0, 0, 0]).matrix()
@@ -347,3 +347,14 @@ def test_ouster_fixture_points_at_shared_data() -> None:
     bag = (OUSTER_FIXTURE / cfg["agents"][0]["bag"]).resolve()
     assert bag == (REAL / "ouster_os1_128_3frames_ros2").resolve() and bag.is_dir()
     assert shutil.disk_usage(bag).total > 0
+
+
+def test_pose_quaternions_follow_the_configured_tolerance() -> None:
+    """``ingest.quat_tolerance`` is the one tolerance for pose quaternions too (the pose
+    builders once had 1e-3 written in twice, whatever the parameter said)."""
+    from v2xlake.tasks.ingest.pose import PoseError, unit_quaternions
+
+    q = np.array([[0.0, 0.0, 0.0, 1.002]])  # norm 1.002
+    with pytest.raises(PoseError, match=r"tolerance 0\.001: ingest\.quat_tolerance"):
+        unit_quaternions(q, IngestConfig().quat_tolerance, "INS")
+    assert np.allclose(unit_quaternions(q, 0.01), [[0, 0, 0, 1]])

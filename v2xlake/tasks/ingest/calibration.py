@@ -26,7 +26,7 @@ class TfTree:
     naming the transform): normalising it silently would turn a typo in a calibration into
     a mis-calibration of tens of degrees."""
 
-    def __init__(self, quat_tolerance: float = 1e-3) -> None:
+    def __init__(self, quat_tolerance: float) -> None:
         self.edges: dict[str, dict[str, np.ndarray]] = {}
         self.quat_tolerance = quat_tolerance
 

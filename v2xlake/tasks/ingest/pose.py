@@ -154,16 +154,12 @@ def euler_to_enu(roll: np.ndarray, pitch: np.ndarray, heading: np.ndarray, conv:
     return attitude_to_matrix(rd, up, az)
 
 
-def quat_to_enu(q_xyzw: np.ndarray, convention: AttitudeConvention) -> np.ndarray:
+def quat_to_enu(q_xyzw: np.ndarray, convention: AttitudeConvention, tolerance: float
+                ) -> np.ndarray:
     """Orientation quaternions (x, y, z, w as ROS stores them) -> ``R_enu_body``; a quaternion
-    of norm far from one is an error (never silently normalised)."""
+    of norm further than ``tolerance`` from one is an error (never silently normalised)."""
     q = np.asarray(q_xyzw, float).reshape(-1, 4)
-    n = np.linalg.norm(q, axis=1)
-    if n.size and np.max(np.abs(n - 1.0)) > 1e-3:
-        i = int(np.argmax(np.abs(n - 1.0)))
-        raise PoseError(f"orientation quaternion {q[i].tolist()} (x, y, z, w) has norm "
-                        f"{n[i]:.6f}, not 1 (tolerance 1e-3)")
-    r = Rotation.from_quat(q / n[:, None]).as_matrix()
+    r = Rotation.from_quat(unit_quaternions(q, tolerance)).as_matrix()
     return ned_to_enu_attitude(r) if convention is AttitudeConvention.NED else r
 
 
@@ -319,8 +315,9 @@ Extractor = Callable[[Any, Samples], None]
 class PoseCollector:
     """Gathers one agent's pose messages during ingest's pass, then builds its track."""
 
-    def __init__(self, agent: AgentConfig) -> None:
+    def __init__(self, agent: AgentConfig, quat_tolerance: float) -> None:
         self.agent = agent
+        self.quat_tolerance = quat_tolerance  # ingest.quat_tolerance
         self.pose = agent.effective_pose
         self.samples: dict[str, Samples] = {}
         self._extract: dict[str, Extractor] = {}
@@ -439,11 +436,11 @@ class PoseCollector:
             _check_frame(s, p.map_frame, p.sensor)
             body = p.body_frame or (_one(s.child_frame_ids, "child_frame_id", p.sensor)
                                     if s.child_frame_ids else ego)
-            return build_odometry(p, s, body_to_ego(body, p.sensor))
+            return build_odometry(p, s, body_to_ego(body, p.sensor), self.quat_tolerance)
         if isinstance(p, TfPose):
             child = (p.child_frame or ego).lstrip("/")
             return build_tf(p, self.tf_edges, child, lookup,
-                            body_to_ego(p.body_frame or child, p.sensor))
+                            body_to_ego(p.body_frame or child, p.sensor), self.quat_tolerance)
         assert isinstance(p, SplitPose)
         pos, att = self.samples[p.position], self.samples[p.attitude]
         vel = self.samples[p.velocity] if p.velocity else None
@@ -452,7 +449,7 @@ class PoseCollector:
         imu = p.body_frame or (_one(att.frame_ids, "frame_id", p.attitude)
                                if att.frame_ids else ego)
         return build_split(p, pos, att, vel, body_to_ego(ant, p.position),
-                           body_to_ego(imu, p.attitude))
+                           body_to_ego(imu, p.attitude), self.quat_tolerance)
 
 
 def _one(values: set[str], what: str, sensor: str) -> str:
@@ -589,17 +586,15 @@ def build_ins(p: InsPose, s: Samples, T_body_ego: np.ndarray) -> Track:
     return Track("ecef", t, pos, R, vel, status)
 
 
-def build_odometry(p: OdometryPose, s: Samples, T_body_ego: np.ndarray) -> Track:
+def build_odometry(p: OdometryPose, s: Samples, T_body_ego: np.ndarray, quat_tolerance: float
+                   ) -> Track:
     xyz = np.stack([s.array(c) for c in ("x", "y", "z")], 1)
     q = np.stack([s.array(c) for c in ("qx", "qy", "qz", "qw")], 1)
     has_v = "v0" in s.cols
     v = np.stack([s.array(c) for c in ("v0", "v1", "v2")], 1) if has_v else np.zeros_like(xyz)
     w = np.stack([s.array(c) for c in ("w0", "w1", "w2")], 1) if has_v else np.zeros_like(xyz)
     t, (xyz, q, v, w) = _finite_rows(p.sensor, *sorted_unique(s.t_ns, xyz, q, v, w))
-    try:
-        R_map_body = Rotation.from_quat(_unit(q, p.sensor)).as_matrix()
-    except PoseError:
-        raise
+    R_map_body = Rotation.from_quat(unit_quaternions(q, quat_tolerance, p.sensor)).as_matrix()
     frame, pos_b, R_body, _r_enu = datum_to_frame(p.datum, xyz, R_map_body)
     pos, R = apply_lever(pos_b, R_body, T_body_ego)
     if has_v:  # body twist of the child frame; the ego origin adds w x r
@@ -610,17 +605,21 @@ def build_odometry(p: OdometryPose, s: Samples, T_body_ego: np.ndarray) -> Track
     return Track(frame, t, pos, R, vel, np.full(len(t), STATUS_UNKNOWN, np.int64))
 
 
-def _unit(q_xyzw: np.ndarray, sensor: str) -> np.ndarray:
+def unit_quaternions(q_xyzw: np.ndarray, tolerance: float, sensor: str | None = None
+                     ) -> np.ndarray:
+    """(N, 4) quaternions divided by their norms; one whose norm is further than
+    ``tolerance`` (``ingest.quat_tolerance``) from one is an error, never normalised."""
     n = np.linalg.norm(q_xyzw, axis=1)
-    if n.size and np.max(np.abs(n - 1.0)) > 1e-3:
+    if n.size and np.max(np.abs(n - 1.0)) > tolerance:
         i = int(np.argmax(np.abs(n - 1.0)))
         raise PoseError(f"orientation quaternion {q_xyzw[i].tolist()} (x, y, z, w) has norm "
-                        f"{n[i]:.6f}, not 1 (tolerance 1e-3)", sensor)
+                        f"{n[i]:.6f}, not 1 (tolerance {tolerance:g}: ingest.quat_tolerance)",
+                        sensor)
     return q_xyzw / n[:, None]
 
 
 def build_split(p: SplitPose, pos: Samples, att: Samples, vel: Samples | None,
-                T_ant_ego: np.ndarray, T_att_ego: np.ndarray) -> Track:
+                T_ant_ego: np.ndarray, T_att_ego: np.ndarray, quat_tolerance: float) -> Track:
     """Position and attitude from different topics, resampled onto one set of stamps."""
     kl = 180.0 / math.pi if p.latlon_unit is AngleUnit.RAD else 1.0
     gap = int(p.max_gap_ms * 1e6)
@@ -632,7 +631,7 @@ def build_split(p: SplitPose, pos: Samples, att: Samples, vel: Samples | None,
         q = np.stack([att.array(c) for c in ("qx", "qy", "qz", "qw")], 1)
         ta, (q,) = _finite_rows(p.attitude, *sorted_unique(att.t_ns, q))
         try:
-            r_enu_att = quat_to_enu(q, p.quaternion_frame)
+            r_enu_att = quat_to_enu(q, p.quaternion_frame, quat_tolerance)
         except PoseError as e:
             raise PoseError(str(e), p.attitude) from e
     else:
@@ -676,8 +675,8 @@ def _span(t: np.ndarray) -> str:
 
 
 def build_tf(p: TfPose, edges: dict[tuple[str, str], Samples], child: str,
-             lookup: Callable[[str, str], np.ndarray | None], T_body_ego: np.ndarray
-             ) -> Track:
+             lookup: Callable[[str, str], np.ndarray | None], T_body_ego: np.ndarray,
+             quat_tolerance: float) -> Track:
     """``parent -> child`` through the dynamic edges of ``/tf`` (each interpolated) and
     static ones (``lookup``), sampled at the stamps of the densest dynamic edge."""
     parent = p.parent_frame.lstrip("/")
@@ -695,7 +694,8 @@ def build_tf(p: TfPose, edges: dict[tuple[str, str], Samples], child: str,
         xyz = np.stack([s.array(c) for c in ("x", "y", "z")], 1)
         q = np.stack([s.array(c) for c in ("qx", "qy", "qz", "qw")], 1)
         t, (xyz, q) = _finite_rows(p.sensor, *sorted_unique(s.t_ns, xyz, q))
-        tracks[key] = (t, xyz, Rotation.from_quat(_unit(q, p.sensor)).as_matrix())
+        tracks[key] = (t, xyz, Rotation.from_quat(
+            unit_quaternions(q, quat_tolerance, p.sensor)).as_matrix())
     t_q = max(tracks.values(), key=lambda v: len(v[0]))[0]
     lo = max(v[0][0] for v in tracks.values())
     hi = min(v[0][-1] for v in tracks.values())

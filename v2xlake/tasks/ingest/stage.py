@@ -241,7 +241,7 @@ class _AgentIngest:
         # camera frames being encoded: (sensor, frame index, stamp, blob key, (w, h, sha256))
         self.png_pending: deque[tuple[SensorConfig, int, int, str,
                                       Future[tuple[int, int, str]]]] = deque()
-        self.pose = PoseCollector(agent)
+        self.pose = PoseCollector(agent, config.quat_tolerance)
         self.imu: dict[str, ImuDecoder] = {}
         self.gnss = GnssDecoder()
         self.tf = TfTree(config.quat_tolerance)
