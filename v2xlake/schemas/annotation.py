@@ -16,6 +16,7 @@ from typing import Annotated, Self
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from v2xlake.schemas.config import ANNOTATED_LIDAR
 from v2xlake.schemas.geometry import Quat, Vec3
 
 Size3 = Annotated[list[float], Field(min_length=3, max_length=3)]
@@ -85,7 +86,7 @@ class BoxAnnotation(BaseModel):
     model_config = ConfigDict(frozen=True)
 
     agent_id: str
-    sensor: str = "LIDAR_TOP"
+    sensor: str = ANNOTATED_LIDAR
     frame_idx: int = Field(ge=0)
     t_ns: int = Field(description="time the box state refers to (raw zone: GNSS epoch ns)")
     instance_id: str = Field(description="global id, shared across agents and frames")

@@ -24,6 +24,10 @@ from pydantic import BaseModel, ConfigDict, model_validator
 #: leaves uncovered, deskew does not interpolate across it (one default for both stages).
 POSE_GAP_PERIODS = 2.5
 
+#: The LiDAR boxes are annotated in unless an annotation names another (``BoxAnnotation``),
+#: and so the one the stages and exports that work on boxes use by default.
+ANNOTATED_LIDAR = "LIDAR_TOP"
+
 
 class Section(BaseModel):
     """A group of parameters: frozen (a core may keep it), unknown keys refused."""
@@ -56,7 +60,10 @@ class StageConfig(Section):
     def _move_renamed_keys(cls, data: Any) -> Any:
         if not isinstance(data, dict) or not cls.RENAMED:
             return data
-        moved = {k: data[k] for k in data if k in cls.RENAMED}
+        # an old flat key may share its name with the new section ("redeskew": true ->
+        # "redeskew": {"enabled": true}); a mapping there is already the new form
+        moved = {k: data[k] for k in data if k in cls.RENAMED
+                 and not (k in cls.model_fields and isinstance(data[k], dict | BaseModel))}
         if not moved:
             return data
         out = {k: v for k, v in data.items() if k not in moved}

@@ -8,7 +8,7 @@ from typing import ClassVar, Literal
 
 from pydantic import Field
 
-from v2xlake.schemas.config import Section, StageConfig
+from v2xlake.schemas.config import ANNOTATED_LIDAR, Section, StageConfig
 
 TimeStat = Literal["vote", "median", "mean"]
 
@@ -64,7 +64,7 @@ class AlignConfig(StageConfig):
         "min_truth_box_px": "truth.min_box_px", "min_truth_pixels": "truth.min_pixels",
         "truth_box": "truth.box"}
 
-    lidar_sensor: str = Field("LIDAR_TOP", description="the LiDAR the boxes are annotated in")
+    lidar_sensor: str = Field(ANNOTATED_LIDAR, description="the LiDAR the boxes are annotated in")
     cameras: list[str] | None = Field(default=None, description="None: every camera")
     association: AssociationConfig = Field(default_factory=AssociationConfig)
     truth: TruthConfig = Field(default_factory=TruthConfig)

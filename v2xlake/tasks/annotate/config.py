@@ -7,7 +7,7 @@ from typing import ClassVar, Literal
 
 from pydantic import Field
 
-from v2xlake.schemas.config import Section, StageConfig
+from v2xlake.schemas.config import ANNOTATED_LIDAR, Section, StageConfig
 
 
 class LinkConfig(Section):
@@ -40,7 +40,7 @@ class AnnotateConfig(StageConfig):
         "cross_agent_max_dt_ms": "cross_agent.max_dt_ms",
         "registration_min_fitness": "cross_agent.registration_min_fitness"}
 
-    lidar_sensor: str = Field("LIDAR_TOP", description="the LiDAR whose scans the boxes are "
+    lidar_sensor: str = Field(ANNOTATED_LIDAR, description="the LiDAR whose scans the boxes are "
                               "annotated in")
     # nuScenes' num_lidar_pts is what the devkit's points_in_box counts on the exported scan
     # (faces inclusive, no slack): the default counts exactly that, so the catalog, every
