@@ -17,7 +17,11 @@ Each figure is one fresh process, timed from its start to its exit (best and med
 * ``flow no-op``: the same question asked the old way, ``process_clips`` (Prefect starts,
   every stage is a task that finds its manifest current);
 * ``current_summaries`` over the ``--clips`` replicas: per clip, with the facts cache cold
-  (first call after a code change) and warm.
+  (first call after a code change) and warm;
+* where a real call's fixed cost goes (``--only fixed``): interpreter start, ``import
+  prefect``, importing the flow module with every stage (``flows.pipeline``), the 7-task
+  anchor against a running server (imports + flow and task runs), and the temporary
+  server's start (the anchor on it minus the anchor with ``PREFECT_API_URL``).
 
 Prints the figures and their ratios to the anchor. Not run by pytest.
 """
@@ -108,7 +112,7 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "v2x-bench-noop")
     ap.add_argument("--clips", type=int, default=1000)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--only", default="calls,clips", help="calls, clips or both")
+    ap.add_argument("--only", default="calls,clips,fixed", help="calls, clips, fixed")
     args = ap.parse_args()
     work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
@@ -128,6 +132,8 @@ def main() -> None:
     env = _env()
     if "calls" in args.only:
         measure_calls(work, args.repeat, env, anchor1, anchor7, process, flow_noop, rows)
+    if "fixed" in args.only:
+        measure_fixed(work, args.repeat, env, anchor7)
     if args.clips and "clips" in args.only:
         root, inbox = bench_scale.build_lake(work, tlake, args.clips)
         for variant in ("cold", "warm"):
@@ -141,6 +147,37 @@ def main() -> None:
             print(f"  current_summaries over {n} clips ({ok} current), facts cache {variant}: "
                   f"{float(check):.2f} s ({1000 * float(check) / int(n):.2f} ms per clip; "
                   f"imports {float(imp):.2f} s)", flush=True)
+
+
+def measure_fixed(work: Path, repeat: int, env: dict[str, str], anchor7: list[str]) -> None:
+    """A real call's fixed cost, part by part, each a fresh process (medians)."""
+    from v2xlake.flows.server import start_server
+
+    py = sys.executable
+    print(f"fixed cost of a real call, {repeat} fresh processes each (median wall s):",
+          flush=True)
+    parts = {"python -c pass": [py, "-c", "pass"],
+             "import prefect": [py, "-c", "import prefect"],
+             "import flows.pipeline (prefect + every stage)":
+                 [py, "-c", "import v2xlake.flows.pipeline"],
+             "import + 7-task anchor, temporary server": anchor7}
+    med = {name: timed(cmd, repeat, env)["median"] for name, cmd in parts.items()}
+    server = start_server(work / "server")
+    try:
+        med["import + 7-task anchor, PREFECT_API_URL"] = timed(
+            anchor7, repeat, _env(PREFECT_API_URL=server.api_url))["median"]
+    finally:
+        server.stop()
+    for name, v in med.items():
+        print(f"  {name:48s} {v:6.2f}", flush=True)
+    flow_runs = (med["import + 7-task anchor, PREFECT_API_URL"] - med["import prefect"])
+    server_start = (med["import + 7-task anchor, temporary server"]
+                    - med["import + 7-task anchor, PREFECT_API_URL"])
+    stages = med["import flows.pipeline (prefect + every stage)"] - med["import prefect"]
+    for name, v in (("prefect import", med["import prefect"] - med["python -c pass"]),
+                    ("stage imports", stages), ("flow + 7 task runs", flow_runs),
+                    ("temporary server start", server_start)):
+        print(f"  {name:28s} {v:6.2f} s = {100 * v / 10:5.1f} % of a 10 s clip", flush=True)
 
 
 def measure_calls(work: Path, repeat: int, env: dict[str, str], anchor1: list[str],
