@@ -16,9 +16,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from v2xlake.tasks.interpolate import PoseTrack
-from v2xlake.tasks.register.backends import GicpParams, make_backend
+from v2xlake.tasks.register.backends import make_backend
+from v2xlake.tasks.register.config import GicpSection, QualitySection
 from v2xlake.tasks.register.core import (
-    QualityLimits,
     initial_transform,
     initial_transform_at,
     refine,
@@ -170,8 +170,8 @@ def drive(scenario: str, n_frames: int, *, beams: int = 64, cols: int = 900, see
 @pytest.mark.parametrize("scenario", ["straight", "turning"])
 def test_refined_within_3cm_and_0p1deg(scenario: str, backend: str) -> None:
     cases = drive(scenario, 8 if backend == "small_gicp" else 4, beams=48, cols=720)
-    be = make_backend(backend, GicpParams())  # type: ignore[arg-type]
-    limits = QualityLimits()
+    be = make_backend(backend, GicpSection(voxel_m=0.6, source_voxel_m=1.0))  # type: ignore[arg-type]
+    limits = QualitySection()
     good, init_err, errs = 0, [], []
     warm = None
     for c in cases:
@@ -196,7 +196,7 @@ def test_too_little_overlap_is_rejected_and_init_kept() -> None:
     T_true = np.linalg.inv(t1) @ t2
     T_init = perturbation(np.random.default_rng(0), np.array([0.1, 0.1, 0.0]), np.zeros(3)) @ T_true
     be = make_backend("small_gicp")
-    res = refine(be, be.prepare(ref), be.prepare(other, as_target=False), T_init, QualityLimits())
+    res = refine(be, be.prepare(ref), be.prepare(other, as_target=False), T_init, QualitySection())
     assert not res.accepted and "overlap" in res.reason
     np.testing.assert_array_equal(res.T_final, T_init)
 
@@ -205,7 +205,7 @@ def test_diverged_refinement_is_rejected() -> None:
     c = drive("straight", 1, beams=32, cols=720)[0]
     be = make_backend("small_gicp")
     res = refine(be, be.prepare(c.ref), be.prepare(c.other, as_target=False), c.T_init,
-                 QualityLimits(max_correction_m=0.05))  # the real correction is ~0.2 m
+                 QualitySection(max_correction_m=0.05))  # the real correction is ~0.2 m
     assert not res.accepted and res.reason.startswith("diverged")
     np.testing.assert_array_equal(res.T_final, c.T_init)
 
@@ -235,7 +235,7 @@ def test_featureless_corridor_is_rejected_as_degenerate() -> None:
     be = make_backend("small_gicp")
     res = refine(be, be.prepare(cast_scan(corridor, t1, n_beams=32, n_cols=720)),
                  be.prepare(cast_scan(corridor, t2, n_beams=32, n_cols=720, seed=1),
-                            as_target=False), T_init, QualityLimits())
+                            as_target=False), T_init, QualitySection())
     assert not res.accepted and res.reason.startswith("degenerate geometry")
     assert res.observability < 0.01
     np.testing.assert_array_equal(res.T_final, T_init)

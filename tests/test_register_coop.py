@@ -282,7 +282,7 @@ def test_a_wrong_lidar_rotation_is_deskewed_again(tmp_path: Path) -> None:
                for r in rows if r["agent_other"] == "black"]
         return abs(float(np.median(off))) * 100
 
-    once = run_register(lake, cid, RegisterConfig(redeskew=False))
+    once = run_register(lake, cid, RegisterConfig.model_validate({"redeskew": {"enabled": False}}))
     before = sideways_cm(once.notes)
     assert not any("re-deskewed" in n for n in once.notes)
     again = run_register(lake, cid, RegisterConfig())

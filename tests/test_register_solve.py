@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from v2xlake.tasks.geometry import invert
+from v2xlake.tasks.register.config import SolveSection
 from v2xlake.tasks.register.solve import (
     CrossMeasurement,
     OdoMeasurement,
-    SolveSettings,
     _Problem,
     se3_exp,
     se3_left_residual,
@@ -123,7 +123,7 @@ def test_so3_and_jacobians() -> None:
              for i in range(1, 6)]
     odo = [OdoMeasurement("black", 0.3 * i, 0.3 * i + 0.5, M[i], M[i - 1], np.eye(4),
                           np.eye(6)) for i in range(1, 6)]
-    P = _Problem(["red", "black"], E_PUB, cross, odo, SolveSettings(knot_s=0.5), "red")
+    P = _Problem(["red", "black"], E_PUB, cross, odo, SolveSection(knot_s=0.5), "red")
     th = rng.normal(size=P.n) * 1e-5
     for fn in (lambda th: P.cross_model(th, cross), lambda th: P.odo_model(th, odo)):
         T0, G = fn(th)
@@ -147,7 +147,7 @@ def test_clip_solve_fuses_frames(measurements: tuple[list[CrossMeasurement],
                                                      list[np.ndarray]]) -> None:
     cross, odo, truth = measurements
     ground = {a: (float(E_TRUE[a][2, 3] + 0.4), -0.4) for a in ("red", "black")}
-    sol = solve_clip(["red", "black"], "red", E_PUB, cross, odo, SolveSettings(), ground)
+    sol = solve_clip(["red", "black"], "red", E_PUB, cross, odo, SolveSection(), ground)
     err = np.array([[np.linalg.norm(T[:3, 3] - Tt[:3, 3]),
                      np.degrees(np.linalg.norm(so3_log(T[:3, :3] @ Tt[:3, :3].T)))]
                     for T, Tt in zip(sol.T_cross, truth, strict=True)])
@@ -171,7 +171,7 @@ def test_clip_solve_fuses_frames(measurements: tuple[list[CrossMeasurement],
     # a frame with no measurement still gets the clip's estimate, with its uncertainty
     gap = [CrossMeasurement(c.key, c.other, c.t_s, c.M_ref, c.M_oth, None, None)
            if c.key == 90 else c for c in cross]
-    sol2 = solve_clip(["red", "black"], "red", E_PUB, gap, odo, SolveSettings(), ground)
+    sol2 = solve_clip(["red", "black"], "red", E_PUB, gap, odo, SolveSection(), ground)
     assert sol2.weight[90] == 0 and np.isnan(sol2.loo_chi2[90])
     assert np.linalg.norm(sol2.T_cross[90][:3, 3] - truth[90][:3, 3]) < 0.02
     assert np.sqrt(np.max(np.diag(sol2.cross_cov[90])[3:])) < 0.02
@@ -186,7 +186,7 @@ def test_no_extrapolation_and_honest_floor(measurements: tuple[list[CrossMeasure
     every direction; nobody's reported 1-sigma is below the per-frame floor."""
     cross, odo, _ = measurements
     ground = {a: (float(E_TRUE[a][2, 3] + 0.4), -0.4) for a in ("red", "black")}
-    s = SolveSettings()
+    s = SolveSection()
     gap = [CrossMeasurement(c.key, c.other, c.t_s, c.M_ref, c.M_oth, None, None)
            if c.key in (0, 90) else c for c in cross]
     sol = solve_clip(["red", "black"], "red", E_PUB, gap, odo, s, ground)
@@ -204,7 +204,7 @@ def test_no_extrapolation_and_honest_floor(measurements: tuple[list[CrossMeasure
     assert (std[:, :3] >= np.radians(s.floor_deg) * 0.999).all()
     # a tighter bridge: the no-measurement frame 90 is still bracketed by its neighbours
     sol2 = solve_clip(["red", "black"], "red", E_PUB, gap, odo,
-                      SolveSettings(max_bridge_s=0.15), ground)
+                      SolveSection(max_bridge_s=0.15), ground)
     assert sol2.unbracketed[90] == ""
 
 
@@ -229,7 +229,7 @@ def test_ins_step_gets_its_own_offset(measurements: tuple[list[CrossMeasurement]
                          else o.M0, jumped(o.M1, o.t1_s) if o.agent == "black" else o.M1,
                          o.Z, o.W) for o in odo]
     eps_true = np.concatenate([so3_log(invert(ERR)[:3, :3]), invert(ERR)[:3, 3]])
-    sol = solve_clip(["red", "black"], "red", E_PUB, cj, oj, SolveSettings(), ground,
+    sol = solve_clip(["red", "black"], "red", E_PUB, cj, oj, SolveSection(), ground,
                      steps=[("black", 6.05)])
     assert np.linalg.norm(sol.eps["black"][3:] - eps_true[3:]) < 0.01
     assert np.linalg.norm(sol.eps["red"][3:]) < 0.02
@@ -237,5 +237,5 @@ def test_ins_step_gets_its_own_offset(measurements: tuple[list[CrossMeasurement]
     err = [np.linalg.norm(T[:3, 3] - Tt[:3, 3]) for T, Tt in zip(sol.T_cross, truth,
                                                                   strict=True)]
     assert np.mean(np.array(err) <= 0.03) >= 0.95
-    bad = solve_clip(["red", "black"], "red", E_PUB, cj, oj, SolveSettings(), ground)
+    bad = solve_clip(["red", "black"], "red", E_PUB, cj, oj, SolveSection(), ground)
     assert bad.outlier.sum() > sol.outlier.sum()

@@ -133,7 +133,7 @@ def test_deskew_then_register_recovers_true_transform(tmp_path: Path, backend: s
                                                       clip_lakes: dict[str, Path]) -> None:
     lake = _copy(clip_lakes["pair"], tmp_path / "lake")
     run_deskew(lake, CLIP)
-    rep = run_register(lake, CLIP, RegisterConfig(backend=backend))  # type: ignore[arg-type,unused-ignore]
+    rep = run_register(lake, CLIP, RegisterConfig.model_validate({"gicp": {"backend": backend}}))
     regs = lake.read_table("clean", "registrations", clip_id=CLIP).to_pylist()
     assert len(regs) == 3 and rep.metrics["n_accepted"] == 3
     for r in regs:

@@ -10,8 +10,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tests.test_register import cast_scan, drive, lidar_pose, make_street
-from v2xlake.tasks.register.backends import GicpParams, make_backend
-from v2xlake.tasks.register.core import QualityLimits, refine
+from v2xlake.tasks.register.backends import make_backend
+from v2xlake.tasks.register.config import GicpSection, QualitySection
+from v2xlake.tasks.register.core import refine
 from v2xlake.tasks.register.static import (
     MovingBoxes,
     above_ground,
@@ -113,9 +114,9 @@ def test_nan_and_inf_points_never_reach_a_backend() -> None:
     dirty[bad[:250], 0] = np.nan
     dirty[bad[250:], 2] = np.inf
     for name in ("small_gicp", "open3d"):
-        be = make_backend(name, GicpParams())  # type: ignore[arg-type]
+        be = make_backend(name, GicpSection(voxel_m=0.6, source_voxel_m=1.0))  # type: ignore[arg-type]
         res = refine(be, be.prepare(c.ref), be.prepare(dirty, as_target=False), c.T_init,
-                     QualityLimits())
+                     QualitySection())
         assert res.accepted, res.reason
         with pytest.raises(ValueError, match="non-finite"):
             be.prepare_points(np.array([[0.0, 0.0, np.nan]]))
@@ -125,7 +126,7 @@ class _Exploding:
     """A backend whose GICP raises: the frame gets the reason, the caller keeps going."""
 
     name = "exploding"
-    params = GicpParams()
+    params = GicpSection(voxel_m=0.6, source_voxel_m=1.0)
 
     def __init__(self) -> None:
         self._inner = make_backend("small_gicp")
@@ -150,7 +151,7 @@ def test_backend_failure_is_a_per_frame_reason() -> None:
     T_init = np.linalg.inv(t1) @ t2
     res = refine(be, be.prepare(cast_scan(street, t1, n_beams=16, n_cols=360)),  # type: ignore[arg-type]
                  be.prepare(cast_scan(street, t2, n_beams=16, n_cols=360), as_target=False),
-                 T_init, QualityLimits())
+                 T_init, QualitySection())
     assert not res.accepted and "GICP failed: RuntimeError: solver blew up" in res.reason
     np.testing.assert_array_equal(res.T_final, T_init)
 

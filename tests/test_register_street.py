@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -20,13 +21,22 @@ from tests.fixtures.street import (
     street_config,
     summary,
 )
+from v2xlake.schemas.config import merge_params
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.register.stage import RegisterConfig, run_register
 
 CID = "street_hard"
 # the test clip's scans are sparse (32 beams x 1 deg): a voxel must hold a few of their points
 # (0.6 / 1.0 m); the 0.3 m default is for full-size scans (64-128 beams, 0.2-0.35 deg)
-SPARSE = {"voxel_m": 0.6, "source_voxel_m": 1.0}
+SPARSE = {"gicp": {"voxel_m": 0.6, "source_voxel_m": 1.0}}
+
+
+def cfg(*parts: dict[str, Any]) -> RegisterConfig:
+    """The register config of nested parameter sections, later parts on top."""
+    merged: dict[str, Any] = {}
+    for part in parts:
+        merged = merge_params(merged, part)
+    return RegisterConfig.model_validate(merged)
 
 
 @pytest.fixture(scope="module")
@@ -48,17 +58,17 @@ def test_per_frame_gicp_fails_and_static_filtering_counts(street: tuple[Path, Pa
     filtering (annotated boxes; without annotations the neighbouring-scan test and the
     declared bodies) is counted per frame."""
     lake = _lake(street, tmp_path)
-    per_frame = {"clip_solve": False}
-    run_register(lake, CID, RegisterConfig(**per_frame, **SPARSE, static_only=False))  # type: ignore[arg-type]
+    per_frame = {"solve": {"enabled": False}}
+    run_register(lake, CID, cfg(per_frame, SPARSE, {"static": {"enabled": False}}))
     gated = registration_errors(lake, street[1], CID)
     rejected = [e for e in gated if not e.accepted]
     assert len(rejected) >= 5 and all("degenerate" in e.reason for e in rejected)
     assert all(e.final_m > 0.2 for e in rejected)  # eq. 1a kept
     got = {}
-    for name, kw in (("all points", {"static_only": False}), ("annotations", {}),
-                     ("no annotations", {"use_annotations": False})):
-        rep = run_register(lake, CID, RegisterConfig(**per_frame, **SPARSE, min_observability=0.0,
-                                                     **kw))  # type: ignore[arg-type]
+    for name, kw in (("all points", {"static": {"enabled": False}}), ("annotations", {}),
+                     ("no annotations", {"static": {"use_annotations": False}})):
+        rep = run_register(lake, CID, cfg(per_frame, SPARSE,
+                                          {"quality": {"min_observability": 0.0}}, kw))
         errs = registration_errors(lake, street[1], CID)
         got[name] = (sum(e.within() for e in errs), max(e.final_m for e in errs), rep.metrics)
         print(f"{name}: {summary(errs)}; removed boxes {rep.metrics['removed_boxes']:.0f}, "
@@ -108,7 +118,7 @@ def test_clip_solve_meets_the_targets(street: tuple[Path, Path], tmp_path: Path)
     from v2xlake.tasks.simulate.truth import load_truth
 
     lake = _lake(street, tmp_path)
-    rep = run_register(lake, CID, RegisterConfig(**SPARSE))
+    rep = run_register(lake, CID, cfg(SPARSE))
     _check_clip_solve(lake, street[1])
     rows = lake.read_table("clean", "registrations", clip_id=CID).to_pylist()
     for r in rows:  # recorded per frame: initial, final, information, weight, reason
@@ -142,7 +152,7 @@ def test_clip_solve_meets_the_targets(street: tuple[Path, Path], tmp_path: Path)
 
 def test_clip_solve_without_annotations(street: tuple[Path, Path], tmp_path: Path) -> None:
     lake = _lake(street, tmp_path)
-    rep = run_register(lake, CID, RegisterConfig(**SPARSE, use_annotations=False))
+    rep = run_register(lake, CID, cfg(SPARSE, {"static": {"use_annotations": False}}))
     assert rep.metrics["removed_boxes"] == 0 and rep.metrics["removed_dynamic"] > 0
     _check_clip_solve(lake, street[1])
 
@@ -163,7 +173,7 @@ def test_refined_calibration_is_what_consumers_read(street: tuple[Path, Path],
     before = read_clip(lake, CID).agents["black"]
     assert before.calibration_source["LIDAR_TOP"] == "published"
     assert transform_delta(T_true, before.sensors["LIDAR_TOP"].T_ego_sensor)[0] > 0.1
-    run_register(lake, CID, RegisterConfig(**SPARSE))
+    run_register(lake, CID, cfg(SPARSE))
     after = read_clip(lake, CID).agents["black"]
     assert after.calibration_source["LIDAR_TOP"] == "refined"
     m, d = transform_delta(T_true, after.sensors["LIDAR_TOP"].T_ego_sensor)
@@ -204,7 +214,7 @@ def test_redeskew_with_the_refined_extrinsic(street: tuple[Path, Path], tmp_path
     """``redeskew``: the miscalibrated agent's scans are deskewed again with the refined
     extrinsic and the clip measured and solved once more; the targets still hold."""
     lake = _lake(street, tmp_path)
-    rep = run_register(lake, CID, RegisterConfig(**SPARSE, redeskew=True, redeskew_min_shift_m=0.0))
+    rep = run_register(lake, CID, cfg(SPARSE, {"redeskew": {"enabled": True, "min_shift_m": 0.0}}))
     assert any(n.startswith("re-deskewed with the refined extrinsic") for n in rep.notes)
     _check_clip_solve(lake, street[1])
 
@@ -234,7 +244,7 @@ def test_ins_step_is_modelled_not_absorbed(street: tuple[Path, Path], tmp_path: 
             v[step] += 0.3 * frac
             t = t.set_column(t.column_names.index(col), col, pa.array(v, pa.float64()))
         pq.write_table(t, f)
-    rep = run_register(lake, CID, RegisterConfig(**SPARSE))
+    rep = run_register(lake, CID, cfg(SPARSE))
     notes = [n for n in rep.notes if n.startswith("INS step of black")]
     assert len(notes) == 1 and "30.0 cm" in notes[0], rep.notes
     assert not any(n.startswith("INS step of red") for n in rep.notes)

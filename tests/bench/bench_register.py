@@ -43,8 +43,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import numpy as np
 
 from tests.test_register import drive
-from v2xlake.tasks.register.backends import GicpParams, make_backend
-from v2xlake.tasks.register.core import QualityLimits, refine, transform_delta
+from v2xlake.tasks.register.backends import make_backend
+from v2xlake.tasks.register.config import GicpSection, QualitySection
+from v2xlake.tasks.register.core import refine, transform_delta
 
 
 def street(args: argparse.Namespace) -> None:
@@ -80,14 +81,14 @@ def street(args: argparse.Namespace) -> None:
     print(f"hard street: {len(ref.frames)} frames, {n_pts:.0f} points per scan, one core")
     rows = []
     for name, kw in (("small_gicp, clip solve", {}),
-                     ("small_gicp, per frame (gate off)", {"clip_solve": False,
-                                                           "min_observability": 0.0}),
-                     ("small_gicp, per frame, all points", {"clip_solve": False,
-                                                            "min_observability": 0.0,
-                                                            "static_only": False}),
-                     ("small_gicp, clip, no annotations", {"use_annotations": False}),
-                     ("open3d, clip solve", {"backend": "open3d"})):
-        rep = run_register(lake, cid, RegisterConfig(write_bev=False, **kw))
+                     ("small_gicp, per frame (gate off)", {
+                         "solve": {"enabled": False}, "quality": {"min_observability": 0.0}}),
+                     ("small_gicp, per frame, all points", {
+                         "solve": {"enabled": False}, "quality": {"min_observability": 0.0},
+                         "static": {"enabled": False}}),
+                     ("small_gicp, clip, no annotations", {"static": {"use_annotations": False}}),
+                     ("open3d, clip solve", {"gicp": {"backend": "open3d"}})):
+        rep = run_register(lake, cid, RegisterConfig.model_validate({"write_bev": False, **kw}))
         errs = registration_errors(lake, clip, cid)
         m = rep.metrics
         e = np.array([(x.final_m, x.final_deg) for x in errs])
@@ -292,8 +293,8 @@ def main() -> None:
     from v2xlake.tasks.register.stage import RegisterConfig
 
     # the voxels the register stage uses by default: the speed a user gets
-    ap.add_argument("--voxel", type=float, default=RegisterConfig().voxel_m)
-    ap.add_argument("--source-voxel", type=float, default=RegisterConfig().source_voxel_m)
+    ap.add_argument("--voxel", type=float, default=RegisterConfig().gicp.voxel_m)
+    ap.add_argument("--source-voxel", type=float, default=RegisterConfig().gicp.source_voxel_m)
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
@@ -309,7 +310,7 @@ def main() -> None:
     n_pts = np.mean([len(c.ref) for c in cases] + [len(c.other) for c in cases])
     print(f"{len(cases)} pairs, {n_pts:.0f} points per scan on average "
           f"(ray casting took {time.perf_counter() - t:.1f} s), voxel {args.voxel} m, one core")
-    params = GicpParams(voxel_m=args.voxel, source_voxel_m=args.source_voxel)
+    params = GicpSection(voxel_m=args.voxel, source_voxel_m=args.source_voxel)
     rows: list[tuple[Any, ...]] = []
     for name in ("small_gicp", "open3d"):
         be = make_backend(name, params)  # type: ignore[arg-type,unused-ignore]
@@ -319,7 +320,7 @@ def main() -> None:
             t0 = time.perf_counter()
             a, b = be.prepare(c.ref), be.prepare(c.other, as_target=False)
             t1 = time.perf_counter()
-            res = refine(be, a, b, c.T_init, QualityLimits(), warm)
+            res = refine(be, a, b, c.T_init, QualitySection(), warm)
             t2 = time.perf_counter()
             warm = res.correction if res.accepted else None
             prep.append(t1 - t0)

@@ -2,16 +2,15 @@
 quality control and the Fig. 5 bird's-eye view. The lake stage is :mod:`tasks.register.stage`."""
 
 from v2xlake.tasks.register.backends import (
-    GicpParams,
     Open3dBackend,
     RegistrationBackend,
     SmallGicpBackend,
     make_backend,
 )
 from v2xlake.tasks.register.bev import render_registration_bev
+from v2xlake.tasks.register.config import GicpSection, QualitySection, RegisterConfig
 from v2xlake.tasks.register.core import (
     PairResult,
-    QualityLimits,
     initial_transform,
     initial_transform_at,
     refine,
@@ -20,10 +19,11 @@ from v2xlake.tasks.register.core import (
 from v2xlake.tasks.register.voxel import voxel_downsample
 
 __all__ = [
-    "GicpParams",
+    "GicpSection",
     "Open3dBackend",
     "PairResult",
-    "QualityLimits",
+    "QualitySection",
+    "RegisterConfig",
     "RegistrationBackend",
     "SmallGicpBackend",
     "initial_transform",

@@ -25,25 +25,11 @@ from typing import Any, Literal, Protocol
 import numpy as np
 
 from v2xlake.tasks.geometry import se3_adjoint
+from v2xlake.tasks.register.config import GicpSection
 from v2xlake.tasks.register.voxel import voxel_downsample
 
 BackendName = Literal["small_gicp", "open3d"]
-
-
-@dataclass(frozen=True)
-class GicpParams:
-    """Target (reference scan) voxel finer than source voxel: the target gives the surfaces
-    correspondences land on, the source only needs enough well-spread points; per-point
-    covariance estimation (~2 us/point) dominates the cost, so this split is what brings
-    a 225k-point pair under 0.1 s on one core (bench_register.py)."""
-
-    voxel_m: float = 0.6  # target
-    source_voxel_m: float = 1.0
-    max_range_m: float = 80.0  # far returns are sparse and noisy; cropping also saves time
-    num_neighbors: int = 10  # covariance estimation
-    max_correspondence_m: float = 1.0
-    max_iterations: int = 30
-    num_threads: int = 1
+DEFAULT_GICP = GicpSection()  # frozen: one shared default
 
 
 @dataclass
@@ -65,7 +51,7 @@ class AlignOutcome:
 
 class RegistrationBackend(Protocol):
     name: str
-    params: GicpParams
+    params: GicpSection
 
     def prepare(self, xyz: np.ndarray, *, as_target: bool = True) -> Prepared: ...
 
@@ -76,7 +62,7 @@ class RegistrationBackend(Protocol):
     def nearest_sq_dist(self, target: Prepared, query: np.ndarray) -> np.ndarray: ...
 
 
-def _downsample(xyz: np.ndarray, p: GicpParams, as_target: bool) -> np.ndarray:
+def _downsample(xyz: np.ndarray, p: GicpSection, as_target: bool) -> np.ndarray:
     return voxel_downsample(xyz, p.voxel_m if as_target else p.source_voxel_m, p.max_range_m)
 
 
@@ -127,7 +113,7 @@ def gicp_information(target_pts: np.ndarray, target_cov: np.ndarray, source_pts:
 class SmallGicpBackend:
     name = "small_gicp"
 
-    def __init__(self, params: GicpParams = GicpParams()) -> None:
+    def __init__(self, params: GicpSection = DEFAULT_GICP) -> None:
         import small_gicp
 
         self._sg = small_gicp
@@ -166,7 +152,7 @@ class SmallGicpBackend:
 class Open3dBackend:
     name = "open3d"
 
-    def __init__(self, params: GicpParams = GicpParams()) -> None:
+    def __init__(self, params: GicpSection = DEFAULT_GICP) -> None:
         import open3d as o3d
 
         self._o3d = o3d
@@ -216,7 +202,7 @@ class Open3dBackend:
 
 
 def make_backend(name: BackendName,
-                 params: GicpParams = GicpParams()) -> RegistrationBackend:
+                 params: GicpSection = DEFAULT_GICP) -> RegistrationBackend:
     if name == "small_gicp":
         return SmallGicpBackend(params)
     if name == "open3d":

@@ -19,6 +19,7 @@ import numpy as np
 from v2xlake.tasks.geometry import apply, compose, invert, rotation_angle
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.register.backends import Prepared, RegistrationBackend
+from v2xlake.tasks.register.config import QualitySection
 
 
 def initial_transform(T_W_I1: np.ndarray, T_W_I2: np.ndarray, T_I1_L1: np.ndarray,
@@ -45,19 +46,6 @@ def transform_delta(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     dt = float(np.linalg.norm(b[:3, 3] - a[:3, 3]))
     ang = float(np.degrees(rotation_angle(compose(b, invert(a)))))
     return dt, ang
-
-
-@dataclass(frozen=True)
-class QualityLimits:
-    """When a GICP refinement is trusted (else the eq. 1a estimate is kept)."""
-
-    fitness_distance_m: float = 0.5  # inlier = nearest target point within this distance
-    min_fitness: float = 0.2  # fraction of (downsampled) source points that are inliers
-    min_inliers: int = 300
-    max_correction_m: float = 1.5  # more than the poses + extrinsics can be wrong by
-    max_correction_deg: float = 5.0
-    # translation observability (see observability()): corridor / open road give ~0
-    min_observability: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -117,7 +105,7 @@ def observability(H: np.ndarray | None) -> float:
 
 
 def refine(backend: RegistrationBackend, target: Prepared, source: Prepared, T_init: np.ndarray,
-           limits: QualityLimits, warm: np.ndarray | None = None) -> PairResult:
+           limits: QualitySection, warm: np.ndarray | None = None) -> PairResult:
     """Eq. 1b with quality control; ``warm`` is the previous frame's left correction."""
     t0 = time.perf_counter()
     starts = [T_init] if warm is None else [warm @ T_init, T_init]
@@ -133,7 +121,7 @@ def refine(backend: RegistrationBackend, target: Prepared, source: Prepared, T_i
 
 
 def _attempt(backend: RegistrationBackend, target: Prepared, source: Prepared,
-             T_init: np.ndarray, start: np.ndarray, limits: QualityLimits) -> PairResult:
+             T_init: np.ndarray, start: np.ndarray, limits: QualitySection) -> PairResult:
     if len(source.points) < limits.min_inliers or len(target.points) < limits.min_inliers:
         return PairResult(T_init, start, T_init.copy(), T_init, 0.0, 0.0, 0, 0.0, 0.0, False,
                           f"too few points after downsampling (source {len(source.points)}, "

@@ -23,6 +23,7 @@ from v2xlake.storage.reader import DESKEWED, read_extrinsics
 from v2xlake.tasks.geometry import apply, invert
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.reader import load_pose_track
+from v2xlake.tasks.register.config import StaticSection
 from v2xlake.tasks.register.static import (
     MovingBoxes,
     RemovalCounts,
@@ -41,22 +42,6 @@ STAGE = "register"
 
 def _fail(clip_id: str, reason: str, agent_id: str | None = None) -> ClipError:
     return ClipError(clip_id, reason, agent_id=agent_id, stage=STAGE)
-
-
-@dataclass(frozen=True)
-class StaticSettings:
-    """What static-scene filtering does (from ``RegisterConfig``)."""
-
-    enabled: bool = True
-    use_annotations: bool = True
-    box_margin_m: float = 0.3
-    body_margin_m: float = 0.6
-    dynamic: str = "auto"  # auto | on | off
-    dynamic_residual_m: float = 0.5
-    dynamic_neighbours: int = 2
-    dynamic_voxel_m: float = 0.25
-    dynamic_object_fraction: float = 0.25
-    max_range_m: float = 80.0
 
 
 @dataclass(frozen=True)
@@ -194,10 +179,11 @@ class StaticScans:
     Keeps a small window of fine clouds (``dynamic_voxel_m``) of neighbouring frames for the
     consistency test; frames are expected roughly in order (each is read once then)."""
 
-    def __init__(self, scans: AgentScans, settings: StaticSettings,
+    def __init__(self, scans: AgentScans, settings: StaticSection,
                  bodies: list[tuple[AgentScans, Body]],
-                 redeskew_with: np.ndarray | None = None) -> None:
+                 redeskew_with: np.ndarray | None = None, max_range_m: float = 80.0) -> None:
         self.scans, self.s = scans, settings
+        self.max_range_m = max_range_m
         self.bodies = bodies
         self.redeskew_with = redeskew_with
         self._fine: OrderedDict[int, tuple[np.ndarray, object]] = OrderedDict()
@@ -226,7 +212,7 @@ class StaticScans:
 
             xyz, _ = self._points(f)
             pts = voxel_downsample_t(xyz, None, self.s.dynamic_voxel_m,
-                                     self.s.max_range_m + 10.0)[0]
+                                     self.max_range_m + 10.0)[0]
             self._fine[f] = (pts, cKDTree(pts, balanced_tree=False, compact_nodes=False))
             while len(self._fine) > 2 * self.s.dynamic_neighbours + 2:
                 self._fine.popitem(last=False)
@@ -253,7 +239,7 @@ class StaticScans:
         ref_ns = self.scans.frames[f][1]
         t0 = time.perf_counter()
         pts, t_s = voxel_downsample_t(xyz, (t_ns - ref_ns) * 1e-9 if len(t_ns) else None,
-                                      voxel_m, self.s.max_range_m)
+                                      voxel_m, self.max_range_m)
         t1 = time.perf_counter()
         self.seconds["voxel"] += t1 - t0
         try:

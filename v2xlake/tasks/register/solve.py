@@ -27,7 +27,7 @@ its GICP information ``W`` (left perturbation in the target frame, see ``backend
   leaves the extrinsic's z and the INS height bias indistinguishable: the prior decides and
   the covariance says so).
 
-Priors (metric, ``SolveSettings``): extrinsic corrections, attitude bias, the drift's level,
+Priors (metric, ``SolveSection``): extrinsic corrections, attitude bias, the drift's level,
 rate and acceleration between knots. A degenerate frame (blind along the street) contributes
 nothing in its blind direction, which the smooth ``v_a`` and the constant ``eps_a`` carry over
 from frames that see it (turns, intersections, poles).
@@ -63,6 +63,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from v2xlake.tasks.geometry import compose, invert, se3_adjoint, so3_exp, so3_log
+from v2xlake.tasks.register.config import SolveSection
 
 
 # ------------------------------------------------------------------ small SE(3) kit
@@ -101,6 +102,8 @@ class CrossMeasurement:
         return self.Z is not None and self.W is not None and bool(np.isfinite(self.W).all())
 
 
+DEFAULT_SOLVE = SolveSection()  # frozen: one shared default
+
 @dataclass(frozen=True)
 class OdoMeasurement:
     """An agent's own scans at t0 and t1: GICP's ``T_La(t0)_La(t1)`` and its information."""
@@ -112,46 +115,6 @@ class OdoMeasurement:
     M1: np.ndarray
     Z: np.ndarray
     W: np.ndarray
-
-
-@dataclass(frozen=True)
-class SolveSettings:
-    knot_s: float = 1.0
-    prior_ext_m: float = 0.3
-    prior_ext_deg: float = 2.0
-    prior_att_deg: float = 0.05
-    prior_pos_m: float = 2.0
-    prior_drift_mps: float = 0.2
-    prior_drift_accel: float = 0.01  # m/s^2
-    robust_scale: float = 3.0  # Cauchy scale, in standard deviations of a frame's residual
-    outlier_p: float = 1e-3
-    irls_iterations: int = 4
-    min_for_variance: int = 20  # measurements needed to estimate the variance factor
-    max_iterations: int = 20  # Gauss-Newton steps per reweighting
-    odometry_weight: float = 1.0
-    # what a GICP result is never better than, whatever its Hessian says (systematic error)
-    floor_m: float = 0.01
-    floor_deg: float = 0.02
-    degenerate_ratio: float = 0.02
-    # non-holonomic: on straight driving the body moves along its own x axis, so the LiDAR's
-    # own displacement direction fixes the extrinsic's yaw and pitch (INS-free)
-    nonholonomic_deg: float = 0.1  # 1-sigma of the direction, per straight odometry pair
-    straight_deg: float = 1.0  # an odometry pair turning less than this is straight
-    nonholonomic_min_m: float = 2.0
-    # the LiDAR's height above the ground (per agent, median over its scans) against its
-    # declared body (ground to roof): the extrinsic's z; 1-sigma for suspension, road crown
-    ground_sigma_m: float = 0.02
-    # acceptance of a frame's clip estimate (see ``bracketing``): the 1-sigma a frame's own
-    # GICP must reach along a direction to count as observing it, and how far in time the
-    # clip may carry a direction from frames that observed it (on both sides) to one that
-    # did not; nothing is carried beyond the observed frames (no extrapolation)
-    final_max_std_m: float = 0.02
-    final_max_std_deg: float = 0.05
-    max_bridge_s: float = 3.0
-    # GICP errors of consecutive frames are correlated (the same facades and poles, the same
-    # voxel aliasing): frames within this many seconds count as one measurement in the
-    # reported covariance of a frame's clip estimate (not in the estimate itself)
-    correlation_s: float = 2.0
 
 
 @dataclass
@@ -195,7 +158,7 @@ class _Problem:
 
     def __init__(self, agents: list[str], extr: dict[str, np.ndarray],
                  cross: list[CrossMeasurement], odo: list[OdoMeasurement],
-                 s: SolveSettings, ref: str,
+                 s: SolveSection, ref: str,
                  steps: list[tuple[str, float]] | None = None) -> None:
         self.agents, self.s, self.ref = agents, s, ref
         times = [c.t_s for c in cross] + [c.t_oth_s or c.t_s for c in cross]
@@ -490,7 +453,7 @@ def _cauchy_weight(chi: np.ndarray, c: float) -> np.ndarray:
 
 def solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
                cross: list[CrossMeasurement], odo: list[OdoMeasurement],
-               settings: SolveSettings = SolveSettings(),
+               settings: SolveSection = DEFAULT_SOLVE,
                ground: dict[str, tuple[float, float]] | None = None,
                steps: list[tuple[str, float]] | None = None) -> ClipSolution:
     """Fuse a clip's per-frame GICP measurements (see the module doc). ``ground``: per agent
@@ -506,7 +469,7 @@ def solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
 
 def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
                 cross: list[CrossMeasurement], odo: list[OdoMeasurement],
-                settings: SolveSettings, ground: dict[str, tuple[float, float]],
+                settings: SolveSection, ground: dict[str, tuple[float, float]],
                 steps: list[tuple[str, float]]) -> ClipSolution:
     t_start = time.perf_counter()
     s = settings
@@ -681,7 +644,7 @@ def _other(sl: slice) -> slice:
 
 
 def bracketing(cross: list[CrossMeasurement], info: np.ndarray, outlier: np.ndarray,
-               E_ref: np.ndarray, s: SolveSettings) -> list[str]:
+               E_ref: np.ndarray, s: SolveSection) -> list[str]:
     """No extrapolation: a direction (world axes) that frame k's own GICP did not observe
     (1-sigma of its own information above ``final_max_std_*``: degenerate, marginalised, or
     no measurement at all) may come from the clip solve only when frames of the same agent

@@ -15,10 +15,9 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 from scipy.stats import chi2, norm
 
 from v2xlake.schemas.arrow import rows_to_table
@@ -28,11 +27,11 @@ from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import pose_missing, read_extrinsics
 from v2xlake.tasks.geometry import invert, matrix_to_quat, rotation_angle, transform
 from v2xlake.tasks.interpolate import PoseTrack
-from v2xlake.tasks.register.backends import GicpParams, Prepared, RegistrationBackend, make_backend
+from v2xlake.tasks.register.backends import Prepared, RegistrationBackend, make_backend
 from v2xlake.tasks.register.bev import render_registration_bev
+from v2xlake.tasks.register.config import RegisterConfig
 from v2xlake.tasks.register.core import (
     PairResult,
-    QualityLimits,
     failed_pair,
     initial_transform_at,
     refine,
@@ -43,14 +42,12 @@ from v2xlake.tasks.register.scans import (
     AgentScans,
     Body,
     StaticScans,
-    StaticSettings,
     _fail,
 )
 from v2xlake.tasks.register.solve import (
     ClipSolution,
     CrossMeasurement,
     OdoMeasurement,
-    SolveSettings,
     se3_exp,
     solve_clip,
 )
@@ -60,214 +57,6 @@ from v2xlake.tasks.register.timeline import render_registration_timeline
 log = logging.getLogger(__name__)
 
 STAGE = "register"
-
-
-class RegisterConfig(BaseModel):
-    """Parameters of the register stage (hashed into the manifest)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    backend: Literal["small_gicp", "open3d"] = Field(
-        "small_gicp", description="GICP implementation; small_gicp is ~1.4x faster here")
-    sensor: str | None = Field(None, description="LiDAR to register; default LIDAR_TOP or the "
-                                                 "agent's only LiDAR")
-    voxel_m: float = Field(
-        0.3, gt=0, description="target (reference scan) voxel size. Coarse voxels bias the "
-        "relative pose along a street: a voxel's centroid on poles, car bodies and wall "
-        "edges depends on the side each agent saw it from. Measured on the cooperative "
-        "boulevard (64 x 1024 scans): 0.6 / 1.0 m left the frames' GICP 2.2 cm off along "
-        "the street (median) and 9 of 100 frames 3.1-3.3 cm off; 0.3 / 0.3 m 0.7 cm, none "
-        "beyond 2.8 cm, at about 3x the GICP time")
-    source_voxel_m: float = Field(0.3, gt=0, description="source (other scan) voxel size")
-    max_range_m: float = Field(80.0, gt=0)
-    num_neighbors: int = Field(10, ge=5, description="neighbours per covariance")
-    max_correspondence_m: float = Field(1.0, gt=0)
-    max_iterations: int = Field(30, ge=1)
-    fitness_distance_m: float = Field(0.5, gt=0)
-    min_fitness: float = Field(0.2, ge=0, le=1)
-    min_inliers: int = Field(300, ge=0)
-    max_correction_m: float = Field(1.5, gt=0)
-    max_correction_deg: float = Field(5.0, gt=0)
-    min_observability: float = Field(
-        0.02, ge=0, le=1, description="per-frame mode (clip_solve off): reject when the "
-        "overlapping surfaces leave a translation direction unconstrained (corridor, open "
-        "road); with the clip solve the information matrix weighs it instead")
-    warm_start: bool = True
-    pair_tolerance_ns: int = Field(1_000_000, ge=0,
-                                   description="scan starts closer than this are one pair")
-    bev_frame: int | None = Field(None, description="reference frame of the BEV picture "
-                                                    "(default: the middle pair)")
-    write_bev: bool = True
-    intra_agent: bool = Field(True, description="refine every secondary LiDAR of an agent "
-                              "against its primary (register.intra_stage, issue #27)")
-    intra_frames: int = Field(3, ge=1, description="frame pairs pooled per secondary LiDAR")
-    # static scene only (issue #13): what moves is removed before GICP
-    static_only: bool = Field(True, description="remove moving things before GICP")
-    use_annotations: bool = Field(True, description="remove the scan's annotated boxes")
-    box_margin_m: float = Field(0.3, ge=0, description="annotated boxes are grown by this")
-    body_margin_m: float = Field(0.6, ge=0, description="other agents' declared bodies, placed "
-                                 "by their INS poses, are grown by this")
-    dynamic_filter: Literal["auto", "on", "off"] = Field(
-        "auto", description="remove points inconsistent with the neighbouring scans of the same "
-                            "agent; auto: in frames without annotations")
-    dynamic_residual_m: float = Field(0.5, gt=0, description="a point farther than this from "
-                                      "the earlier AND the later neighbouring scans is moving")
-    dynamic_neighbours: int = Field(2, ge=1, description="scans on each side compared")
-    dynamic_voxel_m: float = Field(0.25, gt=0, description="voxel of the neighbouring scans")
-    covisible: bool = Field(
-        True, description="GICP between two agents on the surfaces both see from the same "
-        "side only: a pole or parked car between the agents is seen from opposite sides, two "
-        "surfaces a diameter apart that GICP pulls together (measured on the cooperative "
-        "boulevard: 2 cm along the street with the agents 20 m apart, 9-12 cm at 50 m)")
-    dynamic_object_fraction: float = Field(
-        0.25, gt=0, le=1, description="an above-ground object (connected in bird's-eye view) "
-        "with this fraction of moving points is removed whole (1: per point only)")
-
-    # the clip-level solve (issue #13)
-    clip_solve: bool = Field(True, description="fuse the frames (constant extrinsic "
-                             "corrections + smooth INS error); off: frame by frame with a gate")
-    relative_solve: bool = Field(
-        True, description="per-frame relative transforms from a solve of the cross-agent "
-        "frames alone (odometry, non-holonomic and ground constraints only split the "
-        "extrinsic); off: one solve gives both")
-    redeskew: bool = Field(
-        True, description="when the clip finds an agent's LiDAR rotation wrong by enough to "
-        "smear its deskewed scans (redeskew_min_shift_m), deskew that agent's scans again with "
-        "the refined extrinsic (deskew's kernel, backwards then forwards) and measure and solve "
-        "once more (twice the GICP time, spent only then). Deskew moves each point by the ego "
-        "motion expressed in the LiDAR frame, so a yaw error of the extrinsic turns that motion: "
-        "a 1.5 deg error at 16 m/s biased every cooperative GICP by 2.4 cm sideways")
-    redeskew_min_shift_m: float = Field(
-        0.02, ge=0, description="... re-deskew when the refined rotation (all of rx ry rz "
-        "determined, the fit consistent) moves the points at the end of a scan by at least this "
-        "(rotation correction times the agent's largest travel during one scan)")
-    odometry_every: int = Field(5, ge=0, description="an agent's own scan-to-scan GICP every "
-                                "n frames (hand-eye: separates extrinsic from INS error; 0 off)")
-    odometry_gap: int = Field(5, ge=1, description="frames between the two scans of odometry")
-    odometry_straight_every: int = Field(
-        5, ge=1, description="... on straight driving (INS rotation over the gap under "
-        "odometry_turn_deg) only every n frames (10 saves a third of the odometry on the hard "
-        "street but its extrinsic ends 1.1 cm off instead of 0.9: straight pairs carry the "
-        "non-holonomic yaw)")
-    odometry_turn_deg: float = Field(1.0, gt=0, description="see odometry_straight_every")
-    knot_s: float = Field(1.0, gt=0, description="INS error knots (piecewise linear) every")
-    prior_ext_m: float = Field(0.3, gt=0, description="extrinsic correction prior, 1-sigma")
-    prior_ext_deg: float = Field(2.0, gt=0, description="extrinsic correction prior, 1-sigma")
-    prior_att_deg: float = Field(0.05, gt=0, description="INS attitude bias prior, 1-sigma")
-    prior_pos_m: float = Field(2.0, gt=0, description="INS position error prior, 1-sigma")
-    prior_drift_mps: float = Field(0.2, gt=0, description="INS drift rate prior, 1-sigma")
-    prior_drift_accel: float = Field(
-        0.01, gt=0, description="INS drift rate change (m/s^2), 1-sigma: an INS velocity error "
-        "changes by about a centimetre per second per second")
-    robust_scale: float = Field(3.0, gt=0, description="Cauchy scale of a frame's whitened "
-                                "residual (standard deviations)")
-    outlier_p: float = Field(1e-3, gt=0, lt=1, description="leave-one-out test: a frame is an "
-                             "outlier above the chi^2(6) quantile 1 - p")
-    irls_iterations: int = Field(4, ge=1)
-    gicp_floor_m: float = Field(0.01, gt=0, description="a GICP result's error floor, whatever "
-                                "its Hessian says (voxels, deskew residuals, what filtering left)")
-    gicp_floor_deg: float = Field(0.02, gt=0, description="... and its rotation floor")
-    ground_sigma_m: float = Field(
-        0.02, gt=0, description="clip solve: the LiDAR's measured height above the ground vs "
-        "the agent's declared body (ground to roof) fixes the extrinsic's z; 1-sigma")
-    nonholonomic_deg: float = Field(
-        0.1, gt=0, description="clip solve: on straight driving the body moves along its own "
-        "x axis; 1-sigma (deg) of that direction per straight odometry pair (fixes the "
-        "extrinsic's yaw and pitch without the INS heading)")
-    degenerate_ratio: float = Field(
-        0.02, ge=0, lt=1, description="clip solve: a GICP result carries no information in "
-        "directions weaker than this fraction of its strongest (the slide along a street)")
-    final_max_std_m: float = Field(0.02, gt=0, description="a frame's final estimate is "
-                                   "accepted when its 1-sigma (translation) is below this")
-    final_max_std_deg: float = Field(0.05, gt=0, description="... and its rotation 1-sigma")
-    max_bridge_s: float = Field(
-        3.0, gt=0, description="no extrapolation: a direction a frame's own GICP did not "
-        "observe (own 1-sigma above final_max_std_m/deg: blind along the street, or no "
-        "measurement) is taken from the clip solve only when frames that observed it lie "
-        "before AND after it within this many seconds; otherwise the frame is not accepted. "
-        "On the test clip the frames that do not observe every direction themselves come in "
-        "runs of at most 4 (0.4 s), so its targets hold for any bridge over 0.5 s; 3 s is "
-        "about one pole spacing (30-45 m) at 10 m/s: a blind stretch between two poles is "
-        "bridged, a longer one (or the clip's ends) is not")
-    gicp_correlation_s: float = Field(
-        2.0, gt=0, description="GICP errors of consecutive frames are correlated (the same "
-        "facades and poles, the same voxel aliasing): in the reported 1-sigma of a frame's "
-        "clip estimate the frames within this many seconds count as one measurement (the "
-        "estimate itself is unchanged). Measured on the hard street: runs of 1-2 s of frames "
-        "off by 4-19 cm with the same sign while GICP claims 1.6 cm; 1 s still accepted frames "
-        "3-5 cm off at the edge of such a run (black 20 m behind), 2 s none")
-    ins_step_m: float = Field(
-        0.05, gt=0, description="an INS step: a pose-to-pose displacement that differs from "
-        "the mean of its two neighbouring displacements (scaled by time) by more than this; "
-        "the clip solve then gives that agent's INS error a free offset from the step on "
-        "(not absorbed into the extrinsic) and the report notes it")
-    refined_max_variance_factor: float = Field(
-        4.0, gt=0, description="refined calibration usable only when the fit is consistent: "
-        "the clip's variance factor (median GICP residual chi^2 / its expectation) at most "
-        "this")
-    refined_max_outlier_fraction: float = Field(
-        0.1, ge=0, le=1, description="... and at most this fraction of the frames the agent "
-        "takes part in are leave-one-out outliers (a run of them is an unmodelled INS error)")
-    refined_require_all: bool = Field(
-        False, description="refined calibration usable only when every component (rx ry rz "
-        "tx ty tz) was determined. Off (default): the components the clip determined are used "
-        "and the others keep the published value (named in the reason; their unknown error is "
-        "not in the 1-sigma). Driving straight, a cooperative vehicle's extrinsic x / y cannot "
-        "be told from an INS offset while its yaw can: keeping the whole published extrinsic "
-        "then put the yaw error (0.4 deg on the boulevard) into every consumer of the agent's "
-        "pose, its cameras included")
-    refined_significance: float = Field(
-        2.0, gt=0, description="a correction whose Mahalanobis norm over the determined "
-        "components is below this (in sigma, per chi^2 quantile of that dimension) is not "
-        "significant: the published extrinsic is kept (correction zeroed, the clip confirms "
-        "the published one within its 1-sigma)")
-    refined_determined_fraction: float = Field(
-        0.3, gt=0, le=1, description="an extrinsic component is refined when the clip reduced "
-        "its 1-sigma below this fraction of the prior; the others keep the published value")
-    refined_max_std_m: float = Field(0.03, gt=0, description="refined calibration usable when "
-                                     "its refined translation components' 1-sigma are below")
-    refined_max_std_deg: float = Field(0.1, gt=0, description="... and rotation components'")
-
-    def solve_settings(self) -> SolveSettings:
-        return SolveSettings(knot_s=self.knot_s, prior_ext_m=self.prior_ext_m,
-                             prior_ext_deg=self.prior_ext_deg, prior_att_deg=self.prior_att_deg,
-                             prior_pos_m=self.prior_pos_m, prior_drift_mps=self.prior_drift_mps,
-                             prior_drift_accel=self.prior_drift_accel,
-                             robust_scale=self.robust_scale, outlier_p=self.outlier_p,
-                             irls_iterations=self.irls_iterations, floor_m=self.gicp_floor_m,
-                             floor_deg=self.gicp_floor_deg,
-                             degenerate_ratio=self.degenerate_ratio,
-                             nonholonomic_deg=self.nonholonomic_deg,
-                             ground_sigma_m=self.ground_sigma_m,
-                             final_max_std_m=self.final_max_std_m,
-                             final_max_std_deg=self.final_max_std_deg,
-                             max_bridge_s=self.max_bridge_s,
-                             correlation_s=self.gicp_correlation_s)
-
-    def gicp(self) -> GicpParams:
-        return GicpParams(voxel_m=self.voxel_m, source_voxel_m=self.source_voxel_m,
-                          max_range_m=self.max_range_m, num_neighbors=self.num_neighbors,
-                          max_correspondence_m=self.max_correspondence_m,
-                          max_iterations=self.max_iterations, num_threads=1)
-
-    def static(self) -> StaticSettings:
-        return StaticSettings(enabled=self.static_only, use_annotations=self.use_annotations,
-                              box_margin_m=self.box_margin_m, body_margin_m=self.body_margin_m,
-                              dynamic=self.dynamic_filter,
-                              dynamic_residual_m=self.dynamic_residual_m,
-                              dynamic_neighbours=self.dynamic_neighbours,
-                              dynamic_voxel_m=self.dynamic_voxel_m,
-                              dynamic_object_fraction=self.dynamic_object_fraction,
-                              max_range_m=self.max_range_m)
-
-    def limits(self, gate: bool = True) -> QualityLimits:
-        """Quality limits of one GICP result; without ``gate`` degeneracy does not reject
-        (the clip solve weighs each direction by the information instead)."""
-        return QualityLimits(fitness_distance_m=self.fitness_distance_m,
-                             min_fitness=self.min_fitness, min_inliers=self.min_inliers,
-                             max_correction_m=self.max_correction_m,
-                             max_correction_deg=self.max_correction_deg,
-                             min_observability=self.min_observability if gate else 0.0)
 
 
 def _pairs(ref: AgentScans, other: AgentScans, tol: int) -> list[tuple[int, int]]:
@@ -314,10 +103,10 @@ def _row(clip_id: str, ref: str, p: _Pair, k: int, sol: ClipSolution | None,
                 f"outlier: its GICP result disagrees with the clip solution of the other frames "
                 f"(leave-one-out chi2 {sol.loo_chi2[k]:.0f} > {sol.loo_limit:.0f}); clip "
                 "estimate kept, not exported")
-        elif std_m > cfg.final_max_std_m or std_deg > cfg.final_max_std_deg:
+        elif std_m > cfg.solve.final_max_std_m or std_deg > cfg.solve.final_max_std_deg:
             accepted, reason = False, (
                 f"uncertain: clip estimate 1-sigma {std_m * 100:.1f} cm / {std_deg:.3f} deg > "
-                f"{cfg.final_max_std_m * 100:.1f} cm / {cfg.final_max_std_deg} deg")
+                f"{cfg.solve.final_max_std_m * 100:.1f} cm / {cfg.solve.final_max_std_deg} deg")
         elif k < len(sol.unbracketed) and sol.unbracketed[k]:
             accepted, reason = False, sol.unbracketed[k]
         elif not meas.usable:
@@ -343,8 +132,8 @@ def _row(clip_id: str, ref: str, p: _Pair, k: int, sol: ClipSolution | None,
 def _fit_consistent(cfg: RegisterConfig, sol: ClipSolution, agent: str) -> bool:
     """The clip's fit explains its measurements (variance factor) and few of the agent's
     frames are outliers: the condition for trusting its extrinsic correction at all."""
-    return sol.variance_factor <= cfg.refined_max_variance_factor \
-        and sol.outlier_fraction.get(agent, 0.0) <= cfg.refined_max_outlier_fraction
+    return sol.variance_factor <= cfg.calibration.max_variance_factor \
+        and sol.outlier_fraction.get(agent, 0.0) <= cfg.calibration.max_outlier_fraction
 
 
 def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
@@ -354,18 +143,18 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
     when significant; ``usable`` also needs a consistent fit and small enough 1-sigma (every
     component determined with ``refined_require_all``); why not goes to ``notes``."""
     rows = []
-    prior = np.array([np.radians(cfg.prior_ext_deg)] * 3 + [cfg.prior_ext_m] * 3)
+    prior = np.array([np.radians(cfg.solve.prior_ext_deg)] * 3 + [cfg.solve.prior_ext_m] * 3)
     names = ("rx", "ry", "rz", "tx", "ty", "tz")
     for a in agents:
         eps, cov = sol.eps[a.agent], sol.eps_cov[a.agent]
         std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-        det = std < cfg.refined_determined_fraction * prior
+        det = std < cfg.calibration.determined_fraction * prior
         applied = np.where(det, eps, 0.0)
         why: list[str] = []
         if det.any():  # significance of the correction over the determined components
             cd = cov[np.ix_(det, det)]
             m2 = float(applied[det] @ np.linalg.pinv(cd, hermitian=True) @ applied[det])
-            q_lim = float(chi2.isf(2 * norm.sf(cfg.refined_significance), int(det.sum())))
+            q_lim = float(chi2.isf(2 * norm.sf(cfg.calibration.significance), int(det.sum())))
             if m2 < q_lim:
                 applied = np.zeros(6)
                 why.append(f"correction not significant (chi2 {m2:.1f} < {q_lim:.1f}): published "
@@ -389,9 +178,9 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
             pub_qy=qp[2], pub_qz=qp[3], correction_m=dm, correction_deg=ddeg,
             cov=[float(x) for x in cov.ravel()], std_m=std_m, std_deg=std_deg,
             refined_components=" ".join(n for n, d in zip(names, det, strict=True) if d),
-            usable=bool(det.any() and std_m <= cfg.refined_max_std_m
-                        and std_deg <= cfg.refined_max_std_deg and consistent
-                        and (det.all() or not cfg.refined_require_all)),
+            usable=bool(det.any() and std_m <= cfg.calibration.max_std_m
+                        and std_deg <= cfg.calibration.max_std_deg and consistent
+                        and (det.all() or not cfg.calibration.require_all)),
             n_frames=n_frames, source="refined", method=method,
             reason="; ".join(why) or None))
         if notes is not None and why:
@@ -411,12 +200,12 @@ def _redeskew_extrinsics(cfg: RegisterConfig, agents: list[AgentScans], sol: Cli
     out: dict[str, tuple[np.ndarray, str]] = {}
     for a, c in zip(agents, rows, strict=True):
         if not {"rx", "ry", "rz"} <= set(c.refined_components.split()) \
-                or c.std_deg > cfg.refined_max_std_deg or c.correction_deg <= 0:
+                or c.std_deg > cfg.calibration.max_std_deg or c.correction_deg <= 0:
             continue
         if not _fit_consistent(cfg, sol, a.agent):
             continue
         shift = np.radians(c.correction_deg) * a.max_travel_per_scan()
-        if shift >= cfg.redeskew_min_shift_m:
+        if shift >= cfg.redeskew.min_shift_m:
             out[a.agent] = (_matrix(c, ""), f"{c.correction_deg:.2f} deg: up to "
                             f"{shift * 100:.1f} cm across a scan")
     return out
@@ -451,7 +240,7 @@ def _bodies(lake: Lake, clip_id: str, agents: list[AgentScans], cfg: RegisterCon
     centre in the ego frame); agents without one are not removed from the others' scans."""
     t = lake.read_table("clean", "agents", clip_id=clip_id)
     out: dict[str, Body] = {}
-    if not cfg.static_only or t.num_rows == 0 or "length_m" not in t.column_names:
+    if not cfg.static.enabled or t.num_rows == 0 or "length_m" not in t.column_names:
         return out
     ids = {a.agent for a in agents}
     for r in t.to_pylist():
@@ -504,7 +293,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     lake.delete_partition("clean", "registrations", clip_id)
     lake.delete_partition("clean", "calibration_refined", clip_id)
     missing = {a: why for a in (ref_id, *other_ids) if (why := pose_missing(lake, clip_id, a))}
-    if not other_ids and ref_id not in missing and cfg.intra_agent \
+    if not other_ids and ref_id not in missing and cfg.intra.enabled \
             and len(read_extrinsics(lake, clip_id, ref_id)) > 1:
         report.notes.append(f"single agent ({ref_id}): its LiDARs registered to each other only")
         _write_calibration(lake, clip_id, cfg, [ref_id], [], report)
@@ -522,8 +311,8 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
         return report
     ref = AgentScans(lake, clip_id, ref_id, cfg.sensor)
     others = [AgentScans(lake, clip_id, a, cfg.sensor) for a in other_ids]
-    backend: RegistrationBackend = make_backend(cfg.backend, cfg.gicp())
-    method = f"{cfg.backend}:GICP" + ("+clip" if cfg.clip_solve else "")
+    backend: RegistrationBackend = make_backend(cfg.gicp.backend, cfg.gicp)
+    method = f"{cfg.gicp.backend}:GICP" + ("+clip" if cfg.solve.enabled else "")
     pairs = {o.agent: dict(_pairs(ref, o, cfg.pair_tolerance_ns)) for o in others}
     ref_frames = sorted({f for p in pairs.values() for f in p})
     if not ref_frames:
@@ -540,9 +329,9 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     ext: ClipSolution | None = None  # the extrinsic split (with odometry and priors)
     agents = [ref, *others]
     steps: list[tuple[str, float]] = []
-    if cfg.clip_solve:
+    if cfg.solve.enabled:
         for sc in agents:
-            for t_ns, d in detect_ins_steps(sc.track, cfg.ins_step_m):
+            for t_ns, d in detect_ins_steps(sc.track, cfg.solve.ins_step_m):
                 steps.append((sc.agent, (t_ns - t0_ns) * 1e-9))
                 report.notes.append(
                     f"INS step of {sc.agent} at {(t_ns - t0_ns) * 1e-9:.2f} s: "
@@ -552,7 +341,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
         sol, ext = _solve(cfg, agents, measured, odo, ground, steps)
         timing["solve_s"] = time.perf_counter() - t_solve
         fix = _redeskew_extrinsics(cfg, agents, ext, _calibration_rows(
-            clip_id, ext, agents, cfg, len(measured), method)) if cfg.redeskew else {}
+            clip_id, ext, agents, cfg, len(measured), method)) if cfg.redeskew.enabled else {}
         if fix:
             # the scans of an agent whose extrinsic was wrong were deskewed with it: deskew
             # them again with the refined one and measure and solve once more
@@ -651,11 +440,11 @@ def _solve(cfg: RegisterConfig, agents: list[AgentScans], measured: list[_Pair],
     names = [a.agent for a in agents]
     extr = {a.agent: a.T_ego_lidar for a in agents}
     cross = [p.measurement for p in measured]
-    ext = solve_clip(names, agents[0].agent, extr, cross, odo, cfg.solve_settings(), ground,
+    ext = solve_clip(names, agents[0].agent, extr, cross, odo, cfg.solve, ground,
                      steps)
-    if not cfg.relative_solve or (not odo and not ground):
+    if not cfg.solve.relative or (not odo and not ground):
         return ext, ext
-    rel = solve_clip(names, agents[0].agent, extr, cross, [], cfg.solve_settings(), None,
+    rel = solve_clip(names, agents[0].agent, extr, cross, [], cfg.solve, None,
                      steps)
     return rel, ext
 
@@ -667,13 +456,13 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
              ) -> tuple[list[_Pair], list[OdoMeasurement], dict[str, Any]]:
     """Per-frame GICP of every pair on the static scene, and the agents' own scan-to-scan
     GICP (odometry, every ``odometry_every`` frames over ``odometry_gap`` frames)."""
-    static = cfg.static()
+    static = cfg.static
     scans = {a.agent: a for a in (ref, *others)}
     filt = {a.agent: StaticScans(a, static, [(b, bodies[b.agent]) for b in (ref, *others)
                                              if b is not a and b.agent in bodies],
-                                 (redeskew_with or {}).get(a.agent))
+                                 (redeskew_with or {}).get(a.agent), cfg.gicp.max_range_m)
             for a in (ref, *others)}
-    limits = cfg.limits(gate=not cfg.clip_solve)
+    limits = cfg.quality.gated(not cfg.solve.enabled)
     # recent prepared clouds per agent, for odometry: frame -> Prepared
     recent: dict[str, dict[int, Prepared]] = {a: {} for a in scans}
     odo_frames = {a: {g: i for i, g in enumerate(sorted(sc.frames))} for a, sc in scans.items()}
@@ -706,13 +495,13 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         sc = filt[agent].filtered(f, voxel)
         timing["ground"][agent].append(sc.ground_m)
         frames = odo_frames[agent]
-        if cfg.odometry_every > 0 and f in frames:
+        if cfg.odometry.every > 0 and f in frames:
             i = frames[f]
-            if i % cfg.odometry_every == 0 or (i - cfg.odometry_gap) % cfg.odometry_every == 0:
+            if i % cfg.odometry.every == 0 or (i - cfg.odometry.gap) % cfg.odometry.every == 0:
                 prep, _ = prepare(sc.points)
                 if prep is not None:
                     recent[agent][f] = prep
-                    for old in [g for g in recent[agent] if g < f - cfg.odometry_gap]:
+                    for old in [g for g in recent[agent] if g < f - cfg.odometry.gap]:
                         del recent[agent][old]
                     _odometry(agent, f)
         return sc.points, len(sc.points), sc.counts
@@ -726,7 +515,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
             t = time.perf_counter()
             keep = covisible_mask(points, other_origin)
             timing["covisible_s"] += time.perf_counter() - t
-            if keep.sum() >= max(cfg.min_inliers, 0.3 * len(keep)):
+            if keep.sum() >= max(cfg.quality.min_inliers, 0.3 * len(keep)):
                 points = points[keep]
         elif f in recent[agent]:
             return recent[agent][f], ""
@@ -736,20 +525,20 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         a = scans[agent]
         frames = sorted(a.frames)
         i = odo_frames[agent][f]
-        if i < cfg.odometry_gap:
+        if i < cfg.odometry.gap:
             return
-        g = frames[i - cfg.odometry_gap]
-        if g not in recent[agent] or (i - cfg.odometry_gap) % cfg.odometry_every:
+        g = frames[i - cfg.odometry.gap]
+        if g not in recent[agent] or (i - cfg.odometry.gap) % cfg.odometry.every:
             return
         M0, M1 = M(agent, g), M(agent, f)
         T_ins = invert(M0 @ a.T_ego_lidar) @ (M1 @ a.T_ego_lidar)
         # driving straight, a pair says less (no rotation to separate extrinsic from INS)
-        straight = np.degrees(rotation_angle(T_ins)) < cfg.odometry_turn_deg
-        if straight and (i - cfg.odometry_gap) % max(cfg.odometry_straight_every,
-                                                     cfg.odometry_every):
+        straight = np.degrees(rotation_angle(T_ins)) < cfg.solve.straight_deg
+        if straight and (i - cfg.odometry.gap) % max(cfg.odometry.straight_every,
+                                                     cfg.odometry.every):
             return
         t = time.perf_counter()
-        r = refine(backend, recent[agent][g], recent[agent][f], T_ins, cfg.limits(gate=False))
+        r = refine(backend, recent[agent][g], recent[agent][f], T_ins, cfg.quality.gated(False))
         if r.accepted and r.H is not None and np.isfinite(r.H).all():
             odo.append(OdoMeasurement(agent, secs(agent, g), secs(agent, f), M0, M1,
                                       r.T_refined, r.H))
@@ -757,14 +546,14 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
 
     for f in ref_frames:
         t0 = time.perf_counter()
-        ref_pts, n_ref, c_ref = scan(ref.agent, f, cfg.voxel_m)
+        ref_pts, n_ref, c_ref = scan(ref.agent, f, cfg.gicp.voxel_m)
         for o in others:
             if f not in pairs[o.agent]:
                 continue
             fo = pairs[o.agent][f]
             T_init = initial_transform_at(ref.track, o.track, ref.T_ego_lidar, o.T_ego_lidar,
                                           ref.frames[f][1], o.frames[fo][1])
-            oth_pts, n_oth, c_oth = scan(o.agent, fo, cfg.source_voxel_m)
+            oth_pts, n_oth, c_oth = scan(o.agent, fo, cfg.gicp.source_voxel_m)
             target, why_t = cross_cloud(ref.agent, f, ref_pts, T_init[:3, 3])
             source, why_s = cross_cloud(o.agent, fo, oth_pts, invert(T_init)[:3, 3])
             t = time.perf_counter()
@@ -772,9 +561,9 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                 res = failed_pair(T_init, why_t or why_s)
             else:
                 res = refine(backend, target, source, T_init, limits,
-                             warm[o.agent] if cfg.warm_start else None)
+                             warm[o.agent] if cfg.gicp.warm_start else None)
             timing["gicp_s"] += time.perf_counter() - t
-            if res.accepted and res.observability >= cfg.min_observability:
+            if res.accepted and res.observability >= cfg.quality.min_observability:
                 warm[o.agent] = res.correction
             usable = res.accepted and res.H is not None and bool(np.isfinite(res.H).all())
             meas = CrossMeasurement(f, o.agent, secs(ref.agent, f), M(ref.agent, f),
@@ -797,8 +586,8 @@ def _write_calibration(lake: Lake, clip_id: str, cfg: RegisterConfig, agents: li
     from v2xlake.tasks.register.intra_stage import IntraStageSettings, refine_agent_lidars
 
     rows = list(cal)
-    if cfg.intra_agent:
-        st = IntraStageSettings(frames=cfg.intra_frames)
+    if cfg.intra.enabled:
+        st = IntraStageSettings(frames=cfg.intra.frames)
         for a in agents:
             prim = next((_matrix(c, "") for c in cal if c.agent_id == a and c.usable), None)
             extra, notes = refine_agent_lidars(lake, clip_id, a, st, prim)

@@ -1,0 +1,283 @@
+"""Parameters of the register stage, one section per part of the algorithm.
+
+Each section is the object its numeric core takes: ``gicp`` the GICP backends
+(:mod:`backends`), ``quality`` the per-frame accept test (:mod:`core`), ``static`` the
+static-scene filter (:mod:`scans`), ``odometry`` the agents' own scan-to-scan GICP, ``solve``
+the clip solve (:mod:`solve`), ``calibration`` when a refined extrinsic is usable,
+``redeskew`` and ``intra`` (several LiDARs on one agent). Every parameter is written here
+once, with its default and why it has that value.
+
+Only pydantic is imported: ``v2xlake params show`` reads this module without the numeric code.
+Parameter files of earlier versions used flat keys (``voxel_m``, ``prior_ext_m``,
+``refined_require_all``...); ``RENAMED`` moves them into their sections with a warning.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar, Literal
+
+from pydantic import Field
+
+from v2xlake.schemas.config import Section, StageConfig
+
+
+class GicpSection(Section):
+    """Generalized-ICP of one pair of scans (main paper eq. 1b)."""
+
+    backend: Literal["small_gicp", "open3d"] = Field(
+        "small_gicp", description="GICP implementation; small_gicp is ~1.4x faster here")
+    voxel_m: float = Field(
+        0.3, gt=0, description="target (reference scan) voxel size. Coarse voxels bias the "
+        "relative pose along a street: a voxel's centroid on poles, car bodies and wall "
+        "edges depends on the side each agent saw it from. Measured on the cooperative "
+        "boulevard (64 x 1024 scans): 0.6 / 1.0 m left the frames' GICP 2.2 cm off along "
+        "the street (median) and 9 of 100 frames 3.1-3.3 cm off; 0.3 / 0.3 m 0.7 cm, none "
+        "beyond 2.8 cm, at about 3x the GICP time")
+    source_voxel_m: float = Field(
+        0.3, gt=0, description="source (other scan) voxel size. 0.6 m is 35 % faster but "
+        "its centroids are biased the same way: on the boulevard the median error grew from "
+        "0.8 to 1.1-1.8 cm")
+    max_range_m: float = Field(80.0, gt=0, description="points farther than this are "
+                               "dropped (sparse, noisy, and cropping saves time)")
+    num_neighbors: int = Field(10, ge=5, description="neighbours per covariance")
+    max_correspondence_m: float = Field(1.0, gt=0)
+    max_iterations: int = Field(30, ge=1)
+    num_threads: int = Field(1, ge=1, description="threads per GICP call; one leaves the "
+                             "other cores to the other clips of a run")
+    warm_start: bool = Field(True, description="start each frame from the previous frame's "
+                             "accepted correction (and from eq. 1a if that fails)")
+
+
+class QualitySection(Section):
+    """When one GICP result is trusted (else the eq. 1a estimate is kept)."""
+
+    fitness_distance_m: float = Field(0.5, gt=0, description="inlier: nearest target point "
+                                      "within this distance")
+    min_fitness: float = Field(0.2, ge=0, le=1, description="fraction of the (downsampled) "
+                               "source points that must be inliers")
+    min_inliers: int = Field(300, ge=0)
+    max_correction_m: float = Field(1.5, gt=0, description="more than the poses and "
+                                    "extrinsics can be wrong by")
+    max_correction_deg: float = Field(5.0, gt=0)
+    min_observability: float = Field(
+        0.02, ge=0, le=1, description="per-frame mode (solve.enabled off): reject when the "
+        "overlapping surfaces leave a translation direction unconstrained (corridor, open "
+        "road); with the clip solve the information matrix weighs it instead")
+
+    def gated(self, gate: bool) -> QualitySection:
+        """These limits, without the degeneracy test when ``gate`` is off (the clip solve
+        weighs each direction by its information instead)."""
+        return self if gate else self.model_copy(update={"min_observability": 0.0})
+
+
+class StaticSection(Section):
+    """What moves is removed before GICP (the static scene only)."""
+
+    enabled: bool = Field(True, description="remove moving things before GICP")
+    use_annotations: bool = Field(True, description="remove the scan's annotated boxes")
+    box_margin_m: float = Field(0.3, ge=0, description="annotated boxes are grown by this")
+    body_margin_m: float = Field(0.6, ge=0, description="other agents' declared bodies, "
+                                 "placed by their INS poses, are grown by this")
+    dynamic: Literal["auto", "on", "off"] = Field(
+        "auto", description="remove points inconsistent with the neighbouring scans of the "
+        "same agent; auto: in frames without annotations")
+    dynamic_residual_m: float = Field(0.5, gt=0, description="a point farther than this from "
+                                      "the earlier AND the later neighbouring scans is moving")
+    dynamic_neighbours: int = Field(2, ge=1, description="scans on each side compared")
+    dynamic_voxel_m: float = Field(0.25, gt=0, description="voxel of the neighbouring scans")
+    dynamic_object_fraction: float = Field(
+        0.25, gt=0, le=1, description="an above-ground object (connected in bird's-eye view) "
+        "with this fraction of moving points is removed whole (1: per point only)")
+
+
+class OdometrySection(Section):
+    """Each agent's own scan-to-scan GICP (hand-eye: separates extrinsic from INS error)."""
+
+    every: int = Field(5, ge=0, description="every n frames (0: off)")
+    gap: int = Field(5, ge=1, description="frames between the two scans of a pair")
+    straight_every: int = Field(
+        5, ge=1, description="on straight driving (turning less than solve.straight_deg over "
+        "the gap) only every n frames (10 saves a third of the odometry on the hard street but "
+        "its extrinsic ends 1.1 cm off instead of 0.9: straight pairs carry the non-holonomic "
+        "yaw)")
+
+
+class SolveSection(Section):
+    """The clip solve: constant extrinsic corrections + a smooth INS error per agent."""
+
+    enabled: bool = Field(True, description="fuse the frames; off: frame by frame with the "
+                          "quality gate")
+    relative: bool = Field(
+        True, description="per-frame relative transforms from a solve of the cross-agent "
+        "frames alone (odometry, non-holonomic and ground constraints only split the "
+        "extrinsic); off: one solve gives both")
+    knot_s: float = Field(1.0, gt=0, description="INS error knots (piecewise linear) every")
+    prior_ext_m: float = Field(0.3, gt=0, description="extrinsic correction prior, 1-sigma")
+    prior_ext_deg: float = Field(2.0, gt=0, description="extrinsic correction prior, 1-sigma")
+    prior_att_deg: float = Field(0.05, gt=0, description="INS attitude bias prior, 1-sigma")
+    prior_pos_m: float = Field(2.0, gt=0, description="INS position error prior, 1-sigma")
+    prior_drift_mps: float = Field(0.2, gt=0, description="INS drift rate prior, 1-sigma")
+    prior_drift_accel: float = Field(
+        0.01, gt=0, description="INS drift rate change (m/s^2), 1-sigma: an INS velocity error "
+        "changes by about a centimetre per second per second")
+    robust_scale: float = Field(3.0, gt=0, description="Cauchy scale of a frame's whitened "
+                                "residual (standard deviations)")
+    outlier_p: float = Field(1e-3, gt=0, lt=1, description="leave-one-out test: a frame is an "
+                             "outlier above the chi^2(6) quantile 1 - p")
+    irls_iterations: int = Field(4, ge=1)
+    max_iterations: int = Field(20, ge=1, description="Gauss-Newton steps per reweighting")
+    min_for_variance: int = Field(20, ge=1, description="measurements needed to estimate the "
+                                  "variance factor")
+    odometry_weight: float = Field(1.0, gt=0)
+    floor_m: float = Field(0.01, gt=0, description="a GICP result's error floor, whatever its "
+                           "Hessian says (voxels, deskew residuals, what filtering left)")
+    floor_deg: float = Field(0.02, gt=0, description="... and its rotation floor")
+    degenerate_ratio: float = Field(
+        0.02, ge=0, lt=1, description="a GICP result carries no information in directions "
+        "weaker than this fraction of its strongest (the slide along a street)")
+    nonholonomic_deg: float = Field(
+        0.1, gt=0, description="on straight driving the body moves along its own x axis; "
+        "1-sigma (deg) of that direction per straight odometry pair (fixes the extrinsic's yaw "
+        "and pitch without the INS heading)")
+    straight_deg: float = Field(1.0, gt=0, description="an odometry pair turning less than "
+                                "this is straight")
+    nonholonomic_min_m: float = Field(2.0, gt=0, description="a straight pair moving less "
+                                      "than this says nothing about its direction")
+    ground_sigma_m: float = Field(
+        0.02, gt=0, description="the LiDAR's measured height above the ground vs the agent's "
+        "declared body (ground to roof) fixes the extrinsic's z; 1-sigma (suspension, crown)")
+    final_max_std_m: float = Field(0.02, gt=0, description="a frame's final estimate is "
+                                   "accepted when its 1-sigma (translation) is below this")
+    final_max_std_deg: float = Field(0.05, gt=0, description="... and its rotation 1-sigma")
+    max_bridge_s: float = Field(
+        3.0, gt=0, description="no extrapolation: a direction a frame's own GICP did not "
+        "observe (own 1-sigma above final_max_std_m/deg: blind along the street, or no "
+        "measurement) is taken from the clip solve only when frames that observed it lie "
+        "before AND after it within this many seconds; otherwise the frame is not accepted. "
+        "On the test clip the frames that do not observe every direction themselves come in "
+        "runs of at most 4 (0.4 s), so its targets hold for any bridge over 0.5 s; 3 s is "
+        "about one pole spacing (30-45 m) at 10 m/s: a blind stretch between two poles is "
+        "bridged, a longer one (or the clip's ends) is not")
+    correlation_s: float = Field(
+        2.0, gt=0, description="GICP errors of consecutive frames are correlated (the same "
+        "facades and poles, the same voxel aliasing): in the reported 1-sigma of a frame's "
+        "clip estimate the frames within this many seconds count as one measurement (the "
+        "estimate itself is unchanged). Measured on the hard street: runs of 1-2 s of frames "
+        "off by 4-19 cm with the same sign while GICP claims 1.6 cm; 1 s still accepted frames "
+        "3-5 cm off at the edge of such a run (black 20 m behind), 2 s none")
+    ins_step_m: float = Field(
+        0.05, gt=0, description="an INS step: a pose-to-pose displacement that differs from "
+        "the mean of its two neighbouring displacements (scaled by time) by more than this; "
+        "the clip solve then gives that agent's INS error a free offset from the step on "
+        "(not absorbed into the extrinsic) and the report notes it")
+
+
+class CalibrationSection(Section):
+    """When the clip's refined LiDAR extrinsic is usable (else the published one stays)."""
+
+    max_variance_factor: float = Field(
+        4.0, gt=0, description="the fit must be consistent: the clip's variance factor "
+        "(median GICP residual chi^2 / its expectation) at most this")
+    max_outlier_fraction: float = Field(
+        0.1, ge=0, le=1, description="... and at most this fraction of the frames the agent "
+        "takes part in are leave-one-out outliers (a run of them is an unmodelled INS error)")
+    require_all: bool = Field(
+        False, description="usable only when every component (rx ry rz tx ty tz) was "
+        "determined. Off (default): the components the clip determined are used and the "
+        "others keep the published value (named in the reason; their unknown error is not in "
+        "the 1-sigma). Driving straight, a cooperative vehicle's extrinsic x / y cannot be "
+        "told from an INS offset while its yaw can: keeping the whole published extrinsic "
+        "then put the yaw error (0.4 deg on the boulevard) into every consumer of the agent's "
+        "pose, its cameras included")
+    significance: float = Field(
+        2.0, gt=0, description="a correction whose Mahalanobis norm over the determined "
+        "components is below this (in sigma, per chi^2 quantile of that dimension) is not "
+        "significant: the published extrinsic is kept (correction zeroed, the clip confirms "
+        "the published one within its 1-sigma)")
+    determined_fraction: float = Field(
+        0.3, gt=0, le=1, description="a component is refined when the clip reduced its "
+        "1-sigma below this fraction of the prior; the others keep the published value")
+    max_std_m: float = Field(0.03, gt=0, description="usable when the refined translation "
+                             "components' 1-sigma are below this")
+    max_std_deg: float = Field(0.1, gt=0, description="... and the rotation components'")
+
+
+class RedeskewSection(Section):
+    """Deskew an agent's scans again when the clip found its LiDAR rotation wrong."""
+
+    enabled: bool = Field(
+        True, description="when the clip finds an agent's LiDAR rotation wrong by enough to "
+        "smear its deskewed scans (min_shift_m), deskew that agent's scans again with the "
+        "refined extrinsic (deskew's kernel, backwards then forwards) and measure and solve "
+        "once more (twice the GICP time, spent only then). Deskew moves each point by the ego "
+        "motion expressed in the LiDAR frame, so a yaw error of the extrinsic turns that "
+        "motion: a 1.5 deg error at 16 m/s biased every cooperative GICP by 2.4 cm sideways")
+    min_shift_m: float = Field(
+        0.02, ge=0, description="re-deskew when the refined rotation (all of rx ry rz "
+        "determined, the fit consistent) moves the points at the end of a scan by at least "
+        "this (rotation correction times the agent's largest travel during one scan)")
+
+
+class IntraSection(Section):
+    """An agent's secondary LiDARs refined against its primary one."""
+
+    enabled: bool = Field(True, description="refine every secondary LiDAR of an agent "
+                          "against its primary (register.intra_stage)")
+    frames: int = Field(3, ge=1, description="frame pairs pooled per secondary LiDAR")
+
+
+class RegisterConfig(StageConfig):
+    """Parameters of the register stage (hashed into the manifest)."""
+
+    RENAMED: ClassVar[dict[str, str]] = {
+        "backend": "gicp.backend", "voxel_m": "gicp.voxel_m",
+        "source_voxel_m": "gicp.source_voxel_m", "max_range_m": "gicp.max_range_m",
+        "num_neighbors": "gicp.num_neighbors",
+        "max_correspondence_m": "gicp.max_correspondence_m",
+        "max_iterations": "gicp.max_iterations", "warm_start": "gicp.warm_start",
+        **{k: f"quality.{k}" for k in ("fitness_distance_m", "min_fitness", "min_inliers",
+                                       "max_correction_m", "max_correction_deg",
+                                       "min_observability")},
+        "static_only": "static.enabled", "dynamic_filter": "static.dynamic",
+        **{k: f"static.{k}" for k in ("use_annotations", "box_margin_m", "body_margin_m",
+                                      "dynamic_residual_m", "dynamic_neighbours",
+                                      "dynamic_voxel_m", "dynamic_object_fraction")},
+        "odometry_every": "odometry.every", "odometry_gap": "odometry.gap",
+        "odometry_straight_every": "odometry.straight_every",
+        "odometry_turn_deg": "solve.straight_deg",
+        "clip_solve": "solve.enabled", "relative_solve": "solve.relative",
+        "gicp_floor_m": "solve.floor_m", "gicp_floor_deg": "solve.floor_deg",
+        "gicp_correlation_s": "solve.correlation_s",
+        **{k: f"solve.{k}" for k in ("knot_s", "prior_ext_m", "prior_ext_deg", "prior_att_deg",
+                                     "prior_pos_m", "prior_drift_mps", "prior_drift_accel",
+                                     "robust_scale", "outlier_p", "irls_iterations",
+                                     "degenerate_ratio", "nonholonomic_deg", "ground_sigma_m",
+                                     "final_max_std_m", "final_max_std_deg", "max_bridge_s",
+                                     "ins_step_m")},
+        **{f"refined_{k}": f"calibration.{k}" for k in (
+            "max_variance_factor", "max_outlier_fraction", "require_all", "significance",
+            "determined_fraction", "max_std_m", "max_std_deg")},
+        "redeskew": "redeskew.enabled", "redeskew_min_shift_m": "redeskew.min_shift_m",
+        "intra_agent": "intra.enabled", "intra_frames": "intra.frames",
+    }
+
+    sensor: str | None = Field(None, description="LiDAR to register; default LIDAR_TOP or "
+                               "the agent's only LiDAR")
+    pair_tolerance_ns: int = Field(1_000_000, ge=0, description="scan starts closer than "
+                                   "this are one pair")
+    covisible: bool = Field(
+        True, description="GICP between two agents on the surfaces both see from the same "
+        "side only: a pole or parked car between the agents is seen from opposite sides, two "
+        "surfaces a diameter apart that GICP pulls together (measured on the cooperative "
+        "boulevard: 2 cm along the street with the agents 20 m apart, 9-12 cm at 50 m)")
+    bev_frame: int | None = Field(None, description="reference frame of the BEV picture "
+                                  "(default: the middle pair)")
+    write_bev: bool = Field(True, description="render the BEV and timeline pictures")
+    gicp: GicpSection = Field(default_factory=GicpSection)
+    quality: QualitySection = Field(default_factory=QualitySection)
+    static: StaticSection = Field(default_factory=StaticSection)
+    odometry: OdometrySection = Field(default_factory=OdometrySection)
+    solve: SolveSection = Field(default_factory=SolveSection)
+    calibration: CalibrationSection = Field(default_factory=CalibrationSection)
+    redeskew: RedeskewSection = Field(default_factory=RedeskewSection)
+    intra: IntraSection = Field(default_factory=IntraSection)
