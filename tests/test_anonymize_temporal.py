@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from anonymize_fixtures import CLIP, build_raw_clip
 
+from v2xlake.audit.rules import jpeg_metadata
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.anonymize.audit import jpeg_metadata
 from v2xlake.tasks.anonymize.detectors import Detection
 from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
 from v2xlake.tasks.anonymize.temporal import TEMPORAL, fill_gaps

@@ -12,15 +12,9 @@ import pyarrow as pa
 import pytest
 from anonymize_fixtures import CLIP, build_raw_clip
 
+from v2xlake.audit import AuditReport, audit
+from v2xlake.audit.rules import jpeg_metadata, png_metadata, scan_structured, scan_table
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.anonymize.audit import (
-    AuditReport,
-    audit,
-    jpeg_metadata,
-    png_metadata,
-    scan_structured,
-    scan_table,
-)
 from v2xlake.tasks.anonymize.evaluate import real_faces
 from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
 
@@ -98,7 +92,7 @@ def test_planted_latlon_by_name_and_by_value(lake: Lake, tmp_path: Path) -> None
 @pytest.mark.parametrize("noise", [0.0, 1e-7, 0.005, 0.02, 0.1])
 def test_no_latlon_false_positive_on_local_metres_and_velocities(noise: float) -> None:
     """A 300 m drive's ego poses, a cruising car's velocity (noise in m/s), fixed calibration."""
-    from v2xlake.tasks.anonymize.audit import AuditConfig
+    from v2xlake.audit import AuditConfig
 
     rng = np.random.default_rng(1)
     n = 500

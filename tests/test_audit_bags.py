@@ -12,9 +12,9 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from tests.export_fixtures import build_clean_clip
+from v2xlake.audit import AuditError, AuditReport, audit
 from v2xlake.flows.release import build_release
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.anonymize.audit import AuditError, AuditReport, audit
 
 EPOCH_NS = 1_700_000_000_123_000_000
 

@@ -17,8 +17,9 @@ import cv2
 import numpy as np
 import pytest
 
+from v2xlake.audit import AuditConfig, AuditError, audit
+from v2xlake.audit.run import _guides, _lake_frames
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.anonymize.audit import AuditConfig, AuditError, _guides, _lake_frames, audit
 from v2xlake.tasks.anonymize.evaluate import paste_face, real_faces, render_plate
 from v2xlake.tasks.anonymize.images import decode_image, encode_png
 from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize

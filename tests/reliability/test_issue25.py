@@ -439,7 +439,7 @@ def test_camera_size_error_names_camera_info_as_the_source(tmp_path: Path) -> No
 
 
 def test_audit_of_a_lake_without_cameras_finds_nothing_unreadable(tmp_path: Path) -> None:
-    from v2xlake.tasks.anonymize.audit import audit
+    from v2xlake.audit import audit
 
     lake = Lake(tmp_path / "lake")
     run_ingest(lake, write_clip(tmp_path / "nocam", MiniClip(seconds=0.2, points=100,

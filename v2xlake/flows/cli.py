@@ -795,8 +795,8 @@ def audit(
     release: Annotated[str | None, typer.Option(help="audit this release instead")] = None,
 ) -> int:
     """Check that nothing identifying leaves the raw zone."""
-    from v2xlake.tasks.anonymize.audit import AuditError
-    from v2xlake.tasks.anonymize.audit import audit as run_audit
+    from v2xlake.audit import AuditError
+    from v2xlake.audit import audit as run_audit
 
     try:
         the_lake = open_lake(lake)
