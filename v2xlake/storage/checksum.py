@@ -5,7 +5,7 @@ Why not SHA-256: a manifest checksum has to notice a changed or damaged file, wh
 lake), and ingest hashes every byte it reads and writes. Measured on the 2-core machine:
 SHA-256 1.8 GB/s (with SHA extensions), BLAKE3 4.7 GB/s, XXH3-128 ~25 GB/s; at ingest's
 rate SHA-256 alone was as expensive as the whole ``rosbags`` read it is measured against.
-Release checksums (``SHA256SUMS`` in ``flows/release.py``) stay SHA-256: those are checked by
+Release checksums (``SHA256SUMS`` in ``storage/releases.py``) stay SHA-256: those are checked by
 people and tools outside the lake. The prefix keeps a digest self-describing, so a manifest
 written with another algorithm can never be mistaken for a match.
 """
