@@ -41,12 +41,13 @@ def test_stage_progress_plain_lines_off_a_terminal() -> None:
 
     from v2xlake.flows.cli import StageProgress
 
-    events = [{"event": "stage_start", "clip_id": "c1", "stage": "ingest"},
-              {"event": "stage_end", "clip_id": "c1", "stage": "ingest", "status": "done",
-               "seconds": 1.25},
-              {"event": "stage_start", "clip_id": "c1", "stage": "register"},
-              {"event": "stage_end", "clip_id": "c1", "stage": "register",
-               "status": "not_applicable", "seconds": 0.0, "reason": "one agent [x]"}]
+    events: list[dict[str, Any]] = [
+        {"event": "stage_start", "clip_id": "c1", "stage": "ingest"},
+        {"event": "stage_end", "clip_id": "c1", "stage": "ingest", "status": "done",
+         "seconds": 1.25},
+        {"event": "stage_start", "clip_id": "c1", "stage": "register"},
+        {"event": "stage_end", "clip_id": "c1", "stage": "register",
+         "status": "not_applicable", "seconds": 0.0, "reason": "one agent [x]"}]
     buf = io.StringIO()
     with StageProgress(2, Console(file=buf, width=200)) as prog:  # a pipe
         for e in events:
@@ -145,3 +146,36 @@ def test_params_show_second_call_imports_no_stage(tmp_path: Path) -> None:
                                                         "scipy")))
     assert heavy == [], heavy
     assert "deskew:" in first.stdout and "export:" in first.stdout
+
+
+PRESTART_PROBE = """
+import json
+from v2xlake.flows.server import prestart_temporary_server
+from v2xlake.flows.settings import prefect_session
+wait = prestart_temporary_server()
+import v2xlake.flows.pipeline  # the stages import while the server starts
+wait()
+from prefect.server.api.server import SubprocessASGIServer
+early = SubprocessASGIServer()
+url, proc = early.api_url, early.server_process
+with prefect_session():
+    from trivial_flow import trivial_clip_flow
+    from prefect.client.orchestration import get_client
+    n = trivial_clip_flow(3)
+    with get_client(sync_client=True) as client:
+        used = str(client.api_url).rstrip("/")
+print(json.dumps([n, url, used, early.server_process is proc,
+                  len(SubprocessASGIServer._instances)]))
+"""
+
+
+def test_temporary_server_prestarted_is_the_one_the_flow_uses(tmp_path: Path) -> None:
+    """``prestart_temporary_server``: Prefect's temporary server comes up while the stages
+    import, and the flow run uses that very server (no second one)."""
+    env = _env(tmp_path, V2XLAKE_HOME=str(tmp_path / "home"))
+    env.pop("PREFECT_API_URL", None)
+    res = subprocess.run([sys.executable, "-c", PRESTART_PROBE], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    n, url, used, same_process, instances = json.loads(res.stdout.strip().splitlines()[-1])
+    assert n == 3 and used == url and same_process and instances == 1, res.stdout

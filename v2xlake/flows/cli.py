@@ -363,9 +363,17 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
     if not todo:
         return [a for a in answered if a is not None]
 
+    # Prefect's temporary server (if flows will need one) comes up while the stages import
+    wait_server = None
+    if not needs_api_server(runner):
+        from v2xlake.flows.server import prestart_temporary_server
+
+        wait_server = prestart_temporary_server()
     from v2xlake.flows import pipeline as pipeline_mod
     from v2xlake.flows.params import parse_params
 
+    if wait_server is not None:
+        wait_server()
     run_params = parse_params(raw)  # bad parameters: an error before any clip is touched
     chosen = pipeline_mod.select(pipeline_mod.resolve_pipeline(pipeline), stages)
 

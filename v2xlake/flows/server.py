@@ -17,7 +17,7 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -68,6 +68,40 @@ def guard_ephemeral_server() -> None:
 
     cls._run_uvicorn_command = run_guarded  # type: ignore[method-assign]
     cls._v2xlake_guarded = True  # type: ignore[attr-defined]
+
+
+def prestart_temporary_server() -> Callable[[], None] | None:
+    """Start Prefect's temporary server now, in a background thread, when flows will need
+    it (no ``PREFECT_API_URL``, temporary server allowed); returns the wait for it (call it
+    before the first flow run), or None when no temporary server will be started.
+
+    WHY: on the first flow run Prefect starts this server (a uvicorn process importing
+    Prefect's server: 6-15 s on two cores) and waits for it; started first, it comes up
+    while the caller imports the stages (4 s), and on a second core the two overlap. It is
+    the same server Prefect would start (``SubprocessASGIServer`` keeps one per process, so
+    the flow's client finds it running), under the same guard. Waiting is required:
+    Prefect marks the server running before it answers."""
+    import threading
+
+    configure_prefect()
+    from prefect.settings import PREFECT_API_URL, PREFECT_SERVER_EPHEMERAL_ENABLED
+
+    if PREFECT_API_URL.value() or not PREFECT_SERVER_EPHEMERAL_ENABLED.value():
+        return None
+    guard_ephemeral_server()
+    from prefect.server.api.server import SubprocessASGIServer
+
+    failed: list[BaseException] = []
+
+    def start() -> None:
+        try:
+            SubprocessASGIServer().start()
+        except Exception as e:  # the flow's own start retries it and reports the error
+            failed.append(e)
+
+    thread = threading.Thread(target=start, name="v2xlake-prefect-prestart", daemon=True)
+    thread.start()
+    return thread.join
 
 
 def _prefect_exe() -> list[str]:
