@@ -16,8 +16,9 @@ Each figure is one fresh process, timed from its start to its exit (best and med
   before Prefect), with and without ``PREFECT_API_URL``;
 * ``flow no-op``: the same question asked the old way, ``process_clips`` (Prefect starts,
   every stage is a task that finds its manifest current);
-* ``current_summaries`` over the ``--clips`` replicas: per clip, with the facts cache cold
-  (first call after a code change) and warm;
+* ``current_summaries`` over the ``--clips`` replicas: per clip, with nothing remembered
+  (first call after a code change), with the facts cache warm (each clip checked against
+  its manifests) and with the answers remembered by the call before;
 * where a real call's fixed cost goes (``--only fixed``): interpreter start, ``import
   prefect``, importing the flow module with every stage (``flows.pipeline``), the 7-task
   anchor against a running server (imports + flow and task runs), and the temporary
@@ -136,7 +137,14 @@ def main() -> None:
         measure_fixed(work, args.repeat, env, anchor7)
     if args.clips and "clips" in args.only:
         root, inbox = bench_scale.build_lake(work, tlake, args.clips)
-        for variant in ("cold", "warm"):
+        from v2xlake.flows.noop import answers_dir
+
+        # cold: nothing remembered (the first call after a code change); checked: the facts
+        # cache warm, every clip checked against its manifests; remembered: the answers of
+        # the previous call, re-validated by the stat of what they read
+        for variant in ("cold", "checked", "remembered"):
+            if variant != "remembered":
+                shutil.rmtree(answers_dir(), ignore_errors=True)
             if variant == "cold":
                 Path(os.environ["V2XLAKE_NOOP_CACHE"]).unlink(missing_ok=True)
             out = subprocess.run([py, "-c", PER_CLIP, str(root), str(inbox)], env=env,
@@ -144,7 +152,7 @@ def main() -> None:
             if out.returncode != 0:
                 raise RuntimeError(out.stderr[-3000:])
             ok, n, imp, check = out.stdout.split()[-4:]
-            print(f"  current_summaries over {n} clips ({ok} current), facts cache {variant}: "
+            print(f"  current_summaries over {n} clips ({ok} current), {variant}: "
                   f"{float(check):.2f} s ({1000 * float(check) / int(n):.2f} ms per clip; "
                   f"imports {float(imp):.2f} s)", flush=True)
 
