@@ -377,6 +377,17 @@ class _AgentIngest:
         self.n_dropped[s.name] += 1
         return False
 
+    def _new_frame(self, s: SensorConfig, msg: Any) -> tuple[int, int] | None:
+        """(stamp, frame index) of a LiDAR / radar / camera message, recorded in bag order;
+        None for a repeat of an earlier frame, which is counted and dropped."""
+        stamp = header_stamp_ns(msg)
+        if not self._frame_is_new(s, stamp, msg):
+            self.counts[s.name] += 1
+            return None
+        idx = self._first(s, msg)
+        self._order(s, stamp, drop_duplicates=False)
+        return stamp, idx
+
     def _first(self, s: SensorConfig, msg: Any) -> int:
         """The frame index of this message (messages kept so far) and count it."""
         idx = self.counts[s.name] - self.n_dropped[s.name]
@@ -404,12 +415,9 @@ class _AgentIngest:
             self.res.stamp(stamp)
 
     def _lidar(self, s: SensorConfig, msg: Any) -> None:
-        stamp = header_stamp_ns(msg)
-        if not self._frame_is_new(s, stamp, msg):
-            self.counts[s.name] += 1
+        if (frame := self._new_frame(s, msg)) is None:
             return
-        idx = self._first(s, msg)
-        self._order(s, stamp, drop_duplicates=False)
+        stamp, idx = frame
         assert s.fields is not None
         try:
             cloud = decode_cloud(msg, s.fields, stamp, min_range_m=self.config.min_range_m,
@@ -436,12 +444,9 @@ class _AgentIngest:
         self.res.stamp(min(stamp, cloud.t_start_ns), max(stamp, cloud.t_end_ns))
 
     def _radar(self, s: SensorConfig, msg: Any) -> None:
-        stamp = header_stamp_ns(msg)
-        if not self._frame_is_new(s, stamp, msg):
-            self.counts[s.name] += 1
+        if (frame := self._new_frame(s, msg)) is None:
             return
-        idx = self._first(s, msg)
-        self._order(s, stamp, drop_duplicates=False)
+        stamp, idx = frame
         assert s.fields is not None
         try:
             r = decode_radar(msg, s.fields, stamp, max_time_offset_ns=int(
@@ -463,12 +468,9 @@ class _AgentIngest:
         """Hand the frame to the PNG pool: encoding is most of a camera's ingest time
         (``bench_ingest.py``, camera case) and OpenCV releases the GIL, so frames are encoded
         on every core while the bag is read; rows are still recorded in frame order."""
-        stamp = header_stamp_ns(msg)
-        if not self._frame_is_new(s, stamp, msg):
-            self.counts[s.name] += 1
+        if (frame := self._new_frame(s, msg)) is None:
             return
-        idx = self._first(s, msg)
-        self._order(s, stamp, drop_duplicates=False)
+        stamp, idx = frame
         compressed = s.msg_type.endswith("CompressedImage")
         # a JPEG is stored as delivered (its bytes, checksummed); other formats become PNG
         jpeg = compressed and bytes(np.asarray(msg.data[:3], np.uint8)) == JPEG_MAGIC
