@@ -16,11 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.test_stage_reads import handle
 from v2xlake.schemas.annotation import AnnotationFile
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.align.config import AlignConfig
-from v2xlake.tasks.align.stage import run_align
-from v2xlake.tasks.annotate.stage import run_annotate
+from v2xlake.tasks.align.stage import ALIGN, run_align
+from v2xlake.tasks.annotate.stage import ANNOTATE, run_annotate
 
 CAMERAS = ("CAM_FRONT", "CAM_BACK", "CAM_FRONT_LEFT")
 
@@ -28,8 +29,8 @@ CAMERAS = ("CAM_FRONT", "CAM_BACK", "CAM_FRONT_LEFT")
 @pytest.fixture(scope="module")
 def sim_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, str, Path]:
     from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
-    from v2xlake.tasks.deskew.stage import run_deskew
-    from v2xlake.tasks.ingest.stage import run_ingest
+    from v2xlake.tasks.deskew.stage import DESKEW, run_deskew
+    from v2xlake.tasks.ingest.stage import INGEST, run_ingest
     from v2xlake.tasks.simulate.config import SimConfig
     from v2xlake.tasks.simulate.run import simulate
 
@@ -41,9 +42,9 @@ def sim_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, str, Path]
     )
     clip = simulate(root / "clip", cfg)
     lake = Lake(root / "lake")
-    cid = run_ingest(lake, clip).clip_id
+    cid = run_ingest(handle(lake, INGEST), clip).clip_id
     run_anonymize(lake, cid, AnonymizeConfig(plate_detector="none", face_tile=0))
-    run_deskew(lake, cid)
+    run_deskew(handle(lake, DESKEW), cid)
     return lake, cid, clip
 
 
@@ -51,7 +52,7 @@ def test_annotate_on_simulated_clip(sim_lake: tuple[Lake, str, Path]) -> None:
     from v2xlake.tasks.simulate.truth import load_truth
 
     lake, cid, clip = sim_lake
-    rep = run_annotate(lake, cid)
+    rep = run_annotate(handle(lake, ANNOTATE), cid)
     print({k: round(v, 3) for k, v in rep.metrics.items()})
     ann = lake.read_table("clean", "annotations", clip_id=cid).to_pylist()
     sim = {(a.agent_id, a.frame_idx, a.instance_id): a.num_lidar_pts
@@ -78,7 +79,7 @@ def test_annotate_on_simulated_clip(sim_lake: tuple[Lake, str, Path]) -> None:
 
 def test_align_on_simulated_clip(sim_lake: tuple[Lake, str, Path]) -> None:
     lake, cid, clip = sim_lake
-    rep = run_align(lake, cid, AlignConfig(), truth_dir=clip / "truth")
+    rep = run_align(handle(lake, ALIGN), cid, AlignConfig(), truth_dir=clip / "truth")
     m = rep.metrics
     print()
     print(f"{'method':8s} {'IoU':>7s} {'R@0.3':>7s} {'R@0.5':>7s} {'R@0.7':>7s} {'off px':>7s}  n")

@@ -8,12 +8,14 @@ from pathlib import Path
 
 import pytest
 
+from tests.test_stage_reads import handle
 from v2xlake.storage import manifest as mf
 from v2xlake.storage.catalog import Catalog
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.ingest import IngestConfig, clip_inputs, run_ingest
+from v2xlake.tasks.ingest.stage import INGEST
 from v2xlake.tasks.qa.config import GridTolerance, QaConfig
-from v2xlake.tasks.qa.stage import run_qa
+from v2xlake.tasks.qa.stage import QA, run_qa
 
 simulate_mod = pytest.importorskip("v2xlake.tasks.simulate")
 
@@ -29,9 +31,9 @@ def lake_with_sims(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, dict
         d = simulate_mod.simulate(root / storage, cfg)
         cid, files = clip_inputs(d)
         key = mf.stage_key(lake, cid, "ingest", IngestConfig(), input_files=files)
-        mf.record(lake, run_ingest(lake, d), key)
+        mf.record(lake, run_ingest(handle(lake, INGEST), d), key)
         qkey = mf.stage_key(lake, cid, "qa", QaConfig(), ("ingest",))
-        mf.record(lake, run_qa(lake, cid), qkey)
+        mf.record(lake, run_qa(handle(lake, QA), cid), qkey)
         clips[storage] = d
     return lake, clips
 

@@ -49,6 +49,7 @@ class PointFrameIndex:
     @classmethod
     def build(cls, lake: Lake, zone: str, table: str, clip_id: str,
               agent_id: str) -> PointFrameIndex:
+        lake.check_read(zone, table)
         files = lake.list_files(lake.table_dir(zone, table, clip_id, agent_id), ".parquet")
         idx = cls(lake, table, files)
         for path in files:
@@ -122,6 +123,7 @@ def partition_files(lake: Lake, zone: str, table: str,
                     clip_id: str) -> list[tuple[str, str | None, str]]:
     """(path, agent_id or None, file name stem) of every Parquet file of one clip's partition
     of ``zone.table``: the unit a stage that rewrites or splits a table works on."""
+    lake.check_read(zone, table)
     root = lake.table_dir(zone, table, clip_id)
     out = []
     for path in lake.list_files(root, ".parquet"):

@@ -459,12 +459,20 @@ class Lake:
         # tools); see ``for_stage``
         self.writer: str | None = None
         self.owns: frozenset[tuple[str, str]] = frozenset()
+        # the tables this handle may read besides ``owns`` (None: any); see ``for_stage``
+        self.reads: frozenset[tuple[str, str]] | None = None
         self._stage_root: str | None = None  # staged stage output (for_stage atomic_clip)
         self._replaced: set[tuple[str, str, str]] = set()
 
     def for_stage(self, stage: str, owns: Iterable[tuple[str, str]], *,
-                  atomic_clip: str | None = None, stage_root: str | None = None) -> Lake:
+                  atomic_clip: str | None = None, stage_root: str | None = None,
+                  reads: Iterable[tuple[str, str]] | None = None) -> Lake:
         """A handle on the same lake that writes only the ``(zone, table)`` pairs ``owns``.
+
+        With ``reads`` (the stage's ``Stage.reads``) it also reads only those tables and its
+        own: a table read but not declared would be left out of the stage's manifest key,
+        so a change to it would not re-run the stage; refused at once instead
+        (``check_read``). ``None`` reads anything (tools, tests).
 
         The single-writer rule (each table has one owning stage, ``schemas.tables``) is
         enforced here, where every Parquet write goes through, so a stage that writes
@@ -485,6 +493,7 @@ class Lake:
         other.written = {}
         other.writer = stage
         other.owns = frozenset(owns)
+        other.reads = None if reads is None else frozenset(reads)
         other._replaced = set()
         other._stage_root = None
         if stage_root is not None:
@@ -549,6 +558,15 @@ class Lake:
         raise PermissionError(
             f"stage {self.writer!r} may not write {zone}.{table}: "
             + (f"it belongs to stage {owner!r}" if owner else "no stage declares it"))
+
+    def check_read(self, zone: str, table: str) -> None:
+        """Refuse reading a table the stage this handle serves did not declare (``reads``
+        of ``for_stage``); every table read of the storage layer comes through here."""
+        if self.reads is None or (zone, table) in self.reads or (zone, table) in self.owns:
+            return
+        raise PermissionError(
+            f"stage {self.writer!r} reads {zone}.{table} but does not declare it in its "
+            "Stage.reads (its manifest would not notice a change to it)")
 
     def clip_lock(self, clip_id: str, wait_s: float | None = None
                   ) -> contextlib.AbstractContextManager[None]:
@@ -763,6 +781,7 @@ class Lake:
         filters: Any = None,
     ) -> pa.Table:
         """Read every partition file under the given keys, restoring the partition columns."""
+        self.check_read(zone, table)
         root = self.table_dir(zone, table, clip_id, agent_id)
         files = self.list_files(root, ".parquet")
         parts = []
@@ -831,7 +850,8 @@ class Lake:
                     if attempt == 4:
                         raise
         staged = Lake(sub if self.is_local else f"s3://{sub}")
-        staged.writer, staged.owns = self.writer, self.owns  # ownership, not the redirect
+        # ownership and declared reads, not the redirect
+        staged.writer, staged.owns, staged.reads = self.writer, self.owns, self.reads
         return staged
 
     def discard_staging(self, clip_id: str) -> int:

@@ -382,6 +382,13 @@ def read_radar_scans(lake: Lake, clip_id: str, agent_id: str, sensor: str
     return out
 
 
+#: Every clean table ``read_clip`` reads: a stage that loads a clip declares these in its
+#: ``Stage.reads`` (less the tables it owns), so its manifest notices a change to any of them.
+CLIP_TABLES = ("clips", "agents", "ego_poses", "calibrated_sensors", "lidar_frames",
+               "deskew_frames", "calibration_refined", "camera_frames", "radar_frames",
+               "annotations", "annotations_world", "instances", "registrations")
+
+
 def read_clip(lake: Lake, clip_id: str,
               calibration: CalibrationChoice = CalibrationChoice()) -> ClipRecord:
     """Everything but the points of one clip, from the clean zone only; each agent's
@@ -486,6 +493,7 @@ class PointFrame:
 
 
 def _point_files(lake: Lake, table: str, clip_id: str, agent_id: str) -> tuple[list[str], bool]:
+    lake.check_read("clean", table)
     files = lake.list_files(lake.table_dir("clean", table, clip_id, agent_id), ".parquet")
     if files:
         return files, False

@@ -32,7 +32,7 @@ from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import AlignmentRow
 from v2xlake.storage.files import read_parquet
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import CameraCalib, iter_point_frames, no_pose_report
+from v2xlake.storage.reader import CLIP_TABLES, CameraCalib, iter_point_frames, no_pose_report
 from v2xlake.tasks.align.boxes import BoxArray
 from v2xlake.tasks.align.config import AlignConfig, AssociationConfig
 from v2xlake.tasks.align.methods import (
@@ -425,8 +425,7 @@ def _write_overlay(lake: Lake, clip_id: str, aid: str, agent: AgentData, T_el: n
 
 ALIGN = Stage(
     name=STAGE, config_model=AlignConfig,
-    reads=tables("clean", "clips", "agents", "ego_poses", "calibrated_sensors", "lidar_frames",
-                 "camera_frames", "annotations", "lidar_points_deskewed", "deskew_frames",
-                 "registrations", "calibration_refined"),
+    # load_clip reads the clip record (storage.reader.CLIP_TABLES)
+    reads=tables("clean", *CLIP_TABLES, "lidar_points_deskewed"),
     owns=tables("clean", "alignments"), run=run_align,
     doc="stamp-, frame- and target-based LiDAR-camera temporal alignment (Sec. 5)")

@@ -33,13 +33,14 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import AnnotationWorldRow, InstanceRow
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import iter_point_frames, no_pose_report
+from v2xlake.storage.reader import CLIP_TABLES, iter_point_frames, no_pose_report
 from v2xlake.tasks.annotate.config import AnnotateConfig
 from v2xlake.tasks.annotate.consistency import check_links, cross_agent_distances, world_boxes
 from v2xlake.tasks.geometry import apply, count_points_in_boxes, transform
 from v2xlake.tasks.reader import AgentData, load_clip
 
 STAGE = "annotate"
+OWNS = ("annotations_world", "instances")
 
 
 def _fail(clip_id: str, reason: str, *, agent_id: str | None = None,
@@ -253,8 +254,7 @@ def run_annotate(lake: Lake, clip_id: str,
 
 ANNOTATE = Stage(
     name="annotate", config_model=AnnotateConfig,
-    reads=tables("clean", "clips", "agents", "ego_poses", "calibrated_sensors", "lidar_frames",
-                 "annotations", "lidar_points_deskewed", "deskew_frames", "registrations",
-                 "calibration_refined"),
-    owns=tables("clean", "annotations_world", "instances"), run=run_annotate,
+    # load_clip reads the clip record (storage.reader.CLIP_TABLES), less what annotate writes
+    reads=tables("clean", *(t for t in CLIP_TABLES if t not in OWNS), "lidar_points_deskewed"),
+    owns=tables("clean", *OWNS), run=run_annotate,
     doc="points per box, global instances, world-frame boxes, link and cross-agent checks")

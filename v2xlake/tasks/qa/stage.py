@@ -65,6 +65,9 @@ from v2xlake.tasks.qa.timing import (
 )
 
 STAGE = "qa"
+#: the raw tables the checks read (and so ``QA.reads``)
+CHECKED = ("sensors", "lidar_frames", "camera_frames", "radar_frames", "ins", "ego_poses", "imu",
+           "gnss", "agents")
 STATUS_UNKNOWN = -2  # tasks.ingest.pose: the pose source reports no solution status
 
 
@@ -93,9 +96,7 @@ class _Qa:
         self.lake, self.cfg, self.c = lake, cfg, config
         self.cid = cfg.clip_id
         self.rows: list[QaCheckRow] = []
-        self.t = {name: lake.read_table("raw", name, clip_id=self.cid) for name in (
-            "sensors", "lidar_frames", "camera_frames", "ins", "ego_poses", "imu", "gnss",
-            "radar_frames", "agents")}
+        self.t = {name: lake.read_table("raw", name, clip_id=self.cid) for name in CHECKED}
         starts = [int(np.min(c)) for c in (
             _col(self.t["lidar_frames"], "t_start_ns"), _col(self.t["camera_frames"], "stamp_ns"),
             _col(self.t["ins"], "t_ns"), _col(self.t["ego_poses"], "t_ns")) if c.size]
@@ -397,7 +398,7 @@ def run_qa(lake: Lake, clip_id: str, config: QaConfig | None = None) -> StageRep
 
 QA = Stage(
     name="qa", config_model=QaConfig,
-    reads=tables("raw", "clips", "agents", "sensors", "calibrated_sensors", "lidar_frames",
-                 "camera_frames", "ins", "ego_poses", "imu", "gnss"),
+    # and the landing clip.yaml, which ingest turns into clips and calibrated_sensors
+    reads=tables("raw", *CHECKED, "clips", "calibrated_sensors"),
     owns=tables("raw", "qa_checks"), run=run_qa,
     doc="timing, gaps and coverage checks; an error-severity finding quarantines the clip")
