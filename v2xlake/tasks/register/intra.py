@@ -147,6 +147,23 @@ def pose_distance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
         np.linalg.norm(b[:3, 3] - a[:3, 3]))
 
 
+def nearest_rigid(T: np.ndarray) -> tuple[np.ndarray, float]:
+    """The rigid transform nearest ``T`` (its 3x3 block replaced by the rotation of its polar
+    decomposition, translation kept) and how far the block was from a rotation (largest
+    ``|singular value - 1|``).
+
+    Why: a calibration file's matrix need not be rigid -- the Pandar64/QT64 file's 3x3 has
+    singular values 0.989-0.990, a 1.1% scale -- and GICP started from it keeps that scale in
+    every result (its updates multiply the start), while ``invert`` (transpose) assumes a
+    rotation: both moved the real pair's minimum by ~8 cm (20 m x 1%)."""
+    T = np.asarray(T, np.float64)
+    U, S, Vt = np.linalg.svd(T[:3, :3])
+    out = T.copy()
+    out[:3, :3] = U @ np.diag([1.0, 1.0, float(np.linalg.det(U @ Vt))]) @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out, float(np.abs(S - 1.0).max())
+
+
 def euler_zyx(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
     """R = Rz(yaw) Ry(pitch) Rx(roll) (degrees), the convention of published roll/pitch/yaw."""
     r, p, y = np.radians([roll_deg, pitch_deg, yaw_deg])
@@ -162,32 +179,46 @@ def _crop(xyz: np.ndarray, c: IntraConfig) -> np.ndarray:
 
 
 class _Cloud:
-    """One voxelised cloud with covariances and a k-d tree (small_gicp), made once per voxel."""
+    """One voxelised cloud with a k-d tree (small_gicp), made once per voxel; covariances
+    only where GICP needs them (the overlap score needs the tree alone, and estimating them
+    is most of a cloud's cost)."""
 
-    def __init__(self, sg: Any, xyz: np.ndarray, voxel_m: float, c: IntraConfig) -> None:
+    def __init__(self, sg: Any, xyz: np.ndarray, voxel_m: float, c: IntraConfig,
+                 covariances: bool = True) -> None:
         self.cloud = sg.voxelgrid_sampling(xyz, voxel_m, num_threads=c.num_threads)
         self.tree = sg.KdTree(self.cloud, num_threads=c.num_threads)
-        if self.cloud.size() > c.num_neighbors:
+        if covariances and self.cloud.size() > c.num_neighbors:
             sg.estimate_covariances(self.cloud, self.tree, c.num_neighbors,
                                     num_threads=c.num_threads)
         self.points = np.asarray(self.cloud.points())[:, :3].copy()
 
 
 class _Prepared:
-    """Both clouds at every voxel the refinement needs, cached."""
+    """Both clouds at every voxel the refinement needs, cached; ``with_secondary`` shares the
+    primary's clouds with another secondary scan (the half-scans of the uncertainty)."""
 
-    def __init__(self, primary: np.ndarray, secondary: np.ndarray, c: IntraConfig) -> None:
+    def __init__(self, primary: np.ndarray, secondary: np.ndarray, c: IntraConfig,
+                 _cache: dict[tuple[str, float, bool], _Cloud] | None = None) -> None:
         import small_gicp
 
         self.sg, self.c = small_gicp, c
         self.primary, self.secondary = _crop(primary, c), _crop(secondary, c)
-        self._cache: dict[tuple[str, float], _Cloud] = {}
+        self._cache: dict[tuple[str, float, bool], _Cloud] = _cache or {}
 
-    def get(self, which: str, voxel_m: float) -> _Cloud:
-        key = (which, voxel_m)
+    def with_secondary(self, secondary: np.ndarray) -> _Prepared:
+        """The same primary (its prepared clouds reused) against another secondary scan."""
+        shared = {k: v for k, v in self._cache.items() if k[0] == "primary"}
+        out = _Prepared(np.zeros((0, 3)), secondary, self.c, shared)
+        out.primary = self.primary
+        return out
+
+    def get(self, which: str, voxel_m: float, covariances: bool = True) -> _Cloud:
+        key = (which, voxel_m, covariances)
         if key not in self._cache:
+            if not covariances and (which, voxel_m, True) in self._cache:
+                return self._cache[(which, voxel_m, True)]
             xyz = self.primary if which == "primary" else self.secondary
-            self._cache[key] = _Cloud(self.sg, xyz, voxel_m, self.c)
+            self._cache[key] = _Cloud(self.sg, xyz, voxel_m, self.c, covariances)
         return self._cache[key]
 
     def align(self, T: np.ndarray, vt: float, vs: float, corr: float, iters: int) -> Any:
@@ -199,7 +230,8 @@ class _Prepared:
     def score(self, T: np.ndarray) -> float:
         """Kernel-weighted fraction of the source (score voxels) on the primary cloud."""
         c = self.c
-        t, s = self.get("primary", c.score_voxel_m), self.get("secondary", c.score_voxel_m)
+        t = self.get("primary", c.score_voxel_m, covariances=False)
+        s = self.get("secondary", c.score_voxel_m, covariances=False)
         q = s.points @ T[:3, :3].T + T[:3, 3]
         _, d2 = t.tree.batch_nearest_neighbor_search(np.ascontiguousarray(q),
                                                      num_threads=c.num_threads)
@@ -216,17 +248,28 @@ def seed_rotations(c: IntraConfig) -> list[np.ndarray]:
 
 
 def _distinct(cands: list[tuple[np.ndarray, float]], c: IntraConfig) -> list[Minimum]:
-    """Group end points (best first) into distinct minima."""
-    out: list[list[Any]] = []
+    """Group end points (best first) into distinct minima: each joins the first (best) minimum
+    within ``minimum_sep_*`` of it (``pose_distance``, vectorised over the minima: 125 seeds
+    against a handful of minima were a tenth of a refinement in a Python loop)."""
+    Ts: list[np.ndarray] = []
+    scores: list[float] = []
+    counts: list[int] = []
+    cos_sep = np.cos(np.radians(c.minimum_sep_deg))
     for T, s in sorted(cands, key=lambda x: -x[1]):
-        for m in out:
-            dr, dt = pose_distance(m[0], T)
-            if dr < c.minimum_sep_deg and dt < c.minimum_sep_m:
-                m[2] += 1
-                break
-        else:
-            out.append([T, s, 1])
-    return [Minimum(T, s, k) for T, s, k in out]
+        if Ts:
+            A = np.asarray(Ts)
+            # angle of R_m^T R: trace(R_m^T R) = sum(R_m * R); translation distance direct
+            cos = np.clip((np.einsum("nij,ij->n", A[:, :3, :3], T[:3, :3]) - 1.0) / 2.0,
+                          -1.0, 1.0)
+            dt = np.linalg.norm(A[:, :3, 3] - T[:3, 3], axis=1)
+            hit = np.flatnonzero((cos > cos_sep) & (dt < c.minimum_sep_m))
+            if len(hit):
+                counts[int(hit[0])] += 1
+                continue
+        Ts.append(T)
+        scores.append(s)
+        counts.append(1)
+    return [Minimum(T, s, k) for T, s, k in zip(Ts, scores, counts, strict=True)]
 
 
 def _covariance(r: Any, T: np.ndarray, c: IntraConfig, floor: bool = True) -> np.ndarray:
@@ -246,7 +289,7 @@ def _covariance(r: Any, T: np.ndarray, c: IntraConfig, floor: bool = True) -> np
     return np.asarray(cov + np.diag(f))
 
 
-def _split_covariance(primary: np.ndarray, secondary: np.ndarray, T: np.ndarray,
+def _split_covariance(P: _Prepared, secondary: np.ndarray, T: np.ndarray,
                       c: IntraConfig) -> np.ndarray:
     """Covariance [rot, trans] of the finish repeated on half-planes of the secondary scan
     (azimuths facing ``split_halves`` directions) about ``T``: how much the result depends on
@@ -258,13 +301,14 @@ def _split_covariance(primary: np.ndarray, secondary: np.ndarray, T: np.ndarray,
     devs = []
     for k in range(c.split_halves):
         half = sec[np.cos(az - 2.0 * np.pi * k / c.split_halves) > 0.0]
-        P = _Prepared(primary, half, c)
-        if len(P.get("secondary", c.score_voxel_m).points) < c.min_points // 2:
+        H = P.with_secondary(half)
+        if len(H.get("secondary", c.score_voxel_m, covariances=False).points) < \
+                c.min_points // 2:
             continue
         # from the full result, at the finest stage only: the question is where the half's
         # own data pulls, not which basin a wide correspondence distance reaches
         vt, vs, corr = c.fine_stages[-1]
-        r = P.align(T, vt, vs, corr, c.fine_iterations)
+        r = H.align(T, vt, vs, corr, c.fine_iterations)
         Th = np.asarray(r.T_target_source)
         if not r.converged or not np.isfinite(Th).all():
             continue  # still sliding after fine_iterations: a direction this half lacks
@@ -298,16 +342,21 @@ def refine_extrinsic(primary: np.ndarray, secondary: np.ndarray, T_init: np.ndar
     sensor frame (deskewed to a common instant where the agent moves)."""
     c = config or IntraConfig()
     t0 = time.perf_counter()
-    T_init = np.asarray(T_init, np.float64)
+    # a non-rigid start would make every result non-rigid (see nearest_rigid): start from
+    # the nearest rigid transform and say so
+    T_init, scale_dev = nearest_rigid(T_init)
+    note = (f"; the start was not rigid (scale off by {scale_dev * 100:.2f}%): its nearest "
+            "rotation used" if scale_dev > 1e-4 else "")
 
     def refuse(reason: str, T: np.ndarray | None = None, minima: tuple[Minimum, ...] = (),
                overlap: float = 0.0) -> IntraResult:
-        return IntraResult(T_init, T_init if T is None else T, False, reason, overlap=overlap,
-                           minima=minima, seconds=time.perf_counter() - t0)
+        return IntraResult(T_init, T_init if T is None else T, False, reason + note,
+                           overlap=overlap, minima=minima, seconds=time.perf_counter() - t0)
 
     P = _Prepared(primary, secondary, c)
-    n_src = len(P.get("secondary", c.score_voxel_m).points)
-    if n_src < c.min_points or len(P.get("primary", c.score_voxel_m).points) < c.min_points:
+    n_src = len(P.get("secondary", c.score_voxel_m, covariances=False).points)
+    if n_src < c.min_points or \
+            len(P.get("primary", c.score_voxel_m, covariances=False).points) < c.min_points:
         return refuse(f"too few points ({n_src} secondary voxels < {c.min_points})")
 
     # 1. search
@@ -361,20 +410,30 @@ def refine_extrinsic(primary: np.ndarray, secondary: np.ndarray, T_init: np.ndar
                       f"{c.max_correction_deg:.0f} deg / {c.max_correction_m * 100:.0f} cm",
                       T, minima, overlap)
     # 4. uncertainty
-    cov = _covariance(r, T, c) + _split_covariance(primary, secondary, T, c)
+    cov_formal = _covariance(r, T, c)
+    cov_split = _split_covariance(P, secondary, T, c)
+    cov = cov_formal + cov_split
     sd, sm = _max_std(cov)
     rmse = float(np.sqrt(2.0 * float(r.error) / max(int(r.num_inliers), 1)))
     res = IntraResult(T_init, T, True, "", cov, sd, sm, overlap, rmse, minima,
                       time.perf_counter() - t0)
     if sd > c.max_std_deg or sm > c.max_std_m:
+        # which part is too large says why: the formal part (the geometry leaves a direction
+        # unconstrained) or the half-scans' spread (the data fit, but parts of the scene pull
+        # the extrinsic to different places: motion, timing, a non-rigid cloud)
+        fd, fm = _max_std(cov_formal)
+        hd, hm = _max_std(cov_split)
+        why = ("half-scans disagree: their spread alone is "
+               f"{hd:.2f} deg / {hm * 100:.1f} cm" if hd / c.max_std_deg + hm / c.max_std_m
+               > fd / c.max_std_deg + fm / c.max_std_m else "degenerate geometry")
         return IntraResult(T_init, T, False,
                            f"not observed: 1-sigma {sd:.2f} deg / {sm * 100:.1f} cm > "
-                           f"{c.max_std_deg} deg / {c.max_std_m * 100:.0f} cm (degenerate "
-                           "geometry)", cov, sd, sm, overlap, rmse, minima, res.seconds)
+                           f"{c.max_std_deg} deg / {c.max_std_m * 100:.0f} cm ({why})" + note,
+                           cov, sd, sm, overlap, rmse, minima, res.seconds)
     second = minima[1].score / best.score if len(minima) > 1 else 0.0
     reason = (f"refined {cr:.1f} deg / {ct * 100:.1f} cm from the published start; "
               f"{len(minima)} minima, next best scores {second:.2f} of the best; "
-              f"overlap {overlap:.2f}")
+              f"overlap {overlap:.2f}{note}")
     return IntraResult(T_init, T, True, reason, cov, sd, sm, overlap, rmse, minima,
                        res.seconds)
 

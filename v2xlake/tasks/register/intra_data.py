@@ -31,7 +31,9 @@ def read_initial_extrinsics(path: str | Path) -> dict[int, np.ndarray]:
 
 
 def read_json_extrinsic(path: str | Path) -> np.ndarray:
-    """The first 4x4 ``sensor_calib`` matrix of a calibration JSON."""
+    """The first 4x4 ``sensor_calib`` matrix of a calibration JSON, as written (not
+    necessarily rigid: ``intra.nearest_rigid`` says how far it is and gives the nearest rigid
+    transform, which is what ``geometry.invert`` and a registration need)."""
     doc = json.loads(Path(path).read_text())
     entry = next(iter(doc.values()))
     return np.asarray(entry["param"]["sensor_calib"]["data"], dtype=np.float64).reshape(4, 4)
