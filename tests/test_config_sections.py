@@ -3,6 +3,8 @@ warning naming the new key; a clip's partial section keeps the run's other keys.
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from typing import Any, ClassVar
 
 import pytest
@@ -90,3 +92,13 @@ def test_params_show_text_is_the_tree_with_descriptions() -> None:
     assert yaml.safe_load(text) == data
     assert "    max_ns: 30000000  # pose samples further apart than this are a gap" in text
     assert "  pose_gaps:  # Pose samples too far apart to interpolate across." in text
+
+
+def test_a_user_sees_the_renamed_key_warning() -> None:
+    """Python hides a DeprecationWarning outside ``__main__``: the renamed-key warning is
+    shown by default, so the one who wrote the YAML learns the new key."""
+    code = ("from v2xlake.tasks.qa.config import QaConfig\n"
+            "QaConfig.model_validate({'lidar_tolerance_ms': 2.0})\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert "'lidar_tolerance_ms' is now 'tolerance_ms.lidar'" in out.stderr

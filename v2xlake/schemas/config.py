@@ -6,8 +6,9 @@ numeric core takes directly, so a parameter is written once, with its default an
 description, and no hand-copied dataclass can drift from it.
 
 Earlier versions of the YAML used flat keys. A stage lists them in ``RENAMED`` (old flat key
--> dotted new path); they are moved into their section with a ``DeprecationWarning`` that
-names the new key, so existing parameter files keep working. Unknown keys are refused.
+-> dotted new path); they are moved into their section with a ``RenamedParameterWarning`` (a
+``DeprecationWarning`` shown by default) that names the new key, so existing parameter files
+keep working. Unknown keys are refused.
 
 This module imports pydantic only: ``v2xlake params show`` builds the tree from the stages'
 ``config.py`` modules without importing their numeric code.
@@ -19,6 +20,15 @@ import warnings
 from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict, model_validator
+
+
+class RenamedParameterWarning(DeprecationWarning):
+    """A flat key of an earlier version was moved into its section. Shown by default, unlike
+    a plain ``DeprecationWarning`` (hidden outside ``__main__``): the one who must act on it
+    is the person who wrote the YAML, not a developer running tests."""
+
+
+warnings.filterwarnings("default", category=RenamedParameterWarning)
 
 #: A pose gap is longer than this many periods of its pose track: QA flags a LiDAR scan it
 #: leaves uncovered, deskew does not interpolate across it (one default for both stages).
@@ -71,7 +81,7 @@ class StageConfig(Section):
             new = cls.RENAMED[old]
             warnings.warn(f"{cls.__name__}: the parameter '{old}' is now '{new}' "
                           "(nested section); the flat key will be removed",
-                          DeprecationWarning, stacklevel=2)
+                          RenamedParameterWarning, stacklevel=2)
             _set_path(out, new, value)
         return out
 
