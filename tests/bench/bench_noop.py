@@ -1,6 +1,6 @@
 """Fixed cost of a call: the no-op re-run against a trivial Prefect flow, in the same run.
 
-    python tests/bench/bench_noop.py [--work DIR] [--clips 1000] [--repeat 3]
+    python tests/bench/bench_noop.py [--work DIR] [--clips 1000] [--repeat 3] [--snapshot]
 
 A small simulated clip (preset small, 1 s) is processed through every stage once (kept in
 ``--work``); ``--clips`` replicas of it make a lake where every clip is current
@@ -42,6 +42,10 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
 sys.path[:0] = [str(REPO), str(HERE), str(REPO / "tests")]
+# the code the measured processes run: the checkout, or with --snapshot a copy of it taken
+# at the start, so that edits made in the checkout while the bench runs (a shared checkout)
+# neither re-run stages nor invalidate remembered answers halfway through
+CODE = REPO
 
 import bench_scale  # noqa: E402
 
@@ -59,14 +63,14 @@ def build_template(work: Path) -> Path:
     cli = [sys.executable, "-m", "v2xlake.flows.cli"]
     print("building the template clip (small, 1 s, every stage) ...", flush=True)
     subprocess.run([*cli, "simulate", str(tdir / "clip"), "--seconds", "1", "--seed", "7",
-                    "--clip-id", TEMPLATE], check=True, env=_env(), cwd=REPO)
+                    "--clip-id", TEMPLATE], check=True, env=_env(), cwd=CODE)
     subprocess.run([*cli, "process", str(tdir / "clip"), "--lake", str(lake)], check=True,
-                   env=_env(), cwd=REPO)
+                   env=_env(), cwd=CODE)
     return lake
 
 
 def _env(**extra: str) -> dict[str, str]:
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests")]))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(CODE), str(CODE / "tests")]))
     env.pop("PREFECT_API_URL", None)
     env.update(extra)
     return env
@@ -76,7 +80,7 @@ def timed(cmd: list[str], repeat: int, env: dict[str, str]) -> dict[str, float]:
     walls = []
     for _ in range(repeat):
         t0 = time.perf_counter()
-        res = subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True)
+        res = subprocess.run(cmd, env=env, cwd=CODE, capture_output=True, text=True)
         walls.append(time.perf_counter() - t0)
         if res.returncode != 0:
             raise RuntimeError(f"{cmd} failed:\n{res.stdout[-2000:]}\n{res.stderr[-3000:]}")
@@ -114,9 +118,19 @@ def main() -> None:
     ap.add_argument("--clips", type=int, default=1000)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--only", default="calls,clips,fixed", help="calls, clips, fixed")
+    ap.add_argument("--snapshot", action="store_true",
+                    help="measure a copy of the code taken now (a checkout others edit)")
     args = ap.parse_args()
     work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
+    if args.snapshot:
+        global CODE
+        CODE = work / "snapshot"
+        shutil.rmtree(CODE, ignore_errors=True)
+        shutil.copytree(REPO / "v2xlake", CODE / "v2xlake",
+                        ignore=shutil.ignore_patterns("__pycache__"))
+        (CODE / "tests").mkdir()
+        shutil.copy2(REPO / "tests" / "trivial_flow.py", CODE / "tests")
     os.environ.setdefault("V2XLAKE_HOME", str(work / "home"))
     os.environ["V2XLAKE_NOOP_CACHE"] = str(work / "noop-facts.json")
     from v2xlake.flows.settings import configure_prefect
@@ -125,7 +139,7 @@ def main() -> None:
     tlake = build_template(work)
     clip = tlake.parent / "clip"
     py = sys.executable
-    anchor1 = [py, str(REPO / "tests" / "trivial_flow.py")]
+    anchor1 = [py, str(CODE / "tests" / "trivial_flow.py")]
     anchor7 = [py, "-c", "from trivial_flow import trivial_clip_flow; trivial_clip_flow()"]
     process = [py, "-m", "v2xlake.flows.cli", "process", str(clip), "--lake", str(tlake)]
     flow_noop = [py, "-c", FLOW_NOOP, str(clip), str(tlake)]
@@ -148,7 +162,7 @@ def main() -> None:
             if variant == "cold":
                 Path(os.environ["V2XLAKE_NOOP_CACHE"]).unlink(missing_ok=True)
             out = subprocess.run([py, "-c", PER_CLIP, str(root), str(inbox)], env=env,
-                                 capture_output=True, text=True, cwd=REPO)
+                                 capture_output=True, text=True, cwd=CODE)
             if out.returncode != 0:
                 raise RuntimeError(out.stderr[-3000:])
             ok, n, imp, check = out.stdout.split()[-4:]
@@ -195,7 +209,7 @@ def measure_calls(work: Path, repeat: int, env: dict[str, str], anchor1: list[st
     print(f"per call, {repeat} fresh processes each (wall s, best / median):", flush=True)
     # first a call that refills the facts cache if the stages' code changed since the last
     # run (the figures below are for the cache as every later call finds it)
-    subprocess.run(process, env=env, cwd=REPO, capture_output=True)
+    subprocess.run(process, env=env, cwd=CODE, capture_output=True)
     def measure(run_env: dict[str, str], server: str, no_url: str) -> None:
         for name, cmd in ((f"anchor 1 task, {server}", anchor1),
                           (f"anchor 7 tasks, {server}", anchor7),
