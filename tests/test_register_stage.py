@@ -128,7 +128,7 @@ def _copy(src: Path, dst: Path) -> Lake:
     return Lake(dst)
 
 
-@pytest.mark.parametrize("backend", ["small_gicp", "open3d"])
+@pytest.mark.parametrize("backend", ["sparse", "small_gicp", "open3d"])
 def test_deskew_then_register_recovers_true_transform(tmp_path: Path, backend: str,
                                                       clip_lakes: dict[str, Path]) -> None:
     lake = _copy(clip_lakes["pair"], tmp_path / "lake")

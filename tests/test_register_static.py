@@ -113,7 +113,7 @@ def test_nan_and_inf_points_never_reach_a_backend() -> None:
     bad = rng.choice(len(dirty), 500, replace=False)
     dirty[bad[:250], 0] = np.nan
     dirty[bad[250:], 2] = np.inf
-    for name in ("small_gicp", "open3d"):
+    for name in ("small_gicp", "open3d", "sparse"):
         be = make_backend(name, GicpSection(voxel_m=0.6, source_voxel_m=1.0))  # type: ignore[arg-type]
         res = refine(be, be.prepare(c.ref), be.prepare(dirty, as_target=False), c.T_init,
                      QualitySection())
@@ -142,6 +142,9 @@ class _Exploding:
 
     def nearest_sq_dist(self, target, query):  # type: ignore[no-untyped-def]
         return self._inner.nearest_sq_dist(target, query)
+
+    def prepare_covisible(self, pts, other_origin, min_keep):  # type: ignore[no-untyped-def]
+        return self._inner.prepare_covisible(pts, other_origin, min_keep)
 
 
 def test_backend_failure_is_a_per_frame_reason() -> None:

@@ -24,8 +24,13 @@ from v2xlake.schemas.config import Section, StageConfig
 class GicpSection(Section):
     """Generalized-ICP of one pair of scans (main paper eq. 1b)."""
 
-    backend: Literal["small_gicp", "open3d"] = Field(
-        "small_gicp", description="GICP implementation; small_gicp is ~1.4x faster here")
+    backend: Literal["sparse", "small_gicp", "open3d"] = Field(
+        "sparse", description="GICP implementation: sparse (a spread sample of the source, "
+        "surfaces computed only where correspondences land: register/sparse.py), small_gicp "
+        "(every point of both clouds) or open3d. On the cooperative boulevard's 3 s clips "
+        "sparse took the stage's GICP from 0.13-0.18 to 0.04-0.05 s per frame pair with the "
+        "same frames within 3 cm / 0.1 deg on every variation but seed 2 (29 / 30 against 30 "
+        "/ 30, not accepted) and 0-2 fewer accepted")
     voxel_m: float = Field(
         0.3, gt=0, description="target (reference scan) voxel size. Coarse voxels bias the "
         "relative pose along a street: a voxel's centroid on poles, car bodies and wall "
@@ -40,6 +45,11 @@ class GicpSection(Section):
     max_range_m: float = Field(80.0, gt=0, description="points farther than this are "
                                "dropped (sparse, noisy, and cropping saves time)")
     num_neighbors: int = Field(10, ge=5, description="neighbours per covariance")
+    sample_cell_m: float | None = Field(
+        0.9, gt=0, description="sparse backend: one source centroid (of the fine voxels) per "
+        "cell of this size is aligned, with the surface of its full-resolution neighbourhood; "
+        "None: every centroid (the same result as small_gicp). 0.6 m measured like 0.9 m on "
+        "the boulevard at 1.3x the GICP time")
     max_correspondence_m: float = Field(1.0, gt=0)
     max_iterations: int = Field(30, ge=1)
     num_threads: int = Field(1, ge=1, description="threads per GICP call; one leaves the "

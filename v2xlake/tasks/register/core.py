@@ -78,10 +78,11 @@ def evaluate(backend: RegistrationBackend, target: Prepared, source: Prepared, T
 
     The RMSE is point to nearest target voxel centroid, so it includes the voxel
     discretisation (about half the target voxel on sparse scans)."""
-    n = len(source.points)
+    pts = source.points if source.sample is None else source.points[source.sample]
+    n = len(pts)
     if n == 0 or len(target.points) == 0:
         return 0.0, 0.0, 0
-    moved = apply(T, source.points)
+    moved = apply(T, pts)
     d2 = backend.nearest_sq_dist(target, moved)
     inl = d2 <= distance_m**2
     k = int(inl.sum())

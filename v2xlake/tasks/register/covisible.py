@@ -62,6 +62,22 @@ def _eig_sym3(a00: float, a01: float, a02: float, a11: float, a12: float, a22: f
     return l_min, l_mid, vx, vy, vz
 
 
+@njit(cache=True, inline="always")
+def _same_side(px: float, py: float, pz: float, nx: float, ny: float, nz: float, planar: bool,
+               sx: float, sy: float, sz: float, cos_min: float) -> bool:
+    """Whether the LiDAR at ``s`` sees the surface at ``p`` (own LiDAR at the origin) from the
+    same side: through the normal on a planar patch, else by the angle between the lines of
+    sight."""
+    ox, oy, oz = -px, -py, -pz  # toward the own LiDAR
+    tx, ty, tz = sx - px, sy - py, sz - pz  # toward the other
+    if planar:
+        if nx * ox + ny * oy + nz * oz < 0.0:
+            nx, ny, nz = -nx, -ny, -nz
+        return nx * tx + ny * ty + nz * tz > 0.0
+    no = np.sqrt(ox * ox + oy * oy + oz * oz) * np.sqrt(tx * tx + ty * ty + tz * tz)
+    return (ox * tx + oy * ty + oz * tz) >= cos_min * max(no, 1e-12)
+
+
 @njit(cache=True)
 def _mask_kernel(p: np.ndarray, idx: np.ndarray, s: np.ndarray, planar_ratio: float,
                  cos_min: float) -> np.ndarray:
@@ -88,16 +104,32 @@ def _mask_kernel(p: np.ndarray, idx: np.ndarray, s: np.ndarray, planar_ratio: fl
             a12 += d1 * d2
             a22 += d2 * d2
         l_min, l_mid, nx, ny, nz = _eig_sym3(a00, a01, a02, a11, a12, a22)
-        ox, oy, oz = -p[i, 0], -p[i, 1], -p[i, 2]  # toward the own LiDAR
-        tx, ty, tz = s[0] - p[i, 0], s[1] - p[i, 1], s[2] - p[i, 2]  # toward the other
-        if l_min < planar_ratio * max(l_mid, 1e-12):
-            if nx * ox + ny * oy + nz * oz < 0.0:
-                nx, ny, nz = -nx, -ny, -nz
-            out[i] = nx * tx + ny * ty + nz * tz > 0.0
-        else:
-            no = np.sqrt(ox * ox + oy * oy + oz * oz) * np.sqrt(tx * tx + ty * ty + tz * tz)
-            out[i] = (ox * tx + oy * ty + oz * tz) >= cos_min * max(no, 1e-12)
+        out[i] = _same_side(p[i, 0], p[i, 1], p[i, 2], nx, ny, nz,
+                            l_min < planar_ratio * max(l_mid, 1e-12), s[0], s[1], s[2], cos_min)
     return out
+
+
+@njit(cache=True)
+def _rows_kernel(p: np.ndarray, normals: np.ndarray, ratio: np.ndarray, rows: np.ndarray,
+                 s: np.ndarray, planar_ratio: float, cos_min: float) -> np.ndarray:
+    out = np.ones(len(rows), dtype=np.bool_)
+    for i in range(len(rows)):
+        r = rows[i]
+        out[i] = _same_side(p[r, 0], p[r, 1], p[r, 2], normals[r, 0], normals[r, 1],
+                            normals[r, 2], ratio[r] < planar_ratio, s[0], s[1], s[2], cos_min)
+    return out
+
+
+def covisible_rows(points: np.ndarray, normals: np.ndarray, planarity: np.ndarray,
+                   rows: np.ndarray, other_origin: np.ndarray, *, planar_ratio: float = 0.1,
+                   max_angle_deg: float = 90.0) -> np.ndarray:
+    """:func:`covisible_mask` of ``points[rows]`` with their normals and planarity ratios
+    (smallest / middle eigenvalue, NaN: none) already known."""
+    s = np.asarray(other_origin, dtype=np.float64).reshape(3)
+    return np.asarray(_rows_kernel(points, normals, planarity,
+                                   np.ascontiguousarray(rows, dtype=np.int64), s,
+                                   float(planar_ratio),
+                                   float(np.cos(np.radians(max_angle_deg)))))
 
 
 def covisible_mask(points: np.ndarray, other_origin: np.ndarray, *, k: int = 10,

@@ -37,7 +37,6 @@ from v2xlake.tasks.register.core import (
     refine,
     transform_delta,
 )
-from v2xlake.tasks.register.covisible import covisible_mask
 from v2xlake.tasks.register.scans import (
     AgentScans,
     Body,
@@ -400,7 +399,7 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
         voxel_s_per_frame=float(timing["voxel_s"]) / n_frames,
         filter_s_per_frame=float(timing["filter_s"]) / n_frames,
         odometry_s_per_frame=float(timing["odometry_s"]) / n_frames,
-        covisible_s_per_frame=float(timing["covisible_s"]) / n_frames,
+        prepare_s_per_frame=float(timing["prepare_s"]) / n_frames,
         solve_s_per_frame=float(timing.get("solve_s", 0.0)) / n_frames,
         removed_boxes=float(removed.boxes), removed_bodies=float(removed.bodies),
         removed_dynamic=float(removed.dynamic),
@@ -470,7 +469,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     warm: dict[str, np.ndarray | None] = {o.agent: None for o in others}
     out: list[_Pair] = []
     timing: dict[str, Any] = {"pair_s": [], "gicp_s": 0.0, "filter_s": 0.0, "odometry_s": 0.0,
-                              "covisible_s": 0.0,
+                              "prepare_s": 0.0,
                               "ground": {a: [] for a in scans}}
 
     def secs(agent: str, f: int) -> float:
@@ -511,15 +510,15 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         """The cloud a cross pair registers: with ``covisible`` only what the other LiDAR
         sees from the same side (:mod:`covisible`; the whole scan where too little would
         remain), else the whole scan (prepared once, shared with odometry)."""
-        if cfg.covisible:
-            t = time.perf_counter()
-            keep = covisible_mask(points, other_origin)
-            timing["covisible_s"] += time.perf_counter() - t
-            if keep.sum() >= max(cfg.quality.min_inliers, 0.3 * len(keep)):
-                points = points[keep]
-        elif f in recent[agent]:
-            return recent[agent][f], ""
-        return prepare(points)
+        if not cfg.covisible:
+            return (recent[agent][f], "") if f in recent[agent] else prepare(points)
+        t = time.perf_counter()
+        try:
+            return backend.prepare_covisible(points, other_origin, cfg.quality.min_inliers), ""
+        except Exception as e:  # per frame, never the clip's end
+            return None, f"{backend.name} could not prepare the scan: {e}"
+        finally:
+            timing["prepare_s"] += time.perf_counter() - t
 
     def _odometry(agent: str, f: int) -> None:
         a = scans[agent]
