@@ -111,3 +111,15 @@ def test_side_lidar_refined_end_to_end(side_clip: tuple[Lake, Path]) -> None:
     table = format_calibration(compare_calibration(lake, CID))
     line = next(ln for ln in table.splitlines() if "LIDAR_LEFT" in ln)
     assert "refined" in line and "rx ry rz tx ty tz" in line
+
+    # and the Python API's view of the same table: published vs refined per LiDAR
+    import v2xlake
+
+    cal = v2xlake.open(lake.uri).clip(CID).calibration().to_pylist()
+    left = next(r for r in cal if r["agent_id"] == "red" and r["sensor"] == "LIDAR_LEFT")
+    assert left["effective"] == "refined" and left["usable"]
+    assert np.allclose([left["ref_tx"], left["ref_ty"], left["ref_tz"]], T[:3, 3])
+    assert np.allclose([left["pub_tx"], left["pub_ty"], left["pub_tz"]],
+                       rig.T_ego_side_pub[:3, 3])
+    top = next(r for r in cal if r["agent_id"] == "red" and r["sensor"] == "LIDAR_TOP")
+    assert top["ref_tx"] is None and top["effective"] == "published"

@@ -47,6 +47,7 @@ from v2xlake.tasks.reader import (
     RelativeTransform,
     TransformSource,
     boxes_matrices,
+    compare_calibration,
     load_clip,
     match_agents,
     nearest_index,
@@ -483,6 +484,28 @@ class Clip:
     def registrations(self) -> pa.Table:
         """Eq. 1a / 1b ``T_L1_L2`` per frame pair with fitness, RMSE and acceptance."""
         return self.data.registrations
+
+    def calibration(self) -> pa.Table:
+        """Every LiDAR of every agent: its published extrinsic (``T_ego_sensor`` as ``pub_*``),
+        the register stage's refinement (``ref_*``, null where there is none: the clip solve
+        for a cooperative agent's primary LiDAR, intra-agent against the primary for the
+        others), the correction and its 1-sigma, the components determined, whether it is
+        usable, which one every consumer uses (``effective``) and why."""
+        rows = []
+        for c in compare_calibration(self.lake.io, self.clip_id):
+            row: dict[str, Any] = {
+                "agent_id": c.agent_id, "sensor": c.sensor, "effective": c.effective,
+                "usable": c.usable, "method": c.method, "refined_components": c.refined_components,
+                "correction_m": c.correction_m, "correction_deg": c.correction_deg,
+                "std_m": c.std_m, "std_deg": c.std_deg, "reason": c.reason}
+            for prefix, T in (("pub_", c.published), ("ref_", c.refined)):
+                q = None if T is None else quat_wxyz_of(T)
+                for k, name in enumerate(("tx", "ty", "tz")):
+                    row[prefix + name] = None if T is None else float(T[k, 3])
+                for k, name in enumerate(("qw", "qx", "qy", "qz")):
+                    row[prefix + name] = None if q is None else float(q[k])
+            rows.append(row)
+        return pa.Table.from_pylist(rows)
 
     def alignments(self, agent: str | None = None) -> pa.Table:
         """The align stage's LiDAR-camera associations (Sec. 5)."""

@@ -15,13 +15,23 @@ from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.geometry import matrix_to_quat, quat_to_matrix
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import AgentRecord, ClipRecord, PoseSamples, read_clip
+from v2xlake.storage.reader import (
+    AgentRecord,
+    CalibrationChoice,
+    ClipRecord,
+    PoseSamples,
+    calibrations,
+    effective_calibration,
+    read,
+    read_clip,
+)
 from v2xlake.storage.reader import read_pose_samples as _read_pose_samples
-from v2xlake.tasks.geometry import invert, so3_exp, so3_log, transform
+from v2xlake.tasks.geometry import invert, rotation_angle, so3_exp, so3_log, transform
 from v2xlake.tasks.interpolate import PoseCoverageError, PoseTrack
 
 
@@ -298,3 +308,61 @@ def match_agents(clip: ClipData, ref_t: np.ndarray, tolerance_ns: float, *,
             else lf.deskewed[near]
         nears[aid] = near
     return common, nears
+
+
+@dataclass(frozen=True)
+class CalibrationComparison:
+    agent_id: str
+    sensor: str
+    published: np.ndarray  # T_ego_sensor 4x4
+    refined: np.ndarray | None  # None: the clip has no refinement for this sensor
+    correction_m: float
+    correction_deg: float
+    std_m: float
+    std_deg: float
+    refined_components: str
+    usable: bool
+    effective: str  # "refined" | "published": what annotate, align and the exports use
+    reason: str = ""  # why (part of) the published extrinsic is kept
+    method: str = ""  # what refined it: the clip solve, or intra-agent against a primary
+
+    @property
+    def delta_lidar(self) -> np.ndarray:
+        """(6,) refined relative to published in the LiDAR frame: [rot deg, trans m]."""
+        if self.refined is None:
+            return np.zeros(6)
+        d = invert(self.published) @ self.refined
+        return np.concatenate([np.degrees(so3_log(d[:3, :3])), d[:3, 3]])
+
+
+def compare_calibration(lake: Lake, clip_id: str,
+                        choice: CalibrationChoice | None = None
+                        ) -> list[CalibrationComparison]:
+    """Every LiDAR of every agent of the clip: published, refined (if any), effective."""
+    choice = choice or CalibrationChoice()
+    out = []
+    cal = read(lake, "calibrated_sensors", clip_id)
+    ref = read(lake, "calibration_refined", clip_id)
+    agents = sorted(set(cal["agent_id"].to_pylist())) if cal.num_rows else []
+    for a in agents:
+        pub_all = calibrations(cal.filter(pc.equal(cal["agent_id"], a)), clip_id, a)
+        pub = {s: c for s, c in pub_all.items() if c.modality == "lidar"}
+        ref_a = ref.filter(pc.equal(ref["agent_id"], a)) if ref.num_rows else ref
+        _, source = effective_calibration(pub, ref_a, choice)
+        rows = {r["sensor"]: r for r in ref_a.to_pylist()} if ref_a.num_rows else {}
+        for s, c in sorted(pub.items()):
+            r = rows.get(s)
+            refined = None
+            if r is not None:
+                q = np.array([r["qw"], r["qx"], r["qy"], r["qz"]], dtype=np.float64)
+                refined = transform(np.array([r["tx"], r["ty"], r["tz"]], dtype=np.float64),
+                                    q / np.linalg.norm(q))
+            d = invert(c.T_ego_sensor) @ refined if refined is not None else np.eye(4)
+            out.append(CalibrationComparison(
+                a, s, c.T_ego_sensor, refined, float(np.linalg.norm(d[:3, 3])),
+                float(np.degrees(rotation_angle(d))), float(r["std_m"]) if r else float("nan"),
+                float(r["std_deg"]) if r else float("nan"),
+                str(r["refined_components"]) if r else "", bool(r["usable"]) if r else False,
+                source[s], str((r or {}).get("reason") or ""),
+                str((r or {}).get("method") or "")))
+    return out
