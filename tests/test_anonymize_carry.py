@@ -96,15 +96,21 @@ def test_the_provenance_names_every_setting_that_changes_what_is_blurred() -> No
                    {"plate_read": False}, {"plate_read_min_digits": 0},
                    {"plate_read_min_conf": 0.6}, {"face_int8": True},
                    {"face_blur_margin_x": 0.2}, {"face_blur_margin_top": 0.2},
-                   {"face_blur_margin_bottom": 0.2}):
+                   {"face_blur_margin_bottom": 0.2}, {"full_proposals": False},
+                   {"full_face_first_int8": False}, {"face_proposal_threshold": 0.1},
+                   {"plate_proposal_scale": 0.75}, {"plate_edge_threshold": 60.0}):
         assert base.model_copy(update=update).provenance(det.version) != s, update
     # the models themselves: the int8 face model and the plate reader are in the version
     assert det.version.count("onnx-sha256:") >= 3 and "ppocrv4-rec@" in det.version
     q = AnonymizeConfig(face_int8=True).build_detector().version
-    assert ":int8" in q and ":int8" not in det.version
+    assert ":int8" in q.split("|")[0] and ":int8" not in det.version.split("|")[0]
+    # the full-frame plan's proposing first pass runs the int8 copy: its version says so
+    assert "full-proposals:first@" in det.version and ":int8:" in det.version
+    assert "full-proposals" not in AnonymizeConfig(full_proposals=False).build_detector().version
     assert AnonymizeConfig(plate_read=False).build_detector().version != det.version
     same: tuple[dict[str, object], ...] = (
-        {"workers": 3}, {"png_compression": 6}, {"frames_per_chunk": 4})
+        {"workers": 3}, {"png_compression": 6}, {"frames_per_chunk": 4},
+        {"progress_log_images": 7}, {"progress_log_s": 1.0})
     for upd in same:
         assert base.model_copy(update=upd).provenance(det.version) == s, upd
 

