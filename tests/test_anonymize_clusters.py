@@ -91,3 +91,29 @@ def test_boxes_without_velocity_move_with_their_track() -> None:
     assert np.allclose(wb.velocity, [[10.0, 0, 0]] * 4)
     at = wb.at(150_000_000, 250_000_000)
     assert len(at) == 1 and at.center[0, 0] == pytest.approx(1.5)
+
+
+def _solid(x: tuple[float, float], y: tuple[float, float], z: tuple[float, float],
+           step: float = 0.1) -> np.ndarray:
+    g = np.mgrid[x[0]:x[1]:step, y[0]:y[1]:step, z[0]:z[1]:step].reshape(3, -1).T
+    return g
+
+
+def test_a_row_of_touching_cars_is_cut_into_cars() -> None:
+    """Three parked cars (4.5 x 1.8 x 1.5 m) touching bumper to bumper are one 13.5 m cluster;
+    besides the row's own box, a car-length piece is returned at each car, so the plates
+    between the row's ends are searched. Rear faces of four cars parked side by side (a thin
+    7.6 m row seen end-on) give four end-on cars behind the row, away from the sensor."""
+    ground = _solid((-20, 20), (-20, 20), (0.0, 0.05), 0.4)
+    row = _solid((0.0, 13.5), (5.0, 6.8), (0.3, 1.5))
+    c, s, yaw, _cat = cluster_boxes(np.vstack([ground, row]))
+    long = np.abs(np.cos(yaw)) > 0.9
+    pieces = c[long & (s[:, 1] < 6.0)]
+    assert len(pieces) == 3, (c, s)
+    assert np.allclose(np.sort(pieces[:, 0]), [2.25, 6.75, 11.25], atol=0.5)
+    faces = _solid((10.0, 10.3), (-3.8, 3.8), (0.3, 1.4))
+    c, s, yaw, _cat = cluster_boxes(np.vstack([ground, faces]))
+    end_on = (np.abs(np.cos(yaw)) > 0.9) & (s[:, 1] >= 4.0)  # length along x: away from us
+    assert end_on.sum() == 4, (c, s, yaw)
+    assert (c[end_on, 0] > 11.0).all()  # the body lies behind the rear faces
+    assert np.allclose(np.sort(c[end_on, 1]), [-2.85, -0.95, 0.95, 2.85], atol=0.4)

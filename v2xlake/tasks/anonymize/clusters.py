@@ -10,8 +10,10 @@ tall (a head on top); a vehicle 1.2-20 m across and 0.8-4.5 m tall. A LiDAR sees
 behind as its rear face only (a 1.7 m x 0.5 m footprint at 40 m on the real PJLab scan), so
 an object shorter than a car's length may be seen end-on: it is returned in both
 orientations, and the camera-facing faces of both are searched for plates. Walls longer than
-20 m are dropped, and so is a row of parked cars touching each other: the safety pass is what
-remains for them (a limitation). Pure function of the points.
+20 m are dropped. A row of parked cars touching each other is one cluster: a long, car-high
+footprint is also cut into car-length pieces (and a thin one, the rear faces of cars parked
+side by side, into car widths, each seen end-on), so the plates between the row's ends are
+searched too. Pure function of the points.
 """
 
 from __future__ import annotations
@@ -38,6 +40,17 @@ class ClusterConfig:
     full_length_m: float = 3.0  # a shorter vehicle footprint may be a car seen end-on
     person_max_wl: float = 1.2
     person_h: tuple[float, float] = (1.0, 2.2)
+    # a row of touching parked cars is one cluster: a vehicle footprint longer than
+    # ``row_min_m`` and no taller than ``row_max_h`` (a bus or a truck is taller) is also
+    # cut into car-length pieces along its axis (``car_length_m``), each a car whose front
+    # and rear faces get searched; a thin row (``row_max_w`` wide at most: the rear faces of
+    # cars parked side by side, seen end-on) is cut into car widths (``car_width_m``), each
+    # a car seen end-on. 0: rows are not cut
+    row_min_m: float = 6.0
+    row_max_h: float = 2.4
+    row_max_w: float = 1.2
+    car_length_m: float = 4.5
+    car_width_m: float = 1.9
 
 
 def cluster_boxes(xyz: np.ndarray, cfg: ClusterConfig | None = None
@@ -95,6 +108,28 @@ def cluster_boxes(xyz: np.ndarray, cfg: ClusterConfig | None = None
         sizes.append((width, length, h))
         yaws.append(yaw)
         cats.append(cat)
+        if cat == "Car" and c.row_min_m > 0 and length >= c.row_min_m and h <= c.row_max_h:
+            thin = width <= c.row_max_w
+            piece = c.car_width_m if thin else c.car_length_m
+            n_cut = max(2, round(length / piece))
+            seg = length / n_cut
+            axis = np.array([np.cos(yaw), np.sin(yaw)])
+            normal = np.array([-axis[1], axis[0]])
+            if float(normal @ (cx, cy)) < 0:
+                normal = -normal  # away from the sensor (the ego frame's origin)
+            for j in range(n_cut):
+                ox, oy = (cx, cy) + axis * (-length / 2 + (j + 0.5) * seg)
+                if thin:  # an end-on car: the row is its near face, its body behind
+                    depth = max(width, c.car_length_m)
+                    ox, oy = (ox, oy) + normal * (depth - width) / 2
+                    centres.append((ox, oy, g + h / 2))
+                    sizes.append((seg, depth, h))
+                    yaws.append(yaw + np.pi / 2)
+                else:
+                    centres.append((ox, oy, g + h / 2))
+                    sizes.append((width, seg, h))
+                    yaws.append(yaw)
+                cats.append(cat)
         if cat == "Car" and length < c.full_length_m:  # maybe seen end-on: both ways
             centres.append((cx, cy, g + h / 2))
             sizes.append((length, width, h))
