@@ -308,10 +308,10 @@ def time_deface_inprocess(paths: list[Path]) -> float:
         cv2.imwrite(str(p.with_suffix(".anon.png")), frame[:, :, ::-1])
 
     one(paths[0])
-    t = time.perf_counter()
+    t = time.process_time()  # CPU seconds, as for ours and the CLI's child process
     for p in paths:
         one(p)
-    return len(paths) / (time.perf_counter() - t)
+    return len(paths) / (time.process_time() - t)
 
 
 def main() -> None:
