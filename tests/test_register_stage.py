@@ -17,6 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tests.test_register import cast_scan, lidar_pose, make_street
+from tests.test_stage_reads import handle
 from v2xlake.schemas.arrow import columns_to_table
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.tables import (
@@ -31,7 +32,7 @@ from v2xlake.storage.lake import Lake
 from v2xlake.tasks.deskew.stage import run_deskew
 from v2xlake.tasks.ingest.rows import table_of
 from v2xlake.tasks.register.core import transform_delta
-from v2xlake.tasks.register.stage import RegisterConfig, plot_registration, run_register
+from v2xlake.tasks.register.stage import REGISTER, RegisterConfig, plot_registration, run_register
 
 CLIP = "street1"
 FRAMES = (200_000_000, 300_000_000, 400_000_000)
@@ -133,7 +134,9 @@ def test_deskew_then_register_recovers_true_transform(tmp_path: Path, backend: s
                                                       clip_lakes: dict[str, Path]) -> None:
     lake = _copy(clip_lakes["pair"], tmp_path / "lake")
     run_deskew(lake, CLIP)
-    rep = run_register(lake, CLIP, RegisterConfig.model_validate({"gicp": {"backend": backend}}))
+    # through the handle the flow gives the stage: reading an undeclared table fails
+    rep = run_register(handle(lake, REGISTER), CLIP,
+                       RegisterConfig.model_validate({"gicp": {"backend": backend}}))
     regs = lake.read_table("clean", "registrations", clip_id=CLIP).to_pylist()
     assert len(regs) == 3 and rep.metrics["n_accepted"] == 3
     for r in regs:

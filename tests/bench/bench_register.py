@@ -1,4 +1,5 @@
-"""Registration speed and accuracy of both GICP backends on the same frame pairs, one core.
+"""Registration speed and accuracy of the GICP backends (sparse, small_gicp, Open3D) on the
+same frame pairs, one core.
 
     python tests/bench/bench_register.py [--frames 10] [--voxel 0.3] [--beams 128 --cols 2048]
     python tests/bench/bench_register.py --street [--seconds 16 --turn-at 13] [--workdir DIR]
@@ -295,6 +296,8 @@ def main() -> None:
     # the voxels the register stage uses by default: the speed a user gets
     ap.add_argument("--voxel", type=float, default=RegisterConfig().gicp.voxel_m)
     ap.add_argument("--source-voxel", type=float, default=RegisterConfig().gicp.source_voxel_m)
+    ap.add_argument("--sample-cell", type=float, default=RegisterConfig().gicp.sample_cell_m,
+                    help="the sparse backend's source sample cell")
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
@@ -310,9 +313,10 @@ def main() -> None:
     n_pts = np.mean([len(c.ref) for c in cases] + [len(c.other) for c in cases])
     print(f"{len(cases)} pairs, {n_pts:.0f} points per scan on average "
           f"(ray casting took {time.perf_counter() - t:.1f} s), voxel {args.voxel} m, one core")
-    params = GicpSection(voxel_m=args.voxel, source_voxel_m=args.source_voxel)
+    params = GicpSection(voxel_m=args.voxel, source_voxel_m=args.source_voxel,
+                         sample_cell_m=args.sample_cell)
     rows: list[tuple[Any, ...]] = []
-    for name in ("small_gicp", "open3d"):
+    for name in ("sparse", "small_gicp", "open3d"):
         be = make_backend(name, params)  # type: ignore[arg-type,unused-ignore]
         prep, reg, tot, errs, init_errs, acc = [], [], [], [], [], 0
         warm = None

@@ -474,9 +474,15 @@ def params_show(
     stage: Annotated[str | None, typer.Option(help="only this section")] = None,
 ) -> int:
     """Print the effective parameters as YAML: defaults, then --params, then the clip's."""
-    import yaml
 
-    from v2xlake.flows.noop import FactsCache, cached_section, load_code_memo, save_code_memo
+    from v2xlake.flows.noop import (
+        FactsCache,
+        _digest,
+        cached_section,
+        flows_code,
+        load_code_memo,
+        save_code_memo,
+    )
     from v2xlake.flows.params import clip_params, load_params_data
     from v2xlake.flows.stage_names import STAGE_NAMES, registry_stage
     from v2xlake.storage.manifest import code_version
@@ -494,9 +500,21 @@ def params_show(
     load_code_memo(cache)
     data = {n: cached_section(cache, n, code_version(n), raw, None if n == "export" else own,
                               lambda n=n: registry_stage(n)) for n in names}  # type: ignore[misc]
+    # the text with every description, remembered the same way: describing a section
+    # imports its config models
+    text = []
+    for n, values in data.items():
+        key = "@".join((n, code_version(n), flows_code(), _digest(values)))
+        described = cache.get("described", key)
+        if described is None:
+            from v2xlake.flows.params import describe_params
+
+            described = describe_params({n: values})
+            cache.put("described", key, described)
+        text.append(described)
     save_code_memo(cache)
     cache.save()
-    sys.stdout.write(yaml.safe_dump(data, sort_keys=False))
+    sys.stdout.write("".join(text))
     return 0
 
 

@@ -141,8 +141,11 @@ def _execute_locked(lake: Lake, stage: Stage[Any], target: str, clip_id: str,
         return {"stage": stage.name, "status": "cached", "seconds": 0.0,
                 "report": cached.model_dump(mode="json")}
     t0 = time.perf_counter()
+    # the handle refuses reads of tables the stage did not declare (they would be missing
+    # from its manifest key, so a change to them would not re-run it)
     writer = lake.for_stage(stage.name, [(t.zone, t.name) for t in stage.owns],
-                            atomic_clip=clip_id if stage.atomic else None)
+                            atomic_clip=clip_id if stage.atomic else None,
+                            reads=[(t.zone, t.name) for t in stage.reads])
     try:
         report = do(writer, str(clip_dir) if clip_dir is not None else target, cfg)
         if not isinstance(report, StageReport):
@@ -191,7 +194,8 @@ def run_chunk(stage_name: str, lake_uri: str, clip_id: str, config: dict[str, An
     stage = _stage(pipeline, stage_name)
     assert stage.chunked is not None
     writer = Lake(lake_uri).for_stage(stage.name, [(t.zone, t.name) for t in stage.owns],
-                                      stage_root=stage_root)
+                                      stage_root=stage_root,
+                                      reads=[(t.zone, t.name) for t in stage.reads])
     return stage.chunked.run_chunk(writer, clip_id, stage.config(config), chunk)
 
 

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
-from v2xlake.tasks.align.boxes import EDGES
+from v2xlake.tasks.geometry import BOX_EDGES as EDGES
 from v2xlake.tasks.geometry import apply, box_corners
 
 

@@ -49,7 +49,7 @@ from v2xlake.storage.reader import (
     read_radar_scans,
 )
 from v2xlake.tasks.export.bev import BevGrid
-from v2xlake.tasks.export.common import Undistorter, file_output, token, write_atomic
+from v2xlake.tasks.export.common import Undistorter, file_output, report_step, token, write_atomic
 from v2xlake.tasks.export.nuscenes_devkit import require_devkit
 from v2xlake.tasks.export.nuscenes_radar import radar_pcd_points, write_radar_pcd
 from v2xlake.tasks.geometry import apply, compose, count_points_in_boxes, invert, quat_wxyz_of
@@ -234,6 +234,7 @@ def export_nuscenes(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
         tabs.add("category", dict(token=token("category", name), name=name,
                                   description=f"nuScenes category {name}", index=i))
     scene_idx = 0
+    n_scenes = sum(len(c.agents) for c in clips)
     for clip in clips:
         kf_times = _keyframe_times(clip, cfg)
         for aid, agent in clip.agents.items():
@@ -241,6 +242,7 @@ def export_nuscenes(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                                      maps[clip.clip_id], notes, global_ids,
                                      scene_idx * cfg.scene_offset_us)
             scene_idx += 1
+            report_step("nuscenes: scenes", scene_idx, n_scenes)
             map_logs[clip.clip_id].append(token("log", clip.clip_id, aid))
     # one map per clip: each clip has its own local ENU frame (DESIGN.md), so two clips at
     # one location do not share coordinates
@@ -440,6 +442,7 @@ def _export_scene(lake: Lake, clip: ClipData, agent: AgentData, kf_times: np.nda
     scene_tok = token("scene", cid, aid)
     log_tok = token("log", cid, aid)
     for k, st in enumerate(sample_tok):
+        report_step(f"nuscenes {cid}/{aid}: samples", k + 1, len(sample_tok))
         tabs.add("sample", dict(token=st, timestamp=int(sample_times[k] // 1000) + offset_us,
                                 prev=sample_tok[k - 1] if k else "",
                                 next=sample_tok[k + 1] if k + 1 < len(sample_tok) else "",

@@ -61,7 +61,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import PointFrame, available_frames, iter_point_frames
-from v2xlake.tasks.export.common import file_output
+from v2xlake.tasks.export.common import file_output, report_step
 from v2xlake.tasks.geometry import apply, invert
 from v2xlake.tasks.reader import (
     AgentData,
@@ -225,7 +225,7 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
     root = Path(out_dir)
     report = StageReport(stage="export_opencood", clip_id=",".join(clip_ids))
     n_frames = n_boxes = 0
-    for cid in clip_ids:
+    for n_clip, cid in enumerate(clip_ids, start=1):
         clip = load_clip(lake, cid)
         split = (splits or {}).get(cid, config.default_split)
         scen = root / split / cid
@@ -275,7 +275,9 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
             T_by_frame = dict(zip([int(f) for f in lf.frame_idx[near[ok]]], T_wl, strict=True))
             ann = agent.annotations
             others = _secondaries(lake, cid, agent, sensor) if config.merge_lidars else []
-            for fr in iter_point_frames(lake, cid, aid, sensor=sensor, frames=list(want)):
+            for j, fr in enumerate(iter_point_frames(lake, cid, aid, sensor=sensor,
+                                                     frames=list(want)), start=1):
+                report_step(f"opencood {cid}/{aid}: frames", j, len(want))
                 k = want[fr.frame_idx]
                 ref_fi = int(ref_frames.frame_idx[k])
                 name = f"{ref_fi:06d}"
@@ -317,5 +319,6 @@ def export_opencood(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
                 yp.write_text(yaml.safe_dump(doc, sort_keys=False))
                 n_frames += 1
         report.outputs.append(file_output(root / split / f"{cid}.json"))
+        report_step("opencood: clips", n_clip, len(clip_ids))
     report.metrics = {"frames": float(n_frames), "boxes": float(n_boxes)}
     return report

@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2, norm
 
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
@@ -153,6 +152,8 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
         if det.any():  # significance of the correction over the determined components
             cd = cov[np.ix_(det, det)]
             m2 = float(applied[det] @ np.linalg.pinv(cd, hermitian=True) @ applied[det])
+            from scipy.stats import chi2, norm  # here: scipy.stats costs 1.2 s to import
+
             q_lim = float(chi2.isf(2 * norm.sf(cfg.calibration.significance), int(det.sum())))
             if m2 < q_lim:
                 applied = np.zeros(6)
