@@ -122,7 +122,7 @@ def test_clip_solve_meets_the_targets(street: tuple[Path, Path], tmp_path: Path)
     _check_clip_solve(lake, street[1])
     rows = lake.read_table("clean", "registrations", clip_id=CID).to_pylist()
     for r in rows:  # recorded per frame: initial, final, information, weight, reason
-        assert r["method"] == "sparse:GICP+clip" and r["reason"]
+        assert r["method"] == "small_gicp:GICP+clip" and r["reason"]
         assert r["init_tx"] is not None and r["std_m"] is not None
         assert 0.0 <= r["weight"] <= 1.0
         if r["gicp_tx"] is not None:

@@ -232,7 +232,8 @@ def coop(args: argparse.Namespace) -> None:
                 times = json.loads((root / "times.json").read_text())
             lake, clip_dir = Lake(root / "lake"), root / "clip"
             t = time.perf_counter()
-            rep = run_register(lake, cid, RegisterConfig(write_bev=False))
+            rep = run_register(lake, cid, RegisterConfig.model_validate(
+                {"write_bev": False, "gicp": {"backend": args.backend}}))
             t_reg = time.perf_counter() - t
             errs = registration_errors(lake, clip_dir, cid)
             n = len(errs)
@@ -278,9 +279,14 @@ def coop(args: argparse.Namespace) -> None:
 
 
 def main() -> None:
+    from v2xlake.tasks.register.stage import RegisterConfig
+
     ap = argparse.ArgumentParser()
     ap.add_argument("--coop", action="store_true", help="the cooperative boulevard of #21")
     ap.add_argument("--coop-seconds", type=float, nargs="+", default=[3.0, 10.0])
+    ap.add_argument("--backend", default=RegisterConfig().gicp.backend,
+                    choices=["sparse", "small_gicp", "open3d"],
+                    help="--coop: the register stage's GICP backend")
     ap.add_argument("--only", nargs="*", default=None, help="variations whose name contains")
     ap.add_argument("--street", action="store_true", help="the hard street of issue #13")
     ap.add_argument("--seconds", type=float, default=16.0)
@@ -291,8 +297,6 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=6)
     ap.add_argument("--beams", type=int, default=128)
     ap.add_argument("--cols", type=int, default=2048)
-    from v2xlake.tasks.register.stage import RegisterConfig
-
     # the voxels the register stage uses by default: the speed a user gets
     ap.add_argument("--voxel", type=float, default=RegisterConfig().gicp.voxel_m)
     ap.add_argument("--source-voxel", type=float, default=RegisterConfig().gicp.source_voxel_m)
