@@ -208,29 +208,35 @@ def simulate(
 
 
 # ---------------------------------------------------------------- process
+def _progress_bar(console: Any, live: bool) -> Any:
+    """rich's bar with a spinner, the step, done / total and the elapsed time (off when not
+    ``live``: then the callers print plain lines)."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        SpinnerColumn,
+        TextColumn,
+        TimeElapsedColumn,
+    )
+
+    return Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
+                    MofNCompleteColumn(), TimeElapsedColumn(), console=console,
+                    transient=False, disable=not live)
+
+
 class StageProgress:
     """Progress of in-process clip flows, fed by ``flows.pipeline.PROGRESS_HOOK`` events: a
     live bar on a terminal; elsewhere (a pipe, a CI log) one plain line per finished stage,
     flushed at once, so a long run never looks hung."""
 
     def __init__(self, total: int, console: Any, live: bool | None = None) -> None:
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            SpinnerColumn,
-            TextColumn,
-            TimeElapsedColumn,
-        )
-
         self.console = console
         self.live = console.is_terminal if live is None else live
         self.total = max(total, 1)
         self.done = 0
         self.t0 = time.perf_counter()
-        self.progress = Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
-                                 MofNCompleteColumn(), TimeElapsedColumn(), console=console,
-                                 transient=False, disable=not self.live)
+        self.progress = _progress_bar(console, self.live)
         self.task = self.progress.add_task("starting Prefect", total=self.total)
 
     def line(self, text: str) -> None:
@@ -275,23 +281,12 @@ class StepProgress:
 
     def __init__(self, console: Any, live: bool | None = None, every: int = 100,
                  each_up_to: int = 5) -> None:
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            SpinnerColumn,
-            TextColumn,
-            TimeElapsedColumn,
-        )
-
         self.console = console
         self.live = console.is_terminal if live is None else live
         self.every = max(1, every)
         self.each_up_to = each_up_to
         self.t0 = time.perf_counter()
-        self.progress = Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
-                                 MofNCompleteColumn(), TimeElapsedColumn(), console=console,
-                                 transient=False, disable=not self.live)
+        self.progress = _progress_bar(console, self.live)
         self.tasks: dict[str, Any] = {}
 
     def __call__(self, what: str, done: int, total: int | None = None) -> None:

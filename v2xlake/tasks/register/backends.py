@@ -228,20 +228,12 @@ class Open3dBackend:
         return _masked_prepare(self, pts, other_origin, min_keep)
 
 
-class SparseGicpBackend:
+class SparseGicpBackend(SmallGicpBackend):
     """GICP on a spread sample of the source with surfaces computed where they are used
-    (:mod:`sparse`); small_gicp's k-d tree for the searches."""
+    (:mod:`sparse`); small_gicp's k-d tree for the searches (and its nearest-neighbour
+    quality figure)."""
 
     name = "sparse"
-
-    def __init__(self, params: GicpSection = DEFAULT_GICP) -> None:
-        import small_gicp
-
-        self._sg = small_gicp
-        self.params = params
-
-    def prepare(self, xyz: np.ndarray, *, as_target: bool = True) -> Prepared:
-        return self.prepare_points(_downsample(xyz, self.params, as_target))
 
     def prepare_points(self, pts: np.ndarray) -> Prepared:
         from v2xlake.tasks.register.sparse import Surfaces, spread_sample
@@ -267,11 +259,6 @@ class SparseGicpBackend:
                            max_iterations=p.max_iterations, num_threads=p.num_threads,
                            t_covisible_with=target.covisible_with)
         return AlignOutcome(out.T, out.converged, out.iterations, out.H)
-
-    def nearest_sq_dist(self, target: Prepared, query: np.ndarray) -> np.ndarray:
-        _, d2 = target.tree.batch_nearest_neighbor_search(
-            np.ascontiguousarray(query, np.float64), num_threads=self.params.num_threads)
-        return np.asarray(d2, dtype=np.float64)
 
     def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int
                           ) -> Prepared:

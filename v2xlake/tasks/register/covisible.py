@@ -78,32 +78,40 @@ def _same_side(px: float, py: float, pz: float, nx: float, ny: float, nz: float,
     return (ox * tx + oy * ty + oz * tz) >= cos_min * max(no, 1e-12)
 
 
+@njit(cache=True, inline="always")
+def knn_surface(p: np.ndarray, idx: np.ndarray, i: int
+                ) -> tuple[float, float, float, float, float]:
+    """Smallest and middle eigenvalue of the covariance of the points ``p[idx[i]]`` (a
+    point's k nearest neighbours) and the unit normal: the eigenvector of the smallest."""
+    k = idx.shape[1]
+    c0 = c1 = c2 = 0.0
+    for j in range(k):
+        q = idx[i, j]
+        c0 += p[q, 0]
+        c1 += p[q, 1]
+        c2 += p[q, 2]
+    c0 /= k
+    c1 /= k
+    c2 /= k
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+    for j in range(k):
+        q = idx[i, j]
+        d0, d1, d2 = p[q, 0] - c0, p[q, 1] - c1, p[q, 2] - c2
+        a00 += d0 * d0
+        a01 += d0 * d1
+        a02 += d0 * d2
+        a11 += d1 * d1
+        a12 += d1 * d2
+        a22 += d2 * d2
+    return _eig_sym3(a00, a01, a02, a11, a12, a22)
+
+
 @njit(cache=True)
 def _mask_kernel(p: np.ndarray, idx: np.ndarray, s: np.ndarray, planar_ratio: float,
                  cos_min: float) -> np.ndarray:
-    n, k = idx.shape
-    out = np.ones(n, dtype=np.bool_)
-    for i in range(n):
-        c0 = c1 = c2 = 0.0
-        for j in range(k):
-            q = idx[i, j]
-            c0 += p[q, 0]
-            c1 += p[q, 1]
-            c2 += p[q, 2]
-        c0 /= k
-        c1 /= k
-        c2 /= k
-        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-        for j in range(k):
-            q = idx[i, j]
-            d0, d1, d2 = p[q, 0] - c0, p[q, 1] - c1, p[q, 2] - c2
-            a00 += d0 * d0
-            a01 += d0 * d1
-            a02 += d0 * d2
-            a11 += d1 * d1
-            a12 += d1 * d2
-            a22 += d2 * d2
-        l_min, l_mid, nx, ny, nz = _eig_sym3(a00, a01, a02, a11, a12, a22)
+    out = np.ones(idx.shape[0], dtype=np.bool_)
+    for i in range(idx.shape[0]):
+        l_min, l_mid, nx, ny, nz = knn_surface(p, idx, i)
         out[i] = _same_side(p[i, 0], p[i, 1], p[i, 2], nx, ny, nz,
                             l_min < planar_ratio * max(l_mid, 1e-12), s[0], s[1], s[2], cos_min)
     return out

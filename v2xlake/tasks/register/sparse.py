@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from v2xlake.tasks.register.covisible import _eig_sym3, covisible_rows
+from v2xlake.tasks.register.covisible import covisible_rows, knn_surface
 
 _PLANE_EPS = 1e-3  # smallest eigenvalue of a plane-regularised covariance
 
@@ -42,29 +42,11 @@ _PLANE_EPS = 1e-3  # smallest eigenvalue of a plane-regularised covariance
 @njit(cache=True)
 def _surfaces(pts: np.ndarray, rows: np.ndarray, knn: np.ndarray,
               normals: np.ndarray, ratio: np.ndarray) -> None:
-    """For each point ``rows[i]``: the unit normal (smallest eigenvector) of its neighbours
-    ``knn[i]``'s covariance and the planarity ratio smallest / middle eigenvalue, written into
-    ``normals`` / ``ratio`` (a ratio stays NaN where the neighbours are degenerate)."""
-    k = knn.shape[1]
+    """For each point ``rows[i]``: the unit normal of its neighbours ``knn[i]`` and the
+    planarity ratio smallest / middle eigenvalue, written into ``normals`` / ``ratio`` (a
+    ratio stays NaN where the neighbours are degenerate)."""
     for i in range(len(rows)):
-        m0 = m1 = m2 = 0.0
-        for j in range(k):
-            q = knn[i, j]
-            m0 += pts[q, 0]
-            m1 += pts[q, 1]
-            m2 += pts[q, 2]
-        m0, m1, m2 = m0 / k, m1 / k, m2 / k
-        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-        for j in range(k):
-            q = knn[i, j]
-            d0, d1, d2 = pts[q, 0] - m0, pts[q, 1] - m1, pts[q, 2] - m2
-            a00 += d0 * d0
-            a01 += d0 * d1
-            a02 += d0 * d2
-            a11 += d1 * d1
-            a12 += d1 * d2
-            a22 += d2 * d2
-        l_min, l_mid, nx, ny, nz = _eig_sym3(a00, a01, a02, a11, a12, a22)
+        l_min, l_mid, nx, ny, nz = knn_surface(pts, knn, i)
         r = rows[i]
         normals[r, 0], normals[r, 1], normals[r, 2] = nx, ny, nz
         if l_mid > 1e-12:
