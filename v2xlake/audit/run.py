@@ -281,6 +281,9 @@ def audit_detector(cfg: AuditConfig) -> Any:
         region_plate_target_px=cfg.region_plate_target_px, face_threshold=cfg.face_min_score,
         plate_box_threshold=cfg.plate_min_score, safety_face_max_side=None,
         safety_plate_max_side=None, region_blob_below_px=0.0,
+        # every pixel: the audit must not share the anonymizer's proposal heuristics (a
+        # face the first pass does not propose would be missed by both)
+        full_proposals=False,
     ).build_detector()
     det.config = replace(det.config, full_plate_scan=ScanConfig(
         max_side=None, fine_scale=cfg.audit_plate_fine_scale, tile=2048, tile_overlap=128,
