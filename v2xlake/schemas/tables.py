@@ -378,7 +378,7 @@ class CalibrationRefinedRow(_Row):
     std_m: F64  # largest 1-sigma over the refined translation components
     std_deg: F64  # largest 1-sigma over the refined rotation components
     refined_components: str  # e.g. "rx ry rz tx ty": the determined ones
-    usable: bool  # register's own threshold (RegisterConfig.refined_max_std_*)
+    usable: bool  # register's own threshold (register.calibration.max_std_m / _deg)
     n_frames: I64
     source: str  # "refined"
     method: str

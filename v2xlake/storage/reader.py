@@ -266,7 +266,7 @@ def calibrations(calib: pa.Table, clip_id: str, agent_id: str) -> dict[str, Sens
 @dataclass(frozen=True)
 class CalibrationChoice:
     """When a refined calibration replaces the published one: register's own decision
-    (``usable``, from ``RegisterConfig.refined_max_std_*``) unless thresholds are given here;
+    (``usable``, from ``register.calibration.max_std_m/_deg``) unless thresholds are given here;
     ``use_refined=False`` always keeps the published one."""
 
     use_refined: bool = True
