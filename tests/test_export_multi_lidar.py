@@ -27,6 +27,7 @@ import pytest
 import yaml
 from scipy.spatial import cKDTree
 
+from tests.fixtures.rigs import deskewed_side_lidar_clip
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.tables import CalibrationRefinedRow
 from v2xlake.storage.lake import Lake
@@ -50,22 +51,10 @@ def _near_fraction(a: np.ndarray, b: np.ndarray, tol_m: float) -> float:
 def rig(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, np.ndarray, np.ndarray]:
     """(lake, refined T_ego_left, published T_ego_left) of the simulated two-LiDAR vehicle."""
     from v2xlake.tasks.annotate.stage import run_annotate
-    from v2xlake.tasks.anonymize import run_anonymize
-    from v2xlake.tasks.deskew.stage import run_deskew
-    from v2xlake.tasks.ingest import run_ingest
-    from v2xlake.tasks.simulate.config import LidarSpec
     from v2xlake.tasks.simulate.truth import load_truth
 
-    root = tmp_path_factory.mktemp("multi_lidar")
-    cfg = sim.SimConfig.preset(
-        "small", seconds=0.3, seed=5, cameras=(), clip_id=CID, agents=("red",),
-        side_lidar=True,
-        lidar=LidarSpec(beams=32, columns=512, dual_return=False, max_range_m=80.0))
-    clip = sim.simulate(root / "clip", cfg)
-    lake = Lake(root / "lake")
-    run_ingest(lake, clip)
-    run_anonymize(lake, CID)
-    run_deskew(lake, CID)
+    lake, clip = deskewed_side_lidar_clip(tmp_path_factory.mktemp("multi_lidar"), CID,
+                                          beams=32, columns=512, max_range_m=80.0)
     truth = load_truth(clip).rigs["red"]
     extr = read_extrinsics(lake, CID, "red")
     T_top_left = invert(truth.T_ego_lidar_true) @ truth.T_ego_side_true  # what data measure

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.fixtures.rigs import deskewed_side_lidar_clip
 from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.tables import CalibrationRefinedRow
 from v2xlake.storage.lake import Lake
@@ -31,22 +32,8 @@ CID = "sim_intra"
 
 @pytest.fixture(scope="module")
 def side_clip(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, Path]:
-    from v2xlake.tasks.anonymize import run_anonymize
-    from v2xlake.tasks.deskew.stage import run_deskew
-    from v2xlake.tasks.ingest import run_ingest
-    from v2xlake.tasks.simulate.config import LidarSpec
-
-    root = tmp_path_factory.mktemp("intra")
-    cfg = sim.SimConfig.preset(
-        "small", seconds=0.3, seed=5, cameras=(), clip_id=CID, agents=("red",),
-        side_lidar=True,
-        lidar=LidarSpec(beams=64, columns=1024, dual_return=False, max_range_m=120.0))
-    clip = sim.simulate(root / "clip", cfg)
-    lake = Lake(root / "lake")
-    run_ingest(lake, clip)
-    run_anonymize(lake, CID)
-    run_deskew(lake, CID)
-    return lake, clip
+    return deskewed_side_lidar_clip(tmp_path_factory.mktemp("intra"), CID, beams=64,
+                                    columns=1024, max_range_m=120.0)
 
 
 def test_side_lidar_option_is_off_by_default() -> None:

@@ -32,6 +32,7 @@ from v2xlake.tasks.register.voxel import voxel_downsample
 
 BackendName = Literal["small_gicp", "open3d", "sparse"]
 DEFAULT_GICP = GicpSection()  # frozen: one shared default
+PLANE_EPS = 1e-3  # smallest eigenvalue of a plane-regularised covariance (small_gicp's)
 
 
 @dataclass
@@ -43,6 +44,10 @@ class Prepared:
     tree: Any  # backend search structure
     sample: np.ndarray | None = None  # as a source, only these rows are aligned and scored
     covisible_with: np.ndarray | None = None  # as a target: pairs kept where seen from here
+
+    def rows(self) -> np.ndarray:
+        """The rows a source contributes: its sample, or every point."""
+        return self.sample if self.sample is not None else np.arange(len(self.points))
 
 
 @dataclass(frozen=True)
@@ -104,7 +109,7 @@ def _plane_cov(cov: np.ndarray) -> np.ndarray:
     """Covariances with eigenvalues replaced by (1e-3, 1, 1) (small_gicp's regularisation)."""
     w, v = np.linalg.eigh(cov)
     del w
-    return np.einsum("nij,j,nkj->nik", v, np.array([1e-3, 1.0, 1.0]), v)
+    return np.einsum("nij,j,nkj->nik", v, np.array([PLANE_EPS, 1.0, 1.0]), v)
 
 
 def gicp_information(target_pts: np.ndarray, target_cov: np.ndarray, source_pts: np.ndarray,
@@ -249,7 +254,7 @@ class SparseGicpBackend(SmallGicpBackend):
         from v2xlake.tasks.register.sparse import align_sparse
 
         p = self.params
-        rows = source.sample if source.sample is not None else np.arange(len(source.points))
+        rows = source.rows()
         surf = source.handle
         surf.ensure(source.points, source.tree, rows, p.num_neighbors, p.num_threads)
         out = align_sparse(target.points, target.tree, target.handle, source.points[rows],
@@ -271,7 +276,7 @@ class SparseGicpBackend(SmallGicpBackend):
 
         p = self.params
         prep = self.prepare_points(pts)
-        rows = prep.sample if prep.sample is not None else np.arange(len(prep.points))
+        rows = prep.rows()
         if not len(rows):
             return prep
         surf = prep.handle

@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from v2xlake.tasks.geometry import so3_exp
+from v2xlake.tasks.register.backends import PLANE_EPS
 from v2xlake.tasks.register.covisible import covisible_rows, knn_surface
-
-_PLANE_EPS = 1e-3  # smallest eigenvalue of a plane-regularised covariance
 
 
 @njit(cache=True)
@@ -64,7 +64,7 @@ def _linearise(tp: np.ndarray, tn: np.ndarray, tr: np.ndarray, sp: np.ndarray,
     b = np.zeros(6)
     J = np.zeros((3, 6))
     WJ = np.zeros((3, 6))
-    k = 1.0 - _PLANE_EPS
+    k = 1.0 - PLANE_EPS
     used = 0
     for i in range(len(sp)):
         j = nn[i]
@@ -179,8 +179,6 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
     points ``tp`` (k-d tree ``t_tree``, lazily filled ``t_surf``) from ``init``. With
     ``t_covisible_with`` (the source LiDAR's origin in the target frame) a pair is kept only
     where the target surface is seen from that side too (:mod:`covisible`)."""
-    from v2xlake.tasks.geometry import so3_exp
-
     T = np.array(init, dtype=np.float64, copy=True)
     H = np.zeros((6, 6))
     converged, iterations, used = False, 0, 0

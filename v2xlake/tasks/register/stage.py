@@ -139,7 +139,9 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
                       notes: list[str] | None = None) -> list[CalibrationRefinedRow]:
     """The clip's extrinsic corrections, applied in the components it determined and only
     when significant; ``usable`` also needs a consistent fit and small enough 1-sigma (every
-    component determined with ``refined_require_all``); why not goes to ``notes``."""
+    component determined with ``calibration.require_all``); why not goes to ``notes``."""
+    from scipy.stats import chi2, norm  # here, not at import: scipy.stats takes 1.2 s
+
     rows = []
     prior = np.array([np.radians(cfg.solve.prior_ext_deg)] * 3 + [cfg.solve.prior_ext_m] * 3)
     names = ("rx", "ry", "rz", "tx", "ty", "tz")
@@ -152,8 +154,6 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
         if det.any():  # significance of the correction over the determined components
             cd = cov[np.ix_(det, det)]
             m2 = float(applied[det] @ np.linalg.pinv(cd, hermitian=True) @ applied[det])
-            from scipy.stats import chi2, norm  # here: scipy.stats costs 1.2 s to import
-
             q_lim = float(chi2.isf(2 * norm.sf(cfg.calibration.significance), int(det.sum())))
             if m2 < q_lim:
                 applied = np.zeros(6)
@@ -455,7 +455,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
              redeskew_with: dict[str, np.ndarray] | None = None
              ) -> tuple[list[_Pair], list[OdoMeasurement], dict[str, Any]]:
     """Per-frame GICP of every pair on the static scene, and the agents' own scan-to-scan
-    GICP (odometry, every ``odometry_every`` frames over ``odometry_gap`` frames)."""
+    GICP (odometry, every ``odometry.every`` frames over ``odometry.gap`` frames)."""
     static = cfg.static
     scans = {a.agent: a for a in (ref, *others)}
     filt = {a.agent: StaticScans(a, static, [(b, bodies[b.agent]) for b in (ref, *others)
@@ -480,14 +480,19 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         a = scans[agent]
         return a.track.matrices(a.frames[f][1])[0]
 
-    def prepare(points: np.ndarray) -> tuple[Prepared | None, str]:
+    def prepare(points: np.ndarray, other_origin: np.ndarray | None = None
+                ) -> tuple[Prepared | None, str]:
+        """The scan prepared for GICP; with ``other_origin`` only what the LiDAR there sees
+        from the same side (:mod:`covisible`; the whole scan where too little would remain)."""
         t = time.perf_counter()
         try:
-            return backend.prepare_points(points), ""
+            if other_origin is None:
+                return backend.prepare_points(points), ""
+            return backend.prepare_covisible(points, other_origin, cfg.quality.min_inliers), ""
         except Exception as e:  # per frame, never the clip's end
             return None, f"{backend.name} could not prepare the scan: {e}"
         finally:
-            timing["gicp_s"] += time.perf_counter() - t
+            timing["gicp_s" if other_origin is None else "prepare_s"] += time.perf_counter() - t
 
     def scan(agent: str, f: int, voxel: float) -> tuple[np.ndarray, int, RemovalCounts]:
         """The frame's static-scene voxels; prepared whole (and kept) only when the agent's
@@ -513,13 +518,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         remain), else the whole scan (prepared once, shared with odometry)."""
         if not cfg.covisible:
             return (recent[agent][f], "") if f in recent[agent] else prepare(points)
-        t = time.perf_counter()
-        try:
-            return backend.prepare_covisible(points, other_origin, cfg.quality.min_inliers), ""
-        except Exception as e:  # per frame, never the clip's end
-            return None, f"{backend.name} could not prepare the scan: {e}"
-        finally:
-            timing["prepare_s"] += time.perf_counter() - t
+        return prepare(points, other_origin)
 
     def _odometry(agent: str, f: int) -> None:
         a = scans[agent]
