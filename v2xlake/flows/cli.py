@@ -493,13 +493,14 @@ def params_show(
     own = clip_params(clip) if clip is not None else None
     cache = FactsCache()
     load_code_memo(cache)
-    data = {n: cached_section(cache, n, code_version(n), raw, None if n == "export" else own,
-                              lambda n=n: registry_stage(n)) for n in names}  # type: ignore[misc]
-    # the text with every description, remembered the same way: describing a section
-    # imports its config models
     text = []
-    for n, values in data.items():
-        key = "@".join((n, code_version(n), flows_code(), _digest(values)))
+    for n in names:
+        code = code_version(n)
+        values = cached_section(cache, n, code, raw, None if n == "export" else own,
+                                lambda n=n: registry_stage(n))  # type: ignore[misc]
+        # the text with every description, remembered the same way: describing a section
+        # imports its config models
+        key = "@".join((n, code, flows_code(), _digest(values)))
         described = cache.get("described", key)
         if described is None:
             from v2xlake.flows.params import describe_params
