@@ -52,6 +52,7 @@ from v2xlake.storage import checksum
 
 ZONES = ("landing", "raw", "clean", "releases", "quarantine", "manifests")
 PARTITION_KEYS = ("clip_id", "agent_id")
+BLOBS = "blobs"  # a zone's folder of per-frame files (images), one folder per clip
 
 
 def s3_filesystem() -> pafs.S3FileSystem:
@@ -467,7 +468,8 @@ class Lake:
     def for_stage(self, stage: str, owns: Iterable[tuple[str, str]], *,
                   atomic_clip: str | None = None, stage_root: str | None = None,
                   reads: Iterable[tuple[str, str]] | None = None) -> Lake:
-        """A handle on the same lake that writes only the ``(zone, table)`` pairs ``owns``.
+        """A handle on the same lake that writes only the ``(zone, table)`` pairs ``owns``;
+        with ``atomic_clip``, also the one publish protocol of every stage (below).
 
         With ``reads`` (the stage's ``Stage.reads``) it also reads only those tables and its
         own: a table read but not declared would be left out of the stage's manifest key,
@@ -479,15 +481,18 @@ class Lake:
         another stage's table fails at once instead of silently dropping that stage's
         columns on a re-run.
 
-        With ``atomic_clip`` the handle is also the stage's output for that clip: reads go
-        to the lake, Parquet writes go to a private staging folder
-        (``_staging/<clip>/<stage>-p<pid>.<host>-<uuid>``, the owner lets a sweep tell a live
-        run's folder from a dead one's), and deleting a partition only marks it for
-        replacement.
-        ``publish_stage()`` then swaps each written (or deleted) partition into place, so a
-        run killed half-way never shows half a stage's output. ``stage_root`` names an
-        existing staging folder instead: the handle of a chunk of a stage's work that a
-        cluster worker does, writing into the same output as the flow's handle.
+        Publishing (``atomic_clip``): the handle is the stage's output for that clip. Reads
+        go to the lake; Parquet writes and blobs (``write_blob``) go to a private run folder
+        (``_staging/<clip>/<stage>-p<pid>.<host>-<uuid>``: the owner lets a sweep tell a
+        live run's folder from a dead one's); deleting a partition (``delete_partition``),
+        the clip's blobs (``delete_blobs``) or the clip's whole zone (``replace_clip``)
+        only marks it for replacement. ``publish_stage()`` then swaps each written or
+        marked partition into place in one journaled commit, so a run killed half-way never
+        shows half a stage's output; ``discard_stage()`` drops it (a failed run). The flow
+        stages every stage whose ``Stage.atomic`` is set; ingest and anonymize, which
+        replace a clip's whole zone, stage themselves the same way. ``stage_root`` names an
+        existing run folder instead: the handle of a chunk of a stage's work that a cluster
+        worker does, writing into the same output as the flow's handle.
         """
         other = copy.copy(self)
         other.written = {}
@@ -501,11 +506,26 @@ class Lake:
         elif atomic_clip is not None:
             self.sweep(atomic_clip)  # a killed earlier run of this clip: finish or drop it
             other._stage_root = self._run_dir(atomic_clip, stage)
+            other._make_run_dir()
         return other
 
     @property
     def stage_root(self) -> str | None:
         return self._stage_root
+
+    def _make_run_dir(self) -> None:
+        """Create the run folder now (locally), so that a sweep of another run can tell it
+        is taken. Another process tidies an empty ``_staging`` (or clip folder) away with
+        rmdir: that can land between two levels of makedirs, so try again."""
+        if not self.is_local or self._stage_root is None:
+            return
+        for attempt in range(5):
+            try:
+                os.makedirs(self._stage_root, exist_ok=True)
+                return
+            except FileNotFoundError:
+                if attempt == 4:
+                    raise
 
     def _write_dir(self, zone: str, table: str, clip_id: str, agent_id: str | None) -> str:
         if self._stage_root is None:
@@ -516,8 +536,18 @@ class Lake:
             parts.append(f"agent_id={agent_id}")
         return "/".join(parts)
 
+    def _staged_dir(self, zone: str, table: str, clip_id: str) -> str:
+        """Where a clip's partition (``table``) or its blobs (``"blobs"``) are staged."""
+        assert self._stage_root is not None
+        part = clip_id if table == BLOBS else f"clip_id={clip_id}"
+        return "/".join([self._stage_root, zone, table, part])
+
+    def _final_dir(self, zone: str, table: str, clip_id: str) -> str:
+        return self.path(zone, BLOBS, clip_id) if table == BLOBS \
+            else self.table_dir(zone, table, clip_id)
+
     def publish_stage(self) -> dict[str, str]:
-        """Move a staged stage's partitions into place (see ``for_stage``); returns
+        """Move a staged stage's partitions and blobs into place (see ``for_stage``); returns
         {staged path prefix: final path prefix} for the caller to rewrite recorded paths.
 
         The swap is journaled (``_commit_moves``): a run killed half-way through it is
@@ -527,12 +557,16 @@ class Lake:
             return {}
         for f in self.list_files(self._stage_root, ".parquet"):  # chunks' writes, too
             zone, table, part = f[len(self._stage_root) + 1:].split("/")[:3]
-            self._replaced.add((zone, table, part.removeprefix("clip_id=")))
+            if table != BLOBS:
+                self._replaced.add((zone, table, part.removeprefix("clip_id=")))
+        for z in self._children(self._stage_root):  # chunks' blobs, too
+            for clip in self._children(f"{z.path}/{BLOBS}"):
+                self._replaced.add((z.base_name, BLOBS, clip.base_name))
         moves: list[tuple[str, str]] = []
         deletes: list[str] = []
         for zone, table, clip_id in sorted(self._replaced):
-            src = "/".join([self._stage_root, zone, table, f"clip_id={clip_id}"])
-            dst = self.table_dir(zone, table, clip_id)
+            src = self._staged_dir(zone, table, clip_id)
+            dst = self._final_dir(zone, table, clip_id)
             if self.exists(src):
                 moves.append((src, dst))
             else:
@@ -550,6 +584,19 @@ class Lake:
                 with contextlib.suppress(OSError):  # the clip's and the shared folder
                     os.rmdir(os.path.dirname(self._stage_root))
                     os.rmdir(os.path.dirname(os.path.dirname(self._stage_root)))
+
+    def replace_clip(self, zone: str, clip_id: str) -> None:
+        """Mark the clip's whole ``zone`` for replacement by this staged run: at
+        ``publish_stage`` every partition of the clip in ``zone`` that the run did not
+        write, any table's, and the clip's blobs there are removed in the same commit. For
+        a stage that rebuilds a clip's zone from its inputs (ingest: raw from the bags),
+        after which what another stage derived from the old zone (QA's raw checks of the
+        old bags) is stale, as after ``delete_clip``."""
+        if self._stage_root is None:
+            raise RuntimeError("replace_clip needs a staged handle (for_stage(atomic_clip=))")
+        for table in self.tables(zone):
+            self._replaced.add((zone, table, clip_id))
+        self._replaced.add((zone, BLOBS, clip_id))
 
     def _check_owner(self, zone: str, table: str) -> None:
         if self.writer is None or (zone, table) in self.owns:
@@ -700,8 +747,23 @@ class Lake:
         return f"{clip_id}/{agent_id}/{sensor}/{frame_idx:06d}.{ext}"
 
     def write_blob(self, zone: str, key: str, data: bytes) -> str:
-        self.write_bytes(self.path(zone, "blobs", key), data)
+        """Write one blob (``key`` starts with its clip id, ``blob_key``); on a staged
+        handle into the run folder, published with the run's tables (``for_stage``)."""
+        if self._stage_root is None:
+            self.write_bytes(self.path(zone, BLOBS, key), data)
+            return key
+        clip_id = key.split("/", 1)[0]
+        self._replaced.add((zone, BLOBS, clip_id))
+        self.write_bytes(f"{self._stage_root}/{zone}/{BLOBS}/{key}", data)
         return key
+
+    def delete_blobs(self, zone: str, clip_id: str) -> None:
+        """Remove the clip's blobs in ``zone``; on a staged handle only marked, and replaced
+        at ``publish_stage`` by what the run wrote (nothing: removed)."""
+        if self._stage_root is not None:
+            self._replaced.add((zone, BLOBS, clip_id))
+            return
+        self.delete_dir(self.path(zone, BLOBS, clip_id))
 
     def read_blob(self, zone: str, key: str) -> bytes:
         return self.read_bytes(self.path(zone, "blobs", key))
@@ -832,26 +894,12 @@ class Lake:
         return self.path("_staging", clip_id, f"{who}-{run_tag()}-{uuid.uuid4().hex[:12]}")
 
     def staging(self, clip_id: str) -> Lake:
-        """A private lake for one attempt at a clip (``<root>/_staging/<clip>/<who>-<owner>-
-        <uuid>``, ``who`` the writing stage): a stage writes there, then ``publish`` moves the
-        clip's partitions into place, so a failure half-way leaves nothing in the real zones
-        and concurrent clips never see each other's partial output. ``_staging`` is never
-        globbed by the catalog. Folders of dead earlier runs of the clip are swept first."""
-        self.sweep(clip_id)
-        sub = self._run_dir(clip_id, self.writer or "stage")
-        if self.is_local:
-            # another process tidies an empty ``_staging`` (or clip folder) away with rmdir:
-            # that can land between two levels of makedirs, so try again
-            for attempt in range(5):
-                try:
-                    os.makedirs(sub, exist_ok=True)
-                    break
-                except FileNotFoundError:
-                    if attempt == 4:
-                        raise
-        staged = Lake(sub if self.is_local else f"s3://{sub}")
-        # ownership and declared reads, not the redirect
-        staged.writer, staged.owns, staged.reads = self.writer, self.owns, self.reads
+        """Deprecated: ``for_stage(..., atomic_clip=clip_id)`` of this handle's stage (its
+        writer, tables and declared reads kept). Kept, as a thin wrapper over the one publish
+        protocol, until anonymize (``tasks/anonymize/run.py``) calls that instead."""
+        staged = self.for_stage(self.writer or "stage", self.owns, atomic_clip=clip_id,
+                                reads=self.reads)
+        staged.writer = self.writer  # an unrestricted handle stays unrestricted
         return staged
 
     def discard_staging(self, clip_id: str) -> int:
@@ -861,32 +909,22 @@ class Lake:
 
     def publish(self, staging: Lake, zone: str, clip_id: str, *,
                 clear: Iterable[str] = ()) -> list[str]:
-        """Move one clip's partitions (and blobs) from ``staging`` into this lake's ``zone``,
-        replacing what the clip had there; the clip's partitions of the tables in ``clear``
-        (``"blobs"`` for its blobs) that ``staging`` does not have are removed in the same
-        step. Locally each ``table/clip_id=X`` folder is one rename; on S3 objects are copied
-        then the staging copy deleted. The swap is journaled in the staging folder
-        (``_commit_moves``), so a run killed during it is rolled forward by the next sweep.
-        Returns final paths of the parquet files."""
-        moved: list[str] = []
-        moves: list[tuple[str, str]] = []
-        staged = set()
-        for table in staging.tables(zone):
-            src = staging.table_dir(zone, table, clip_id)
-            if not staging.exists(src):
-                continue
-            staged.add(table)
-            dst = self.table_dir(zone, table, clip_id)
-            moved.extend(dst + f[len(src):] for f in staging.list_files(src, ".parquet"))
-            moves.append((src, dst))
-        src_b = staging.path(zone, "blobs", clip_id)
-        if staging.exists(src_b):
-            staged.add("blobs")
-            moves.append((src_b, self.path(zone, "blobs", clip_id)))
-        deletes = [self.path(zone, "blobs", clip_id) if t == "blobs"
-                   else self.table_dir(zone, t, clip_id) for t in sorted(set(clear) - staged)]
-        self._commit_moves(staging.base, moves, deletes)
-        return moved
+        """Deprecated: ``staging.publish_stage()`` after marking the clip's partitions of the
+        tables in ``clear`` (``"blobs"`` for its blobs) for replacement. Kept, as a thin
+        wrapper over the one publish protocol, until anonymize calls that instead. Returns
+        the final paths of the published Parquet files of ``zone``."""
+        root = staging.stage_root
+        if root is None:
+            raise RuntimeError("publish needs a staged handle (staging() / for_stage)")
+        for table in clear:
+            staging._replaced.add((zone, table, clip_id))
+        files = staging.list_files(f"{root}/{zone}", ".parquet")
+        moved = staging.publish_stage()
+        out = []
+        for f in files:
+            src = next(s for s in moved if f.startswith(s + "/"))
+            out.append(moved[src] + f[len(src):])
+        return out
 
     def _commit_moves(self, run_dir: str, moves: Sequence[tuple[str, str]],
                       deletes: Sequence[str]) -> None:
@@ -1002,15 +1040,9 @@ class Lake:
         return gone
 
     def discard(self) -> None:
-        """Delete this (staging) lake entirely (and its clip's ``_staging`` folders, once
-        empty)."""
-        if self.is_local:
-            shutil.rmtree(self.base, ignore_errors=True)
-            with contextlib.suppress(OSError):  # the clip's and the shared folder, once empty
-                os.rmdir(os.path.dirname(self.base))
-                os.rmdir(os.path.dirname(os.path.dirname(self.base)))
-        else:
-            self.delete_dir(self.base)
+        """Deprecated name of ``discard_stage`` (what ``staging()`` handles were dropped
+        with), kept until anonymize calls ``discard_stage``."""
+        self.discard_stage()
 
     def copy_in(self, src: str | os.PathLike[str], dest: str, *, link: bool = False) -> int:
         """Copy a local file into the lake at ``dest`` (a lake path); returns bytes copied.
