@@ -1,27 +1,38 @@
-"""Published vs refined LiDAR extrinsics of a clip (issue #13), for a CLI command.
+"""Published vs refined LiDAR extrinsics of a clip (issue #13), as ``v2xlake calibration``
+prints them. Pure: it formats records that were read elsewhere.
 
 The register stage's clip solve writes ``calibration_refined`` (its own table; ingest's
 ``calibrated_sensors`` is never rewritten). ``compare_calibration`` (in the shared clip reader,
 :mod:`v2xlake.tasks.reader`, so the Python API uses it too) lines both up per sensor with the
 correction, its 1-sigma, the components the clip determined and which one the consumers after
-register use; ``format_calibration`` is the text ``v2xlake calibration`` prints.
+register use; ``format_calibration`` is its text. ``frame_table`` turns the stored
+``registrations`` rows (``stage.frame_rows`` reads them) into what registration moved each
+frame pair by; ``format_frames`` is its text.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 
-from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import read
-from v2xlake.tasks.reader import CalibrationComparison, compare_calibration
+if TYPE_CHECKING:
+    from v2xlake.tasks.reader import CalibrationComparison
 
-__all__ = [
-    "CalibrationComparison",
-    "compare_calibration",
-    "format_calibration",
-    "format_frames",
-    "frame_rows",
-]
+__all__ = ["format_calibration", "format_frames", "frame_table"]
+
+# names that moved to ``stage.py`` (they read the lake), still found here until their last
+# callers (``flows/cli.py``, tests/test_register_intra_stage.py, tests/test_register_street.py)
+# import them from there; tests/test_layers.py lists this module until then
+_MOVED_TO_STAGE = ("CalibrationComparison", "compare_calibration", "frame_rows")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _MOVED_TO_STAGE:
+        from v2xlake.tasks.register import stage
+
+        return getattr(stage, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def format_calibration(rows: list[CalibrationComparison]) -> str:
@@ -42,14 +53,14 @@ def format_calibration(rows: list[CalibrationComparison]) -> str:
     return "\n".join(lines)
 
 
-def frame_rows(lake: Lake, clip_id: str) -> list[dict[str, object]]:
-    """Per registered frame pair: eq. 1a (INS + published extrinsics), the frame's own GICP
-    and the clip estimate, each as the correction of eq. 1a (cm, deg in the reference LiDAR
-    frame), the estimate's 1-sigma, and the decision with its reason."""
+def frame_table(rows: list[dict[str, Any]]) -> list[dict[str, object]]:
+    """Per registered frame pair (``rows``: the clip's ``registrations`` rows): eq. 1a (INS
+    + published extrinsics), the frame's own GICP and the clip estimate, each as the
+    correction of eq. 1a (cm, deg in the reference LiDAR frame), the estimate's 1-sigma, and
+    the decision with its reason."""
     from v2xlake.tasks.register.timeline import correction, row_transform
 
     out: list[dict[str, object]] = []
-    rows = read(lake, "registrations", clip_id).to_pylist()
     for r in sorted(rows, key=lambda r: (r["agent_other"], r["frame_idx"])):
         init = row_transform(r, "init_")
         fin, gicp = row_transform(r, ""), row_transform(r, "gicp_")
@@ -71,7 +82,7 @@ def frame_rows(lake: Lake, clip_id: str) -> list[dict[str, object]]:
 
 
 def format_frames(rows: list[dict[str, object]]) -> str:
-    """A table of :func:`frame_rows`: what registration moved each frame by, from where."""
+    """A table of :func:`frame_table`: what registration moved each frame by, from where."""
     head = (f"{'other':8s} {'frame':>5s} {'t s':>6s} {'GICP cm':>8s} {'clip cm':>8s} "
             f"{'clip-GICP':>9s} {'1-sigma':>8s} {'acc':>4s} reason")
     lines = [head, "-" * len(head)]

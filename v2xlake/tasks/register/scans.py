@@ -1,28 +1,24 @@
-"""One agent's deskewed scans as registration reads them: frame by frame (one Parquet row
-group per frame), voxel-downsampled with each voxel's capture time, and reduced to the
-static scene (``static.py``) with counts of what was removed.
+"""One agent's deskewed scans as registration uses them: frame by frame, voxel-downsampled
+with each voxel's capture time, and reduced to the static scene (``static.py``) with counts of
+what was removed.
 
-Lake reading lives here so that ``stage.py`` stays a thin pipeline; the numeric work is in
-``voxel.py`` and ``static.py``.
+Pure: ``AgentScans`` holds what ``stage.py`` read from the lake (pose track, extrinsic, frame
+times, annotated boxes) and a ``FrameReader`` that hands over one frame's points when asked,
+so a clip never has to fit in memory and this module never sees the lake. The numeric work
+is in ``voxel.py`` and ``static.py``.
 """
 
 from __future__ import annotations
 
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.compute as pc
 
-from v2xlake.schemas.errors import ClipError
-from v2xlake.storage.frames import PointFrameIndex
-from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import DESKEWED, read_extrinsics
 from v2xlake.tasks.geometry import apply, invert
 from v2xlake.tasks.interpolate import PoseTrack
-from v2xlake.tasks.reader import load_pose_track
 from v2xlake.tasks.register.config import StaticSection
 from v2xlake.tasks.register.static import (
     MovingBoxes,
@@ -37,11 +33,9 @@ from v2xlake.tasks.register.static import (
 )
 from v2xlake.tasks.register.voxel import voxel_downsample_t
 
-STAGE = "register"
-
-
-def _fail(clip_id: str, reason: str, agent_id: str | None = None) -> ClipError:
-    return ClipError(clip_id, reason, agent_id=agent_id, stage=STAGE)
+#: one deskewed frame of one LiDAR: frame index -> ((N, 3) float32 points, (N,) int64 capture
+#: times), empty arrays for a frame without points
+FrameReader = Callable[[int], tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True)
@@ -61,67 +55,49 @@ class FilteredScan:
     ground_m: float = float("nan")  # LiDAR origin to the ground plane around it
 
 
+@dataclass(frozen=True)
+class AnnotationColumns:
+    """One LiDAR's annotated boxes as columns (one entry per box): frame, centre time,
+    centre, size (w, l, h), rotation (w, x, y, z) and velocity (zero where not given)."""
+
+    frame_idx: np.ndarray  # (K,) int64
+    t_ns: np.ndarray  # (K,) int64
+    center: np.ndarray  # (K, 3) float64
+    size_wlh: np.ndarray  # (K, 3) float64
+    quat_wxyz: np.ndarray  # (K, 4) float64
+    velocity: np.ndarray  # (K, 3) float64
+
+
+def boxes_per_frame(ann: AnnotationColumns, frames: dict[int, tuple[int, int]]
+                    ) -> dict[int, MovingBoxes]:
+    """Annotated boxes per frame of ``frames`` (frame -> (scan start, deskew reference
+    time)), centre times relative to the frame's deskew reference time (seconds); boxes of
+    frames deskew skipped are left out."""
+    out: dict[int, MovingBoxes] = {}
+    fr = ann.frame_idx
+    for f in np.unique(fr):
+        if int(f) not in frames:
+            continue
+        m = fr == f
+        ref = frames[int(f)][1]
+        out[int(f)] = annotation_boxes(ann.center[m], ann.size_wlh[m], ann.quat_wxyz[m],
+                                       ann.velocity[m], (ann.t_ns[m] - ref) * 1e-9, 0.0)
+    return out
+
+
 class AgentScans:
-    """One agent's deskewed scans, poses and extrinsic; reads one frame (row group) at a time."""
+    """One agent's deskewed scans of one LiDAR, its pose track and extrinsic; reads one frame
+    at a time through ``read_frame`` (``stage.read_agent_scans`` builds it from the lake)."""
 
-    def __init__(self, lake: Lake, clip_id: str, agent: str, sensor: str | None) -> None:
-        self.agent, self.clip_id = agent, clip_id
-        self.track: PoseTrack = load_pose_track(lake, clip_id, agent)
-        extr = read_extrinsics(lake, clip_id, agent)
-        if not extr:
-            raise _fail(clip_id, "no LiDAR in calibrated_sensors", agent)
-        if sensor is None:
-            sensor = "LIDAR_TOP" if "LIDAR_TOP" in extr else sorted(extr)[0]
-        if sensor not in extr:
-            raise _fail(clip_id, f"LiDAR {sensor} has no calibrated_sensors row", agent)
-        self.sensor, self.T_ego_lidar = sensor, extr[sensor]
-        frames = lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent)
-        desk = lake.read_table("clean", "deskew_frames", clip_id=clip_id, agent_id=agent)
-        if frames.num_rows and not desk.num_rows:
-            raise _fail(clip_id, "no deskew_frames: run deskew first", agent)
-        ref_of = {(str(s), int(f)): r for s, f, r in zip(
-            desk.column("sensor").to_pylist(), desk.column("frame_idx").to_pylist(),
-            desk.column("deskew_ref_ns").to_pylist(), strict=True)} if desk.num_rows else {}
+    def __init__(self, agent: str, sensor: str, track: PoseTrack, T_ego_lidar: np.ndarray,
+                 frames: dict[int, tuple[int, int]], read_frame: FrameReader,
+                 boxes: dict[int, MovingBoxes] | None = None) -> None:
+        self.agent, self.sensor = agent, sensor
+        self.track, self.T_ego_lidar = track, T_ego_lidar
         # frame_idx -> (scan start, deskew reference time); frames deskew skipped are left out
-        self.frames: dict[int, tuple[int, int]] = {}
-        if frames.num_rows:
-            for s, f, t0 in zip(frames.column("sensor").to_pylist(),
-                                frames.column("frame_idx").to_pylist(),
-                                frames.column("t_start_ns").to_pylist(), strict=True):
-                tr = ref_of.get((str(s), int(f)))
-                if s == sensor and tr is not None:
-                    self.frames[int(f)] = (int(t0), int(tr))
-        self._index = PointFrameIndex.build(lake, "clean", DESKEWED, clip_id, agent)
-        if not self._index:
-            raise _fail(clip_id, f"no {DESKEWED} rows: run deskew first", agent)
-        self._boxes = self._read_annotations(lake)
-
-    def _read_annotations(self, lake: Lake) -> dict[int, MovingBoxes]:
-        """Annotated boxes per frame of this LiDAR, centre times relative to the frame's
-        deskew reference time (seconds)."""
-        ann = lake.read_table("clean", "annotations", clip_id=self.clip_id, agent_id=self.agent)
-        out: dict[int, MovingBoxes] = {}
-        if ann.num_rows == 0:
-            return out
-        ann = ann.filter(pc.equal(ann["sensor"].cast(pa.string()), self.sensor))
-
-        def col(name: str) -> np.ndarray:
-            return np.asarray(ann[name].to_numpy(zero_copy_only=False), dtype=np.float64)
-
-        fr = np.asarray(ann["frame_idx"].to_numpy(), dtype=np.int64)
-        t = np.asarray(ann["t_ns"].to_numpy(), dtype=np.int64)
-        c = np.stack([col("cx"), col("cy"), col("cz")], 1)
-        size = np.stack([col("w"), col("l"), col("h")], 1)
-        q = np.stack([col("qw"), col("qx"), col("qy"), col("qz")], 1)
-        v = np.stack([col(k) if k in ann.column_names else np.zeros(len(fr))
-                      for k in ("vx", "vy", "vz")], 1)
-        for f in np.unique(fr):
-            if int(f) not in self.frames:
-                continue
-            m = fr == f
-            ref = self.frames[int(f)][1]
-            out[int(f)] = annotation_boxes(c[m], size[m], q[m], v[m], (t[m] - ref) * 1e-9, 0.0)
-        return out
+        self.frames = frames
+        self._read_frame = read_frame
+        self._boxes = boxes or {}
 
     def has_annotations(self, frame_idx: int) -> bool:
         return frame_idx in self._boxes
@@ -134,11 +110,7 @@ class AgentScans:
 
     def points_t(self, frame_idx: int) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) float32 points and (N,) int64 capture times of one deskewed frame."""
-        t = self._index.read(frame_idx, self.sensor, ["t_ns", "x", "y", "z"])
-        if t is None:
-            return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
-        xyz = np.stack([t.column(c).to_numpy() for c in ("x", "y", "z")], axis=1)
-        return xyz, np.asarray(t.column("t_ns").to_numpy(), dtype=np.int64)
+        return self._read_frame(frame_idx)
 
     def max_travel_per_scan(self) -> float:
         """How far the agent moves during one scan at its usual top speed (95th percentile of

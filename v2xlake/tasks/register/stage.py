@@ -6,7 +6,12 @@ deskewed scan's reference time and the LiDAR extrinsics (eq. 1a); GICP on the de
 scans refines it, warm-started from the previous frame's accepted correction. Quality and
 the accept / reject decision are recorded per frame in clean ``registrations``; a
 before/after bird's-eye view (Fig. 5) goes to ``clean/images/<clip>/registration_bev.png``.
-The numeric work lives in :mod:`v2xlake.tasks.register`; this module is lake I/O.
+This module is the package's only lake I/O (docs/architecture.md, Stage package shape): it
+reads the agents, their scans (``read_agent_scans``: one frame at a time through the frame
+index), bodies and annotations, hands arrays and records to the pure modules the package
+docstring names, and writes ``registrations``, ``calibration_refined`` and the figures. The
+readers behind the tools (the plots, ``frame_rows`` of ``v2xlake calibration --frames``) are
+here for the same reason.
 """
 
 from __future__ import annotations
@@ -18,16 +23,22 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
 
 from v2xlake.schemas.arrow import rows_to_table
+from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import CalibrationRefinedRow, RegistrationRow
+from v2xlake.storage.frames import PointFrameIndex
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import pose_missing, read_extrinsics
+from v2xlake.storage.reader import DESKEWED, pose_missing, read, read_extrinsics
 from v2xlake.tasks.geometry import invert, matrix_to_quat, rotation_angle, transform
 from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.reader import CalibrationComparison, compare_calibration, load_pose_track
 from v2xlake.tasks.register.backends import Prepared, RegistrationBackend, make_backend
 from v2xlake.tasks.register.bev import render_registration_bev
+from v2xlake.tasks.register.calibration import frame_table
 from v2xlake.tasks.register.config import RegisterConfig
 from v2xlake.tasks.register.core import (
     PairResult,
@@ -36,11 +47,13 @@ from v2xlake.tasks.register.core import (
     refine,
     transform_delta,
 )
+from v2xlake.tasks.register.intra_stage import IntraStageSettings, refine_secondaries, split_lidars
 from v2xlake.tasks.register.scans import (
     AgentScans,
+    AnnotationColumns,
     Body,
     StaticScans,
-    _fail,
+    boxes_per_frame,
 )
 from v2xlake.tasks.register.solve import (
     ClipSolution,
@@ -55,6 +68,106 @@ from v2xlake.tasks.register.timeline import render_registration_timeline
 log = logging.getLogger(__name__)
 
 STAGE = "register"
+
+__all__ = ["REGISTER", "CalibrationComparison", "compare_calibration", "frame_rows",
+           "plot_registration", "plot_registration_timeline", "read_agent_scans",
+           "refine_agent_lidars", "run_register"]
+
+
+def _fail(clip_id: str, reason: str, agent_id: str | None = None) -> ClipError:
+    return ClipError(clip_id, reason, agent_id=agent_id, stage=STAGE)
+
+
+# ---------------------------------------------------------------- reading the lake
+def read_agent_scans(lake: Lake, clip_id: str, agent: str, sensor: str | None) -> AgentScans:
+    """One agent's deskewed scans of one LiDAR (``sensor``; None: ``LIDAR_TOP``, else its
+    first LiDAR): pose track, extrinsic, each deskewed frame's scan start and deskew
+    reference time (``lidar_frames`` joined with ``deskew_frames``), its annotated boxes,
+    and a reader of one frame's points (one row group, through the frame index)."""
+    track: PoseTrack = load_pose_track(lake, clip_id, agent)
+    extr = read_extrinsics(lake, clip_id, agent)
+    if not extr:
+        raise _fail(clip_id, "no LiDAR in calibrated_sensors", agent)
+    if sensor is None:
+        sensor = "LIDAR_TOP" if "LIDAR_TOP" in extr else sorted(extr)[0]
+    if sensor not in extr:
+        raise _fail(clip_id, f"LiDAR {sensor} has no calibrated_sensors row", agent)
+    frames = lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent)
+    desk = lake.read_table("clean", "deskew_frames", clip_id=clip_id, agent_id=agent)
+    if frames.num_rows and not desk.num_rows:
+        raise _fail(clip_id, "no deskew_frames: run deskew first", agent)
+    ref_of = {(str(s), int(f)): r for s, f, r in zip(
+        desk.column("sensor").to_pylist(), desk.column("frame_idx").to_pylist(),
+        desk.column("deskew_ref_ns").to_pylist(), strict=True)} if desk.num_rows else {}
+    # frame_idx -> (scan start, deskew reference time); frames deskew skipped are left out
+    times: dict[int, tuple[int, int]] = {}
+    if frames.num_rows:
+        for s, f, t0 in zip(frames.column("sensor").to_pylist(),
+                            frames.column("frame_idx").to_pylist(),
+                            frames.column("t_start_ns").to_pylist(), strict=True):
+            tr = ref_of.get((str(s), int(f)))
+            if s == sensor and tr is not None:
+                times[int(f)] = (int(t0), int(tr))
+    index = PointFrameIndex.build(lake, "clean", DESKEWED, clip_id, agent)
+    if not index:
+        raise _fail(clip_id, f"no {DESKEWED} rows: run deskew first", agent)
+    lidar = sensor
+
+    def read_frame(frame_idx: int) -> tuple[np.ndarray, np.ndarray]:
+        t = index.read(frame_idx, lidar, ["t_ns", "x", "y", "z"])
+        if t is None:
+            return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
+        xyz = np.stack([t.column(c).to_numpy() for c in ("x", "y", "z")], axis=1)
+        return xyz, np.asarray(t.column("t_ns").to_numpy(), dtype=np.int64)
+
+    ann = _annotation_columns(lake, clip_id, agent, sensor)
+    boxes = boxes_per_frame(ann, times) if ann is not None else {}
+    return AgentScans(agent, sensor, track, extr[sensor], times, read_frame, boxes)
+
+
+def _annotation_columns(lake: Lake, clip_id: str, agent: str, sensor: str
+                        ) -> AnnotationColumns | None:
+    """The agent's clean ``annotations`` of one LiDAR as columns; None when it has none."""
+    ann = lake.read_table("clean", "annotations", clip_id=clip_id, agent_id=agent)
+    if ann.num_rows == 0:
+        return None
+    ann = ann.filter(pc.equal(ann["sensor"].cast(pa.string()), sensor))
+
+    def col(name: str) -> np.ndarray:
+        return np.asarray(ann[name].to_numpy(zero_copy_only=False), dtype=np.float64)
+
+    fr = np.asarray(ann["frame_idx"].to_numpy(), dtype=np.int64)
+    return AnnotationColumns(
+        frame_idx=fr, t_ns=np.asarray(ann["t_ns"].to_numpy(), dtype=np.int64),
+        center=np.stack([col("cx"), col("cy"), col("cz")], 1),
+        size_wlh=np.stack([col("w"), col("l"), col("h")], 1),
+        quat_wxyz=np.stack([col("qw"), col("qx"), col("qy"), col("qz")], 1),
+        velocity=np.stack([col(k) if k in ann.column_names else np.zeros(len(fr))
+                           for k in ("vx", "vy", "vz")], 1))
+
+
+def refine_agent_lidars(lake: Lake, clip_id: str, agent: str,
+                        settings: IntraStageSettings | None = None,
+                        T_ego_primary: np.ndarray | None = None
+                        ) -> tuple[list[CalibrationRefinedRow], list[str]]:
+    """``calibration_refined`` rows for every secondary LiDAR of ``agent`` (none when it has
+    one LiDAR) and notes: its LiDARs' scans read here, refined by
+    ``intra_stage.refine_secondaries``. ``T_ego_primary``: the primary's effective extrinsic
+    (the stage's refined one when usable; default the published one)."""
+    s = settings or IntraStageSettings()
+    extr = read_extrinsics(lake, clip_id, agent)
+    if not s.enabled or len(extr) < 2:
+        return [], []
+    primary, secondaries = split_lidars(list(extr), s.primary)
+    P = read_agent_scans(lake, clip_id, agent, primary)
+    return refine_secondaries(clip_id, P, (read_agent_scans(lake, clip_id, agent, sec)
+                                           for sec in secondaries), s, T_ego_primary)
+
+
+def frame_rows(lake: Lake, clip_id: str) -> list[dict[str, object]]:
+    """``calibration.frame_table`` of the clip's stored ``registrations`` rows (what
+    ``v2xlake calibration --frames`` prints)."""
+    return frame_table(read(lake, "registrations", clip_id).to_pylist())
 
 
 def _pairs(ref: AgentScans, other: AgentScans, tol: int) -> list[tuple[int, int]]:
@@ -309,8 +422,8 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
         report.notes.append(f"single agent ({ref_id}): nothing to register")
         _write_calibration(lake, clip_id, cfg, [ref_id], [], report)
         return report
-    ref = AgentScans(lake, clip_id, ref_id, cfg.sensor)
-    others = [AgentScans(lake, clip_id, a, cfg.sensor) for a in other_ids]
+    ref = read_agent_scans(lake, clip_id, ref_id, cfg.sensor)
+    others = [read_agent_scans(lake, clip_id, a, cfg.sensor) for a in other_ids]
     backend: RegistrationBackend = make_backend(cfg.gicp.backend, cfg.gicp)
     method = f"{cfg.gicp.backend}:GICP" + ("+clip" if cfg.solve.enabled else "")
     pairs = {o.agent: dict(_pairs(ref, o, cfg.pair_tolerance_ns)) for o in others}
@@ -582,8 +695,6 @@ def _write_calibration(lake: Lake, clip_id: str, cfg: RegisterConfig, agents: li
     """Write ``calibration_refined``: the clip solve's rows (``cal``) plus, for every agent
     with several LiDARs, its secondary LiDARs refined against its primary (issue #27), on top
     of the primary's refined extrinsic where that one is usable."""
-    from v2xlake.tasks.register.intra_stage import IntraStageSettings, refine_agent_lidars
-
     rows = list(cal)
     if cfg.intra.enabled:
         st = IntraStageSettings(frames=cfg.intra.frames)
@@ -639,8 +750,8 @@ def plot_registration(lake: Lake, clip_id: str, frame_idx: int, out_png: str | P
         return transform(np.array([r[f"{prefix}tx"], r[f"{prefix}ty"], r[f"{prefix}tz"]]),
                          q / np.linalg.norm(q))
 
-    ref = AgentScans(lake, clip_id, r["agent_ref"], cfg.sensor)
-    oth = AgentScans(lake, clip_id, r["agent_other"], cfg.sensor)
+    ref = read_agent_scans(lake, clip_id, r["agent_ref"], cfg.sensor)
+    oth = read_agent_scans(lake, clip_id, r["agent_other"], cfg.sensor)
     fo = dict(_pairs(ref, oth, cfg.pair_tolerance_ns)).get(frame_idx, frame_idx)
     out = Path(out_png)
     render_registration_bev(ref.points(frame_idx), oth.points(fo), mat("init_"), mat(""), out,
