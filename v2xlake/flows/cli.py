@@ -260,6 +260,8 @@ class StageProgress:
                     f"{_esc(event.get('error'))}")
             self.line(f"{self.done}/{self.total} {event['clip_id']}: {event['stage']} "
                       f"{status} in {float(event.get('seconds') or 0):.1f} s"
+                      + (f", cpu {event['cpu_seconds']:.1f} s" if event.get("cpu_seconds")
+                         else "")
                       + (f" ({detail})" if detail else ""))
 
     def __enter__(self) -> StageProgress:
@@ -343,7 +345,7 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
     not at all when there are none. ``params``: a mapping (a ``--params`` file's YAML) or a
     ``PipelineParams``."""
     from v2xlake.flows.noop import current_summaries
-    from v2xlake.flows.runners import needs_api_server, parse_runner
+    from v2xlake.flows.runners import parse_runner
 
     console = console or _console()
     parse_runner(runner)
@@ -358,9 +360,28 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
     if not todo:
         return [a for a in answered if a is not None]
 
-    # Prefect's temporary server (if flows will need one) comes up while the stages import
-    wait_server = None
-    if not needs_api_server(runner):
+    # without PREFECT_API_URL: the temporary server the previous calls shared (started now
+    # if none answers, flows.shared_server), else Prefect's own per-process one; either
+    # comes up while the stages import
+    from v2xlake.flows import shared_server
+
+    old_url = os.environ.get("PREFECT_API_URL")
+    wait_server = shared_server.attach() if shared_server.enabled() else None
+    try:
+        return _run_attached(clip_dirs, todo, answered, lake, runner, stages, raw, pipeline,
+                             console, show_progress, wait_server)
+    finally:  # an in-process caller (tests, the Python API) gets its environment back
+        if old_url is None:
+            os.environ.pop("PREFECT_API_URL", None)
+
+
+def _run_attached(clip_dirs: Sequence[str], todo: list[str],
+                  answered: list[dict[str, Any] | None], lake: str, runner: str,
+                  stages: list[str] | None, raw: Any, pipeline: str | None, console: Any,
+                  show_progress: bool, wait_server: Any) -> list[dict[str, Any]]:
+    from v2xlake.flows.runners import needs_api_server
+
+    if wait_server is None and not needs_api_server(runner):
         from v2xlake.flows.server import prestart_temporary_server
 
         wait_server = prestart_temporary_server()

@@ -140,7 +140,7 @@ def _execute_locked(lake: Lake, stage: Stage[Any], target: str, clip_id: str,
         logger.info("%s: %s unchanged since its last run, skipped", clip_id, stage.name)
         return {"stage": stage.name, "status": "cached", "seconds": 0.0,
                 "report": cached.model_dump(mode="json")}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     # the handle refuses reads of tables the stage did not declare (they would be missing
     # from its manifest key, so a change to them would not re-run it)
     writer = lake.for_stage(stage.name, [(t.zone, t.name) for t in stage.owns],
@@ -160,6 +160,9 @@ def _execute_locked(lake: Lake, stage: Stage[Any], target: str, clip_id: str,
                 if out.path.startswith(a + "/"):
                     out.path = b + out.path[len(a):]
     seconds = time.perf_counter() - t0
+    # the CPU of the process running it (on a Dask worker: this stage's own; locally the
+    # flow's threads too): where a distributed run's extra CPU goes (#26)
+    cpu = time.process_time() - c0
     if report.clip_id != clip_id:
         key = bookkeeping.stage_key(lake, report.clip_id, stage, cfg, clip_dir)
     bookkeeping.record(lake, report, key)
@@ -169,7 +172,7 @@ def _execute_locked(lake: Lake, stage: Stage[Any], target: str, clip_id: str,
         logger.info("%s: %s done in %.1f s %s", report.clip_id, stage.name, seconds,
                     report.metrics)
     return {"stage": stage.name, "status": report.status, "seconds": seconds,
-            "report": report.model_dump(mode="json")}
+            "cpu_seconds": cpu, "report": report.model_dump(mode="json")}
 
 
 def _stage(pipeline: str | None, name: str) -> Stage[Any]:
@@ -360,7 +363,8 @@ def process_clip(clip_dir: str, lake: str, stages: list[str] | None = None,
         summary["clip_id"] = clip_id
         summary["stages"].append(outcome)
         _emit(event="stage_end", clip_id=clip_id, stage=stage.name, status=outcome["status"],
-              seconds=outcome["seconds"], metrics=outcome["report"].get("metrics", {}),
+              seconds=outcome["seconds"], cpu_seconds=outcome.get("cpu_seconds"),
+              metrics=outcome["report"].get("metrics", {}),
               reason=outcome["report"].get("reason"))
         # an API round trip (0.05-0.12 s): after the last stage, else at most every
         # PROGRESS_ARTIFACT_EVERY_S, so short stages do not pay one each (#26 fixed cost)

@@ -10,7 +10,9 @@ command calls :func:`configure_prefect` first; values the user already exported 
   temporary server's SQLite database never lands in the user's working directory,
 - flow heartbeats off (each flow otherwise waits about 1 s on the heartbeat thread; the
   environment variable does not remove it, ``temporary_settings`` does, see NOTES.md),
-- Prefect's temporary server runs under ``flows/guard.py`` (``prefect_session``), so a
+- without ``PREFECT_API_URL`` the CLI shares one temporary server between calls
+  (``flows/shared_server.py``, stopped when idle); Prefect's own per-process one (with
+  ``V2XLAKE_SHARED_SERVER=0``) runs under ``flows/guard.py`` (``prefect_session``), so a
   SIGKILLed run does not leave it behind.
 """
 
@@ -67,10 +69,14 @@ def prefect_session() -> Iterator[None]:
         temporary_settings,
     )
 
-    if not PREFECT_API_URL.value():  # Prefect will start its temporary server: guard it
+    # a URL exported after Prefect was imported (flows.shared_server.attach in a process
+    # that had imported Prefect already, as tests do) is not in Prefect's settings yet
+    url = os.environ.get("PREFECT_API_URL") or PREFECT_API_URL.value()
+    if not url:  # Prefect will start its temporary server: guard it
         from v2xlake.flows.server import guard_ephemeral_server
 
         guard_ephemeral_server()
 
-    with temporary_settings(updates={PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}):
+    with temporary_settings(updates={PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None,
+                                     PREFECT_API_URL: url or None}):
         yield

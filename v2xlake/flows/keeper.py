@@ -1,0 +1,136 @@
+"""Keep a shared Prefect API server alive while it is used, stop it when idle (stdlib only).
+
+    python keeper.py HOME IDLE_S -- COMMAND [ARGS...]
+
+WHY: Prefect's temporary server lives as long as the process that started it, so every
+``v2xlake process`` call without ``PREFECT_API_URL`` paid its start (a uvicorn process
+importing Prefect's server: 6-15 s on two cores, the largest part of a real call's fixed
+cost, #26). ``flows/shared_server.py`` starts the same server once, under this keeper,
+detached from the caller, and later calls find it through the state file in ``HOME``.
+
+The keeper makes a process group of its own, starts the command in it (SIGTERMed if the
+keeper dies, even by SIGKILL: ``PR_SET_PDEATHSIG``, as in ``guard.py``) and every ``POLL_S``
+stops the group and exits when
+
+- the command has exited,
+- ``HOME`` or the state file naming this keeper is gone (another server took over, or a test's
+  temporary home was removed), or
+- the server is idle: no process holds the lease file (each user holds a shared ``flock`` on
+  it for its lifetime; the kernel drops it when the user exits, SIGKILL included) and the
+  lease was last touched (by a user attaching or exiting) more than ``IDLE_S`` seconds ago.
+
+The idle decision is taken holding the lease exclusively, and the state file is removed
+before the lock is let go, so a user that attaches meanwhile waits and then starts a fresh
+server instead of finding one about to stop.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import fcntl
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import FrameType
+
+POLL_S = 1.0
+GRACE_S = 5.0
+STATE = "shared-server.json"
+LEASE = "shared-server.lease"
+PR_SET_PDEATHSIG = 1
+try:
+    _LIBC: ctypes.CDLL | None = ctypes.CDLL(None) if sys.platform == "linux" else None
+except OSError:
+    _LIBC = None
+
+
+def _die_with_keeper() -> None:
+    if _LIBC is not None:
+        _LIBC.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    """SIGTERM the keeper's group (the keeper ignores it), then SIGKILL the command."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        os.killpg(os.getpgrp(), signal.SIGTERM)
+        proc.wait(GRACE_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(GRACE_S)
+    except ProcessLookupError:
+        pass
+
+
+def _owns_state(home: Path) -> bool:
+    """Whether the state file still names this keeper (a replacement server rewrites it)."""
+    try:
+        return int(json.loads((home / STATE).read_text())["pid"]) == os.getpid()
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
+def _drop_state(home: Path) -> None:
+    if _owns_state(home):
+        with contextlib.suppress(OSError):
+            (home / STATE).unlink()
+
+
+def keep(home: Path, idle_s: float, cmd: list[str]) -> int:
+    if os.getsid(0) != os.getpid():
+        os.setsid()
+    lease = home / LEASE
+    lease.touch()
+    proc = subprocess.Popen(cmd, preexec_fn=_die_with_keeper)
+
+    def on_signal(sig: int, _frame: FrameType | None) -> None:
+        _drop_state(home)
+        _stop(proc)
+        sys.exit(128 + sig)
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    started = time.monotonic()
+    while True:
+        try:
+            code = proc.wait(POLL_S)
+            _drop_state(home)
+            return code
+        except subprocess.TimeoutExpired:
+            pass
+        # the state file appears once the caller has written it (just after our start)
+        if not home.is_dir() or (time.monotonic() - started > 30 and not _owns_state(home)):
+            _stop(proc)
+            return 0
+        try:
+            fd = os.open(lease, os.O_RDWR | os.O_CREAT)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # a user holds it: in use
+            os.close(fd)
+            continue
+        try:
+            if time.time() - os.fstat(fd).st_mtime > idle_s:
+                _drop_state(home)  # before the lock goes: a new user starts a fresh server
+                _stop(proc)
+                return 0
+        finally:
+            os.close(fd)  # releases the lock
+
+
+def main(argv: list[str]) -> int:
+    if len(argv) < 4 or argv[2] != "--":
+        print(__doc__, file=sys.stderr)
+        return 2
+    return keep(Path(argv[0]), float(argv[1]), argv[3:])
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
