@@ -15,10 +15,11 @@ format (``rawmsg.py``, exact, rosbags as fallback), points are decoded in one co
 on the reading thread while a second thread encodes the previous frames (raw zone encoding:
 ``v2xlake.storage.lake.RAW_OPTIONS``) and a third checksums and writes the bytes, so the report
 carries every output's checksum and the manifest never re-reads them. Everything is written
-into a private staging lake first and moved into ``raw/`` only when every agent succeeded,
-so a clip that fails (unknown type, missing topic, truncated file...) leaves nothing in the
-raw zone or the catalog, and concurrent ingests of different clips never see each other's
-partial output.
+through a staged handle (``Lake.for_stage(..., atomic_clip=)``, the one publish protocol of
+every stage) and published into ``raw/`` only when every agent succeeded, replacing the
+clip's whole raw zone in one commit, so a clip that fails (unknown type, missing topic,
+truncated file...) leaves nothing in the raw zone or the catalog, and concurrent ingests of
+different clips never see each other's partial output.
 """
 
 from __future__ import annotations
@@ -783,7 +784,10 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
         lake.write_json(lake.path("landing", cid, DELIVERY), delivery)
     if lake.discard_staging(cid):
         notes.append(f"removed stale staging output of an earlier, interrupted ingest of {cid}")
-    staging = lake.staging(cid)
+    # the flow hands ingest an unstaged handle (Stage.atomic is off): it stages itself, since
+    # its publish replaces the clip's whole raw zone (replace_clip), not only its own tables
+    staging = lake.for_stage(STAGE, _OWNS, atomic_clip=cid,
+                             reads=lake.reads)
     try:
         results: dict[str, AgentResult] = {}
         for agent in cfg.agents:
@@ -826,20 +830,24 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
             status="ok")]), clip_id=cid)
         # rows and checksums were taken while writing (TableWriter hashes the bytes as they
         # stream out), so the manifest needs no second read of the outputs
-        outputs = [(f, *staging.written[f]) if f in staging.written else (f, pq_rows(staging, f),
-                                                                          None)
-                   for f in staging.list_files(staging.path("raw"), ".parquet")]
+        root = staging.stage_root
+        assert root is not None
+        # lake-relative: a staged file's path below the run folder is its final one
+        outputs = [(f[len(root) + 1:], *staging.written[f]) if f in staging.written
+                   else (f[len(root) + 1:], pq_rows(staging, f), None)
+                   for f in staging.list_files(f"{root}/raw", ".parquet")]
         # one journaled swap replaces everything the clip had in raw (a kill mid-way is
         # rolled forward by the next run's sweep)
-        lake.publish(staging, "raw", cid, clear=[*lake.tables("raw"), "blobs"])
-    finally:
-        staging.discard()
+        staging.replace_clip("raw", cid)
+        staging.publish_stage()
+    except BaseException:
+        staging.discard_stage()
+        raise
     elapsed = time.perf_counter() - t0
     n_bytes = sum(r.bytes_read for r in results.values())
     return StageReport(
         stage=STAGE, clip_id=cid,
-        outputs=[OutputFile(path=f[len(staging.base) + 1:], rows=n, checksum=sha)
-                 for f, n, sha in outputs],
+        outputs=[OutputFile(path=f, rows=n, checksum=sha) for f, n, sha in outputs],
         metrics={
             "seconds": elapsed, "bytes_read": float(n_bytes),
             "mb_per_s": n_bytes / 1e6 / elapsed if elapsed > 0 else 0.0,
@@ -855,6 +863,8 @@ def run_ingest(lake: Lake, clip_dir: str | Path, config: IngestConfig | None = N
 def pq_rows(lake: Lake, path: str) -> int:
     return lake.count_rows(path)
 
+
+_OWNS = [("raw", t) for t in INGEST_TABLES]
 
 INGEST = Stage(
     name="ingest", config_model=IngestConfig, input="clip_dir",
