@@ -19,6 +19,7 @@ import pyarrow.compute as pc
 
 from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.geometry import matrix_to_quat, quat_to_matrix
+from v2xlake.schemas.stage import StageReport
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import (
     AgentRecord,
@@ -27,6 +28,7 @@ from v2xlake.storage.reader import (
     PoseSamples,
     calibrations,
     effective_calibration,
+    no_pose_report,
     read,
     read_clip,
 )
@@ -106,6 +108,20 @@ def load_clip(lake: Lake, clip_id: str, *, registered: bool = True,
     agents placed by their registered transforms where the register stage accepted them)."""
     return with_tracks(read_clip(lake, clip_id), registered=registered,
                        registered_max_gap_s=registered_max_gap_s)
+
+
+def load_posed_clip(lake: Lake, clip_id: str, stage: str, why_needed: str
+                    ) -> ClipData | StageReport:
+    """The clip as ``load_clip`` gives it, for a stage that needs poses: its
+    ``not_applicable`` report (naming ``why_needed``) when no agent has a pose track, and a
+    failure to load it raised as ``stage``'s ``ClipError`` (so the quarantine report names
+    the stage that could not go on). Annotate and align start this way."""
+    if (na := no_pose_report(lake, clip_id, stage, why_needed)):
+        return na
+    try:
+        return load_clip(lake, clip_id)
+    except ClipError as e:
+        raise ClipError(clip_id, e.reason, agent_id=e.agent_id, path=e.path, stage=stage) from e
 
 
 def registered_track(clip: ClipRecord, ref: AgentData, agent: AgentData, max_gap_ns: int,

@@ -32,7 +32,7 @@ from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import AlignmentRow
 from v2xlake.storage.files import read_parquet
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import CLIP_TABLES, CameraCalib, iter_point_frames, no_pose_report
+from v2xlake.storage.reader import CLIP_TABLES, CameraCalib, iter_point_frames
 from v2xlake.tasks.align.boxes import BoxArray
 from v2xlake.tasks.align.config import AlignConfig, AssociationConfig
 from v2xlake.tasks.align.methods import (
@@ -52,7 +52,7 @@ from v2xlake.tasks.align.overlay import OverlayBoxes, Panel, render_overlay
 from v2xlake.tasks.geometry import apply, compose, invert, iou_xyxy
 from v2xlake.tasks.interpolate import PoseCoverageError
 from v2xlake.tasks.projection import Camera, points_in_fov, project_points
-from v2xlake.tasks.reader import AgentData, load_clip
+from v2xlake.tasks.reader import AgentData, load_posed_clip
 
 STAGE = "align"
 
@@ -179,13 +179,10 @@ def _fill_velocities(agent: AgentData, lidar_sensor: str, ann: pa.Table,
 def run_align(lake: Lake, clip_id: str, config: AlignConfig = AlignConfig(),  # noqa: B008
               truth_dir: Path | None = None) -> StageReport:
     """Associate camera frames with LiDAR frames / objects by the three methods; evaluate."""
-    if (na := no_pose_report(lake, clip_id, STAGE, "associating camera and LiDAR frames "
-                             "across agents needs their poses")):
-        return na
-    try:
-        clip = load_clip(lake, clip_id)
-    except ClipError as e:
-        raise ClipError(clip_id, e.reason, agent_id=e.agent_id, path=e.path, stage=STAGE) from e
+    clip = load_posed_clip(lake, clip_id, STAGE, "associating camera and LiDAR frames "
+                           "across agents needs their poses")
+    if isinstance(clip, StageReport):
+        return clip
     params = config.association
     truth = (load_truth_boxes(truth_dir, config.truth.min_box_px, config.truth.min_pixels,
                               config.truth.box) if truth_dir else None)

@@ -33,11 +33,11 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import AnnotationWorldRow, InstanceRow
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import CLIP_TABLES, iter_point_frames, no_pose_report
+from v2xlake.storage.reader import CLIP_TABLES, iter_point_frames
 from v2xlake.tasks.annotate.config import AnnotateConfig
 from v2xlake.tasks.annotate.consistency import check_links, cross_agent_distances, world_boxes
 from v2xlake.tasks.geometry import apply, count_points_in_boxes, transform
-from v2xlake.tasks.reader import AgentData, load_clip
+from v2xlake.tasks.reader import AgentData, load_posed_clip
 
 STAGE = "annotate"
 OWNS = ("annotations_world", "instances")
@@ -104,13 +104,10 @@ def run_annotate(lake: Lake, clip_id: str,
     ann_all = lake.read_table("clean", "annotations", clip_id=clip_id)
     if ann_all.num_rows == 0:
         return StageReport.not_applicable(STAGE, clip_id, "the clip has no annotations")
-    if (na := no_pose_report(lake, clip_id, STAGE, "world-frame boxes and instance tracks "
-                             "need poses; the annotations stay as delivered")):
-        return na
-    try:
-        clip = load_clip(lake, clip_id)
-    except ClipError as e:
-        raise _fail(clip_id, e.reason, agent_id=e.agent_id, path=e.path) from e
+    clip = load_posed_clip(lake, clip_id, STAGE, "world-frame boxes and instance tracks "
+                           "need poses; the annotations stay as delivered")
+    if isinstance(clip, StageReport):
+        return clip
     sensor = config.lidar_sensor
     by_agent: dict[str, pa.Table] = {}
     world_tables: dict[str, pa.Table] = {}
