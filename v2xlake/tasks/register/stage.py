@@ -32,7 +32,13 @@ from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import CalibrationRefinedRow, RegistrationRow
 from v2xlake.storage.frames import PointFrameIndex
 from v2xlake.storage.lake import Lake
-from v2xlake.storage.reader import DESKEWED, pose_missing, read, read_extrinsics
+from v2xlake.storage.reader import (
+    DESKEWED,
+    lidar_frames,
+    pose_missing,
+    read,
+    read_extrinsics,
+)
 from v2xlake.tasks.geometry import invert, matrix_to_quat, rotation_angle, transform
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.reader import CalibrationComparison, compare_calibration, load_pose_track
@@ -96,18 +102,11 @@ def read_agent_scans(lake: Lake, clip_id: str, agent: str, sensor: str | None) -
     desk = lake.read_table("clean", "deskew_frames", clip_id=clip_id, agent_id=agent)
     if frames.num_rows and not desk.num_rows:
         raise _fail(clip_id, "no deskew_frames: run deskew first", agent)
-    ref_of = {(str(s), int(f)): r for s, f, r in zip(
-        desk.column("sensor").to_pylist(), desk.column("frame_idx").to_pylist(),
-        desk.column("deskew_ref_ns").to_pylist(), strict=True)} if desk.num_rows else {}
     # frame_idx -> (scan start, deskew reference time); frames deskew skipped are left out
     times: dict[int, tuple[int, int]] = {}
-    if frames.num_rows:
-        for s, f, t0 in zip(frames.column("sensor").to_pylist(),
-                            frames.column("frame_idx").to_pylist(),
-                            frames.column("t_start_ns").to_pylist(), strict=True):
-            tr = ref_of.get((str(s), int(f)))
-            if s == sensor and tr is not None:
-                times[int(f)] = (int(t0), int(tr))
+    if (lf := lidar_frames(frames, desk).get(sensor)) is not None:
+        times = {int(f): (int(t0), int(r)) for f, t0, r, ok in zip(
+            lf.frame_idx, lf.t_start_ns, lf.ref_ns, lf.deskewed, strict=True) if ok}
     index = PointFrameIndex.build(lake, "clean", DESKEWED, clip_id, agent)
     if not index:
         raise _fail(clip_id, f"no {DESKEWED} rows: run deskew first", agent)
