@@ -220,14 +220,15 @@ def test_free_text_times_become_relative() -> None:
 def test_scan_plan_scales_with_the_image() -> None:
     """The full-frame plan: a cheap coarse pass + equal x2 tiles on every frame size (640 px
     cameras have 16 px faces too); ``face_upscale_min_side`` can spare small frames."""
+    from v2xlake.tasks.anonymize.build import full_face_scan
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
     from v2xlake.tasks.anonymize.detectors import scan_plan
-    from v2xlake.tasks.anonymize.run import AnonymizeConfig
 
-    scan = AnonymizeConfig().full_face_scan()
+    scan = full_face_scan(AnonymizeConfig())
     small = scan_plan(360, 640, scan)
     assert [(p.scale, p.tiles) for p in small] == [
         (0.5, ((0, 0, 320, 180),)), (2.0, ((0, 0, 1280, 720),))]
-    native = scan_plan(360, 640, AnonymizeConfig(face_upscale_min_side=1280).full_face_scan())
+    native = scan_plan(360, 640, full_face_scan(AnonymizeConfig(faces={"upscale_min_side": 1280})))
     assert [(p.scale, p.tiles) for p in native] == [(1.0, ((0, 0, 640, 360),))]
     for h, w, n_tiles in ((1080, 1920, 4), (2160, 3840, 12)):
         coarse, fine = scan_plan(h, w, scan)

@@ -5,13 +5,16 @@ from __future__ import annotations
 
 import pytest
 from anonymize_fixtures import CLIP, build_raw_clip
+from pydantic import BaseModel
 
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.anonymize import run as run_mod
+from v2xlake.tasks.anonymize import stage as stage_mod
+from v2xlake.tasks.anonymize.build import blur_config, build_detector
 from v2xlake.tasks.anonymize.carry import CARRIED, between, key_frames, new_regions
+from v2xlake.tasks.anonymize.config import NOT_PROVENANCE, AnonymizeConfig
 from v2xlake.tasks.anonymize.detectors import Detection
 from v2xlake.tasks.anonymize.guide import Region
-from v2xlake.tasks.anonymize.run import NOT_PROVENANCE, AnonymizeConfig, run_anonymize
+from v2xlake.tasks.anonymize.stage import run_anonymize
 
 MS = 1_000_000
 SHAPE = (1080, 1920, 3)
@@ -87,32 +90,51 @@ def test_new_regions_are_those_not_in_both_key_frames() -> None:
 
 def test_the_provenance_names_every_setting_that_changes_what_is_blurred() -> None:
     base = AnonymizeConfig()
-    det = base.build_detector()
+    det = build_detector(base)
     s = base.provenance(det.version)
     for name in type(base).model_fields:
-        assert (f"{name}=" in s) == (name not in NOT_PROVENANCE), name
-    for update in ({"face_fine_scale": 1.5}, {"full_plate_fine_scale": 2.0},
-                   {"key_interval_ms": 0.0}, {"blur_margin": 0.3}, {"temporal_fill": False},
-                   {"plate_read": False}, {"plate_read_min_digits": 0},
-                   {"plate_read_min_conf": 0.6}, {"face_int8": True},
-                   {"face_blur_margin_x": 0.2}, {"face_blur_margin_top": 0.2},
-                   {"face_blur_margin_bottom": 0.2}, {"full_proposals": False},
-                   {"full_face_first_int8": False}, {"face_proposal_threshold": 0.1},
-                   {"plate_proposal_scale": 0.75}, {"plate_edge_threshold": 60.0}):
-        assert base.model_copy(update=update).provenance(det.version) != s, update
+        sub = getattr(base, name)
+        keys = ([f"{name}.{k}" for k in type(sub).model_fields] if isinstance(sub, BaseModel)
+                else [name])
+        for key in keys:
+            assert (f"{key}=" in s) == (name not in NOT_PROVENANCE), key
+    for update in ({"faces": {"fine_scale": 1.5}}, {"plates": {"full_fine_scale": 2.0}},
+                   {"carry": {"key_interval_ms": 0.0}}, {"blur": {"plate_margin": 0.3}},
+                   {"temporal": {"fill": False}}, {"plates": {"read": False}},
+                   {"plates": {"read_min_digits": 0}}, {"plates": {"read_min_conf": 0.6}},
+                   {"faces": {"int8": True}}, {"blur": {"face_margin_x": 0.2}},
+                   {"blur": {"face_margin_top": 0.2}}, {"blur": {"face_margin_bottom": 0.2}},
+                   {"full_proposals": False}, {"faces": {"first_int8": False}},
+                   {"faces": {"proposal_threshold": 0.1}}, {"plates": {"proposal_scale": 0.75}},
+                   {"plates": {"edge_threshold": 60.0}}, {"clusters": {"gap_deg": 0.0}}):
+        assert AnonymizeConfig(**update).provenance(det.version) != s, update
     # the models themselves: the int8 face model and the plate reader are in the version
     assert det.version.count("onnx-sha256:") >= 3 and "ppocrv4-rec@" in det.version
-    q = AnonymizeConfig(face_int8=True).build_detector().version
+    q = build_detector(AnonymizeConfig(faces={"int8": True})).version
     assert ":int8" in q.split("|")[0] and ":int8" not in det.version.split("|")[0]
     # the full-frame plan's proposing first pass runs the int8 copy: its version says so
     assert "full-proposals:first@" in det.version and ":int8:" in det.version
-    assert "full-proposals" not in AnonymizeConfig(full_proposals=False).build_detector().version
-    assert AnonymizeConfig(plate_read=False).build_detector().version != det.version
-    same: tuple[dict[str, object], ...] = (
-        {"workers": 3}, {"png_compression": 6}, {"frames_per_chunk": 4},
-        {"progress_log_images": 7}, {"progress_log_s": 1.0})
+    assert "full-proposals" not in build_detector(AnonymizeConfig(full_proposals=False)).version
+    assert build_detector(AnonymizeConfig(plates={"read": False})).version != det.version
+    same: tuple[dict[str, dict[str, object]], ...] = (
+        {"work": {"workers": 3}}, {"output": {"png_compression": 6}},
+        {"work": {"frames_per_chunk": 4}}, {"work": {"progress_log_images": 7}},
+        {"work": {"progress_log_s": 1.0}}, {"output": {"image_format": "jpeg"}})
     for upd in same:
-        assert base.model_copy(update=upd).provenance(det.version) == s, upd
+        assert AnonymizeConfig(**upd).provenance(det.version) == s, upd  # type: ignore[arg-type]
+
+
+def test_flat_keys_of_earlier_versions_still_work() -> None:
+    """A parameter file written for the flat keys keeps working: each key lands in its
+    section, with a warning that names the new key."""
+    from v2xlake.schemas.config import RenamedParameterWarning
+
+    with pytest.warns(RenamedParameterWarning, match="faces.int8"):
+        cfg = AnonymizeConfig.model_validate({"face_int8": True, "workers": 2,
+                                              "lidar_clusters": False})
+    assert cfg.faces.int8 and cfg.work.workers == 2 and not cfg.clusters.enabled
+    assert cfg == AnonymizeConfig(faces={"int8": True}, work={"workers": 2},
+                                  clusters={"enabled": False})
 
 
 def test_a_clip_without_cameras_builds_no_guide(tmp_path, monkeypatch) -> None:
@@ -123,9 +145,9 @@ def test_a_clip_without_cameras_builds_no_guide(tmp_path, monkeypatch) -> None:
     def boom(*_a: object, **_k: object) -> None:
         raise AssertionError("computed for a clip without cameras")
 
-    monkeypatch.setattr(run_mod, "lidar_clusters", boom)
-    monkeypatch.setattr(run_mod, "build_guide", boom)
-    rep = run_anonymize(lake, CLIP, AnonymizeConfig(workers=1))
+    monkeypatch.setattr(stage_mod, "lidar_clusters", boom)
+    monkeypatch.setattr(stage_mod, "build_guide", boom)
+    rep = run_anonymize(lake, CLIP, AnonymizeConfig(work={"workers": 1}))
     assert rep.metrics["n_images"] == 0
     assert any("no camera images" in n for n in rep.notes)
 
@@ -140,10 +162,10 @@ def test_a_found_face_is_blurred_whole() -> None:
     from v2xlake.tasks.anonymize.evaluate import blurred_share, match, synth_scene, whole_face
 
     cfg = AnonymizeConfig()
-    det = cfg.build_detector()
+    det = build_detector(cfg)
     img, truth = synth_scene(3, 1280, 720, face_sizes=(16, 24, 32, 48, 64, 96))
     dets = [d for d in det.detect(img) if d.kind == "face"]
-    done = blur_boxes(np.zeros_like(img), [d.box for d in dets], cfg.blur(),
+    done = blur_boxes(np.zeros_like(img), [d.box for d in dets], blur_config(cfg),
                       [d.kind for d in dets])
     found, _ = match(truth, dets)
     assert found.all()
@@ -158,7 +180,8 @@ def test_carrying_finds_what_detecting_every_frame_finds(tmp_path) -> None:
     small faces (8-16 px, searched every frame) as often."""
     import pyarrow.parquet as pq
 
-    from v2xlake.tasks.anonymize.evaluate import audit_detections, sim_hits
+    from v2xlake.tasks.anonymize.evaluate import sim_hits
+    from v2xlake.tasks.anonymize.stage import audit_detections
     from v2xlake.tasks.ingest import run_ingest
     from v2xlake.tasks.simulate import SimConfig, simulate
 
@@ -169,8 +192,8 @@ def test_carrying_finds_what_detecting_every_frame_finds(tmp_path) -> None:
     lake = Lake(tmp_path / "lake")
     cid = run_ingest(lake, clip).clip_id
     found = {}
-    for name, upd in (("every", {"key_interval_ms": 0.0}), ("carry", {})):
-        run_anonymize(lake, cid, AnonymizeConfig(workers=1, **upd))
+    for name, upd in (("every", {"carry": {"key_interval_ms": 0.0}}), ("carry", {})):
+        run_anonymize(lake, cid, AnonymizeConfig(work={"workers": 1}, **upd))
         hits = sim_hits(truth, audit_detections(lake, cid))
         found[name] = (
             sum(h.found for h in hits if h.kind == "face" and h.size_px >= 16),

@@ -60,11 +60,12 @@ def test_real_faces_tilted_are_blurred_whole() -> None:
     """Two real faces at 24-160 px tall, tilted -20 / 0 / +20 deg, pasted into a real street
     image (tiled to 1920 x 1080): the full-frame plan finds them and >= 0.95 of them have
     >= 80 % of the whole face under the blur (all of them measured, with >= 0.97 covered)."""
+    from v2xlake.tasks.anonymize.build import blur_config, build_detector
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
     from v2xlake.tasks.anonymize.evaluate import WHOLE_FACES, blurred_share, match, real_faces
-    from v2xlake.tasks.anonymize.run import AnonymizeConfig
 
     cfg = AnonymizeConfig()
-    det = cfg.build_detector()
+    det = build_detector(cfg)
     street = cv2.imread(str(REAL / "images" / "street_pjlab_sensorx2car_0.png"))
     base = np.tile(street, (3, 2, 1))[:1080, :1920].copy()
     faces = real_faces()
@@ -83,7 +84,7 @@ def test_real_faces_tilted_are_blurred_whole() -> None:
             dets = [d for d in det.detect(img) if d.kind == "face"]
             found, _ = match(truth, dets, 0.1)
             found_all += found.tolist()
-            done = blur_boxes(np.zeros_like(img), [d.box for d in dets], cfg.blur(),
+            done = blur_boxes(np.zeros_like(img), [d.box for d in dets], blur_config(cfg),
                               [d.kind for d in dets])
             shares += [blurred_share(b, done, img.shape) for (_k, b), f in
                        zip(truth, found, strict=True) if f]

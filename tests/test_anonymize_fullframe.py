@@ -40,13 +40,14 @@ def test_proposals_find_small_plates_and_faces_in_a_large_frame() -> None:
     1200 street image (so the plate is small in the frame: the half-size text pass misses
     most) and two real faces pasted at 16 and 20 px: the two-stage plan finds every plate
     the text detector finds in the photo alone, and the faces."""
+    from v2xlake.tasks.anonymize.build import build_detector
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
     from v2xlake.tasks.anonymize.evaluate import match, paste_face, plates_eu, real_faces
-    from v2xlake.tasks.anonymize.run import AnonymizeConfig
     from v2xlake.tasks.anonymize.textplate import TextPlateDetector
 
     street = cv2.imread(str(REAL / "calib" / "pjlab_lidar2camera" / "0.png"))
     assert street is not None
-    det = AnonymizeConfig(scan_plan="full").build_detector()
+    det = build_detector(AnonymizeConfig(scan_plan="full"))
     alone = TextPlateDetector()
     plates = faces = n_plates = n_faces = 0
     for k, item in enumerate(plates_eu(REAL / "plates_eu")[::27]):

@@ -12,7 +12,7 @@ import pytest
 
 from tests.fixtures.real import REAL_DATA_INGEST, requires_real_data
 from v2xlake.storage.lake import Lake
-from v2xlake.tasks.anonymize.run import run_anonymize
+from v2xlake.tasks.anonymize.stage import run_anonymize
 from v2xlake.tasks.ingest import run_ingest
 
 REPO = Path(__file__).resolve().parents[1]

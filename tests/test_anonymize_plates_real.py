@@ -76,9 +76,10 @@ def test_few_false_plates_on_real_streets(detector: TextPlateDetector) -> None:
 def test_default_detector_few_false_blurs_on_real_streets() -> None:
     """Faces and plates together, with the plan a frame without pose or LiDAR gets (the
     full-frame plan: faces in a coarse and an x2 pass at a score of 0.5, plates natively)."""
-    from v2xlake.tasks.anonymize.run import AnonymizeConfig
+    from v2xlake.tasks.anonymize.build import build_detector
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
 
-    s = score_real(street_images(STREETS), AnonymizeConfig().build_detector().detect)
+    s = score_real(street_images(STREETS), build_detector(AnonymizeConfig()).detect)
     assert s.false_per_image <= 0.5, s
     assert max(s.false_area) <= 0.005, s
 
@@ -107,12 +108,13 @@ def test_small_real_plates_and_the_full_frame_fine_pass() -> None:
     """Without LiDAR guidance the text detector needs a plate ~80 px wide in its input: real
     plates shrunk to 44 px are mostly missed natively; ``full_plate_fine_scale=2`` (a user
     setting for recordings without pose whose plates are small) finds most of them."""
-    from v2xlake.tasks.anonymize.run import AnonymizeConfig
+    from v2xlake.tasks.anonymize.build import build_detector
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
 
     images = plates_eu(EU)[::9]  # 12 photos
-    native = _scaled_recall(images, 44, AnonymizeConfig().build_detector().detect)
-    fine = _scaled_recall(images, 44, AnonymizeConfig(
-        full_plate_fine_scale=2.0).build_detector().detect)
+    native = _scaled_recall(images, 44, build_detector(AnonymizeConfig()).detect)
+    fine = _scaled_recall(images, 44, build_detector(AnonymizeConfig(
+        plates={"full_fine_scale": 2.0})).detect)
     print(f"44 px real plates: native {native:.2f}, x2 {fine:.2f}")
     assert fine >= 0.7 and fine >= native + 0.3, (native, fine)
 
@@ -124,10 +126,11 @@ def test_small_real_faces_in_real_streets_full_frame_plan() -> None:
     are found, and the unpasted street images still carry no false face."""
     import cv2
 
+    from v2xlake.tasks.anonymize.build import build_detector
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
     from v2xlake.tasks.anonymize.evaluate import match, paste_face, real_faces
-    from v2xlake.tasks.anonymize.run import AnonymizeConfig
 
-    detect = AnonymizeConfig().build_detector().detect
+    detect = build_detector(AnonymizeConfig()).detect
     faces = real_faces()
     found = total = 0
     for k, item in enumerate(street_images(STREETS)):

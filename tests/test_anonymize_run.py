@@ -12,9 +12,10 @@ from anonymize_fixtures import CLIP, LAT0, LON0, build_raw_clip
 
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.config import AnonymizeConfig
 from v2xlake.tasks.anonymize.evaluate import match
 from v2xlake.tasks.anonymize.images import png_chunks
-from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
+from v2xlake.tasks.anonymize.stage import run_anonymize
 from v2xlake.tasks.anonymize.timespace import T0_OFFSET_NS
 from v2xlake.tasks.geodesy import LocalFrame
 
@@ -25,7 +26,7 @@ def clean_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, dict, ob
     truth = build_raw_clip(lake)
     seen: list[tuple[int, int]] = []
     report = run_anonymize(
-        lake, CLIP, AnonymizeConfig(workers=2), progress=lambda a, b: seen.append((a, b))
+        lake, CLIP, AnonymizeConfig(work={"workers": 2}), progress=lambda a, b: seen.append((a, b))
     )
     assert seen[-1] == (4, 4)
     assert not lake.exists(lake.path("_staging")) or not lake.list_files(lake.path("_staging"))
@@ -157,7 +158,7 @@ def test_progress_is_logged_as_plain_lines(caplog: pytest.LogCaptureFixture) -> 
     few seconds, and one at the end."""
     import logging
 
-    from v2xlake.tasks.anonymize.run import ProgressLog
+    from v2xlake.tasks.anonymize.stage import ProgressLog
 
     t = [0.0]
     plog = ProgressLog("c1", 10, every=4, seconds=5.0, clock=lambda: t[0])

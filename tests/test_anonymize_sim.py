@@ -19,16 +19,16 @@ import pyarrow.parquet as pq
 import pytest
 
 from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.config import AnonymizeConfig
 from v2xlake.tasks.anonymize.evaluate import (
     FACE_MIN_PX,
     PLATE_MIN_PX,
     SimTruthHit,
-    audit_detections,
     false_blurs,
     recall_by_size,
     sim_hits,
 )
-from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
+from v2xlake.tasks.anonymize.stage import audit_detections, run_anonymize
 from v2xlake.tasks.ingest import run_ingest
 
 CASES = {

@@ -10,8 +10,9 @@ from anonymize_fixtures import CLIP, build_raw_clip
 
 from v2xlake.audit.rules import jpeg_metadata
 from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.config import AnonymizeConfig
 from v2xlake.tasks.anonymize.detectors import Detection
-from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
+from v2xlake.tasks.anonymize.stage import run_anonymize
 from v2xlake.tasks.anonymize.temporal import TEMPORAL, fill_gaps
 
 MS = 1_000_000
@@ -43,7 +44,7 @@ def test_no_fill_when_found_too_far_apart_or_different() -> None:
 def jpeg_lake(tmp_path_factory: pytest.TempPathFactory) -> Lake:
     lk = Lake(tmp_path_factory.mktemp("lake_jpeg"))
     build_raw_clip(lk)
-    run_anonymize(lk, CLIP, AnonymizeConfig(image_format="jpeg", jpeg_quality=90))
+    run_anonymize(lk, CLIP, AnonymizeConfig(output={"image_format": "jpeg", "jpeg_quality": 90}))
     return lk
 
 
@@ -65,7 +66,7 @@ def test_chunking_does_not_change_the_result(tmp_path_factory: pytest.TempPathFa
     for n in (1, 16):
         lk = Lake(tmp_path_factory.mktemp(f"lake_chunk{n}"))
         build_raw_clip(lk, n_images=3)
-        rep = run_anonymize(lk, CLIP, AnonymizeConfig(frames_per_chunk=n))
+        rep = run_anonymize(lk, CLIP, AnonymizeConfig(work={"frames_per_chunk": n}))
         cf = lk.read_table("clean", "camera_frames", clip_id=CLIP).to_pydict()
         out.append((sorted(cf["sha256"]), rep.metrics["n_images_guided"],
                     rep.metrics["n_faces"], rep.metrics["n_plates"]))

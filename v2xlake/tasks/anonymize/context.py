@@ -9,18 +9,19 @@ time with its velocity. Boxes of other agents fill in objects this agent's LiDAR
 (cooperative perception is what the recording is for), the agent's own boxes win.
 
 Without boxes (no annotation file), the boxes are LiDAR clusters (``clusters.py``).
+Pure: the stage (``stage.py``) reads the tables and parses poses and calibration; this module
+assembles the guide from them.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
-from v2xlake.storage.reader import CameraCalib, calibrations, pose_samples
 from v2xlake.tasks.anonymize.guide import (
     GuideConfig,
     Region,
@@ -32,9 +33,8 @@ from v2xlake.tasks.anonymize.timespace import T0_OFFSET_NS
 from v2xlake.tasks.geometry import invert
 from v2xlake.tasks.interpolate import PoseTrack
 
-
-def _of(t: pa.Table, col: str, value: str) -> pa.Table:
-    return t.filter(pc.equal(t.column(col), value)) if col in t.column_names else t
+if TYPE_CHECKING:
+    from v2xlake.storage.reader import CameraCalib
 
 
 @dataclass
@@ -93,7 +93,8 @@ def _take(b: WorldBoxes, m: np.ndarray) -> WorldBoxes:
                       b.category[m], b.instance[m])
 
 
-def _intrinsics(c: CameraCalib) -> CameraIntrinsics | None:
+def camera_intrinsics(c: CameraCalib) -> CameraIntrinsics | None:
+    """A calibrated camera's intrinsics, None when its distortion model is unknown."""
     try:
         model = DistortionModel(c.distortion_model or "none")
         dist = list(c.distortion) if model is not DistortionModel.NONE else []
@@ -104,30 +105,17 @@ def _intrinsics(c: CameraCalib) -> CameraIntrinsics | None:
         return None
 
 
-def build_guide(clip_id: str, t0_abs: int, ego_poses: dict[str, pa.Table], calib: pa.Table,
-                annotations: pa.Table, lidar_frames: pa.Table, config: GuideConfig,
-                clusters: dict[str, WorldBoxes] | None = None) -> ClipGuide:
-    """The guide from the clip's tables (``ego_poses`` clean, the others raw)."""
-    g = ClipGuide(config, t0_abs=int(t0_abs))
-    for agent, ego in ego_poses.items():
-        if ego.num_rows < 2:
-            continue
-        s = pose_samples(ego, clip_id, agent)
-        try:
-            g.tracks[agent] = PoseTrack.create(s.t_ns, s.xyz, s.quat_wxyz)
-        except ValueError:
-            continue
-    sensors: dict[str, dict] = {}
-    for agent in g.tracks:
-        sensors[agent] = calibrations(_of(calib, "agent_id", agent), clip_id, agent) if \
-            calib.num_rows else {}
-        for name, c in sensors[agent].items():
-            if isinstance(c, CameraCalib):
-                intr = _intrinsics(c)
-                if intr is not None:
-                    g.cameras[(agent, name)] = (c.T_ego_sensor, intr)
+def assemble_guide(t0_abs: int, tracks: dict[str, PoseTrack],
+                   cameras: dict[tuple[str, str], tuple[np.ndarray, CameraIntrinsics]],
+                   extrinsics: dict[str, dict[str, np.ndarray]], annotations: pa.Table,
+                   lidar_frames: pa.Table, config: GuideConfig,
+                   clusters: dict[str, WorldBoxes] | None = None) -> ClipGuide:
+    """The guide from each agent's pose track, its cameras (``T_ego_cam``, intrinsics), every
+    sensor's ``T_ego_sensor`` (``extrinsics``: where annotation boxes are given), and the raw
+    annotations and LiDAR frames; LiDAR clusters when the clip has no annotations."""
+    g = ClipGuide(config, t0_abs=int(t0_abs), tracks=dict(tracks), cameras=dict(cameras))
     if annotations.num_rows:
-        g.boxes = _annotation_boxes(annotations, lidar_frames, g, sensors, t0_abs)
+        g.boxes = _annotation_boxes(annotations, lidar_frames, g, extrinsics, t0_abs)
         g.source = "annotations"
     elif clusters:
         g.boxes = clusters
@@ -135,8 +123,18 @@ def build_guide(clip_id: str, t0_abs: int, ego_poses: dict[str, pa.Table], calib
     return g
 
 
+def build_guide(*args: Any, **kwargs: Any) -> ClipGuide:
+    """The guide from the clip's tables: kept here for importers outside the package (the
+    privacy audit); the table reading lives in ``stage.py``, the one module that touches the
+    lake, and this forwards to it."""
+    from v2xlake.tasks.anonymize.stage import build_guide as from_tables
+
+    return from_tables(*args, **kwargs)
+
+
 def _annotation_boxes(ann: pa.Table, frames: pa.Table, g: ClipGuide,
-                      sensors: dict[str, dict], t0_abs: int) -> dict[str, WorldBoxes]:
+                      sensors: dict[str, dict[str, np.ndarray]], t0_abs: int
+                      ) -> dict[str, WorldBoxes]:
     """Each agent's annotation rows as world boxes (rows outside its pose coverage dropped)."""
     start: dict[tuple[str, str, int], int] = {}
     if frames.num_rows:
@@ -165,7 +163,7 @@ def _annotation_boxes(ann: pa.Table, frames: pa.Table, g: ClipGuide,
         rows, t_frame = rows[ok], t_frame[ok]
         if not len(rows):
             continue
-        T_sensor = np.stack([cal[d["sensor"][i]].T_ego_sensor for i in rows])
+        T_sensor = np.stack([cal[d["sensor"][i]] for i in rows])
         out[a] = world_boxes_from_sensor(
             np.array([int(d["t_ns"][i]) for i in rows], np.int64) + shift,
             track.matrices(t_frame) @ T_sensor,

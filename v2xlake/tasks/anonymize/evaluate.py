@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from v2xlake.storage.lake import Lake
 from v2xlake.tasks.anonymize.detectors import Box, Detection
 from v2xlake.tasks.geometry import iou_xyxy
 
@@ -366,30 +365,6 @@ def recall_by_size(hits: Sequence[SimTruthHit], kind: str) -> list[tuple[str, in
         if sel:
             label = f"{lo:g}-{hi:g}" if hi < 1e9 else f">={lo:g}"
             out.append((label, len(sel), float(np.mean(sel))))
-    return out
-
-
-def lake_image_keys(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], tuple[str, int]]:
-    """(agent, sensor, absolute stamp) -> (raw blob key, frame_idx) of every camera image."""
-    cf = lake.read_table("raw", "camera_frames", clip_id=clip_id).to_pydict()
-    return {
-        (str(a), str(s), int(t)): (str(b), int(f))
-        for a, s, f, t, b in zip(
-            cf["agent_id"], cf["sensor"], cf["frame_idx"], cf["stamp_ns"], cf["blob"], strict=True
-        )
-    }
-
-
-def audit_detections(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], list[Detection]]:
-    """The clean zone's ``anonymization_audit`` as detections per (agent, sensor, abs stamp)."""
-    keys = lake_image_keys(lake, clip_id)
-    by_frame = {(a, s, f): (a, s, t) for (a, s, t), (_b, f) in keys.items()}
-    out: dict[tuple[str, str, int], list[Detection]] = {k: [] for k in keys}
-    au = lake.read_table("clean", "anonymization_audit", clip_id=clip_id).to_pydict()
-    for i in range(len(au.get("kind", []))):
-        k = by_frame[(str(au["agent_id"][i]), str(au["sensor"][i]), int(au["frame_idx"][i]))]
-        box = (au["x0"][i], au["y0"][i], au["x1"][i], au["y1"][i])
-        out[k].append(Detection(str(au["kind"][i]), box, float(au["score"][i])))
     return out
 
 

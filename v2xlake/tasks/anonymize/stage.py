@@ -1,9 +1,611 @@
-"""The anonymize stage: the raw zone -> the clean zone (blurred images, relative time,
-local ENU); the only way data reaches the clean zone."""
+"""The anonymize stage: raw zone -> clean zone for one clip (INTERFACES.md, "anonymize"); the
+only module of the package that reads or writes the lake, and the only way data reaches the
+clean zone.
 
-from v2xlake.schemas.stage import Stage, tables
-from v2xlake.schemas.tables import INGEST_TABLES, RAW_ONLY_TABLES
-from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
+Every raw table of the clip is rewritten into the clean zone with relative time; ``ins``
+becomes ``ego_poses`` in local ENU, ``gnss`` loses lat/lon/alt for local x/y/z, and every
+camera image is replaced by an anonymized PNG (same blob key, clean blob store) with one
+``anonymization_audit`` row per blurred box. The raw partition layout (one file per
+clip/agent/name) is mirrored, so downstream readers see the same structure in both zones.
+The guide (where each image's faces and plates can be) is built here from the clip's tables
+(``build_guide``), the detection, carrying, blurring and encoding are the pure modules'.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import itertools
+import logging
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+from pydantic import BaseModel
+
+from v2xlake.schemas.arrow import rows_to_table
+from v2xlake.schemas.errors import ClipError
+from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
+from v2xlake.schemas.tables import INGEST_TABLES, RAW_ONLY_TABLES, AnonymizationAuditRow
+from v2xlake.storage.files import read_parquet
+from v2xlake.storage.frames import file_schema, iter_row_groups, partition_files
+from v2xlake.storage.lake import Lake
+from v2xlake.storage.reader import CameraCalib, calibrations, pose_samples
+from v2xlake.tasks.anonymize.blur import blur_boxes
+from v2xlake.tasks.anonymize.build import (
+    blur_config,
+    build_detector,
+    cluster_config,
+    guide_config,
+)
+from v2xlake.tasks.anonymize.carry import between, key_frames, new_regions
+from v2xlake.tasks.anonymize.clusters import cluster_boxes, yaw_quat
+from v2xlake.tasks.anonymize.config import AnonymizeConfig
+from v2xlake.tasks.anonymize.context import ClipGuide, assemble_guide, camera_intrinsics
+from v2xlake.tasks.anonymize.detectors import Detection
+from v2xlake.tasks.anonymize.guide import GuideConfig, Region, WorldBoxes, world_boxes_from_sensor
+from v2xlake.tasks.anonymize.images import decode_image, encode_image, to_bgr8
+from v2xlake.tasks.anonymize.temporal import fill_gaps
+from v2xlake.tasks.anonymize.timespace import (
+    T0_OFFSET_NS,
+    clip_t0_abs,
+    gnss_to_local,
+    ins_to_ego_poses,
+    map_origin,
+    map_poses_to_world,
+    reference_origin,
+    scrub_table,
+    shift_times,
+)
+from v2xlake.tasks.geodesy import LocalFrame
+from v2xlake.tasks.interpolate import PoseTrack
+
+log = logging.getLogger(__name__)
+STAGE = "anonymize"
+
+Progress = Callable[[int, int], None]
+
+COPY_TABLES = ("clips", "agents", "sensors", "calibrated_sensors", "qa_checks")
+SHIFT_TABLES = ("imu", "lidar_frames", "lidar_points", "radar_frames", "radar_points",
+                "annotations")
+NEVER_CLEAN = ("ins",)  # WGS84: replaced by ego_poses
+CLEAN_TABLES = (
+    *COPY_TABLES,
+    *SHIFT_TABLES,
+    "ego_poses",
+    "gnss",
+    "camera_frames",
+    "anonymization_audit",
+)
+
+
+class ProgressLog:
+    """One plain log line (logger ``v2xlake.tasks.anonymize.run``, INFO) every ``every``
+    images or every ``seconds``, whichever comes first, and one at the end: piped or CI
+    output shows how far a long clip is without a terminal progress bar."""
+
+    def __init__(self, clip_id: str, total: int, every: int, seconds: float,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.clip_id, self.total, self.every, self.seconds = clip_id, total, every, seconds
+        self.clock = clock
+        self.t0 = self.t_last = clock()
+        self.n_last = 0
+
+    def __call__(self, done: int) -> None:
+        now = self.clock()
+        due = ((self.every > 0 and done - self.n_last >= self.every)
+               or (self.seconds > 0 and now - self.t_last >= self.seconds)
+               or done >= self.total)
+        if not due or done == self.n_last:
+            return
+        rate = done / max(now - self.t0, 1e-9)
+        left = (self.total - done) / rate if rate > 0 else float("nan")
+        log.info("anonymize %s: %d/%d images (%.0f %%), %.2f img/s, ~%.0f s left",
+                 self.clip_id, done, self.total, 100.0 * done / max(self.total, 1), rate, left)
+        self.t_last, self.n_last = now, done
+
+
+def run_anonymize(
+    lake: Lake,
+    clip_id: str,
+    config: AnonymizeConfig | None = None,
+    progress: Progress | None = None,
+) -> StageReport:
+    """Write the clip's clean zone; returns the files written and detection counts."""
+    cfg = config or AnonymizeConfig()
+    t_start = time.perf_counter()
+    report = StageReport(stage=STAGE, clip_id=clip_id)
+
+    def fail(reason: str) -> ClipError:
+        return ClipError(clip_id, reason, stage=STAGE)
+
+    raw = {
+        n: lake.read_table("raw", n, clip_id=clip_id)
+        for n in ("clips", "lidar_frames", "camera_frames", "radar_frames", "ins", "imu", "gnss",
+                  "ego_poses")
+    }
+    if raw["clips"].num_rows == 0:
+        raise fail("no raw 'clips' row: run ingest first")
+    try:
+        t0 = clip_t0_abs(raw)
+    except ValueError as e:
+        raise fail(str(e)) from e
+    ref = str(raw["clips"].column("reference_agent")[0].as_py())
+
+    frame: LocalFrame | None = None
+    map_xy: tuple[float, float] | None = None  # poses in a local map without geodetic datum
+    ins = raw["ins"]
+    if raw["ego_poses"].num_rows:
+        x0, y0, used = map_origin(raw["ego_poses"], ref)
+        map_xy = (x0, y0)
+        report.notes.append(f"poses are in a local map without geodetic reference: the clip "
+                            f"world is that map shifted to agent {used}'s first pose")
+    elif ins.num_rows:
+        lat0, lon0, used = reference_origin(ins, ref)
+        if used != ref:
+            report.notes.append(
+                f"reference agent {ref} has no INS; local origin is agent {used}'s first fix"
+            )
+        frame = LocalFrame(lat0, lon0)
+    else:
+        gn = raw["gnss"]
+        if gn.num_rows and "lat" in gn.column_names and pc.count(gn.column("lat")).as_py():
+            g = gn.filter(pc.is_valid(gn.column("lat")))
+            lat0, lon0, used = reference_origin(g, ref)
+            frame = LocalFrame(lat0, lon0)
+            report.notes.append(f"clip has no INS: local origin is agent {used}'s first GNSS fix")
+        report.notes.append(
+            "clip has no INS: no ego_poses written (deskew/registration need poses)"
+        )
+
+    # everything is written to a private staging lake and published in one step at the end,
+    # so a clip that fails half-way (a corrupt image) never leaves a half-clean zone behind
+    stage = lake.staging(clip_id)
+    try:
+        _write_clean(lake, stage, clip_id, cfg, t0, frame, report, progress, map_xy)
+        # one journaled swap (a kill mid-way is rolled forward by the next run's sweep)
+        lake.publish(stage, "clean", clip_id, clear=[*CLEAN_TABLES, "blobs"])
+    finally:
+        stage.discard()
+    dt = time.perf_counter() - t_start
+    report.metrics["seconds"] = dt
+    log.info(
+        "anonymize %s: %d images, %d faces, %d plates in %.1f s",
+        clip_id,
+        report.metrics["n_images"],
+        report.metrics["n_faces"],
+        report.metrics["n_plates"],
+        dt,
+    )
+    return report
+
+
+def _write_clean(
+    lake: Lake,
+    stage: Lake,
+    clip_id: str,
+    cfg: AnonymizeConfig,
+    t0: int,
+    frame: LocalFrame | None,
+    report: StageReport,
+    progress: Progress | None,
+    map_xy: tuple[float, float] | None = None,
+) -> None:
+    def final_path(table: str, agent: str | None, name: str) -> str:
+        return f"{lake.table_dir('clean', table, clip_id, agent)}/{name}.parquet"
+
+    def write(
+        table: str,
+        data: pa.Table,
+        agent: str | None,
+        name: str,
+        row_group_by: str | None = None,
+        checksum: bool = True,
+    ) -> None:
+        path, rows = stage.write_table(
+            "clean",
+            table,
+            data,
+            clip_id=clip_id,
+            agent_id=agent,
+            name=name,
+            row_group_by=row_group_by,
+        )
+        report.outputs.append(OutputFile(
+            path=final_path(table, agent, name), rows=rows,
+            checksum=stage.written[path][1] if checksum else None))
+
+    for table in COPY_TABLES:
+        for path, agent, name in partition_files(lake, "raw", table, clip_id):
+            numeric = ("value", "threshold") if table == "qa_checks" else ()
+            raw = read_parquet(path, filesystem=lake.fs)
+            write(table, scrub_table(raw, t0, numeric), agent, name)
+    for table in SHIFT_TABLES:
+        for path, agent, name in partition_files(lake, "raw", table, clip_id):
+            if table == "lidar_points":
+                rows, digest = _stream_points(lake, stage, path, clip_id, agent, name, t0)
+                report.outputs.append(OutputFile(path=final_path(table, agent, name), rows=rows,
+                                                 checksum=digest))
+            else:
+                raw = read_parquet(path, filesystem=lake.fs)
+                write(table, shift_times(raw, table, t0), agent, name)
+    ego: dict[str, list[pa.Table]] = {}  # the clean poses, for the guided scan plan
+    for path, agent, name in partition_files(lake, "raw", "ins", clip_id):
+        if frame is None:  # an empty ins partition (a clip without INS): nothing to convert
+            continue
+        poses = ins_to_ego_poses(read_parquet(path, filesystem=lake.fs), frame, t0)
+        write("ego_poses", poses, agent, name)
+        ego.setdefault(str(agent), []).append(poses)
+    for path, agent, name in partition_files(lake, "raw", "ego_poses", clip_id):
+        if map_xy is None:  # empty partitions (every clip with an INS-style track)
+            continue
+        poses = map_poses_to_world(read_parquet(path, filesystem=lake.fs), map_xy, t0)
+        write("ego_poses", poses, agent, name)
+        ego.setdefault(str(agent), []).append(poses)
+    for path, agent, name in partition_files(lake, "raw", "gnss", clip_id):
+        write("gnss", gnss_to_local(read_parquet(path, filesystem=lake.fs), frame, t0), agent, name)
+
+    guide = None
+    n_cam = lake.read_table("raw", "camera_frames", clip_id=clip_id, columns=["frame_idx"]
+                            ).num_rows
+    if n_cam == 0:  # nothing to blur: no guide, no LiDAR clusters (they cost minutes)
+        report.notes.append("anonymize: no camera images")
+    elif cfg.scan_plan == "guided":
+        guide = build_guide(
+            clip_id, t0, {a: pa.concat_tables(ts) for a, ts in ego.items()},
+            lake.read_table("raw", "calibrated_sensors", clip_id=clip_id),
+            lake.read_table("raw", "annotations", clip_id=clip_id),
+            lake.read_table("raw", "lidar_frames", clip_id=clip_id), guide_config(cfg),
+            lidar_clusters(lake, clip_id, t0, ego, cfg))
+        report.notes.append(f"anonymize: regions from {guide.source}")
+    n_faces, n_plates, n_images, n_guided = _anonymize_images(
+        lake, stage, clip_id, cfg, t0, write, progress, guide)
+    report.metrics["n_images_guided"] = float(n_guided)
+    report.metrics.update(
+        n_images=float(n_images), n_faces=float(n_faces), n_plates=float(n_plates)
+    )
+
+
+def _stream_points(
+    lake: Lake, stage: Lake, path: str, clip_id: str, agent: str | None, name: str, t0: int
+) -> tuple[int, str | None]:
+    """lidar_points row group by row group (a clip need not fit in memory), one group per frame."""
+    with stage.open_writer(
+        "clean", "lidar_points", file_schema(lake, path), clip_id=clip_id, agent_id=agent,
+        name=name
+    ) as w:
+        for group in iter_row_groups(lake, path):
+            data = shift_times(group, "lidar_points", t0)
+            if data.num_rows == 0:
+                continue
+            keys = data.column("frame_idx").to_numpy()
+            bounds = [0, *(np.flatnonzero(np.diff(keys)) + 1).tolist(), data.num_rows]
+            for a, b in itertools.pairwise(bounds):
+                w.write(data.slice(a, b - a))
+    return w.rows, w.checksum
+
+
+def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Table]],
+                   cfg: AnonymizeConfig) -> dict[str, WorldBoxes] | None:
+    """Object boxes from LiDAR clusters (``clusters.py``), one set per scan, in the clip
+    world, for clips without annotations; None when the clip has annotations (or no LiDAR,
+    or no poses)."""
+    if not cfg.clusters.enabled or not ego:
+        return None
+    if lake.read_table("raw", "annotations", clip_id=clip_id, columns=["frame_idx"]).num_rows:
+        return None
+    frames = lake.read_table("raw", "lidar_frames", clip_id=clip_id)
+    calib = lake.read_table("raw", "calibrated_sensors", clip_id=clip_id)
+    if frames.num_rows == 0 or calib.num_rows == 0:
+        return None
+    fd = frames.select(["agent_id", "sensor", "frame_idx", "t_start_ns"]).to_pydict()
+    start = {(a, s, int(f)): int(t) for a, s, f, t in zip(
+        fd["agent_id"], fd["sensor"], fd["frame_idx"], fd["t_start_ns"], strict=True)}
+    out: dict[str, WorldBoxes] = {}
+    ccfg = cluster_config(cfg)
+    for path, agent, _name in partition_files(lake, "raw", "lidar_points", clip_id):
+        if agent is None or agent not in ego:
+            continue
+        samples = pose_samples(pa.concat_tables(ego[agent]), clip_id, agent)
+        track = PoseTrack.create(samples.t_ns, samples.xyz, samples.quat_wxyz)
+        sensors = calibrations(calib.filter(pc.equal(calib.column("agent_id"), agent)),
+                               clip_id, agent)
+        parts = []
+        for g in iter_row_groups(lake, path, columns=["sensor", "frame_idx", "x", "y", "z"]):
+            if g.num_rows == 0:
+                continue
+            sensor, fidx = str(g.column("sensor")[0]), int(g.column("frame_idx")[0].as_py())
+            t = start.get((agent, sensor, fidx))
+            if t is None or sensor not in sensors:
+                continue
+            t_rel = t - t0 + T0_OFFSET_NS
+            if not bool(track.covers(t_rel)):
+                continue
+            xyz = np.stack([g.column(c).to_numpy() for c in ("x", "y", "z")], 1)
+            T_ego = sensors[sensor].T_ego_sensor
+            c, size, yaw, cat = cluster_boxes(xyz @ T_ego[:3, :3].T + T_ego[:3, 3], ccfg)
+            if not len(c):
+                continue
+            m = len(c)
+            parts.append(world_boxes_from_sensor(
+                np.full(m, t_rel, np.int64), np.broadcast_to(track.matrices(t_rel)[0], (m, 4, 4)),
+                c, size, yaw_quat(yaw), np.zeros((m, 3)), cat,
+                np.array([f"lidar:{agent}:{sensor}:{fidx}:{k}" for k in range(m)])))
+        if parts:
+            out[agent] = WorldBoxes.concat(parts)
+    return out or None
+
+
+def _encode(img: np.ndarray, key: str, cfg: AnonymizeConfig) -> tuple[bytes, str]:
+    """The clean image bytes and the clean blob key (named by what is written)."""
+    stem, _, ext = key.rpartition(".")
+    fmt = cfg.output.image_format
+    if fmt == "same":
+        fmt = "jpeg" if ext.lower() in ("jpg", "jpeg") else "png"
+    if fmt == "jpeg" and img.dtype != np.uint8:
+        fmt = "png"  # JPEG holds 8 bits; deeper images stay lossless
+    data = encode_image(img, fmt, cfg.output.png_compression, cfg.output.jpeg_quality)
+    return data, f"{stem or key}.{'jpg' if fmt == 'jpeg' else 'png'}"
+
+
+Found = list[tuple[str, tuple[float, ...], float, str]]
+
+
+def _anonymize_images(
+    lake: Lake,
+    stage: Lake,
+    clip_id: str,
+    cfg: AnonymizeConfig,
+    t0: int,
+    write: Callable[..., None],
+    progress: Progress | None,
+    guide: ClipGuide | None = None,
+) -> tuple[int, int, int, int]:
+    """Every camera image: detect (guided when the guide has regions for it), fill temporal
+    gaps per camera, blur, encode; frames of one camera go in time order, ``frames_per_chunk``
+    at a time, detected with one frame of look-ahead so a chunk's last frame has its next."""
+    files = partition_files(lake, "raw", "camera_frames", clip_id)
+    tables = [(agent, name, read_parquet(path, filesystem=lake.fs)) for path, agent, name in files]
+    total = sum(t.num_rows for _, _, t in tables)
+    detector = build_detector(cfg)
+    blur = blur_config(cfg)
+    anonymizer = cfg.provenance(detector.version)
+    done = 0
+    n_faces = n_plates = n_guided = 0
+    if progress:
+        progress(0, total)
+    plog = ProgressLog(clip_id, total, cfg.work.progress_log_images, cfg.work.progress_log_s)
+
+    def decode(key: str, agent: str) -> np.ndarray:
+        try:
+            data = lake.read_blob("raw", key)
+        except (FileNotFoundError, OSError) as e:
+            raise ClipError(
+                clip_id, f"camera image blob missing: {e}", agent_id=agent, path=key, stage=STAGE
+            ) from e
+        try:
+            return decode_image(data)
+        except ValueError as e:
+            raise ClipError(clip_id, f"camera image cannot be decoded: {e}", agent_id=agent,
+                            path=key, stage=STAGE) from e
+
+    full = cfg.clusters.full_frame and guide is not None and guide.source == "lidar clusters"
+
+    def detect(item: tuple[str, str, str, int]
+               ) -> tuple[np.ndarray, list[Detection], list[Region] | None]:
+        """A key frame: the whole plan."""
+        key, agent, sensor, stamp = item
+        img = decode(key, agent)
+        regions = guide.regions(agent, sensor, stamp) if guide is not None else None
+        return img, detector.detect(to_bgr8(img), regions, full), regions
+
+    def carried(i: int, rows: list[int], is_key: list[bool], pos: dict[int, int],
+                known: dict[int, list[Detection]], kregions: dict[int, list[Region] | None]
+                ) -> tuple[np.ndarray, list[Detection], list[Region] | None]:
+        """A frame between two key frames: their detections carried here, plus a search of
+        the regions the two key frames do not both have (``carry.py``)."""
+        p = pos[i]
+        a = next(rows[q] for q in range(p - 1, -1, -1) if is_key[q])
+        b = next(rows[q] for q in range(p + 1, len(rows)) if is_key[q])
+        img = decode(keys[i], agent_col[i])
+        regions = (guide.regions(agent_col[i], sensors[i], int(stamps[i]))
+                   if guide is not None else None)
+        fresh = (new_regions(regions, kregions[a], kregions[b], img.shape,
+                             cfg.carry.min_face_px) if regions else [])
+        found, again = between((known[a], kregions[a], int(stamps[a])),
+                               (known[b], kregions[b], int(stamps[b])), regions,
+                               int(stamps[i]), cfg.carry.grow, img.shape, fresh)
+        if fresh or again:
+            found += detector.in_regions(to_bgr8(img), [*fresh, *again])
+        return img, found, regions
+
+    def finish(img: np.ndarray, key: str, dets: list[Detection]) -> tuple[str, str]:
+        out = img.copy()
+        blur_boxes(out, [d.box for d in dets], blur, [d.kind for d in dets])
+        data, clean_key = _encode(out, key, cfg)
+        stage.write_blob("clean", clean_key, data)
+        return hashlib.sha256(data).hexdigest(), clean_key
+
+    det_names = {d.name: f"{d.name}@{d.version}" for d in detector.detectors}
+    # the cores this process may use (a Dask worker pinned to its share), not the machine
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    workers = cfg.work.workers if cfg.work.workers > 0 else (cores or 1)
+    gap_ns = int(cfg.temporal.max_gap_ms * 1e6)
+    key_ns = int(cfg.carry.key_interval_ms * 1e6)
+    if guide is not None and guide.source == "lidar clusters" and not cfg.clusters.carry:
+        key_ns = 0  # every frame in full (see carry_lidar_clusters)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for agent, name, table in tables:
+            keys = table.column("blob").to_pylist()
+            agent_col = [str(a) for a in (
+                table.column("agent_id").to_pylist()
+                if "agent_id" in table.column_names
+                else [agent] * len(keys)
+            )]
+            sensors = table.column("sensor").to_pylist()
+            frames = table.column("frame_idx").to_pylist()
+            stamps = table.column("stamp_ns").to_pylist()
+            n = len(keys)
+            dets: list[list[Detection]] = [[] for _ in range(n)]
+            result: list[tuple[str, str]] = [("", "")] * n
+            cams: dict[tuple[str, str], list[int]] = {}
+            for i in range(n):
+                cams.setdefault((agent_col[i], sensors[i]), []).append(i)
+            for rows in cams.values():
+                rows.sort(key=lambda i: (stamps[i], frames[i]))
+                is_key = key_frames([int(stamps[i]) for i in rows], key_ns)
+                pos = {i: p for p, i in enumerate(rows)}
+                known: dict[int, list[Detection]] = {}
+                kregions: dict[int, list[Region] | None] = {}
+                for c0 in range(0, len(rows), cfg.work.frames_per_chunk):
+                    chunk = rows[c0 : c0 + cfg.work.frames_per_chunk]
+                    end = c0 + len(chunk)
+                    # look-ahead: the frame after the chunk (temporal fill) and the key frame
+                    # the chunk's last frames are carried from
+                    stop = end
+                    while stop < len(rows) and not is_key[stop]:
+                        stop += 1
+                    span = rows[c0 : min(stop + 1, len(rows))]
+                    todo = [i for i in span if is_key[pos[i]] and i not in known]
+                    items = [(keys[i], agent_col[i], sensors[i], int(stamps[i])) for i in todo]
+                    images: dict[int, np.ndarray] = {}
+                    for i, (img, found, regs) in zip(todo, pool.map(detect, items), strict=True):
+                        known[i] = found  # every frame is detected once (chunk or look-ahead)
+                        kregions[i] = regs
+                        n_guided += regs is not None
+                        if i in chunk:
+                            images[i] = img
+                    between_todo = [i for i in span[: end - c0 + 1] if i not in known]
+                    job = functools.partial(carried, rows=rows, is_key=is_key, pos=pos,
+                                            known=known, kregions=kregions)
+                    for i, (img, found, regs) in zip(between_todo,
+                                                     list(pool.map(job, between_todo)),
+                                                     strict=True):
+                        known[i] = found
+                        n_guided += regs is not None
+                        if i in chunk:
+                            images[i] = img
+                    # the detector's own boxes (``known``) are the evidence for the fill, never
+                    # the filled ones: the result does not depend on the chunk size
+                    final = {i: known[i] for i in chunk}
+                    if cfg.temporal.fill:
+                        order = rows[max(c0 - 1, 0) : c0 + len(chunk) + 1]
+                        add = fill_gaps([known[i] for i in order], [stamps[i] for i in order],
+                                        gap_ns)
+                        for i, extra in zip(order, add, strict=True):
+                            if i in final:
+                                final[i] = known[i] + extra
+                    missing = [i for i in chunk if i not in images]  # the previous look-ahead
+                    for i in missing:
+                        images[i] = decode(keys[i], agent_col[i])
+                    jobs = [(images[i], keys[i], final[i]) for i in chunk]
+                    for i, res in zip(chunk, pool.map(lambda j: finish(*j), jobs), strict=True):
+                        result[i] = res
+                        dets[i] = final[i]
+                        done += 1
+                        if progress:
+                            progress(done, total)
+                        plog(done)
+                    images.clear()
+            audit = []
+            for i in range(n):
+                for d in dets[i]:
+                    n_faces += d.kind == "face"
+                    n_plates += d.kind == "plate"
+                    audit.append(
+                        AnonymizationAuditRow(
+                            clip_id=clip_id,
+                            agent_id=agent_col[i],
+                            sensor=sensors[i],
+                            frame_idx=frames[i],
+                            detector=det_names.get(d.detector, d.detector),
+                            kind=d.kind,
+                            x0=d.box[0],
+                            y0=d.box[1],
+                            x1=d.box[2],
+                            y1=d.box[3],
+                            score=d.score,
+                        )
+                    )
+            clean = shift_times(table, "camera_frames", t0)
+            for col, values, typ in (
+                ("blob", [r[1] for r in result], pa.string()),
+                ("sha256", [r[0] for r in result], pa.string()),
+                ("anonymizer", [anonymizer] * n, pa.string()),
+                ("n_blurred", [len(d) for d in dets], pa.int64()),
+            ):
+                arr = pa.array(values, typ)
+                if col in clean.column_names:
+                    clean = clean.set_column(clean.column_names.index(col), pa.field(col, typ), arr)
+                else:
+                    clean = clean.append_column(col, arr)
+            write("camera_frames", clean, agent, name)
+            audit_table = rows_to_table(AnonymizationAuditRow, list[BaseModel](audit))
+            audit_table = audit_table.drop_columns(
+                ["clip_id"] + (["agent_id"] if agent is not None else [])
+            )
+            write("anonymization_audit", audit_table, agent, name)
+    return n_faces, n_plates, int(total), n_guided
+
+
+def build_guide(clip_id: str, t0_abs: int, ego_poses: dict[str, pa.Table], calib: pa.Table,
+                annotations: pa.Table, lidar_frames: pa.Table, config: GuideConfig,
+                clusters: dict[str, WorldBoxes] | None = None) -> ClipGuide:
+    """The guide from the clip's tables (``ego_poses`` clean, the others raw): pose tracks and
+    calibration parsed here, the guide assembled by ``context.assemble_guide``."""
+    tracks: dict[str, PoseTrack] = {}
+    for agent, ego in ego_poses.items():
+        if ego.num_rows < 2:
+            continue
+        s = pose_samples(ego, clip_id, agent)
+        try:
+            tracks[agent] = PoseTrack.create(s.t_ns, s.xyz, s.quat_wxyz)
+        except ValueError:
+            continue
+    cameras = {}
+    extrinsics: dict[str, dict[str, np.ndarray]] = {}
+    for agent in tracks:
+        mine = (calib.filter(pc.equal(calib.column("agent_id"), agent))
+                if "agent_id" in calib.column_names else calib)
+        sensors = calibrations(mine, clip_id, agent) if calib.num_rows else {}
+        extrinsics[agent] = {name: c.T_ego_sensor for name, c in sensors.items()}
+        for name, c in sensors.items():
+            if isinstance(c, CameraCalib):
+                intr = camera_intrinsics(c)
+                if intr is not None:
+                    cameras[(agent, name)] = (c.T_ego_sensor, intr)
+    return assemble_guide(t0_abs, tracks, cameras, extrinsics, annotations, lidar_frames,
+                          config, clusters)
+
+
+def lake_image_keys(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], tuple[str, int]]:
+    """(agent, sensor, absolute stamp) -> (raw blob key, frame_idx) of every camera image
+    (for benchmarks and tests that score what the stage wrote)."""
+    cf = lake.read_table("raw", "camera_frames", clip_id=clip_id).to_pydict()
+    return {
+        (str(a), str(s), int(t)): (str(b), int(f))
+        for a, s, f, t, b in zip(
+            cf["agent_id"], cf["sensor"], cf["frame_idx"], cf["stamp_ns"], cf["blob"], strict=True
+        )
+    }
+
+
+def audit_detections(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], list[Detection]]:
+    """The clean zone's ``anonymization_audit`` as detections per (agent, sensor, abs stamp)."""
+    keys = lake_image_keys(lake, clip_id)
+    by_frame = {(a, s, f): (a, s, t) for (a, s, t), (_b, f) in keys.items()}
+    out: dict[tuple[str, str, int], list[Detection]] = {k: [] for k in keys}
+    au = lake.read_table("clean", "anonymization_audit", clip_id=clip_id).to_pydict()
+    for i in range(len(au.get("kind", []))):
+        k = by_frame[(str(au["agent_id"][i]), str(au["sensor"][i]), int(au["frame_idx"][i]))]
+        box = (au["x0"][i], au["y0"][i], au["x1"][i], au["y1"][i])
+        out[k].append(Detection(str(au["kind"][i]), box, float(au["score"][i])))
+    return out
+
 
 _CLEAN = tuple(t for t in INGEST_TABLES if t not in RAW_ONLY_TABLES)
 

