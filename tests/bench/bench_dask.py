@@ -192,7 +192,8 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "v2x-bench-dask")
     ap.add_argument("--clips", type=int, default=4)
     ap.add_argument("--seconds", type=float, default=1.0)
-    ap.add_argument("--order", default="ld", help="l = local, d = dask, in this order")
+    ap.add_argument("--order", default="ld",
+                    help="l = local, d = dask, in this order (ldld: two pairs)")
     ap.add_argument("--stages", action="store_true", help="print each run's stage lines")
     ap.add_argument("--bound", action="store_true",
                     help="also run local on one core with one thread (what one worker does) "
@@ -214,7 +215,8 @@ def main() -> None:
     server = start_server(work / "server")
     try:
         env = _env(PREFECT_API_URL=server.api_url)
-        out: dict[str, dict[str, float]] = {}
+        out: dict[str, dict[str, float]] = {}  # the latest run of each
+        runs: dict[str, list[dict[str, float]]] = {}  # every run (--order ldld: pairs)
         order = args.order + ("1" if args.bound else "")
         for key in order:
             runner = {"l": "local", "d": "dask", "1": "local"}[key]
@@ -224,6 +226,7 @@ def main() -> None:
             renv = dict(env, **thread_env(1)) if one else env
             out[name] = r = run(runner, clips, work / f"lake-{key}", renv,
                                 cores=[available_cores_list()[0]] if one else None)
+            runs.setdefault(name, []).append(r)
             print(f"  {name:6s} wall {r['wall']:7.1f} s  cpu {r['cpu']:7.1f} s  "
                   f"{r['clips_per_min']:5.2f} clips/min; busy cores: run {r['tree_cores']:.2f}"
                   f" (time at <0.5 / 0.5-1.5 / >1.5 cores: {r['busy_lt_0_5']:.0%} / "
@@ -234,10 +237,13 @@ def main() -> None:
                 print("\n".join(f"    {ln}" for ln in r["stages"]), flush=True)
     finally:
         server.stop()
-    if {"local", "dask"} <= set(out):
-        lo, da = out["local"], out["dask"]
-        print(f"  throughput dask / local = {da['clips_per_min'] / lo['clips_per_min']:.2f}x "
-              f"(target 1.6x); cpu dask / local = {da['cpu'] / lo['cpu']:.2f}x", flush=True)
+    # the i-th dask run against the i-th local run (--order ldld interleaves them, so a
+    # change of the shared machine's load hits both sides of a pair alike)
+    pairs = zip(runs.get("local", []), runs.get("dask", []), strict=False)
+    for i, (lo, da) in enumerate(pairs):
+        print(f"  pair {i + 1}: throughput dask / local = "
+              f"{da['clips_per_min'] / lo['clips_per_min']:.2f}x (target 1.6x); "
+              f"cpu dask / local = {da['cpu'] / lo['cpu']:.2f}x", flush=True)
     if args.bound and "local" in out:
         scale = machine_scaling()
         w1, wl = out["1 core"]["wall"], out["local"]["wall"]

@@ -101,7 +101,8 @@ PARTS = ("interpreter + exit", "CLI imports", "server wait", "imports, params", 
 
 
 def _env(home: Path, mode: str, url: str | None) -> dict[str, str]:
-    env = dict(os.environ, PYTHONPATH=str(REPO), V2XLAKE_HOME=str(home))
+    env = dict(os.environ, PYTHONPATH=str(REPO), V2XLAKE_HOME=str(home),
+               PREFECT_HOME=str(home / "prefect"))
     env.pop("PREFECT_API_URL", None)
     env["V2XLAKE_SHARED_SERVER"] = "0" if mode == "temporary" else "1"
     if mode == "url" and url:
@@ -157,6 +158,8 @@ def main() -> None:
     work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
     home = work / "home"
+    os.environ["V2XLAKE_HOME"] = str(home)  # before anything reads it (configure_prefect)
+    os.environ["PREFECT_HOME"] = str(home / "prefect")
     from v2xlake.flows import shared_server
     from v2xlake.flows.server import start_server
 
@@ -164,7 +167,6 @@ def main() -> None:
     big = simulate(work, "fixed_ref", args.reference_seconds)
     modes = args.modes.split(",")
     server = start_server(work / "server") if "url" in modes else None
-    os.environ["V2XLAKE_HOME"] = str(home)
     try:
         # warm-up (not measured): numba caches, the checksum cache, the shared server
         real_call(small, work / "lake", _env(home, "shared", None))
@@ -177,6 +179,8 @@ def main() -> None:
                 state = json.loads((home / "prefect" / "shared-server.json").read_text())
                 env = dict(env, PREFECT_API_URL=state["url"])
             rows[mode]["anchor"] = statistics.median(anchor(env) for _ in range(args.repeat))
+            print(f"  {mode}: " + ", ".join(f"{k} {v:.2f}" for k, v in rows[mode].items()),
+                  flush=True)
         ref = real_call(big, work / "lake-ref", _env(home, "shared", None))
     finally:
         if server is not None:

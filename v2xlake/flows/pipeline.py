@@ -423,8 +423,12 @@ def process_clips(clip_dirs: list[str], lake: str, stages: list[str] | None = No
                                   return_state=True)
                 return summary_from_state(d, state)
 
-            # a few clips' flows at a time here; their stages and chunks run on the workers
-            with ThreadPoolExecutor(max_workers=max(1, min(len(dirs), threads))) as pool:
+            # a few clips' flows at a time here; their stages and chunks run on the workers.
+            # Twice as many flows as worker threads: between two stages of a clip its flow
+            # (here) creates the next task run and Dask places it, 0.5-1 s in which that
+            # worker would idle (5 s per camera clip on 2 cores, #26); another clip's queued
+            # stage fills the gap
+            with ThreadPoolExecutor(max_workers=max(1, min(len(dirs), 2 * threads))) as pool:
                 # each thread runs in a copy of this context: Prefect's settings and client
                 # live in context variables, which plain threads do not inherit
                 futures = [pool.submit(contextvars.copy_context().run, one, d) for d in dirs]
