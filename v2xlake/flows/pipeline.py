@@ -424,11 +424,11 @@ def process_clips(clip_dirs: list[str], lake: str, stages: list[str] | None = No
                 return summary_from_state(d, state)
 
             # a few clips' flows at a time here; their stages and chunks run on the workers.
-            # Twice as many flows as worker threads: between two stages of a clip its flow
-            # (here) creates the next task run and Dask places it, 0.5-1 s in which that
-            # worker would idle (5 s per camera clip on 2 cores, #26); another clip's queued
-            # stage fills the gap
-            with ThreadPoolExecutor(max_workers=max(1, min(len(dirs), 2 * threads))) as pool:
+            # One flow per worker thread: with twice as many (to fill the 0.5-1 s between a
+            # clip's stages) a chunked stage's chunks queued behind other clips' 40 s
+            # anonymize tasks (deskew waited 12-43 s) and 4 camera clips on 2 workers took
+            # 116.6 s instead of 105.0 s (bench_dask, #26)
+            with ThreadPoolExecutor(max_workers=max(1, min(len(dirs), threads))) as pool:
                 # each thread runs in a copy of this context: Prefect's settings and client
                 # live in context variables, which plain threads do not inherit
                 futures = [pool.submit(contextvars.copy_context().run, one, d) for d in dirs]
