@@ -277,3 +277,26 @@ def test_sparse_sample_spreads_over_the_cloud() -> None:
     assert len(idx) == 10 * 4 and np.all(np.diff(idx) > 0)
     cells = np.floor(wall[idx] / 0.9).astype(int)
     assert len(np.unique(cells, axis=0)) == len(idx)
+
+
+def test_sparse_aligns_every_centroid_when_the_sample_finds_few_pairs() -> None:
+    """Little overlap (the sample finds fewer than ``sample_min_pairs`` correspondences):
+    the pair is aligned again from the sample's result with every source centroid, so it
+    lands where the dense alignment lands and carries its information; with enough pairs
+    the sample's own result stands."""
+    c = drive("turning", 1, beams=48, cols=720)[0]
+    base = GicpSection(voxel_m=0.4, source_voxel_m=0.4)
+    res = {}
+    for key, params in (("dense", base.model_copy(update={"sample_cell_m": None})),
+                        ("fallback", base.model_copy(update={"sample_min_pairs": 10**9})),
+                        ("sample", base.model_copy(update={"sample_min_pairs": 0}))):
+        be = make_backend("sparse", params)
+        res[key] = refine(be, be.prepare(c.ref), be.prepare(c.other, as_target=False),
+                          c.T_init, QualitySection())
+    dense, fallback, sample = res["dense"], res["fallback"], res["sample"]
+    assert dense.H is not None and fallback.H is not None and sample.H is not None
+    m, d = transform_delta(dense.T_refined, fallback.T_refined)
+    assert m < 1e-3 and d < 0.005
+    # every centroid: several times the sample's information
+    assert np.trace(fallback.H[3:, 3:]) > 2.5 * np.trace(sample.H[3:, 3:])
+    np.testing.assert_allclose(fallback.H, dense.H, rtol=0.05, atol=1e-6 * np.abs(dense.H).max())

@@ -239,3 +239,36 @@ def test_ins_step_gets_its_own_offset(measurements: tuple[list[CrossMeasurement]
     assert np.mean(np.array(err) <= 0.03) >= 0.95
     bad = solve_clip(["red", "black"], "red", E_PUB, cj, oj, SolveSection(), ground)
     assert bad.outlier.sum() > sol.outlier.sum()
+
+
+def test_far_pairs_get_a_floor_that_grows_with_range() -> None:
+    """A cross-agent frame 60 m apart: its floor is 3x the plain one at 20 m (point spacing
+    grows with range, and with it a bias GICP's Hessian does not show), so a slowly varying
+    3-6 cm bias the frames' Hessians call 5 mm does not come out vouched for; with the floor
+    the same at every range (``floor_range_m: None``) it does. Near frames keep the plain
+    floor."""
+    from v2xlake.tasks.register.solve import range_floor
+
+    def measurement(t: float, lead: float, bias: float) -> CrossMeasurement:
+        L1 = _path(10 * t) @ E_TRUE["red"]
+        L2 = _path(10 * t + lead, lateral=3.5) @ E_TRUE["black"]
+        T = invert(L1) @ L2
+        Z = se3_exp(np.array([0.0, 0.0, 0.0, bias, 0.0, 0.0])) @ T
+        return CrossMeasurement(round(t * 10), "black", t, _ins("red", t),
+                                _path(10 * t + lead, lateral=3.5), Z, _info(False, np.eye(3)))
+
+    s = SolveSection()
+    near, far = measurement(1.0, 10.0, 0.0), measurement(1.0, 60.0, 0.0)
+    np.testing.assert_allclose(range_floor(near, s)[3, 3], s.floor_m**2)
+    d = np.linalg.norm((invert(far.M_ref) @ far.M_oth)[:3, 3])
+    np.testing.assert_allclose(np.sqrt(range_floor(far, s)[3, 3]), s.floor_m * d / 20.0)
+    np.testing.assert_allclose(range_floor(far, s.model_copy(update={"floor_range_m": None})
+                                           )[3, 3], s.floor_m**2)
+    ts = np.round(np.arange(0.0, 3.0, 0.1), 3)
+    cross = [measurement(float(t), 60.0, 0.03 + 0.01 * t) for t in ts]
+    std = {}
+    for key, sec in (("range", s), ("flat", s.model_copy(update={"floor_range_m": None}))):
+        sol = solve_clip(["red", "black"], "red", E_PUB, cross, [], sec, {})
+        std[key] = np.sqrt(np.einsum("nii->ni", sol.cross_cov)[:, 3:].max(axis=1))
+    assert (std["flat"] < s.final_max_std_m).any()
+    assert (std["range"] > s.final_max_std_m).all()

@@ -64,8 +64,7 @@ def street(args: argparse.Namespace) -> None:
         summary,
     )
     from v2xlake.storage.lake import Lake
-    from v2xlake.tasks.register.scans import AgentScans
-    from v2xlake.tasks.register.stage import RegisterConfig, run_register
+    from v2xlake.tasks.register.stage import RegisterConfig, read_agent_scans, run_register
     from v2xlake.tasks.simulate.truth import load_truth
 
     cid = "bench_street"
@@ -77,7 +76,7 @@ def street(args: argparse.Namespace) -> None:
         print(f"simulate + ingest + anonymize + deskew: {time.perf_counter() - t:.0f} s "
               f"({root})")
     lake, clip = Lake(root / "lake"), root / "clip"
-    ref, oth = AgentScans(lake, cid, "red", None), AgentScans(lake, cid, "black", None)
+    ref, oth = read_agent_scans(lake, cid, "red", None), read_agent_scans(lake, cid, "black", None)
     n_pts = np.mean([len(ref.points(f)) for f in list(ref.frames)[:5]])
     print(f"hard street: {len(ref.frames)} frames, {n_pts:.0f} points per scan, one core")
     rows = []
@@ -197,8 +196,7 @@ def coop(args: argparse.Namespace) -> None:
     from v2xlake.tasks.deskew.stage import run_deskew
     from v2xlake.tasks.ingest import run_ingest
     from v2xlake.tasks.register.core import initial_transform_at
-    from v2xlake.tasks.register.scans import AgentScans
-    from v2xlake.tasks.register.stage import RegisterConfig, run_register
+    from v2xlake.tasks.register.stage import RegisterConfig, read_agent_scans, run_register
     from v2xlake.tasks.simulate import simulate
 
     base = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench_coop"))
@@ -244,7 +242,8 @@ def coop(args: argparse.Namespace) -> None:
             init = float(np.median([e.init_m for e in errs])) * 100
             share = t_reg / (t_reg + sum(times.values()))
             # small_gicp.align as a user would call it, on the same deskewed pairs from eq. 1a
-            ref, oth = AgentScans(lake, cid, "red", None), AgentScans(lake, cid, "black", None)
+            ref = read_agent_scans(lake, cid, "red", None)
+            oth = read_agent_scans(lake, cid, "black", None)
             rel = {r["frame_idx"]: _m(r, "", ("x", "y", "z")) for r in pq.read_table(
                 clip_dir / "truth" / "relative.parquet").to_pylist()
                 if r["agent_other"] == "black"}

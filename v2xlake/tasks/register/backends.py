@@ -22,13 +22,16 @@ refuses anything else), so a backend never sees the NaN that crashed Open3D's GI
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 
 from v2xlake.tasks.geometry import se3_adjoint
 from v2xlake.tasks.register.config import GicpSection
 from v2xlake.tasks.register.voxel import voxel_downsample
+
+if TYPE_CHECKING:
+    from v2xlake.tasks.register.sparse import SparseOutcome
 
 BackendName = Literal["small_gicp", "open3d", "sparse"]
 DEFAULT_GICP = GicpSection()  # frozen: one shared default
@@ -251,19 +254,44 @@ class SparseGicpBackend(SmallGicpBackend):
         return Prepared(pts, Surfaces.empty(len(pts)), tree, sample)
 
     def align(self, target: Prepared, source: Prepared, init: np.ndarray) -> AlignOutcome:
+        """Align the source's sample; where it finds fewer than ``sample_min_pairs``
+        correspondences, align again from there with every (co-visible) source centroid."""
+        p = self.params
+        rows = source.rows()
+        out = self._align_rows(target, source, rows, init)
+        if out.pairs < p.sample_min_pairs and source.sample is not None:
+            dense = self._dense_rows(source)
+            if len(dense) > len(rows):
+                out = self._align_rows(target, source, dense, out.T)
+        return AlignOutcome(out.T, out.converged, out.iterations, out.H)
+
+    def _align_rows(self, target: Prepared, source: Prepared, rows: np.ndarray,
+                    init: np.ndarray) -> SparseOutcome:
         from v2xlake.tasks.register.sparse import align_sparse
 
         p = self.params
-        rows = source.rows()
         surf = source.handle
         surf.ensure(source.points, source.tree, rows, p.num_neighbors, p.num_threads)
-        out = align_sparse(target.points, target.tree, target.handle, source.points[rows],
-                           surf.normals[rows], surf.ratio[rows], init,
-                           num_neighbors=p.num_neighbors,
-                           max_correspondence_m=p.max_correspondence_m,
-                           max_iterations=p.max_iterations, num_threads=p.num_threads,
-                           t_covisible_with=target.covisible_with)
-        return AlignOutcome(out.T, out.converged, out.iterations, out.H)
+        return align_sparse(target.points, target.tree, target.handle, source.points[rows],
+                            surf.normals[rows], surf.ratio[rows], init,
+                            num_neighbors=p.num_neighbors,
+                            max_correspondence_m=p.max_correspondence_m,
+                            max_iterations=p.max_iterations, num_threads=p.num_threads,
+                            t_covisible_with=target.covisible_with)
+
+    def _dense_rows(self, source: Prepared) -> np.ndarray:
+        """Every source centroid, less those the other LiDAR cannot see where the sample was
+        cut the same way (:meth:`prepare_covisible`)."""
+        from v2xlake.tasks.register.covisible import covisible_rows
+
+        p = self.params
+        rows = np.arange(len(source.points), dtype=np.int64)
+        if source.covisible_with is None:
+            return rows
+        surf = source.handle
+        surf.ensure(source.points, source.tree, rows, p.num_neighbors, p.num_threads)
+        return rows[covisible_rows(source.points, surf.normals, surf.ratio, rows,
+                                   source.covisible_with)]
 
     def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int
                           ) -> Prepared:

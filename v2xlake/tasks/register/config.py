@@ -51,6 +51,13 @@ class GicpSection(Section):
         "cell of this size is aligned, with the surface of its full-resolution neighbourhood; "
         "None: every centroid (the same result as small_gicp). 0.6 m measured like 0.9 m on "
         "the boulevard at 1.3x the GICP time")
+    sample_min_pairs: int = Field(
+        3000, ge=0, description="sparse backend: when the sample finds fewer correspondences "
+        "than this (little overlap: the other agent far away or around a corner), the pair "
+        "is aligned again from the sample's result with every source centroid. The sample's "
+        "spread is what leaves a far pair short of constraints: 50 m behind, its 2,200 pairs "
+        "left single frames 3-15 cm off where every centroid keeps them within 2 cm. 0: "
+        "never")
     max_correspondence_m: float = Field(1.0, gt=0)
     max_iterations: int = Field(30, ge=1)
     num_threads: int = Field(1, ge=1, description="threads per GICP call; one leaves the "
@@ -143,6 +150,11 @@ class SolveSection(Section):
     floor_m: float = Field(0.01, gt=0, description="a GICP result's error floor, whatever its "
                            "Hessian says (voxels, deskew residuals, what filtering left)")
     floor_deg: float = Field(0.02, gt=0, description="... and its rotation floor")
+    floor_range_m: float | None = Field(
+        20.0, gt=0, description="a cross-agent result's floor grows in proportion to the "
+        "range between the two LiDARs beyond this (the far agent's point spacing on what "
+        "both see: a bias GICP's Hessian does not show, the same frame after frame); None: "
+        "the same floor at every range")
     degenerate_ratio: float = Field(
         0.02, ge=0, lt=1, description="a GICP result carries no information in directions "
         "weaker than this fraction of its strongest (the slide along a street)")
