@@ -28,8 +28,8 @@ CAMERAS = ("CAM_FRONT", "CAM_BACK", "CAM_FRONT_LEFT")
 
 @pytest.fixture(scope="module")
 def sim_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, str, Path]:
-    from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
-    from v2xlake.tasks.anonymize.stage import ANONYMIZE
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
+    from v2xlake.tasks.anonymize.stage import ANONYMIZE, run_anonymize
     from v2xlake.tasks.deskew.stage import DESKEW, run_deskew
     from v2xlake.tasks.ingest.stage import INGEST, run_ingest
     from v2xlake.tasks.simulate.config import SimConfig
@@ -45,7 +45,8 @@ def sim_lake(tmp_path_factory: pytest.TempPathFactory) -> tuple[Lake, str, Path]
     lake = Lake(root / "lake")
     cid = run_ingest(handle(lake, INGEST), clip).clip_id
     run_anonymize(handle(lake, ANONYMIZE), cid,
-                  AnonymizeConfig(plate_detector="none", face_tile=0))
+                  AnonymizeConfig.model_validate({"plates": {"detector": "none"},
+                                                  "faces": {"tile": 0}}))
     run_deskew(handle(lake, DESKEW), cid)
     return lake, cid, clip
 

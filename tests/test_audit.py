@@ -15,8 +15,9 @@ from anonymize_fixtures import CLIP, build_raw_clip
 from v2xlake.audit import AuditReport, audit
 from v2xlake.audit.rules import jpeg_metadata, png_metadata, scan_structured, scan_table
 from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.config import AnonymizeConfig
 from v2xlake.tasks.anonymize.evaluate import real_faces
-from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
+from v2xlake.tasks.anonymize.stage import run_anonymize
 
 
 @pytest.fixture(scope="module")

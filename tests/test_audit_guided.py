@@ -20,9 +20,11 @@ import pytest
 from v2xlake.audit import AuditConfig, AuditError, audit
 from v2xlake.audit.run import _guides, _lake_frames
 from v2xlake.storage.lake import Lake
+from v2xlake.tasks.anonymize.build import build_detector
+from v2xlake.tasks.anonymize.config import AnonymizeConfig
 from v2xlake.tasks.anonymize.evaluate import paste_face, real_faces, render_plate
 from v2xlake.tasks.anonymize.images import decode_image, encode_png
-from v2xlake.tasks.anonymize.run import AnonymizeConfig, run_anonymize
+from v2xlake.tasks.anonymize.stage import run_anonymize
 from v2xlake.tasks.ingest import run_ingest
 
 
@@ -120,7 +122,7 @@ def test_face_behind_a_window_is_found_by_the_blur(lake: tuple[Lake, str]) -> No
     assert frames
     guide = _guides(lk, "clean", {clip_id}, AuditConfig())[clip_id]
     guide.config = replace(guide.config, windows=True)
-    det = AnonymizeConfig().build_detector()
+    det = build_detector(AnonymizeConfig())
     photo, face_box = real_faces()["grace_hopper"]
     tried = 0
     for rel, m in sorted(frames.items()):

@@ -39,7 +39,7 @@ from tests.test_deskew import scipy_reference
 from v2xlake.schemas.errors import ClipError
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import read_extrinsics
-from v2xlake.tasks.anonymize.run import run_anonymize
+from v2xlake.tasks.anonymize.stage import run_anonymize
 from v2xlake.tasks.deskew.stage import run_deskew
 from v2xlake.tasks.geodesy import (
     LocalFrame,

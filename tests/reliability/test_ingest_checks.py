@@ -363,7 +363,7 @@ def test_real_calibration_for_1080_rows_on_a_1200_row_image(tmp_path: Path) -> N
 
 
 def test_jpeg_is_stored_as_delivered_and_read_by_anonymize(tmp_path: Path) -> None:
-    from v2xlake.tasks.anonymize.run import run_anonymize
+    from v2xlake.tasks.anonymize.stage import run_anonymize
 
     ts = _ts()
     jpg = _jpeg(64, 48)
@@ -438,7 +438,7 @@ def radar_sensor() -> dict[str, Any]:
 def test_radar_points_and_a_radar_only_agent(tmp_path: Path) -> None:
     """A vehicle with LiDAR + radar and a roadside agent with only a radar: radar scans land
     in radar_frames / radar_points (raw, then clean with relative time)."""
-    from v2xlake.tasks.anonymize.run import run_anonymize
+    from v2xlake.tasks.anonymize.stage import run_anonymize
 
     ts = _ts()
     radar = [("/radar/points", "sensor_msgs/msg/PointCloud2", t + 30_000_000,
@@ -478,7 +478,7 @@ def test_no_pose_clip_keeps_its_anonymized_images(tmp_path: Path) -> None:
     """No pose at all: ingest, QA (a warning) and anonymize run, the anonymized images are
     in the clean zone; the absence is agents.has_ins false / pose_source 'none' / no
     ego_poses, and deskew and register say "not applicable"."""
-    from v2xlake.tasks.anonymize.run import run_anonymize
+    from v2xlake.tasks.anonymize.stage import run_anonymize
     from v2xlake.tasks.deskew.stage import run_deskew
     from v2xlake.tasks.register.stage import run_register
 

@@ -271,20 +271,22 @@ def _lake_frames(lake: Lake, zone: str | os.PathLike[str], files: _Files
 
 def audit_detector(cfg: AuditConfig) -> Any:
     """The audit's detector: the same models, another scan plan (see ``AuditConfig``)."""
+    from v2xlake.tasks.anonymize.build import build_detector
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
     from v2xlake.tasks.anonymize.detectors import ScanConfig
-    from v2xlake.tasks.anonymize.run import AnonymizeConfig
 
-    det = AnonymizeConfig(
-        face_fine_scale=cfg.audit_face_fine_scale, face_full_threshold=cfg.face_min_score,
-        region_face_target_px=cfg.region_face_target_px,
-        region_window_face_target_px=cfg.region_face_target_px,
-        region_plate_target_px=cfg.region_plate_target_px, face_threshold=cfg.face_min_score,
-        plate_box_threshold=cfg.plate_min_score, safety_face_max_side=None,
-        safety_plate_max_side=None, region_blob_below_px=0.0,
+    det = build_detector(AnonymizeConfig.model_validate({
+        "faces": {"fine_scale": cfg.audit_face_fine_scale, "threshold": cfg.face_min_score,
+                  "full_threshold": cfg.face_min_score},
+        "plates": {"box_threshold": cfg.plate_min_score},
+        "regions": {"face_target_px": cfg.region_face_target_px,
+                    "window_face_target_px": cfg.region_face_target_px,
+                    "plate_target_px": cfg.region_plate_target_px, "blob_below_px": 0.0},
+        "safety": {"face_max_side": None, "plate_max_side": None},
         # every pixel: the audit must not share the anonymizer's proposal heuristics (a
         # face the first pass does not propose would be missed by both)
-        full_proposals=False,
-    ).build_detector()
+        "full_proposals": False,
+    }))
     det.config = replace(det.config, full_plate_scan=ScanConfig(
         max_side=None, fine_scale=cfg.audit_plate_fine_scale, tile=2048, tile_overlap=128,
         upscale_min_side=0))
@@ -311,8 +313,8 @@ def _guides(lake: Lake | None, zone: str, clips: set[str], cfg: AuditConfig) -> 
     """Per clip, the projected-region guide built from the zone's own tables (clean zone)."""
     if lake is None or zone != "clean":
         return {}
-    from v2xlake.tasks.anonymize.context import build_guide
     from v2xlake.tasks.anonymize.guide import GuideConfig
+    from v2xlake.tasks.anonymize.stage import build_guide
     from v2xlake.tasks.anonymize.timespace import T0_OFFSET_NS
 
     out = {}
