@@ -105,28 +105,3 @@ def test_unstaged_blob_deletion_is_immediate(tmp_path: Path) -> None:
     _seed(lake)
     lake.delete_blobs("raw", CLIP)
     assert not lake.exists(lake.path("raw", "blobs", CLIP))
-
-
-def test_deprecated_staging_and_publish_wrap_the_protocol(tmp_path: Path) -> None:
-    """``staging()`` keeps the handle's restrictions (an unrestricted one stays so);
-    ``publish(..., clear=)`` marks the listed partitions and blobs, publishes and returns
-    the final Parquet paths; ``discard()`` after it removes nothing of the lake."""
-    lake = Lake(tmp_path / "lake")
-    _seed(lake)
-    st = lake.staging(CLIP)
-    assert st.writer is None and st.stage_root is not None
-    path, _ = st.write_table("raw", "clips", _t(6), clip_id=CLIP)
-    st.write_blob("raw", f"{CLIP}/red/CAM/000003.png", b"wrapped")
-    out = lake.publish(st, "raw", CLIP, clear=["clips", "agents", "blobs"])
-    st.discard()
-    assert out == [lake.table_dir("raw", "clips", CLIP) + path[path.index("/clip_id=")
-                                                                 + len(f"/clip_id={CLIP}"):]]
-    assert lake.read_table("raw", "clips", clip_id=CLIP).num_rows == 6
-    assert not lake.exists(lake.table_dir("raw", "agents", CLIP))
-    assert lake.read_table("raw", "qa_checks", clip_id=CLIP).num_rows == 3  # not in clear
-    assert lake.read_blob("raw", f"{CLIP}/red/CAM/000003.png") == b"wrapped"
-    restricted = lake.for_stage("qa", [("raw", "qa_checks")]).staging(CLIP)
-    with pytest.raises(PermissionError, match="belongs to stage"):
-        restricted.write_table("raw", "clips", _t(1), clip_id=CLIP)
-    restricted.discard()
-    assert lake.read_table("raw", "clips", clip_id=CLIP).num_rows == 6

@@ -27,9 +27,8 @@ FORBIDDEN = {"schemas": ("v2xlake.storage", "v2xlake.tasks", "v2xlake.flows"),
 NOT_YET_MOVED: set[str] = set()
 
 
-# the stage packages with the shape below; anonymize is pending (issue #24: converted by its
-# owner), and drops out of this set when it is
-SHAPE_PENDING = {"anonymize"}
+# the stage packages not yet in the shape below (none: every stage has it)
+SHAPE_PENDING: set[str] = set()
 SHAPED = tuple(s for s in STAGES if s not in SHAPE_PENDING)
 NUMERIC = ("numpy", "numba", "scipy", "pyarrow", "cv2", "open3d", "rosbags", "onnxruntime")
 # what touches the lake: storage, and the shared clip reader built on it
@@ -37,7 +36,7 @@ LAKE = ("v2xlake.storage", "v2xlake.tasks.reader")
 # pure modules that still hand out names which moved to their stage.py (a module
 # ``__getattr__`` importing stage.py on first use), until the callers named there import
 # them from stage.py; an entry that no longer imports stage.py must be dropped
-FORWARDS_TO_STAGE = {"register/calibration.py", "register/intra_stage.py"}
+FORWARDS_TO_STAGE: set[str] = set()
 
 
 def _imports(path: Path) -> set[str]:

@@ -17,14 +17,11 @@ from v2xlake.schemas.arrow import rows_to_table
 from v2xlake.schemas.tables import CalibrationRefinedRow
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import read_clip, read_extrinsics
-from v2xlake.tasks.register.calibration import compare_calibration, format_calibration
+from v2xlake.tasks.reader import compare_calibration
+from v2xlake.tasks.register.calibration import format_calibration
 from v2xlake.tasks.register.intra import pose_distance
-from v2xlake.tasks.register.intra_stage import (
-    IntraStageSettings,
-    frame_pairs,
-    refine_agent_lidars,
-    split_lidars,
-)
+from v2xlake.tasks.register.intra_stage import IntraStageSettings, frame_pairs, split_lidars
+from v2xlake.tasks.register.stage import refine_agent_lidars
 
 sim = pytest.importorskip("v2xlake.tasks.simulate")
 CID = "sim_intra"

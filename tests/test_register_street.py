@@ -164,7 +164,8 @@ def test_refined_calibration_is_what_consumers_read(street: tuple[Path, Path],
     was 13-16 cm off the walls), unless a consumer asks for the published one or a stricter
     threshold; ``compare_calibration`` shows both."""
     from v2xlake.storage.reader import CalibrationChoice, read_clip
-    from v2xlake.tasks.register.calibration import compare_calibration, format_calibration
+    from v2xlake.tasks.reader import compare_calibration
+    from v2xlake.tasks.register.calibration import format_calibration
     from v2xlake.tasks.register.core import transform_delta
     from v2xlake.tasks.simulate.truth import load_truth
 

@@ -111,7 +111,9 @@ def test_a_stage_cannot_write_another_stages_table(tmp_path: Path) -> None:
     with pytest.raises(PermissionError, match="belongs to stage 'anonymize'"):
         deskew.delete_partition("clean", "lidar_points", CLIP)
     with pytest.raises(PermissionError, match="belongs to stage 'anonymize'"):
-        deskew.staging(CLIP).write_table("clean", "lidar_frames", frames, clip_id=CLIP)
+        lake.for_stage("deskew", [(t.zone, t.name) for t in DESKEW.owns],
+                       atomic_clip=CLIP).write_table("clean", "lidar_frames", frames,
+                                                     clip_id=CLIP)
 
 
 def _deskew_key(lake: Lake) -> manifest.StageKey:

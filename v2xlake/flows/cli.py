@@ -790,12 +790,9 @@ def calibration(
     """Published vs refined LiDAR extrinsics per agent and sensor: the clip solve's
     correction (LiDAR frame), its 1-sigma, which one deskew, alignment and exports use, and
     why a published one is kept; ``--frames`` lists every registered frame pair."""
-    from v2xlake.tasks.register.calibration import (
-        compare_calibration,
-        format_calibration,
-        format_frames,
-        frame_rows,
-    )
+    from v2xlake.tasks.reader import compare_calibration
+    from v2xlake.tasks.register.calibration import format_calibration, format_frames
+    from v2xlake.tasks.register.stage import frame_rows
 
     if frames:
         fr = frame_rows(known_clip(lake, clip), clip)

@@ -16,7 +16,7 @@ from v2xlake.schemas.config import merge_params
 from v2xlake.schemas.stage import Stage
 from v2xlake.tasks.align.config import AlignConfig
 from v2xlake.tasks.annotate.config import AnnotateConfig
-from v2xlake.tasks.anonymize.run import AnonymizeConfig
+from v2xlake.tasks.anonymize.config import AnonymizeConfig
 from v2xlake.tasks.deskew.stage import DeskewConfig
 from v2xlake.tasks.export.bev import BevConfig
 from v2xlake.tasks.export.eth3d import Eth3dConfig

@@ -893,38 +893,10 @@ class Lake:
         """``_staging/<clip>/<who>-p<pid>.<host>-<uuid>``: one run's private output."""
         return self.path("_staging", clip_id, f"{who}-{run_tag()}-{uuid.uuid4().hex[:12]}")
 
-    def staging(self, clip_id: str) -> Lake:
-        """Deprecated: ``for_stage(..., atomic_clip=clip_id)`` of this handle's stage (its
-        writer, tables and declared reads kept). Kept, as a thin wrapper over the one publish
-        protocol, until anonymize (``tasks/anonymize/run.py``) calls that instead."""
-        staged = self.for_stage(self.writer or "stage", self.owns, atomic_clip=clip_id,
-                                reads=self.reads)
-        staged.writer = self.writer  # an unrestricted handle stays unrestricted
-        return staged
-
     def discard_staging(self, clip_id: str) -> int:
         """Finish or drop what killed runs of ``clip_id`` left in ``_staging`` (``sweep``);
         returns how many run folders that was. A live run's folder is kept."""
         return len(self.sweep(clip_id).runs)
-
-    def publish(self, staging: Lake, zone: str, clip_id: str, *,
-                clear: Iterable[str] = ()) -> list[str]:
-        """Deprecated: ``staging.publish_stage()`` after marking the clip's partitions of the
-        tables in ``clear`` (``"blobs"`` for its blobs) for replacement. Kept, as a thin
-        wrapper over the one publish protocol, until anonymize calls that instead. Returns
-        the final paths of the published Parquet files of ``zone``."""
-        root = staging.stage_root
-        if root is None:
-            raise RuntimeError("publish needs a staged handle (staging() / for_stage)")
-        for table in clear:
-            staging._replaced.add((zone, table, clip_id))
-        files = staging.list_files(f"{root}/{zone}", ".parquet")
-        moved = staging.publish_stage()
-        out = []
-        for f in files:
-            src = next(s for s in moved if f.startswith(s + "/"))
-            out.append(moved[src] + f[len(src):])
-        return out
 
     def _commit_moves(self, run_dir: str, moves: Sequence[tuple[str, str]],
                       deletes: Sequence[str]) -> None:
@@ -1038,11 +1010,6 @@ class Lake:
                             os.remove(path)
                         gone.append(path)
         return gone
-
-    def discard(self) -> None:
-        """Deprecated name of ``discard_stage`` (what ``staging()`` handles were dropped
-        with), kept until anonymize calls ``discard_stage``."""
-        self.discard_stage()
 
     def copy_in(self, src: str | os.PathLike[str], dest: str, *, link: bool = False) -> int:
         """Copy a local file into the lake at ``dest`` (a lake path); returns bytes copied.

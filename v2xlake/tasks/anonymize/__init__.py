@@ -14,9 +14,7 @@ object; everything else is pure (arrays and images in, arrays out):
 - ``blur.py`` (irreversible blur), ``images.py`` (decode, encode, metadata stripped),
   ``timespace.py`` (relative time, local ENU);
 - ``evaluate.py`` (recall on simulated and real labelled images: tests and benchmarks),
-  ``quantize.py`` (CenterFace's int8 copy, rebuilt deterministically);
-- ``run.py``: the names of the former entry point, forwarding to the modules above, for
-  importers outside the package.
+  ``quantize.py`` (CenterFace's int8 copy, rebuilt deterministically).
 
 Names are imported lazily (``v2xlake params show`` imports ``config.py`` without the
 numeric code)."""
@@ -27,7 +25,7 @@ from importlib import import_module
 from typing import Any
 
 _WHERE = {
-    "AnonymizeConfig": "run",
+    "AnonymizeConfig": "config",
     "run_anonymize": "stage",
     "BlurConfig": "blur",
     "blur_boxes": "blur",

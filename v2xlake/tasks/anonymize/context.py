@@ -16,7 +16,7 @@ assembles the guide from them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
@@ -121,15 +121,6 @@ def assemble_guide(t0_abs: int, tracks: dict[str, PoseTrack],
         g.boxes = clusters
         g.source = "lidar clusters"
     return g
-
-
-def build_guide(*args: Any, **kwargs: Any) -> ClipGuide:
-    """The guide from the clip's tables: kept here for importers outside the package (the
-    privacy audit); the table reading lives in ``stage.py``, the one module that touches the
-    lake, and this forwards to it."""
-    from v2xlake.tasks.anonymize.stage import build_guide as from_tables
-
-    return from_tables(*args, **kwargs)
 
 
 def _annotation_boxes(ann: pa.Table, frames: pa.Table, g: ClipGuide,

@@ -84,7 +84,7 @@ CLEAN_TABLES = (
 
 
 class ProgressLog:
-    """One plain log line (logger ``v2xlake.tasks.anonymize.run``, INFO) every ``every``
+    """One plain log line (logger ``v2xlake.tasks.anonymize.stage``, INFO) every ``every``
     images or every ``seconds``, whichever comes first, and one at the end: piped or CI
     output shows how far a long clip is without a terminal progress bar."""
 
@@ -162,15 +162,19 @@ def run_anonymize(
             "clip has no INS: no ego_poses written (deskew/registration need poses)"
         )
 
-    # everything is written to a private staging lake and published in one step at the end,
-    # so a clip that fails half-way (a corrupt image) never leaves a half-clean zone behind
-    stage = lake.staging(clip_id)
+    # everything is written to the stage's own run folder and published in one step at the
+    # end, so a clip that fails half-way (a corrupt image) never leaves a half-clean zone
+    stage = lake.for_stage(STAGE, [(t.zone, t.name) for t in ANONYMIZE.owns],
+                           atomic_clip=clip_id, reads=lake.reads)
     try:
         _write_clean(lake, stage, clip_id, cfg, t0, frame, report, progress, map_xy)
-        # one journaled swap (a kill mid-way is rolled forward by the next run's sweep)
-        lake.publish(stage, "clean", clip_id, clear=[*CLEAN_TABLES, "blobs"])
-    finally:
-        stage.discard()
+        for table in CLEAN_TABLES:  # the clip's clean zone is this run's output, nothing else
+            stage.delete_partition("clean", table, clip_id)
+        stage.delete_blobs("clean", clip_id)
+        stage.publish_stage()  # one journaled swap (a kill mid-way is rolled forward)
+    except BaseException:
+        stage.discard_stage()
+        raise
     dt = time.perf_counter() - t_start
     report.metrics["seconds"] = dt
     log.info(

@@ -21,20 +21,6 @@ if TYPE_CHECKING:
 
 __all__ = ["format_calibration", "format_frames", "frame_table"]
 
-# names that moved to ``stage.py`` (they read the lake), still found here until their last
-# callers (``flows/cli.py``, tests/test_register_intra_stage.py, tests/test_register_street.py)
-# import them from there; tests/test_layers.py lists this module until then
-_MOVED_TO_STAGE = ("CalibrationComparison", "compare_calibration", "frame_rows")
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED_TO_STAGE:
-        from v2xlake.tasks.register import stage
-
-        return getattr(stage, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 def format_calibration(rows: list[CalibrationComparison]) -> str:
     """A table: agent, sensor, correction (LiDAR frame: rotation deg, translation cm), its
     1-sigma, determined components, and which calibration the consumers use."""

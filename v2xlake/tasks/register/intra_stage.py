@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
@@ -157,15 +156,3 @@ def _row(clip_id: str, agent: str, sensor: str, primary: str, T_pub: np.ndarray,
         reason=reason)
 
 
-# ``refine_agent_lidars`` (it reads the agent's scans from the lake) moved to ``stage.py``; it
-# is still found here until its last caller (tests/test_register_intra_stage.py) imports it
-# from there; tests/test_layers.py lists this module until then
-_MOVED_TO_STAGE = ("refine_agent_lidars",)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED_TO_STAGE:
-        from v2xlake.tasks.register import stage
-
-        return getattr(stage, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
