@@ -49,8 +49,8 @@ def test_shared_server_reused_held_and_stopped_when_idle(tmp_path: Path) -> None
         url, _ = _attach(env)  # starts it; the caller exits, the server stays
         keeper_pid = json.loads(state_file.read_text())["pid"]
         assert shared_server.healthy(url)
-        again, seconds = _attach(env)  # found, not started: same URL, no wait
-        assert again == url and seconds < 5.0
+        again, _ = _attach(env)  # found, not started: the same URL and keeper
+        assert again == url
         assert json.loads(state_file.read_text())["pid"] == keeper_pid
         # a user holding the lease keeps it past the idle time
         holder = subprocess.Popen([sys.executable, "-c", ATTACH, "8"], env=env,

@@ -13,11 +13,11 @@ keeper dies, even by SIGKILL: ``PR_SET_PDEATHSIG``, as in ``guard.py``) and ever
 stops the group and exits when
 
 - the command has exited,
-- ``HOME`` or the state file naming this keeper is gone (another server took over, or a test's
-  temporary home was removed), or
-- the server is idle: no process holds the lease file (each user holds a shared ``flock`` on
-  it for its lifetime; the kernel drops it when the user exits, SIGKILL included) and the
-  lease was last touched (by a user attaching or exiting) more than ``IDLE_S`` seconds ago.
+- ``HOME`` is gone (a test's temporary home was removed), or
+- no process holds the lease file (each user holds a shared ``flock`` on it for its
+  lifetime; the kernel drops it when the user exits, SIGKILL included) and either the lease
+  was last touched (by a user attaching or exiting) more than ``IDLE_S`` seconds ago or the
+  state file names another server (a caller found this one not answering and replaced it).
 
 The idle decision is taken holding the lease exclusively, and the state file is removed
 before the lock is let go, so a user that attaches meanwhile waits and then starts a fresh
@@ -103,8 +103,7 @@ def keep(home: Path, idle_s: float, cmd: list[str]) -> int:
             return code
         except subprocess.TimeoutExpired:
             pass
-        # the state file appears once the caller has written it (just after our start)
-        if not home.is_dir() or (time.monotonic() - started > 30 and not _owns_state(home)):
+        if not home.is_dir():  # a removed home (a test's temporary one)
             _stop(proc)
             return 0
         try:
@@ -117,7 +116,10 @@ def keep(home: Path, idle_s: float, cmd: list[str]) -> int:
             os.close(fd)
             continue
         try:
-            if time.time() - os.fstat(fd).st_mtime > idle_s:
+            # replaced (the state file names another server; it appears just after our
+            # start) or idle: stop, but only while no user holds the lease
+            replaced = time.monotonic() - started > 30 and not _owns_state(home)
+            if replaced or time.time() - os.fstat(fd).st_mtime > idle_s:
                 _drop_state(home)  # before the lock goes: a new user starts a fresh server
                 _stop(proc)
                 return 0

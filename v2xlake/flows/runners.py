@@ -7,8 +7,10 @@ flow; ``dask=tcp://host:8786`` connects to a running scheduler instead. The clip
 run in this process (a few at a time) and submit their work to the cluster: every stage
 as a task, and a chunked stage (``Stage.chunked``) as one task per chunk, so one long clip
 uses every worker. Every Dask worker reports to the Prefect API named by
-``PREFECT_API_URL``; without one each worker would start its own temporary server, so the
-CLI refuses ``dask`` without it (see NOTES.md).
+``PREFECT_API_URL``; without one each worker would start its own temporary server, so
+without a user's URL the CLI exports the shared temporary server's
+(``flows/shared_server.py``), or with ``V2XLAKE_SHARED_SERVER=0`` starts a ``prefect server``
+for the run (``needs_api_server``).
 
 Thread budget (#26): a worker runs one task at a time, but the stages inside it size their
 own pools from the machine (anonymize's detector pool and ingest's PNG pool take

@@ -177,7 +177,9 @@ def attach() -> Callable[[], None] | None:
     except (OSError, ValueError):
         state = {}
     if (state.get("url") and all(state.get(k) == v for k, v in ident.items())
-            and _alive(int(state.get("pid", 0))) and healthy(str(state["url"]))):
+            # a generous timeout: a busy server answers late, and replacing it would leave
+            # two running until the first one's users are done
+            and _alive(int(state.get("pid", 0))) and healthy(str(state["url"]), timeout=10.0)):
         os.close(lock)
         os.environ["PREFECT_API_URL"] = str(state["url"])
         return lambda: None
