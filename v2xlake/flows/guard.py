@@ -36,9 +36,10 @@ except OSError:  # the polling below still applies
     _LIBC = None
 
 
-def _die_with_guard() -> None:
-    """In the child, before exec: SIGTERM it when the guard dies (even by SIGKILL). The
-    guard forks from its only thread, so this fires exactly when the guard is gone."""
+def die_with_parent() -> None:
+    """In the child, before exec: SIGTERM it when its parent (the guard, the shared server's
+    keeper) dies, even by SIGKILL. Both fork from their only thread, so this fires exactly
+    when the parent is gone."""
     if _LIBC is not None:
         _LIBC.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
 
@@ -61,7 +62,7 @@ def stop_group(proc: subprocess.Popen[bytes], sig: int = signal.SIGTERM) -> None
 def supervise(parent: int, cmd: list[str]) -> int:
     if os.getsid(0) != os.getpid():
         os.setsid()  # a group of our own: signalling it never reaches the parent's group
-    proc = subprocess.Popen(cmd, preexec_fn=_die_with_guard)
+    proc = subprocess.Popen(cmd, preexec_fn=die_with_parent)
 
     def forward(sig: int, _frame: FrameType | None) -> None:
         stop_group(proc, sig)

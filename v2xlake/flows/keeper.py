@@ -27,7 +27,6 @@ server instead of finding one about to stop.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import fcntl
 import json
 import os
@@ -38,35 +37,11 @@ import time
 from pathlib import Path
 from types import FrameType
 
+from v2xlake.flows.guard import die_with_parent, stop_group
+
 POLL_S = 1.0
-GRACE_S = 5.0
 STATE = "shared-server.json"
 LEASE = "shared-server.lease"
-PR_SET_PDEATHSIG = 1
-try:
-    _LIBC: ctypes.CDLL | None = ctypes.CDLL(None) if sys.platform == "linux" else None
-except OSError:
-    _LIBC = None
-
-
-def _die_with_keeper() -> None:
-    if _LIBC is not None:
-        _LIBC.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-
-
-def _stop(proc: subprocess.Popen[bytes]) -> None:
-    """SIGTERM the keeper's group (the keeper ignores it), then SIGKILL the command."""
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    try:
-        os.killpg(os.getpgrp(), signal.SIGTERM)
-        proc.wait(GRACE_S)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(GRACE_S)
-    except ProcessLookupError:
-        pass
-
-
 def _owns_state(home: Path) -> bool:
     """Whether the state file still names this keeper (a replacement server rewrites it)."""
     try:
@@ -86,11 +61,11 @@ def keep(home: Path, idle_s: float, cmd: list[str]) -> int:
         os.setsid()
     lease = home / LEASE
     lease.touch()
-    proc = subprocess.Popen(cmd, preexec_fn=_die_with_keeper)
+    proc = subprocess.Popen(cmd, preexec_fn=die_with_parent)
 
     def on_signal(sig: int, _frame: FrameType | None) -> None:
         _drop_state(home)
-        _stop(proc)
+        stop_group(proc)
         sys.exit(128 + sig)
 
     signal.signal(signal.SIGTERM, on_signal)
@@ -104,7 +79,7 @@ def keep(home: Path, idle_s: float, cmd: list[str]) -> int:
         except subprocess.TimeoutExpired:
             pass
         if not home.is_dir():  # a removed home (a test's temporary one)
-            _stop(proc)
+            stop_group(proc)
             return 0
         try:
             fd = os.open(lease, os.O_RDWR | os.O_CREAT)
@@ -121,7 +96,7 @@ def keep(home: Path, idle_s: float, cmd: list[str]) -> int:
             replaced = time.monotonic() - started > 30 and not _owns_state(home)
             if replaced or time.time() - os.fstat(fd).st_mtime > idle_s:
                 _drop_state(home)  # before the lock goes: a new user starts a fresh server
-                _stop(proc)
+                stop_group(proc)
                 return 0
         finally:
             os.close(fd)  # releases the lock
