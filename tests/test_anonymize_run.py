@@ -169,3 +169,22 @@ def test_progress_is_logged_as_plain_lines(caplog: pytest.LogCaptureFixture) -> 
     lines = [r.getMessage() for r in caplog.records if r.name.startswith("v2xlake")]
     assert [ln.split(": ")[1].split(" ")[0] for ln in lines] == ["4/10", "6/10", "10/10"]
     assert "anonymize c1:" in lines[0] and "img/s" in lines[0]
+
+
+def test_stage_import_pays_for_no_detector() -> None:
+    """A clip without cameras (and every flow that only names the stage) imports the stage
+    module: it must not load OpenCV, onnxruntime or the detector modules (they are imported
+    by the functions that process images). A fresh interpreter: this test process has them
+    loaded already."""
+    import subprocess
+    import sys
+
+    heavy = ("cv2", "onnxruntime", "v2xlake.tasks.anonymize.detectors",
+             "v2xlake.tasks.anonymize.guided", "v2xlake.tasks.anonymize.textplate",
+             "v2xlake.tasks.anonymize.plateread", "v2xlake.tasks.anonymize.build",
+             "v2xlake.tasks.anonymize.blur", "v2xlake.tasks.anonymize.images")
+    code = ("import sys, v2xlake.tasks.anonymize.stage as s; assert s.ANONYMIZE; "
+            f"print(','.join(m for m in {heavy!r} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=Path(__file__).resolve().parents[1])
+    assert out.stdout.strip() == ""

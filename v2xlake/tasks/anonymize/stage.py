@@ -21,6 +21,7 @@ import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
@@ -35,21 +36,7 @@ from v2xlake.storage.files import read_parquet
 from v2xlake.storage.frames import file_schema, iter_row_groups, partition_files
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import CameraCalib, calibrations, pose_samples
-from v2xlake.tasks.anonymize.blur import blur_boxes
-from v2xlake.tasks.anonymize.build import (
-    blur_config,
-    build_detector,
-    cluster_config,
-    guide_config,
-)
-from v2xlake.tasks.anonymize.carry import between, key_frames, new_regions
-from v2xlake.tasks.anonymize.clusters import cluster_boxes, yaw_quat
 from v2xlake.tasks.anonymize.config import AnonymizeConfig
-from v2xlake.tasks.anonymize.context import ClipGuide, assemble_guide, camera_intrinsics
-from v2xlake.tasks.anonymize.detectors import Detection
-from v2xlake.tasks.anonymize.guide import GuideConfig, Region, WorldBoxes, world_boxes_from_sensor
-from v2xlake.tasks.anonymize.images import decode_image, encode_image, to_bgr8
-from v2xlake.tasks.anonymize.temporal import fill_gaps
 from v2xlake.tasks.anonymize.timespace import (
     T0_OFFSET_NS,
     clip_t0_abs,
@@ -63,6 +50,16 @@ from v2xlake.tasks.anonymize.timespace import (
 )
 from v2xlake.tasks.geodesy import LocalFrame
 from v2xlake.tasks.interpolate import PoseTrack
+
+if TYPE_CHECKING:
+    from v2xlake.tasks.anonymize.context import ClipGuide
+    from v2xlake.tasks.anonymize.detectors import Detection
+    from v2xlake.tasks.anonymize.guide import GuideConfig, Region, WorldBoxes
+
+# The numeric modules (detectors, plate reader, blur, images, guide, LiDAR clusters: cv2,
+# onnxruntime and the models) are imported inside the functions that process images or
+# build the guide, not here: a clip without cameras, ``v2xlake params`` and the flows that
+# only name the stage import this module and never pay for them.
 
 log = logging.getLogger(__name__)
 STAGE = "anonymize"
@@ -259,6 +256,8 @@ def _write_clean(
     if n_cam == 0:  # nothing to blur: no guide, no LiDAR clusters (they cost minutes)
         report.notes.append("anonymize: no camera images")
     elif cfg.scan_plan == "guided":
+        from v2xlake.tasks.anonymize.build import guide_config
+
         guide = build_guide(
             clip_id, t0, {a: pa.concat_tables(ts) for a, ts in ego.items()},
             lake.read_table("raw", "calibrated_sensors", clip_id=clip_id),
@@ -298,6 +297,10 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
     """Object boxes from LiDAR clusters (``clusters.py``), one set per scan, in the clip
     world, for clips without annotations; None when the clip has annotations (or no LiDAR,
     or no poses)."""
+    from v2xlake.tasks.anonymize.build import cluster_config
+    from v2xlake.tasks.anonymize.clusters import cluster_boxes, yaw_quat
+    from v2xlake.tasks.anonymize.guide import WorldBoxes, world_boxes_from_sensor
+
     if not cfg.clusters.enabled or not ego:
         return None
     if lake.read_table("raw", "annotations", clip_id=clip_id, columns=["frame_idx"]).num_rows:
@@ -346,6 +349,8 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
 
 def _encode(img: np.ndarray, key: str, cfg: AnonymizeConfig) -> tuple[bytes, str]:
     """The clean image bytes and the clean blob key (named by what is written)."""
+    from v2xlake.tasks.anonymize.images import encode_image
+
     stem, _, ext = key.rpartition(".")
     fmt = cfg.output.image_format
     if fmt == "same":
@@ -372,6 +377,12 @@ def _anonymize_images(
     """Every camera image: detect (guided when the guide has regions for it), fill temporal
     gaps per camera, blur, encode; frames of one camera go in time order, ``frames_per_chunk``
     at a time, detected with one frame of look-ahead so a chunk's last frame has its next."""
+    from v2xlake.tasks.anonymize.blur import blur_boxes
+    from v2xlake.tasks.anonymize.build import blur_config, build_detector
+    from v2xlake.tasks.anonymize.carry import between, key_frames, new_regions
+    from v2xlake.tasks.anonymize.images import decode_image, to_bgr8
+    from v2xlake.tasks.anonymize.temporal import fill_gaps
+
     files = partition_files(lake, "raw", "camera_frames", clip_id)
     tables = [(agent, name, read_parquet(path, filesystem=lake.fs)) for path, agent, name in files]
     total = sum(t.num_rows for _, _, t in tables)
@@ -561,6 +572,8 @@ def build_guide(clip_id: str, t0_abs: int, ego_poses: dict[str, pa.Table], calib
                 clusters: dict[str, WorldBoxes] | None = None) -> ClipGuide:
     """The guide from the clip's tables (``ego_poses`` clean, the others raw): pose tracks and
     calibration parsed here, the guide assembled by ``context.assemble_guide``."""
+    from v2xlake.tasks.anonymize.context import assemble_guide, camera_intrinsics
+
     tracks: dict[str, PoseTrack] = {}
     for agent, ego in ego_poses.items():
         if ego.num_rows < 2:
@@ -600,6 +613,8 @@ def lake_image_keys(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], tupl
 
 def audit_detections(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], list[Detection]]:
     """The clean zone's ``anonymization_audit`` as detections per (agent, sensor, abs stamp)."""
+    from v2xlake.tasks.anonymize.detectors import Detection
+
     keys = lake_image_keys(lake, clip_id)
     by_frame = {(a, s, f): (a, s, t) for (a, s, t), (_b, f) in keys.items()}
     out: dict[tuple[str, str, int], list[Detection]] = {k: [] for k in keys}
