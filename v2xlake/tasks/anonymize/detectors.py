@@ -90,29 +90,36 @@ class ScanPass:
 
 
 def nms(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8) -> list[Detection]:
-    """Greedy NMS per kind; also drops a box mostly contained in a better one (tile seams)."""
+    """Greedy NMS per kind; also drops a box mostly contained in a better one (tile seams).
+
+    The overlaps are computed as matrices (rows in blocks of ``_NMS_BLOCK``) and the greedy
+    walk reads them: the full-frame plan's first face pass proposes hundreds of boxes, and a
+    pairwise Python loop spent ~0.15 s per 1392 x 512 street image here (same decisions)."""
     out: list[Detection] = []
     for kind in sorted({d.kind for d in dets}):
         ds = sorted((d for d in dets if d.kind == kind), key=lambda d: -d.score)
-        kept: list[Detection] = []
-        for d in ds:
-            bx = np.asarray(d.box)
-            ok = True
-            for k in kept:
-                kb = np.asarray(k.box)
-                if iou_xyxy(bx, kb)[0, 0] >= iou:
-                    ok = False
-                    break
-                ix = max(0.0, min(bx[2], kb[2]) - max(bx[0], kb[0]))
-                iy = max(0.0, min(bx[3], kb[3]) - max(bx[1], kb[1]))
-                area = max((bx[2] - bx[0]) * (bx[3] - bx[1]), 1e-9)
-                if ix * iy / area >= contain:
-                    ok = False
-                    break
-            if ok:
-                kept.append(d)
-        out.extend(kept)
+        if len(ds) < 2:
+            out.extend(ds)
+            continue
+        b = np.array([d.box for d in ds], np.float64).reshape(-1, 4)
+        area = np.maximum((b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]), 1e-9)
+        kept: list[int] = []
+        for lo in range(0, len(ds), _NMS_BLOCK):
+            rows = b[lo : lo + _NMS_BLOCK]
+            ov = iou_xyxy(rows, b) >= iou
+            ix = np.maximum(0.0, np.minimum(rows[:, None, 2], b[None, :, 2])
+                            - np.maximum(rows[:, None, 0], b[None, :, 0]))
+            iy = np.maximum(0.0, np.minimum(rows[:, None, 3], b[None, :, 3])
+                            - np.maximum(rows[:, None, 1], b[None, :, 1]))
+            ov |= ix * iy / area[lo : lo + _NMS_BLOCK, None] >= contain
+            for r in range(len(rows)):
+                if not kept or not ov[r, kept].any():
+                    kept.append(lo + r)
+        out.extend(ds[i] for i in kept)
     return out
+
+
+_NMS_BLOCK = 1024  # NMS overlap rows computed at once (memory: 1024 x N booleans + floats)
 
 
 def _split(length: int, tile: int, overlap: int) -> list[tuple[int, int]]:
