@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from tests.fixtures.real import requires_real_data
-from v2xlake.tasks.anonymize.guided import GuidedConfig, edge_lines
+from v2xlake.tasks.anonymize.guided import GuidedConfig, _crop_piece, edge_lines, pack
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 
@@ -72,3 +72,25 @@ def test_proposals_find_small_plates_and_faces_in_a_large_frame() -> None:
         n_faces += 2
     assert n_plates >= 3 and plates == n_plates, (plates, n_plates)
     assert faces >= n_faces - 1, (faces, n_faces)
+
+
+def test_fitted_packing_is_smaller_and_keeps_pieces_apart() -> None:
+    """The proposal canvases are packed at the width that makes them smallest: never larger
+    than the fixed-width canvas, every piece inside it, no two pieces closer than the gap."""
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        sides = rng.integers(40, 200, size=(int(rng.integers(1, 12)), 2))
+        pieces = [_crop_piece("face", 0, 0, int(w), int(h), 1.0, (16.0, 16.0)) for w, h in sides]
+        gap = 32
+        _pos0, w0, h0 = pack(pieces, 512, gap)
+        pos, w, h = pack(pieces, 512, gap, fit=True)
+        assert w * h <= w0 * h0 and w % 32 == 0 and h % 32 == 0
+        rects = [(x, y, x + p.out_w, y + p.out_h) for p, (x, y) in zip(pieces, pos, strict=True)]
+        for i, a in enumerate(rects):
+            assert a[0] >= gap and a[1] >= gap and a[2] <= w and a[3] <= h
+            for b in rects[i + 1:]:
+                assert (a[2] + gap <= b[0] or b[2] + gap <= a[0]
+                        or a[3] + gap <= b[1] or b[3] + gap <= a[1])
+    pieces = [_crop_piece("face", 0, 0, 150, 150, 1.0, (16.0, 16.0)) for _ in range(10)]
+    assert (lambda r: r[1] * r[2])(pack(pieces, 512, 32, fit=True)) < (
+        lambda r: r[1] * r[2])(pack(pieces, 512, 32))

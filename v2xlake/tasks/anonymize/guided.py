@@ -49,6 +49,10 @@ class GuidedConfig:
     mosaic_width: int = 512
     gap: int = 8
     alone_px: int = 96 * 1024
+    # canvases of packed pieces: at the width that makes them smallest (``pack``); the
+    # full-frame plan's proposal canvases set it (the guided plan's regions keep the
+    # fixed ``mosaic_width``, as measured on the simulated clips)
+    pack_fit: bool = False
     face_threshold: float = 0.2  # in projected regions
     full_face_threshold: float = 0.5  # in full-frame passes
     face_size_range: tuple[float, float] = (0.15, 3.0)  # x the expected face height
@@ -244,9 +248,16 @@ def _merge_crops(items: list[list]) -> list[list]:
     return items
 
 
-def pack(pieces: Sequence[Piece], width: int, gap: int) -> tuple[list[tuple[int, int]], int, int]:
+def pack(pieces: Sequence[Piece], width: int, gap: int, fit: bool = False
+         ) -> tuple[list[tuple[int, int]], int, int]:
     """Shelf packing: (x, y) of each piece in a canvas, the canvas width and height (multiples
-    of 32)."""
+    of 32). ``fit``: the canvas width (from the widest piece up to 4x ``width``, steps of 32)
+    that gives the smallest canvas (the network's cost is its pixels; the fixed width left
+    up to 2.4x the pieces' area in the full-frame plan's face canvases, gaps included)."""
+    if fit and pieces:
+        lo = int(np.ceil(max(p.out_w + 2 * gap for p in pieces) / 32) * 32)
+        return min((pack(pieces, wd, gap) for wd in range(lo, max(lo, 4 * width) + 1, 32)),
+                   key=lambda r: (r[1] * r[2], r[1]))
     width = max(width, *(p.out_w + 2 * gap for p in pieces)) if pieces else width
     width = int(np.ceil(width / 32) * 32)
     order = sorted(range(len(pieces)), key=lambda i: -pieces[i].out_h)
@@ -275,7 +286,7 @@ def mosaics(image: np.ndarray, pieces: Sequence[Piece], cfg: GuidedConfig
         if p.out_w * p.out_h >= cfg.alone_px:
             out.append((p.cut(image), [p], [(0, 0)]))
     if small:
-        pos, cw, ch = pack(small, cfg.mosaic_width, cfg.gap)
+        pos, cw, ch = pack(small, cfg.mosaic_width, cfg.gap, cfg.pack_fit)
         canvas = np.zeros((ch, cw, 3), np.uint8)
         for p, (px, py) in zip(small, pos, strict=True):
             canvas[py : py + p.out_h, px : px + p.out_w] = p.cut(image)
@@ -376,7 +387,7 @@ class GuidedDetector:
                 f"|full-proposals:first@{(face_first or face).version if face else '-'}"
                 f":f{c.face_proposal_threshold:g}/{c.face_accept_px:g}"
                 f"/{c.face_proposal_target_px:g}:p{c.plate_proposal_scale:g}"
-                f"/{c.plate_proposal_threshold:g}/e{c.plate_edge_threshold:g}")
+                f"/{c.plate_proposal_threshold:g}/e{c.plate_edge_threshold:g}:fit")
         self.detectors = [d for d in (face, plate, *self.extra) if d is not None]
 
     # ------------------------------------------------------------------ full frame
@@ -433,7 +444,8 @@ class GuidedDetector:
                           min(w, int(np.ceil(cx + r))), min(h, int(np.ceil(cy + r))), s, bh, bh])
         pieces = [_crop_piece(k, x0, y0, x1, y1, sc, (lo, hi))
                   for k, x0, y0, x1, y1, sc, lo, hi in _merge_crops(items)]
-        for canvas, ps, pos in mosaics(image, pieces, replace(c, gap=c.face_proposal_gap)):
+        for canvas, ps, pos in mosaics(image, pieces,
+                                            replace(c, gap=c.face_proposal_gap, pack_fit=True)):
             cb, cs = self.face.detect_view(canvas)
             for b, sc in zip(cb, cs, strict=True):
                 i = _piece_of(b, ps, pos)
@@ -476,7 +488,7 @@ class GuidedDetector:
         if sum(p.out_w * p.out_h for p in pieces) > c.plate_proposal_max_share * w * h * s * s:
             return self._plates_full(image, scan)
         out: list[Detection] = []
-        for canvas, pcs, pos in mosaics(image, pieces, c):
+        for canvas, pcs, pos in mosaics(image, pieces, replace(c, pack_fit=True)):
             cand = []
             for line in self.plate.lines_view(canvas):
                 i = _piece_of(np.asarray(self.plate.plate_box(line[:5])), pcs, pos)
