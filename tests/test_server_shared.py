@@ -25,8 +25,10 @@ time.sleep(float(sys.argv[1]))
 
 
 def _env(home: Path, idle: float) -> dict[str, str]:
-    env = dict(os.environ, V2XLAKE_HOME=str(home), V2XLAKE_SERVER_IDLE_S=str(idle))
-    env.pop("PREFECT_API_URL", None)
+    """A caller whose Prefect settings all come from ``home``: none of the suite's own
+    (earlier tests put ``PREFECT_HOME`` and the API URL into this process's environment)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env.update(V2XLAKE_HOME=str(home), V2XLAKE_SERVER_IDLE_S=str(idle))
     env.pop("V2XLAKE_SHARED_SERVER", None)
     return env
 
