@@ -12,8 +12,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+from v2xlake.schemas.registry import STAGE_PACKAGES
+
 PACKAGE = Path(__file__).resolve().parents[1] / "v2xlake"
-STAGES = ("ingest", "qa", "anonymize", "deskew", "register", "annotate", "align")
+# the standard stages, from the one stage list (schemas/registry.py)
+STAGES = tuple(p.rpartition(".")[2] for p in STAGE_PACKAGES)
 # lower layer -> the packages it must not import (docs/architecture.md, Layers)
 FORBIDDEN = {"schemas": ("v2xlake.storage", "v2xlake.tasks", "v2xlake.flows"),
              "storage": ("v2xlake.tasks", "v2xlake.flows"),

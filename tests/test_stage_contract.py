@@ -31,6 +31,7 @@ from v2xlake.flows.params import (
     load_params,
 )
 from v2xlake.flows.pipeline import STAGES
+from v2xlake.schemas import registry
 from v2xlake.schemas.stage import Stage
 from v2xlake.schemas.tables import LAKE_TABLES, TABLE_OWNERS
 from v2xlake.storage import manifest
@@ -93,6 +94,9 @@ def test_each_table_has_exactly_one_owning_stage() -> None:
             assert key not in owned, f"{key} owned by {owned[key]} and {s.name}"
             owned[key] = s.name
             assert TABLE_OWNERS.get(key) == s.name, (key, TABLE_OWNERS.get(key), s.name)
+        # the Stage object and its package's declaration (what the registry reads without
+        # importing the stage) name the same tables
+        assert s.owns == registry.declaration(s.name).owns, s.name
     pipeline_tables = {k for k, v in TABLE_OWNERS.items() if v != "export"}
     assert set(owned) == pipeline_tables
     for s in STAGES:  # a stage reads only tables some stage owns

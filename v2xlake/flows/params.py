@@ -1,4 +1,5 @@
-"""Parameters as data: one ``PipelineParams`` with a section per stage and export format.
+"""Parameters as data: one ``PipelineParams`` with a section per registered stage
+(``schemas.registry``) and one per export format.
 
 Each section is that stage's own config model (``DeskewConfig``...), so there is one
 definition of every parameter, with its default and description. The same model is:
@@ -108,24 +109,17 @@ def _params_block(text: str) -> dict[str, Any]:
 
 def config_model(section: str) -> type[BaseModel]:
     """The model of one section of ``PipelineParams``: a stage's ``StageConfig`` from its
-    package's ``config.py`` (pydantic only: milliseconds), else (a stage not converted yet)
-    from its Stage object; ``export``: ``ExportParams``."""
+    package's ``config.py`` (pydantic only: milliseconds; the package from
+    ``schemas.registry``); ``export``: ``ExportParams``."""
     from v2xlake.schemas.config import StageConfig
+    from v2xlake.schemas.registry import package
 
     if section == "export":
         from v2xlake.flows.params_model import ExportParams
 
         return ExportParams
-    name = f"v2xlake.tasks.{section}.config"
-    try:
-        module = importlib.import_module(name)
-    except ModuleNotFoundError as e:
-        if e.name != name:
-            raise
-        from v2xlake.flows.stage_names import registry_stage
-
-        model: type[BaseModel] = registry_stage(section).config_model
-        return model
+    name = f"{package(section)}.config"
+    module = importlib.import_module(name)
     found = [v for v in vars(module).values() if isinstance(v, type)
              and issubclass(v, StageConfig) and v.__module__ == name]
     if len(found) != 1:

@@ -1,32 +1,30 @@
-"""The parameter models (``PipelineParams``, ``ExportParams``): each section is its stage's
-own config model, so importing this module imports every stage's config module (and what
-they import: NumPy, SciPy, Open3D, numba). ``flows.params`` imports it only when a model is
-needed; see that module for the rules.
+"""The parameter models (``PipelineParams``, ``ExportParams``): one section per registered
+stage (``schemas.registry``), each the stage's own config model from its package's
+``config.py``, and ``export``. ``flows.params`` imports this module only when a model is
+needed (it imports every stage's config module and every exporter); see that module for the
+rules.
+
+WHY built from the registry: a new stage brings its section with its package; nothing here
+names a stage.
 """
 
 from __future__ import annotations
 
 import warnings
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
 
-from v2xlake.flows.params import ParamsError, _short
+from v2xlake.flows.params import ParamsError, _short, config_model
 from v2xlake.schemas.config import merge_params
+from v2xlake.schemas.registry import stage_names
 from v2xlake.schemas.stage import Stage
-from v2xlake.tasks.align.config import AlignConfig
-from v2xlake.tasks.annotate.config import AnnotateConfig
-from v2xlake.tasks.anonymize.config import AnonymizeConfig
-from v2xlake.tasks.deskew.stage import DeskewConfig
 from v2xlake.tasks.export.bev import BevConfig
 from v2xlake.tasks.export.eth3d import Eth3dConfig
 from v2xlake.tasks.export.nuscenes import NuScenesExportConfig
 from v2xlake.tasks.export.opencood import OpenCoodConfig
 from v2xlake.tasks.export.rosbag import RosbagExportConfig
 from v2xlake.tasks.export.scene_transfer import SceneTransferConfig
-from v2xlake.tasks.ingest.config import IngestConfig
-from v2xlake.tasks.qa.config import QaConfig
-from v2xlake.tasks.register.stage import RegisterConfig
 
 
 class ExportParams(BaseModel):
@@ -51,19 +49,11 @@ class ExportParams(BaseModel):
 warnings.filterwarnings("ignore", message='Field name "register" in "PipelineParams"')
 
 
-class PipelineParams(BaseModel):
-    """Every user-settable parameter of a pipeline run."""
+class _Sections(BaseModel):
+    """Every user-settable parameter of a pipeline run: one section per stage, then
+    ``export``."""
 
     model_config = ConfigDict(extra="forbid")
-
-    ingest: IngestConfig = Field(default_factory=IngestConfig)
-    qa: QaConfig = Field(default_factory=QaConfig)
-    anonymize: AnonymizeConfig = Field(default_factory=AnonymizeConfig)
-    deskew: DeskewConfig = Field(default_factory=DeskewConfig)
-    register: RegisterConfig = Field(default_factory=RegisterConfig)
-    annotate: AnnotateConfig = Field(default_factory=AnnotateConfig)
-    align: AlignConfig = Field(default_factory=AlignConfig)
-    export: ExportParams = Field(default_factory=ExportParams)
 
     def for_stage(self, stage: Stage[Any], clip_params: dict[str, Any] | None = None
                   ) -> BaseModel:
@@ -82,3 +72,25 @@ class PipelineParams(BaseModel):
             return stage.config(merge_params(values, own))
         except ValidationError as e:
             raise ParamsError(f"params.{stage.name}: {_short(e)}") from e
+
+
+def _sections() -> dict[str, Any]:
+    """(model, default) of every section, in pipeline order, ``export`` last."""
+    out: dict[str, Any] = {}
+    for name in stage_names():
+        model = config_model(name)
+        out[name] = (model, Field(default_factory=model))
+    out["export"] = (ExportParams, Field(default_factory=ExportParams))
+    return out
+
+
+if TYPE_CHECKING:
+    class PipelineParams(_Sections):
+        """The static view of the model built below: a section is any attribute."""
+
+        export: ExportParams = Field(default_factory=ExportParams)
+
+        def __getattr__(self, name: str) -> Any: ...
+else:
+    PipelineParams = create_model("PipelineParams", __base__=_Sections, __module__=__name__,
+                                  __doc__=_Sections.__doc__, **_sections())

@@ -1,6 +1,6 @@
 """The pipeline: the stages in order, and the flows that run them per clip.
 
-``STAGES`` imports every stage's :class:`~v2xlake.schemas.stage.Stage` object directly, so a
+``STAGES`` imports every registered stage's :class:`~v2xlake.schemas.stage.Stage` object, so a
 stage whose module fails to import fails the command before any clip is touched, and the
 call chain from the flow into every stage is plain Python (``flow -> run_stage ->
 stage.run``).
@@ -42,7 +42,6 @@ from pydantic import BaseModel
 
 from v2xlake.flows import bookkeeping
 from v2xlake.flows.params import ParamsError, clip_params, parse_params
-from v2xlake.flows.stage_names import STAGE_NAMES as REGISTRY_NAMES
 from v2xlake.flows.stage_names import (  # re-exported: they lived here before
     UNREADABLE,
     peek_clip_id,
@@ -53,17 +52,11 @@ from v2xlake.schemas.errors import ClipError, DeliveryConflict, error_text
 from v2xlake.schemas.stage import Stage, StageReport
 from v2xlake.storage.lake import CLIP_ID, ClipBusy, Lake, LakeWriteError
 from v2xlake.storage.quarantine import REJECTED
-from v2xlake.tasks.align.stage import ALIGN
-from v2xlake.tasks.annotate.stage import ANNOTATE
-from v2xlake.tasks.anonymize.stage import ANONYMIZE
-from v2xlake.tasks.deskew.stage import DESKEW
-from v2xlake.tasks.ingest.stage import INGEST
-from v2xlake.tasks.qa.stage import QA
-from v2xlake.tasks.register.stage import REGISTER
 
-STAGES: tuple[Stage[Any], ...] = (INGEST, QA, ANONYMIZE, DESKEW, REGISTER, ANNOTATE, ALIGN)
+# every registered stage (schemas/registry.py), imported now: one that fails to import fails
+# the command before any clip is touched
+STAGES: tuple[Stage[Any], ...] = resolve_pipeline()
 STAGE_NAMES = tuple(s.name for s in STAGES)
-assert STAGE_NAMES == REGISTRY_NAMES, "flows/stage_names.py must list STAGES, in order"
 
 
 # The CLI sets this to drive its progress display (only for in-process runs).

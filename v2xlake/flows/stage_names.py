@@ -3,8 +3,9 @@ without importing Prefect or any stage module.
 
 WHY a module of its own: the stage modules import NumPy, SciPy, Open3D, numba (4-8 s on two
 cores) and Prefect takes 2 s more; the no-op check (``flows.noop``) and ``v2xlake params show
---stage X`` must answer before either is imported. ``flows.pipeline.STAGES`` imports the
-Stage objects named here (and checks that the two agree).
+--stage X`` must answer before either is imported. The stage list itself is
+``schemas.registry`` (its one definition); ``flows.pipeline.STAGES`` imports the Stage
+objects it names.
 """
 
 from __future__ import annotations
@@ -17,17 +18,19 @@ from typing import Any
 
 import yaml
 
-#: The standard pipeline, in order: stage name -> (module, attribute) of its Stage object.
-STAGE_REFS: dict[str, tuple[str, str]] = {
-    "ingest": ("v2xlake.tasks.ingest.stage", "INGEST"),
-    "qa": ("v2xlake.tasks.qa.stage", "QA"),
-    "anonymize": ("v2xlake.tasks.anonymize.stage", "ANONYMIZE"),
-    "deskew": ("v2xlake.tasks.deskew.stage", "DESKEW"),
-    "register": ("v2xlake.tasks.register.stage", "REGISTER"),
-    "annotate": ("v2xlake.tasks.annotate.stage", "ANNOTATE"),
-    "align": ("v2xlake.tasks.align.stage", "ALIGN"),
-}
-STAGE_NAMES: tuple[str, ...] = tuple(STAGE_REFS)
+from v2xlake.schemas import registry
+
+
+def __getattr__(name: str) -> Any:
+    """``STAGE_NAMES`` (every registered stage, in pipeline order) and ``STAGE_REFS`` (stage
+    name -> (module, attribute) of its Stage object), from the one stage list
+    (``schemas.registry``) when asked: names cost no stage import, references import each
+    package's ``__init__.py`` (its declaration) only."""
+    if name == "STAGE_NAMES":
+        return registry.stage_names()
+    if name == "STAGE_REFS":
+        return {n: registry.stage_ref(n) for n in registry.stage_names()}
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def resolve_pipeline(pipeline: str | None = None) -> tuple[Any, ...]:
@@ -37,7 +40,7 @@ def resolve_pipeline(pipeline: str | None = None) -> tuple[Any, ...]:
     from v2xlake.schemas.stage import Stage
 
     if not pipeline:
-        return tuple(registry_stage(n) for n in STAGE_NAMES)
+        return tuple(registry_stage(n) for n in registry.stage_names())
     mod, _, attr = pipeline.partition(":")
     found = getattr(importlib.import_module(mod), attr)
     if not isinstance(found, tuple | list) or not all(isinstance(s, Stage) for s in found):
@@ -58,8 +61,8 @@ def select(stages: Sequence[Any], names: Iterable[str] | None) -> list[Any]:
 
 
 def registry_stage(name: str) -> Any:
-    """One standard stage's Stage object (imports that stage's module only)."""
-    mod, attr = STAGE_REFS[name]
+    """One registered stage's Stage object (imports that stage's module only)."""
+    mod, attr = registry.stage_ref(name)
     return getattr(importlib.import_module(mod), attr)
 
 

@@ -69,6 +69,38 @@ def tables(zone: Zone, *names: str) -> tuple[TableRef, ...]:
     return tuple(TableRef(zone, n) for n in names)
 
 
+# The raw-zone tables ingest writes; anonymize writes each of them again into the clean zone
+# (relative time, local ENU, blurred images), except those that never leave raw. Here, not
+# in ``schemas/tables.py`` beside the row models, because both stages' declarations
+# (``StageDeclaration``) name them and must not import pyarrow.
+INGEST_TABLES = ("clips", "agents", "sensors", "calibrated_sensors", "ins", "ego_poses", "imu",
+                 "gnss", "lidar_frames", "lidar_points", "camera_frames", "annotations",
+                 "radar_frames", "radar_points")
+RAW_ONLY_TABLES = ("ins",)
+
+
+@dataclass(frozen=True)
+class StageDeclaration:
+    """What a stage package says about itself in its ``__init__.py`` (as ``DECLARATION``),
+    readable without importing any other module of the package: its name and the tables it
+    owns. The registry (``schemas/registry.py``) finds the package from the stage list or
+    an entry point; by the package shape, its parameters are the one ``StageConfig`` of
+    ``<package>.config`` and its Stage object is ``<package>.stage.<stage_object>``.
+
+    WHY a declaration apart from the Stage object: the owners of the lake's tables, the
+    parameter sections and ``v2xlake params show`` must be known without importing a
+    stage's numeric code (seconds); the Stage object takes ``name`` and ``owns`` from here
+    (``tests/test_stage_contract.py`` checks that the two agree)."""
+
+    name: str
+    owns: tuple[TableRef, ...]
+    stage_object: str = ""  # the attribute of ``<package>.stage``; default: NAME in capitals
+
+    def __post_init__(self) -> None:
+        if not self.stage_object:
+            object.__setattr__(self, "stage_object", self.name.upper())
+
+
 C = TypeVar("C", bound=BaseModel)
 
 

@@ -9,12 +9,16 @@ and the catalog adds them back from the path.
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 import pyarrow as pa
 from pydantic import BaseModel, ConfigDict
 
 from v2xlake.schemas.arrow import F32, F64, I32, I64, U8, U16, ArrowType
+
+# re-exported: the stages import them from here
+from v2xlake.schemas.stage import INGEST_TABLES as INGEST_TABLES
+from v2xlake.schemas.stage import RAW_ONLY_TABLES as RAW_ONLY_TABLES
 
 DictStr = Annotated[str, ArrowType(pa.dictionary(pa.int32(), pa.string()))]
 
@@ -469,33 +473,30 @@ LAKE_TABLES: dict[str, type[_Row]] = {
 }
 
 
-# Raw-zone tables that ingest writes; anonymize writes each of them again into the clean
-# zone (relative time, local ENU, blurred images), except those that never leave raw.
-INGEST_TABLES = ("clips", "agents", "sensors", "calibrated_sensors", "ins", "ego_poses", "imu",
-                 "gnss", "lidar_frames", "lidar_points", "camera_frames", "annotations",
-                 "radar_frames", "radar_points")
-RAW_ONLY_TABLES = ("ins",)
-
-# The single writer of every (zone, table): storage refuses a write by any other stage.
-TABLE_OWNERS: dict[tuple[str, str], str] = {
-    **{("raw", t): "ingest" for t in INGEST_TABLES},
-    ("raw", "qa_checks"): "qa",
-    **{("clean", t): "anonymize" for t in INGEST_TABLES if t not in RAW_ONLY_TABLES},
-    ("clean", "anonymization_audit"): "anonymize",
-    ("clean", "qa_checks"): "anonymize",  # raw QA findings with relative time
-    ("clean", "lidar_points_deskewed"): "deskew",
-    ("clean", "deskew_frames"): "deskew",
-    ("clean", "registrations"): "register",
-    ("clean", "calibration_refined"): "register",
-    ("clean", "annotations_world"): "annotate",
-    ("clean", "instances"): "annotate",
-    ("clean", "alignments"): "align",
-    **{("clean", f"nuscenes_{t}"): "export" for t in (
+# The tables of the lake's export formats (not a stage: ``v2xlake export``).
+EXPORT_TABLES: dict[tuple[str, str], str] = {
+    ("clean", f"nuscenes_{t}"): "export" for t in (
         "scene", "sample", "sample_data", "sample_annotation", "instance", "category",
-        "attribute", "visibility", "sensor", "calibrated_sensor", "ego_pose", "log", "map")},
-}
+        "attribute", "visibility", "sensor", "calibrated_sensor", "ego_pose", "log", "map")}
+
+
+def table_owners() -> dict[tuple[str, str], str]:
+    """The single writer of every (zone, table): storage refuses a write by any other stage.
+    Each stage declares its own tables in its package (``schemas.registry``), so a new
+    stage adds its tables without editing this module."""
+    from v2xlake.schemas.registry import table_owners as declared
+
+    return {**declared(), **EXPORT_TABLES}
 
 
 def table_owner(zone: str, table: str) -> str | None:
     """The stage that owns ``zone.table`` (None: not a known table)."""
-    return TABLE_OWNERS.get((zone, table))
+    return table_owners().get((zone, table))
+
+
+def __getattr__(name: str) -> Any:
+    """``TABLE_OWNERS``, built from the stages' declarations on first use (importing this
+    module must not import the stage packages: they import it)."""
+    if name == "TABLE_OWNERS":
+        return table_owners()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

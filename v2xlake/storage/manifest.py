@@ -192,6 +192,19 @@ def module_closure(module: str) -> list[Path]:
     return sorted(set(seen.values()))
 
 
+def _added_stage_paths(stage: str) -> list[str | Path]:
+    """The code of a stage that a package outside the standard list adds (an entry point,
+    ``schemas.registry``): its package's folder and the schemas it is written against.
+    Without the folder, editing that stage would not re-run it. An unknown name: the
+    schemas only."""
+    from v2xlake.schemas.registry import stage_packages
+
+    package = stage_packages().get(stage)
+    spec = importlib.util.find_spec(package) if package else None
+    folders = list(spec.submodule_search_locations or ()) if spec else []
+    return [*(Path(f) for f in folders), PACKAGE_ROOT / "schemas"]
+
+
 _Stamp = tuple[tuple[str, int, int], ...]
 _CODE_MEMO: dict[tuple[str, tuple[str, ...] | None], tuple[list[Path], _Stamp, str]] = {}
 
@@ -225,7 +238,7 @@ def code_version(stage: str, code_paths: Sequence[str | Path] | None = None) -> 
     elif stage in STAGE_MODULES:
         paths = list(module_closure(STAGE_MODULES[stage]))
     else:
-        paths = [PACKAGE_ROOT / "schemas"]
+        paths = _added_stage_paths(stage)
     files = _code_files(paths)
     stamp = _stamp(files)
     version = f"{package_version()}+{_hash_files(files)}"

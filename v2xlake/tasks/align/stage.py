@@ -33,6 +33,7 @@ from v2xlake.schemas.tables import AlignmentRow
 from v2xlake.storage.files import read_parquet
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import CLIP_TABLES, CameraCalib, iter_point_frames
+from v2xlake.tasks.align import DECLARATION
 from v2xlake.tasks.align.boxes import BoxArray
 from v2xlake.tasks.align.config import AlignConfig, AssociationConfig
 from v2xlake.tasks.align.methods import (
@@ -421,8 +422,8 @@ def _write_overlay(lake: Lake, clip_id: str, aid: str, agent: AgentData, T_el: n
 
 
 ALIGN = Stage(
-    name=STAGE, config_model=AlignConfig,
+    name=DECLARATION.name, config_model=AlignConfig,
     # load_clip reads the clip record (storage.reader.CLIP_TABLES)
     reads=tables("clean", *CLIP_TABLES, "lidar_points_deskewed"),
-    owns=tables("clean", "alignments"), run=run_align,
+    owns=DECLARATION.owns, run=run_align,
     doc="stamp-, frame- and target-based LiDAR-camera temporal alignment (Sec. 5)")

@@ -34,6 +34,7 @@ from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import AnnotationWorldRow, InstanceRow
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import CLIP_TABLES, iter_point_frames
+from v2xlake.tasks.annotate import DECLARATION
 from v2xlake.tasks.annotate.config import AnnotateConfig
 from v2xlake.tasks.annotate.consistency import check_links, cross_agent_distances, world_boxes
 from v2xlake.tasks.geometry import apply, count_points_in_boxes, transform
@@ -250,8 +251,8 @@ def run_annotate(lake: Lake, clip_id: str,
 
 
 ANNOTATE = Stage(
-    name="annotate", config_model=AnnotateConfig,
+    name=DECLARATION.name, config_model=AnnotateConfig,
     # load_clip reads the clip record (storage.reader.CLIP_TABLES), less what annotate writes
     reads=tables("clean", *(t for t in CLIP_TABLES if t not in OWNS), "lidar_points_deskewed"),
-    owns=tables("clean", *OWNS), run=run_annotate,
+    owns=DECLARATION.owns, run=run_annotate,
     doc="points per box, global instances, world-frame boxes, link and cross-agent checks")

@@ -24,6 +24,15 @@ from __future__ import annotations
 from importlib import import_module
 from typing import Any
 
+from v2xlake.schemas.stage import INGEST_TABLES, RAW_ONLY_TABLES, StageDeclaration, tables
+
+# what the registry reads without importing the stage (schemas/registry.py)
+DECLARATION = StageDeclaration(
+    name="anonymize",
+    owns=(*tables("clean", *(t for t in INGEST_TABLES if t not in RAW_ONLY_TABLES)),
+          *tables("clean", "qa_checks", "anonymization_audit")))
+
+
 _WHERE = {
     "AnonymizeConfig": "config",
     "run_anonymize": "stage",

@@ -36,6 +36,7 @@ from v2xlake.storage.files import read_parquet
 from v2xlake.storage.frames import file_schema, iter_row_groups, partition_files
 from v2xlake.storage.lake import Lake
 from v2xlake.storage.reader import CameraCalib, calibrations, pose_samples
+from v2xlake.tasks.anonymize import DECLARATION
 from v2xlake.tasks.anonymize.config import AnonymizeConfig
 from v2xlake.tasks.anonymize.timespace import (
     T0_OFFSET_NS,
@@ -629,8 +630,8 @@ def audit_detections(lake: Lake, clip_id: str) -> dict[tuple[str, str, int], lis
 _CLEAN = tuple(t for t in INGEST_TABLES if t not in RAW_ONLY_TABLES)
 
 ANONYMIZE = Stage(
-    name="anonymize", config_model=AnonymizeConfig,
+    name=DECLARATION.name, config_model=AnonymizeConfig,
     reads=tables("raw", *INGEST_TABLES, "qa_checks"),
-    owns=tables("clean", *_CLEAN, "qa_checks", "anonymization_audit"),
+    owns=DECLARATION.owns,
     run=run_anonymize, atomic=False,  # stages the whole clean zone and publishes it itself
     doc="faces and plates blurred, time made relative, positions made local")

@@ -41,6 +41,7 @@ from v2xlake.storage.reader import (
     poses_missing,
     read_extrinsics,
 )
+from v2xlake.tasks.deskew import DECLARATION
 from v2xlake.tasks.deskew.config import DeskewConfig
 from v2xlake.tasks.deskew.coverage import max_pose_gap, pose_gaps, uncompensable
 from v2xlake.tasks.interpolate import PoseTrack
@@ -323,9 +324,9 @@ def _write_frames(lake: Lake, clip_id: str, stats: dict[tuple[str, str, int], _F
 
 
 DESKEW = Stage(
-    name=STAGE, config_model=DeskewConfig,
+    name=DECLARATION.name, config_model=DeskewConfig,
     reads=tables("clean", "agents", "ego_poses", "calibrated_sensors", "lidar_frames",
                  "lidar_points"),
-    owns=tables("clean", OUT_TABLE, FRAMES_TABLE), run=run_deskew,
+    owns=DECLARATION.owns, run=run_deskew,
     chunked=Chunked(plan=plan_deskew, run_chunk=deskew_chunk, finish=finish_deskew),
     doc="per-point motion compensation into the scan-start LiDAR frame (supp. A.4 eq. 2-3)")

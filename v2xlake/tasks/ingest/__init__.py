@@ -17,6 +17,14 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+from v2xlake.schemas.stage import INGEST_TABLES, StageDeclaration, tables
+
+# what the registry reads without importing the stage (schemas/registry.py)
+DECLARATION = StageDeclaration(
+    name="ingest",
+    owns=tables("raw", *INGEST_TABLES))
+
+
 _WHERE = {"IngestConfig": "config", "clip_inputs": "clipdir", "run_ingest": "stage"}
 __all__ = sorted(_WHERE)
 

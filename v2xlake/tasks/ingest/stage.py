@@ -52,7 +52,7 @@ from v2xlake.schemas.clip import (
 )
 from v2xlake.schemas.errors import ClipError, DeliveryConflict
 from v2xlake.schemas.geometry import Transform
-from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
+from v2xlake.schemas.stage import OutputFile, Stage, StageReport
 from v2xlake.schemas.tables import (
     INGEST_TABLES,
     AgentRow,
@@ -70,6 +70,7 @@ from v2xlake.schemas.tables import (
     SensorRow,
 )
 from v2xlake.storage.lake import Lake, TableWriter
+from v2xlake.tasks.ingest import DECLARATION
 from v2xlake.tasks.ingest.annotations import annotation_tables, load_annotations
 from v2xlake.tasks.ingest.bagopen import (
     STAGE,
@@ -867,6 +868,6 @@ def pq_rows(lake: Lake, path: str) -> int:
 _OWNS = [("raw", t) for t in INGEST_TABLES]
 
 INGEST = Stage(
-    name="ingest", config_model=IngestConfig, input="clip_dir",
-    reads=(), owns=tables("raw", *INGEST_TABLES), run=run_ingest, atomic=False,
+    name=DECLARATION.name, config_model=IngestConfig, input="clip_dir",
+    reads=(), owns=DECLARATION.owns, run=run_ingest, atomic=False,
     doc="bags -> raw tables (points with per-point time, images, poses, calibration)")

@@ -52,6 +52,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import QaCheckRow
 from v2xlake.storage.lake import Lake
+from v2xlake.tasks.qa import DECLARATION
 from v2xlake.tasks.qa.config import QaConfig
 from v2xlake.tasks.qa.timing import (
     MS,
@@ -397,8 +398,8 @@ def run_qa(lake: Lake, clip_id: str, config: QaConfig | None = None) -> StageRep
 
 
 QA = Stage(
-    name="qa", config_model=QaConfig,
+    name=DECLARATION.name, config_model=QaConfig,
     # and the landing clip.yaml, which ingest turns into clips and calibrated_sensors
     reads=tables("raw", *CHECKED, "clips", "calibrated_sensors"),
-    owns=tables("raw", "qa_checks"), run=run_qa,
+    owns=DECLARATION.owns, run=run_qa,
     doc="timing, gaps and coverage checks; an error-severity finding quarantines the clip")

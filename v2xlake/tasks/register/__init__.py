@@ -29,3 +29,12 @@ The numeric core, on arrays and records:
 - ``bev.py`` and ``timeline.py``: the bird's-eye view of one frame (Fig. 5) and the clip's
   registration over time, as PNG (bytes, or a file the caller names).
 """
+
+from __future__ import annotations
+
+from v2xlake.schemas.stage import StageDeclaration, tables
+
+# what the registry reads without importing the stage (schemas/registry.py)
+DECLARATION = StageDeclaration(
+    name="register",
+    owns=tables("clean", "registrations", "calibration_refined"))
