@@ -17,21 +17,19 @@ from v2xlake.tasks.anonymize.detectors import (
     ScanConfig,
 )
 from v2xlake.tasks.anonymize.guide import GuideConfig
-from v2xlake.tasks.anonymize.guided import GuidedConfig, GuidedDetector
+from v2xlake.tasks.anonymize.guided import GuidedConfig, GuidedDetector, face_scan
 from v2xlake.tasks.anonymize.plateread import PlateReadConfig
 from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
 
 
 def full_face_scan(cfg: AnonymizeConfig) -> ScanConfig:
     """The full-frame plan's face scan (coarse pass, fine pass in tiles)."""
-    f = cfg.faces
-    return ScanConfig(max_side=f.max_side, fine_scale=f.fine_scale, tile=f.tile,
-                      tile_overlap=f.tile_overlap, upscale_min_side=f.upscale_min_side)
+    return face_scan(cfg.faces)
 
 
 def build_detector(cfg: AnonymizeConfig) -> GuidedDetector:
     """Faces and plates, guided when given regions, the full-frame plan otherwise."""
-    f, p, r = cfg.faces, cfg.plates, cfg.regions
+    f, p = cfg.faces, cfg.plates
     face = CenterFaceDetector(FaceConfig(threshold=min(f.threshold, f.full_threshold),
                                          scan=full_face_scan(cfg), quantized=f.int8))
     face_first = None
@@ -50,26 +48,7 @@ def build_detector(cfg: AnonymizeConfig) -> GuidedDetector:
         extra.append(ClassicPlateDetector(ClassicPlateConfig(upscale=p.upscale)))
     if "haar" in p.detector:
         extra.append(HaarPlateDetector())
-    return GuidedDetector(face, plate, GuidedConfig(
-        face_target_px=r.face_target_px,
-        window_face_target_px=r.window_face_target_px,
-        plate_target_px=r.plate_target_px,
-        max_upscale=r.max_upscale,
-        face_threshold=f.threshold,
-        full_face_threshold=f.full_threshold,
-        safety_face_max_side=cfg.safety.face_max_side,
-        safety_plate_max_side=cfg.safety.plate_max_side,
-        full_face_scan=full_face_scan(cfg),
-        full_plate_scan=ScanConfig(max_side=None, fine_scale=p.full_fine_scale,
-                                   tile=f.tile if p.full_fine_scale else 0,
-                                   tile_overlap=f.tile_overlap, upscale_min_side=0),
-        blob_below_px=r.blob_below_px,
-        full_proposals=cfg.full_proposals,
-        face_proposal_threshold=f.proposal_threshold,
-        plate_proposal_scale=p.proposal_scale,
-        plate_proposal_threshold=p.proposal_threshold,
-        plate_edge_threshold=p.edge_threshold,
-    ), extra, face_first)
+    return GuidedDetector(face, plate, GuidedConfig.of(cfg), extra, face_first)
 
 
 def guide_config(cfg: AnonymizeConfig) -> GuideConfig:

