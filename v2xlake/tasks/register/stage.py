@@ -65,6 +65,8 @@ from v2xlake.tasks.register.solve import (
     ClipSolution,
     CrossMeasurement,
     OdoMeasurement,
+    chi2_isf,
+    normal_sf,
     se3_exp,
     solve_clip,
 )
@@ -85,29 +87,62 @@ def _fail(clip_id: str, reason: str, agent_id: str | None = None) -> ClipError:
 
 
 # ---------------------------------------------------------------- reading the lake
+@dataclass(frozen=True)
+class _AgentTables:
+    """What every LiDAR of one agent reads from the lake, read once per agent: its pose track,
+    extrinsics, ``lidar_frames`` and ``deskew_frames`` rows, the frame index of its deskewed
+    points (one footer read per file) and its ``annotations``. WHY: the side-LiDAR
+    refinement reads the primary's and each secondary's scans; per LiDAR these were
+    read again (15 table reads and 2 index builds for a two-LiDAR agent, 7 and 1 now)."""
+
+    clip_id: str
+    agent: str
+    track: PoseTrack
+    extr: dict[str, np.ndarray]
+    frames: pa.Table
+    desk: pa.Table
+    index: PointFrameIndex
+    annotations: pa.Table
+
+
+def _read_agent(lake: Lake, clip_id: str, agent: str,
+                extr: dict[str, np.ndarray] | None = None) -> _AgentTables:
+    """The agent's tables (``extr``: its extrinsics when the caller has read them)."""
+    track: PoseTrack = load_pose_track(lake, clip_id, agent)
+    extr = read_extrinsics(lake, clip_id, agent) if extr is None else extr
+    if not extr:
+        raise _fail(clip_id, "no LiDAR in calibrated_sensors", agent)
+    return _AgentTables(
+        clip_id, agent, track, extr,
+        frames=lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent),
+        desk=lake.read_table("clean", "deskew_frames", clip_id=clip_id, agent_id=agent),
+        index=PointFrameIndex.build(lake, "clean", DESKEWED, clip_id, agent),
+        annotations=lake.read_table("clean", "annotations", clip_id=clip_id, agent_id=agent))
+
+
 def read_agent_scans(lake: Lake, clip_id: str, agent: str, sensor: str | None) -> AgentScans:
     """One agent's deskewed scans of one LiDAR (``sensor``; None: ``LIDAR_TOP``, else its
     first LiDAR): pose track, extrinsic, each deskewed frame's scan start and deskew
     reference time (``lidar_frames`` joined with ``deskew_frames``), its annotated boxes,
     and a reader of one frame's points (one row group, through the frame index)."""
-    track: PoseTrack = load_pose_track(lake, clip_id, agent)
-    extr = read_extrinsics(lake, clip_id, agent)
-    if not extr:
-        raise _fail(clip_id, "no LiDAR in calibrated_sensors", agent)
+    return _lidar_scans(_read_agent(lake, clip_id, agent), sensor)
+
+
+def _lidar_scans(a: _AgentTables, sensor: str | None) -> AgentScans:
+    """``read_agent_scans`` of one LiDAR from its agent's tables, read once."""
+    clip_id, agent, extr = a.clip_id, a.agent, a.extr
     if sensor is None:
         sensor = "LIDAR_TOP" if "LIDAR_TOP" in extr else sorted(extr)[0]
     if sensor not in extr:
         raise _fail(clip_id, f"LiDAR {sensor} has no calibrated_sensors row", agent)
-    frames = lake.read_table("clean", "lidar_frames", clip_id=clip_id, agent_id=agent)
-    desk = lake.read_table("clean", "deskew_frames", clip_id=clip_id, agent_id=agent)
-    if frames.num_rows and not desk.num_rows:
+    if a.frames.num_rows and not a.desk.num_rows:
         raise _fail(clip_id, "no deskew_frames: run deskew first", agent)
     # frame_idx -> (scan start, deskew reference time); frames deskew skipped are left out
     times: dict[int, tuple[int, int]] = {}
-    if (lf := lidar_frames(frames, desk).get(sensor)) is not None:
+    if (lf := lidar_frames(a.frames, a.desk).get(sensor)) is not None:
         times = {int(f): (int(t0), int(r)) for f, t0, r, ok in zip(
             lf.frame_idx, lf.t_start_ns, lf.ref_ns, lf.deskewed, strict=True) if ok}
-    index = PointFrameIndex.build(lake, "clean", DESKEWED, clip_id, agent)
+    index = a.index
     if not index:
         raise _fail(clip_id, f"no {DESKEWED} rows: run deskew first", agent)
     lidar = sensor
@@ -119,15 +154,13 @@ def read_agent_scans(lake: Lake, clip_id: str, agent: str, sensor: str | None) -
         xyz = np.stack([t.column(c).to_numpy() for c in ("x", "y", "z")], axis=1)
         return xyz, np.asarray(t.column("t_ns").to_numpy(), dtype=np.int64)
 
-    ann = _annotation_columns(lake, clip_id, agent, sensor)
+    ann = _annotation_columns(a.annotations, sensor)
     boxes = boxes_per_frame(ann, times) if ann is not None else {}
-    return AgentScans(agent, sensor, track, extr[sensor], times, read_frame, boxes)
+    return AgentScans(agent, sensor, a.track, extr[sensor], times, read_frame, boxes)
 
 
-def _annotation_columns(lake: Lake, clip_id: str, agent: str, sensor: str
-                        ) -> AnnotationColumns | None:
+def _annotation_columns(ann: pa.Table, sensor: str) -> AnnotationColumns | None:
     """The agent's clean ``annotations`` of one LiDAR as columns; None when it has none."""
-    ann = lake.read_table("clean", "annotations", clip_id=clip_id, agent_id=agent)
     if ann.num_rows == 0:
         return None
     ann = ann.filter(pc.equal(ann["sensor"].cast(pa.string()), sensor))
@@ -150,16 +183,18 @@ def refine_agent_lidars(lake: Lake, clip_id: str, agent: str,
                         T_ego_primary: np.ndarray | None = None
                         ) -> tuple[list[CalibrationRefinedRow], list[str]]:
     """``calibration_refined`` rows for every secondary LiDAR of ``agent`` (none when it has
-    one LiDAR) and notes: its LiDARs' scans read here, refined by
-    ``intra_stage.refine_secondaries``. ``T_ego_primary``: the primary's effective extrinsic
-    (the stage's refined one when usable; default the published one)."""
+    one LiDAR) and notes: its LiDARs' scans read here (the agent's tables once, shared by
+    its LiDARs), refined by ``intra_stage.refine_secondaries``. ``T_ego_primary``: the
+    primary's effective extrinsic (the stage's refined one when usable; default the
+    published one)."""
     s = settings or IntraStageSettings()
     extr = read_extrinsics(lake, clip_id, agent)
     if not s.enabled or len(extr) < 2:
         return [], []
     primary, secondaries = split_lidars(list(extr), s.primary)
-    P = read_agent_scans(lake, clip_id, agent, primary)
-    return refine_secondaries(clip_id, P, (read_agent_scans(lake, clip_id, agent, sec)
+    tables_of_agent = _read_agent(lake, clip_id, agent, extr)
+    P = _lidar_scans(tables_of_agent, primary)
+    return refine_secondaries(clip_id, P, (_lidar_scans(tables_of_agent, sec)
                                            for sec in secondaries), s, T_ego_primary)
 
 
@@ -252,8 +287,6 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
     """The clip's extrinsic corrections, applied in the components it determined and only
     when significant; ``usable`` also needs a consistent fit and small enough 1-sigma (every
     component determined with ``calibration.require_all``); why not goes to ``notes``."""
-    from scipy.stats import chi2, norm  # here, not at import: scipy.stats takes 1.2 s
-
     rows = []
     prior = np.array([np.radians(cfg.solve.prior_ext_deg)] * 3 + [cfg.solve.prior_ext_m] * 3)
     names = ("rx", "ry", "rz", "tx", "ty", "tz")
@@ -266,7 +299,7 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
         if det.any():  # significance of the correction over the determined components
             cd = cov[np.ix_(det, det)]
             m2 = float(applied[det] @ np.linalg.pinv(cd, hermitian=True) @ applied[det])
-            q_lim = float(chi2.isf(2 * norm.sf(cfg.calibration.significance), int(det.sum())))
+            q_lim = chi2_isf(2 * normal_sf(cfg.calibration.significance), int(det.sum()))
             if m2 < q_lim:
                 applied = np.zeros(6)
                 why.append(f"correction not significant (chi2 {m2:.1f} < {q_lim:.1f}): published "

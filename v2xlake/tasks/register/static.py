@@ -148,20 +148,38 @@ def dynamic_mask(nearest_earlier: np.ndarray | None, nearest_later: np.ndarray |
     return np.asarray(out)
 
 
+@njit(cache=True)
+def _above_kernel(pts: np.ndarray, cell_m: float, clearance_m: float) -> np.ndarray:
+    n = pts.shape[0]
+    gx = np.empty(n, np.int64)
+    gy = np.empty(n, np.int64)
+    for i in range(n):
+        gx[i] = np.int64(np.floor(pts[i, 0] / cell_m))
+        gy[i] = np.int64(np.floor(pts[i, 1] / cell_m))
+    x0, y0 = gx.min(), gy.min()
+    ny = gy.max() - y0 + 1
+    zmin = np.full((gx.max() - x0 + 1) * ny, np.inf)
+    for i in range(n):
+        k = (gx[i] - x0) * ny + gy[i] - y0
+        gx[i] = k
+        if pts[i, 2] < zmin[k]:
+            zmin[k] = pts[i, 2]
+    out = np.empty(n, np.bool_)
+    for i in range(n):
+        out[i] = pts[i, 2] > zmin[gx[i]] + clearance_m
+    return out
+
+
 def above_ground(pts: np.ndarray, ground_cell_m: float = 4.0,
                  clearance_m: float = 0.3) -> np.ndarray:
     """Points more than ``clearance_m`` above the lowest point of their ``ground_cell_m``
     bird's-eye-view cell. The ground never moves, and its sparse far rings shift between
-    scans by more than any residual threshold: it is left out of the moving test."""
-    n = len(pts)
-    if n == 0:
+    scans by more than any residual threshold: it is left out of the moving test. (One numba
+    pass: with ``np.minimum.at`` it took 3.4 ms per 25k-point scan, twice per frame pair.)"""
+    if len(pts) == 0:
         return np.zeros(0, bool)
-    g = np.floor(pts[:, :2] / ground_cell_m).astype(np.int64)
-    g -= g.min(axis=0)
-    gkey = g[:, 0] * (int(g[:, 1].max()) + 1) + g[:, 1]
-    zmin = np.full(int(gkey.max()) + 1, np.inf)
-    np.minimum.at(zmin, gkey, pts[:, 2])
-    return np.asarray(pts[:, 2] > zmin[gkey] + clearance_m)
+    return np.asarray(_above_kernel(np.ascontiguousarray(pts, np.float64),
+                                    float(ground_cell_m), float(clearance_m)))
 
 
 def grow_to_objects(pts: np.ndarray, moving: np.ndarray, above: np.ndarray, cell_m: float,
@@ -201,13 +219,15 @@ def ground_distance(pts: np.ndarray, min_range_m: float = 3.0, max_range_m: floa
     plane never shows otherwise."""
     if len(pts) == 0:
         return float("nan")
-    r = np.hypot(pts[:, 0], pts[:, 1])
-    g = pts[~above_ground(pts) & (r >= min_range_m) & (r <= max_range_m)]
+    r2 = pts[:, 0] * pts[:, 0] + pts[:, 1] * pts[:, 1]
+    g = pts[~above_ground(pts) & (r2 >= min_range_m ** 2) & (r2 <= max_range_m ** 2)]
     for _ in range(3):
         if len(g) < min_points:
             return float("nan")
         A = np.column_stack([g[:, 0], g[:, 1], np.ones(len(g))])
-        coef, *_ = np.linalg.lstsq(A, g[:, 2], rcond=None)
+        # normal equations: a 3x3 solve, not an SVD of the (n, 3) matrix (x and y span
+        # metres to 15 m, so A^T A stays well conditioned)
+        coef = np.linalg.solve(A.T @ A, A.T @ g[:, 2])
         res = g[:, 2] - A @ coef
         g = g[np.abs(res) <= trim_m]
     a, b, c = coef
