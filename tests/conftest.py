@@ -49,6 +49,9 @@ def pytest_configure(config: pytest.Config) -> None:
     # a CLI test without PREFECT_API_URL starts the shared temporary server: let it stop
     # soon after the test instead of the 600 s a user's shell gets
     os.environ.setdefault("V2XLAKE_SERVER_IDLE_S", "30")
+    # no warm process (flows/warm.py) under the suite: each CLI call runs as its own process
+    # unless a test asks for one (tests/test_warm.py)
+    os.environ.setdefault("V2XLAKE_WARM", "0")
 
 
 @pytest.hookimpl(tryfirst=True)

@@ -363,8 +363,9 @@ def run_process(clip_dirs: Sequence[str], lake: str, runner: str = "local",
     # without PREFECT_API_URL: the temporary server the previous calls shared (started now
     # if none answers, flows.shared_server), else Prefect's own per-process one; either
     # comes up while the stages import
-    from v2xlake.flows import shared_server
+    from v2xlake.flows import shared_server, warm
 
+    warm.note_prefect_call()  # a CLI call run here starts a warm process when done
     old_url = os.environ.get("PREFECT_API_URL")
     wait_server = shared_server.attach() if shared_server.enabled() else None
     try:
@@ -922,11 +923,29 @@ def catalog_refresh(lake: LakeOpt = DEFAULT_LAKE) -> int:
 
 # ---------------------------------------------------------------- entry point
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the CLI; returns the exit status (0 ok, 1 problems found, 2 usage/input error)."""
+    """Run the CLI; returns the exit status (0 ok, 1 problems found, 2 usage/input error).
+
+    As the program's entry (``argv`` None) the call runs in the warm process when one of
+    this code and environment answers (``flows/warm.py``: Prefect and the stages already
+    imported), else here; a call here that ran Prefect starts one for the next calls."""
+    if argv is None:
+        from v2xlake.flows import warm
+
+        args = sys.argv[1:]
+        code = warm.call(args)
+        if code is not None:
+            return code
+        try:
+            return _main(args)
+        finally:
+            warm.start_if_wanted()
+    return _main(list(argv))
+
+
+def _main(argv: list[str]) -> int:
     err = _console(stderr=True)
     try:
-        rv = app(args=list(sys.argv[1:] if argv is None else argv), prog_name="v2xlake",
-                 standalone_mode=False)
+        rv = app(args=argv, prog_name="v2xlake", standalone_mode=False)
     except typer.Exit as e:
         return int(e.exit_code or 0)
     except typer.Abort:

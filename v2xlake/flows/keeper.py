@@ -1,12 +1,16 @@
 """Keep a shared Prefect API server alive while it is used, stop it when idle (stdlib only).
 
-    python keeper.py HOME IDLE_S -- COMMAND [ARGS...]
+    python keeper.py HOME IDLE_S [NAME] -- COMMAND [ARGS...]
 
 WHY: Prefect's temporary server lives as long as the process that started it, so every
 ``v2xlake process`` call without ``PREFECT_API_URL`` paid its start (a uvicorn process
 importing Prefect's server: 6-15 s on two cores, the largest part of a real call's fixed
 cost, #26). ``flows/shared_server.py`` starts the same server once, under this keeper,
 detached from the caller, and later calls find it through the state file in ``HOME``.
+
+``NAME`` (default ``shared-server``) names its files in ``HOME``: the state file
+``NAME.json`` and the lease ``NAME.lease``; the warm process (``flows/warm.py``) runs under a
+keeper of its own with another name.
 
 The keeper makes a process group of its own, starts the command in it (SIGTERMed if the
 keeper dies, even by SIGKILL: ``PR_SET_PDEATHSIG``, as in ``guard.py``) and every ``POLL_S``
@@ -40,31 +44,35 @@ from types import FrameType
 from v2xlake.flows.guard import die_with_parent, stop_group
 
 POLL_S = 1.0
-STATE = "shared-server.json"
-LEASE = "shared-server.lease"
-def _owns_state(home: Path) -> bool:
+NAME = "shared-server"
+STATE = f"{NAME}.json"
+LEASE = f"{NAME}.lease"
+
+
+def _owns_state(state: Path) -> bool:
     """Whether the state file still names this keeper (a replacement server rewrites it)."""
     try:
-        return int(json.loads((home / STATE).read_text())["pid"]) == os.getpid()
+        return int(json.loads(state.read_text())["pid"]) == os.getpid()
     except (OSError, ValueError, KeyError, TypeError):
         return False
 
 
-def _drop_state(home: Path) -> None:
-    if _owns_state(home):
+def _drop_state(state: Path) -> None:
+    if _owns_state(state):
         with contextlib.suppress(OSError):
-            (home / STATE).unlink()
+            state.unlink()
 
 
-def keep(home: Path, idle_s: float, cmd: list[str]) -> int:
+def keep(home: Path, idle_s: float, cmd: list[str], name: str = NAME) -> int:
     if os.getsid(0) != os.getpid():
         os.setsid()
-    lease = home / LEASE
+    state = home / f"{name}.json"
+    lease = home / f"{name}.lease"
     lease.touch()
     proc = subprocess.Popen(cmd, preexec_fn=die_with_parent)
 
     def on_signal(sig: int, _frame: FrameType | None) -> None:
-        _drop_state(home)
+        _drop_state(state)
         stop_group(proc)
         sys.exit(128 + sig)
 
@@ -74,7 +82,7 @@ def keep(home: Path, idle_s: float, cmd: list[str]) -> int:
     while True:
         try:
             code = proc.wait(POLL_S)
-            _drop_state(home)
+            _drop_state(state)
             return code
         except subprocess.TimeoutExpired:
             pass
@@ -93,9 +101,9 @@ def keep(home: Path, idle_s: float, cmd: list[str]) -> int:
         try:
             # replaced (the state file names another server; it appears just after our
             # start) or idle: stop, but only while no user holds the lease
-            replaced = time.monotonic() - started > 30 and not _owns_state(home)
+            replaced = time.monotonic() - started > 30 and not _owns_state(state)
             if replaced or time.time() - os.fstat(fd).st_mtime > idle_s:
-                _drop_state(home)  # before the lock goes: a new user starts a fresh server
+                _drop_state(state)  # before the lock goes: a new user starts a fresh server
                 stop_group(proc)
                 return 0
         finally:
@@ -103,6 +111,8 @@ def keep(home: Path, idle_s: float, cmd: list[str]) -> int:
 
 
 def main(argv: list[str]) -> int:
+    if len(argv) >= 5 and argv[3] == "--":
+        return keep(Path(argv[0]), float(argv[1]), argv[4:], name=argv[2])
     if len(argv) < 4 or argv[2] != "--":
         print(__doc__, file=sys.stderr)
         return 2
