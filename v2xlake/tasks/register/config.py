@@ -25,13 +25,13 @@ class GicpSection(Section):
     """Generalized-ICP of one pair of scans (main paper eq. 1b)."""
 
     backend: Literal["small_gicp", "sparse", "open3d"] = Field(
-        "small_gicp", description="GICP implementation: small_gicp (every point of both "
-        "clouds), sparse (a spread sample of the source, surfaces computed only where "
-        "correspondences land: register/sparse.py) or open3d. sparse halves the register "
-        "stage's time per frame pair on the cooperative boulevard and is as accurate at 5-20 m, "
-        "but with the other vehicle 50 m behind on a 10 s clip 5 of its frames were accepted "
-        "3+ cm off (small_gicp: none): its sample leaves too few far correspondences, so it is "
-        "not the default")
+        "sparse", description="GICP implementation: sparse (a spread sample of the source, "
+        "surfaces computed only where correspondences land, every centroid where the sample "
+        "finds too few: register/sparse.py), small_gicp (every point of both clouds) or "
+        "open3d. On the cooperative boulevard's variations sparse took 0.09-0.37 s per frame "
+        "pair against 0.19-0.49 s for small_gicp with no frame accepted outside 3 cm / 0.1 "
+        "deg for either; on consecutive real Ouster OS-1-128 and Velodyne VLP-16 scans the "
+        "two agree within 3 mm / 0.02 deg")
     voxel_m: float = Field(
         0.3, gt=0, description="target (reference scan) voxel size. Coarse voxels bias the "
         "relative pose along a street: a voxel's centroid on poles, car bodies and wall "
