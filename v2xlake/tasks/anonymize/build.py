@@ -32,10 +32,11 @@ def build_detector(cfg: AnonymizeConfig) -> GuidedDetector:
     f, p = cfg.faces, cfg.plates
     face = CenterFaceDetector(FaceConfig(threshold=min(f.threshold, f.full_threshold),
                                          scan=full_face_scan(cfg), quantized=f.int8))
-    face_first = None
-    if cfg.full_proposals and f.first_int8 and not f.int8:
-        face_first = CenterFaceDetector(FaceConfig(threshold=f.proposal_threshold,
-                                                   quantized=True))
+    face_first = region_first = None
+    if ((cfg.full_proposals and f.first_int8) or f.regions_first_int8) and not f.int8:
+        int8 = CenterFaceDetector(FaceConfig(threshold=f.proposal_threshold, quantized=True))
+        face_first = int8 if cfg.full_proposals and f.first_int8 else None
+        region_first = int8 if f.regions_first_int8 else None
     plate = None
     if "text" in p.detector:
         plate = TextPlateDetector(TextPlateConfig(
@@ -48,7 +49,7 @@ def build_detector(cfg: AnonymizeConfig) -> GuidedDetector:
         extra.append(ClassicPlateDetector(ClassicPlateConfig(upscale=p.upscale)))
     if "haar" in p.detector:
         extra.append(HaarPlateDetector())
-    return GuidedDetector(face, plate, GuidedConfig.of(cfg), extra, face_first)
+    return GuidedDetector(face, plate, GuidedConfig.of(cfg), extra, face_first, region_first)
 
 
 def guide_config(cfg: AnonymizeConfig) -> GuideConfig:

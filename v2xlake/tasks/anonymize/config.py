@@ -42,8 +42,18 @@ class Faces(Section):
         "int8 copy (2.3x faster; small real faces score as high or higher there); every "
         "proposal but large confident faces is looked at again by the float network")
     proposal_threshold: float = Field(
-        0.05, ge=0, description="full-frame plan: first-pass face score that proposes a crop "
-        "(real faces pasted at 16 px into the real street images score 0.06-0.68 natively)")
+        0.05, ge=0, description="full-frame plan and regions_first_int8: first-pass (int8) "
+        "face score that proposes a crop (real faces pasted at 16 px into the real street "
+        "images score 0.06-0.68 natively)")
+    regions_first_int8: bool = Field(
+        True, description="guided plan: the region canvases and the safety view go through "
+        "CenterFace's int8 copy first; its candidates scoring first_accept are kept, the "
+        "others scoring proposal_threshold are cut out and decided by the float network "
+        "(the int8 copy alone lost 4K faces of 16-24 px)")
+    first_accept: float = Field(
+        0.5, ge=0, description="regions_first_int8: an int8 candidate scoring this is kept "
+        "without a float look (true faces the int8 copy scores this high scored higher in "
+        "float)")
 
 
 PlateDetectorName = Literal["text", "classic", "haar", "text+classic", "classic+haar", "none"]
