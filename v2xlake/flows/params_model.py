@@ -4,8 +4,8 @@ stage (``schemas.registry``), each the stage's own config model from its package
 needed (it imports every stage's config module and every exporter); see that module for the
 rules.
 
-WHY built from the registry: a new stage brings its section with its package; nothing here
-names a stage.
+WHY built from the registries: a new stage brings its section with its package, a new
+export format with its ``EXPORTERS`` entry; nothing here names either.
 """
 
 from __future__ import annotations
@@ -19,25 +19,18 @@ from v2xlake.flows.params import ParamsError, _short, config_model
 from v2xlake.schemas.config import merge_params
 from v2xlake.schemas.registry import stage_names
 from v2xlake.schemas.stage import Stage
-from v2xlake.tasks.export.bev import BevConfig
-from v2xlake.tasks.export.eth3d import Eth3dConfig
-from v2xlake.tasks.export.nuscenes import NuScenesExportConfig
-from v2xlake.tasks.export.opencood import OpenCoodConfig
-from v2xlake.tasks.export.rosbag import RosbagExportConfig
-from v2xlake.tasks.export.scene_transfer import SceneTransferConfig
+from v2xlake.tasks.export.exporters import EXPORTERS
 
 
-class ExportParams(BaseModel):
+def _section(model: type[BaseModel]) -> Any:
+    """(model, default) of one section: its model's defaults."""
+    return model, Field(default_factory=model)
+
+
+class _ExportSections(BaseModel):
     """One section per export format (``scene-transfer`` is spelled ``scene_transfer``)."""
 
     model_config = ConfigDict(extra="forbid")
-
-    nuscenes: NuScenesExportConfig = Field(default_factory=NuScenesExportConfig)
-    eth3d: Eth3dConfig = Field(default_factory=Eth3dConfig)
-    rosbag: RosbagExportConfig = Field(default_factory=RosbagExportConfig)
-    opencood: OpenCoodConfig = Field(default_factory=OpenCoodConfig)
-    bev: BevConfig = Field(default_factory=BevConfig)
-    scene_transfer: SceneTransferConfig = Field(default_factory=SceneTransferConfig)
 
     def section(self, fmt: str) -> BaseModel:
         section: BaseModel = getattr(self, fmt.replace("-", "_"))
@@ -74,23 +67,20 @@ class _Sections(BaseModel):
             raise ParamsError(f"params.{stage.name}: {_short(e)}") from e
 
 
-def _sections() -> dict[str, Any]:
-    """(model, default) of every section, in pipeline order, ``export`` last."""
-    out: dict[str, Any] = {}
-    for name in stage_names():
-        model = config_model(name)
-        out[name] = (model, Field(default_factory=model))
-    out["export"] = (ExportParams, Field(default_factory=ExportParams))
-    return out
+if TYPE_CHECKING:  # the static view of the models built below: a section is any attribute
+    class ExportParams(_ExportSections):
+        def __getattr__(self, name: str) -> Any: ...
 
-
-if TYPE_CHECKING:
     class PipelineParams(_Sections):
-        """The static view of the model built below: a section is any attribute."""
-
         export: ExportParams = Field(default_factory=ExportParams)
 
         def __getattr__(self, name: str) -> Any: ...
-else:
-    PipelineParams = create_model("PipelineParams", __base__=_Sections, __module__=__name__,
-                                  __doc__=_Sections.__doc__, **_sections())
+else:  # a section per exporter (tasks/export/exporters.py), then per stage, and ``export``
+    ExportParams = create_model(
+        "ExportParams", __base__=_ExportSections, __module__=__name__,
+        __doc__=_ExportSections.__doc__,
+        **{name.replace("-", "_"): _section(e.config_model) for name, e in EXPORTERS.items()})
+    PipelineParams = create_model(
+        "PipelineParams", __base__=_Sections, __module__=__name__, __doc__=_Sections.__doc__,
+        **{name: _section(config_model(name)) for name in stage_names()},
+        export=_section(ExportParams))
