@@ -30,6 +30,7 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
+from v2xlake.schemas.registry import STAGE_PACKAGES
 from v2xlake.schemas.stage import OutputFile, StageReport
 from v2xlake.schemas.tables import ManifestRow
 from v2xlake.storage import checksum
@@ -50,11 +51,12 @@ PACKAGE_ROOT = _package_root()
 
 # The module of each stage; its source and every project module it imports (transitively,
 # ``tasks.*`` and ``schemas.*``) make the stage's code version, so editing a helper that a
-# stage uses re-runs that stage, and editing another stage's code does not.
+# stage uses re-runs that stage, and editing another stage's code does not. The standard
+# stages come from the one stage list (schemas/registry.py); for a stage an entry point adds,
+# see ``_added_stage_paths``.
 STAGE_MODULES: dict[str, str] = {
-    name: f"v2xlake.tasks.{name}"  # the stage's package: every module in it, and imports
-    for name in ("ingest", "qa", "anonymize", "deskew", "register", "annotate", "align",
-                 "export")
+    **{package.rpartition(".")[2]: package for package in STAGE_PACKAGES},
+    "export": "v2xlake.tasks.export",
 }
 CODE_PACKAGES = ("v2xlake.tasks", "v2xlake.schemas")
 
