@@ -1,6 +1,6 @@
 """Fixed cost of a real ``v2xlake process`` call, where it goes, and its share of a 10 s clip.
 
-    python tests/bench/bench_fixed.py [--work DIR] [--repeat 3] [--modes temporary,shared,url]
+    python tests/bench/bench_fixed.py [--work DIR] [--repeat 3] [--modes temporary,shared,url,warm]
 
 A real call (every stage runs: a fresh lake each time) on a small 1 s camera-less clip, each
 a fresh process timed from its start to its exit. Its fixed cost is the call's wall time
@@ -23,9 +23,13 @@ progress display replaced by a recorder, the Prefect server's wait wrapped):
 Modes: ``temporary``: Prefect's per-process temporary server (``V2XLAKE_SHARED_SERVER=0``,
 what every call paid before); ``shared``: the temporary server shared between calls
 (``flows/shared_server.py``), warm (started by a call before the measured ones);
-``url``: ``PREFECT_API_URL`` naming a running ``prefect server``. The anchor, a trivial Prefect
-flow of the same shape (tests/trivial_flow.py, 7 tasks), runs against the same server in the
-same mode. The reference is the processing time of a 10 s camera-less simulated clip
+``url``: ``PREFECT_API_URL`` naming a running ``prefect server``; ``warm``: the real command
+line (``python -m v2xlake.flows.cli process CLIP --lake LAKE --format json``) run by the warm
+process (``flows/warm.py``, started by an in-process call before the measured ones; each
+measured call is checked to have gone through it), with the shared server: its fixed cost is
+its wall time minus the stages' seconds from the JSON, and it is not split. The anchor, a
+trivial Prefect flow of the same shape (tests/trivial_flow.py, 7 tasks), runs against the same
+server in the same mode. The reference is the processing time of a 10 s camera-less simulated clip
 (preset small, the stages' seconds summed, one shared-mode call on a fresh lake).
 Not run by pytest.
 """
@@ -105,6 +109,7 @@ def _env(home: Path, mode: str, url: str | None) -> dict[str, str]:
                PREFECT_HOME=str(home / "prefect"))
     env.pop("PREFECT_API_URL", None)
     env["V2XLAKE_SHARED_SERVER"] = "0" if mode == "temporary" else "1"
+    env["V2XLAKE_WARM"] = "1" if mode == "warm" else "0"
     if mode == "url" and url:
         env["PREFECT_API_URL"] = url
     return env
@@ -136,6 +141,54 @@ def real_call(clip: Path, lake: Path, env: dict[str, str]) -> dict[str, float]:
             "server wait": r["server_wait"], "imports, params": r["before_flows"],
             "flow runs": r["flow_runs"], "per task": r["per_task"],
             "between tasks": r["between"], "tail": r["tail"]}
+
+
+def _warm_calls(home: Path) -> int:
+    """Calls the warm processes of ``home`` finished (their log's exit lines)."""
+    try:
+        text = (home / "prefect" / "warm.log").read_text()
+    except OSError:
+        return 0
+    return sum(": exit " in line for line in text.splitlines())
+
+
+def cli_call(clip: Path, lake: Path, env: dict[str, str]) -> dict[str, float]:
+    """The real command line, timed from the client's start to its exit."""
+    shutil.rmtree(lake, ignore_errors=True)
+    t0 = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", "v2xlake.flows.cli", "process", str(clip),
+                          "--lake", str(lake), "--format", "json"], env=env, cwd=REPO,
+                         capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if res.returncode != 0:
+        raise RuntimeError(f"call failed:\n{res.stdout[-2000:]}\n{res.stderr[-3000:]}")
+    stages = json.loads(res.stdout)[0]["stages"]
+    assert all(o["status"] != "cached" for o in stages), stages
+    own = sum(float(o["seconds"]) for o in stages)
+    return {"wall": wall, "fixed": wall - own, "stages": own}
+
+
+def warm_call(clip: Path, lake: Path, env: dict[str, str], home: Path) -> dict[str, float]:
+    """``cli_call`` that must have been run by the warm process."""
+    before = _warm_calls(home)
+    r = cli_call(clip, lake, env)
+    if _warm_calls(home) != before + 1:
+        raise RuntimeError("the call did not go through the warm process (did the code "
+                           f"change meanwhile? see {home / 'prefect' / 'warm.log'})")
+    return r
+
+
+def start_warm(clip: Path, lake: Path, env: dict[str, str], home: Path) -> None:
+    """An in-process call that starts the warm process, then wait until it serves."""
+    log = home / "prefect" / "warm.log"
+    served = log.read_text().count(" serving ") if log.exists() else 0
+    cli_call(clip, lake, env)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline:
+        if log.exists() and log.read_text().count(" serving ") > served:
+            return
+        time.sleep(0.5)
+    raise RuntimeError(f"no warm process came up; see {log}")
 
 
 def anchor(env: dict[str, str]) -> float:
@@ -173,9 +226,16 @@ def main() -> None:
         rows: dict[str, dict[str, float]] = {}
         for mode in modes:
             env = _env(home, mode, server.api_url if server else None)
-            runs = [real_call(small, work / "lake", env) for _ in range(args.repeat)]
+            if mode == "warm":
+                start_warm(small, work / "lake", env, home)
+                runs = [warm_call(small, work / "lake", env, home)
+                        for _ in range(args.repeat)]
+                runs = [{k: r.get(k, float("nan")) for k in ("wall", "fixed", "stages",
+                                                              *PARTS)} for r in runs]
+            else:
+                runs = [real_call(small, work / "lake", env) for _ in range(args.repeat)]
             rows[mode] = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-            if mode == "shared":  # the anchor is plain Prefect: point it at the same server
+            if mode in ("shared", "warm"):  # the anchor is plain Prefect: the same server
                 state = json.loads((home / "prefect" / "shared-server.json").read_text())
                 env = dict(env, PREFECT_API_URL=state["url"])
             rows[mode]["anchor"] = statistics.median(anchor(env) for _ in range(args.repeat))
@@ -189,6 +249,9 @@ def main() -> None:
 
         configure_prefect()
         shared_server.stop()
+        from v2xlake.flows import warm
+
+        warm.stop(home / "prefect")
     print(f"a real call on a 1 s camera-less clip, medians of {args.repeat} fresh processes "
           f"(s); reference: a {args.reference_seconds:g} s camera-less clip's stages took "
           f"{ref['stages']:.1f} s (call {ref['wall']:.1f} s)", flush=True)
