@@ -387,6 +387,8 @@ def _anonymize_images(
     files = partition_files(lake, "raw", "camera_frames", clip_id)
     tables = [(agent, name, read_parquet(path, filesystem=lake.fs)) for path, agent, name in files]
     total = sum(t.num_rows for _, _, t in tables)
+    if not tables:  # no camera: no detector either (its ONNX sessions took ~1 s to build)
+        return 0, 0, 0, 0
     detector = build_detector(cfg)
     blur = blur_config(cfg)
     anonymizer = cfg.provenance(detector.version)

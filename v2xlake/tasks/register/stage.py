@@ -65,6 +65,8 @@ from v2xlake.tasks.register.solve import (
     ClipSolution,
     CrossMeasurement,
     OdoMeasurement,
+    chi2_isf,
+    normal_sf,
     se3_exp,
     solve_clip,
 )
@@ -285,8 +287,6 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
     """The clip's extrinsic corrections, applied in the components it determined and only
     when significant; ``usable`` also needs a consistent fit and small enough 1-sigma (every
     component determined with ``calibration.require_all``); why not goes to ``notes``."""
-    from scipy.stats import chi2, norm  # here, not at import: scipy.stats takes 1.2 s
-
     rows = []
     prior = np.array([np.radians(cfg.solve.prior_ext_deg)] * 3 + [cfg.solve.prior_ext_m] * 3)
     names = ("rx", "ry", "rz", "tx", "ty", "tz")
@@ -299,7 +299,7 @@ def _calibration_rows(clip_id: str, sol: ClipSolution, agents: list[AgentScans],
         if det.any():  # significance of the correction over the determined components
             cd = cov[np.ix_(det, det)]
             m2 = float(applied[det] @ np.linalg.pinv(cd, hermitian=True) @ applied[det])
-            q_lim = float(chi2.isf(2 * norm.sf(cfg.calibration.significance), int(det.sum())))
+            q_lim = chi2_isf(2 * normal_sf(cfg.calibration.significance), int(det.sum()))
             if m2 < q_lim:
                 applied = np.zeros(6)
                 why.append(f"correction not significant (chi2 {m2:.1f} < {q_lim:.1f}): published "
