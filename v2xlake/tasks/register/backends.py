@@ -1,8 +1,9 @@
 """GICP backends behind one interface (main paper eq. 1b: T_init -> GICP -> T_refine).
 
-Three implementations of Generalized-ICP [Segal et al.]: small_gicp (default, every point of
-both clouds), ``sparse`` (:mod:`sparse`: a spread sample of the source, surfaces computed only
-where correspondences land; 2-4x faster per pair here, less accurate far away) and Open3D. Each
+Three implementations of Generalized-ICP [Segal et al.]: ``sparse`` (default; :mod:`sparse`: a
+spread sample of the source, surfaces computed only where correspondences land, every
+centroid where the sample finds too few; 2-4x faster per pair here), small_gicp (every point
+of both clouds) and Open3D. Each
 cloud is prepared ONCE (voxel downsampling, per-point covariances or a lazy surface store,
 k-d tree) and reused: the reference agent's scan is the target of every other agent's scan in
 the same frame, and small_gicp's one-call ``align`` on NumPy arrays would redo that work every
