@@ -130,7 +130,7 @@ def _running(pid: int) -> bool:
 def _long_call(warm: Warm, name: str) -> tuple[subprocess.Popen[str], int]:
     """A call that runs for a while (a long simulated clip), once its child has started."""
     before = warm.calls()
-    proc = subprocess.Popen([*CLI, "simulate", name, "--seconds", "3000", "--cameras", "0"],
+    proc = subprocess.Popen([*CLI, "simulate", name, "--seconds", "120", "--cameras", "0"],
                             env=warm.env, cwd=warm.work, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60

@@ -70,7 +70,7 @@ from v2xlake.flows import keeper
 
 NAME = "warm"
 PACKAGE = Path(__file__).resolve().parents[1]
-LEARNED = "warm-modules.json"
+LEARNED = "warm.modules.json"  # not "warm-*.json": those are state files
 CONNECT_TIMEOUT_S = 10.0  # the warm process answers a request in milliseconds
 TICK_S = 2.0  # how often an idle warm process checks its code and the learned modules
 MAX_SOCKET_PATH = 100  # bytes; AF_UNIX allows 107
