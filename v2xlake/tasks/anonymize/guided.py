@@ -170,6 +170,9 @@ class GuidedConfig:
     # 16-24 px scored 0.08-0.38 in int8 where float gave 0.23-0.71) are cut out with
     # ``face_proposal_pad`` face sizes of context and looked at again by the float network
     face_first_accept: float = _param("faces.first_accept")
+    # vehicle faces whose plate is expected narrower than this (px) get no text-detector
+    # look (the plate-blob test still runs there): below the plate size that must be found
+    plate_text_min_px: float = _param("regions.plate_text_min_px")
 
 
 @dataclass(frozen=True, eq=False)
@@ -659,7 +662,8 @@ class GuidedDetector:
         pieces = plan_pieces(regions, image.shape, c)
         dets: list[Detection] = []
         for kind, det in (("face", self.face), ("plate", self.plate)):
-            kp = [p for p in pieces if p.kind == kind]
+            kp = [p for p in pieces if p.kind == kind
+                  and (kind == "face" or p.expected[0] >= c.plate_text_min_px)]
             if det is None or not kp:
                 continue
             for canvas, ps, pos in mosaics(image, kp, c):
