@@ -4,7 +4,8 @@
 the clean zone out, the guide built from the clip's tables) and the ``ANONYMIZE`` Stage
 object; everything else is pure (arrays and images in, arrays out):
 
-- ``build.py``: the parameters turned into the detector and the pure modules' settings;
+- ``build.py``: the parameters turned into the detector and the pure modules' settings,
+  whose fields name the parameter each is (``params.py``: one definition, one default);
 - ``guide.py`` (3D boxes -> image regions), ``context.py`` (one clip's poses, cameras and
   boxes -> regions per image), ``clusters.py`` (object boxes from a LiDAR scan);
 - ``guided.py`` (the guided scan plan, its safety pass and the full-frame plan),

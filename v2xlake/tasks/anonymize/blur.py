@@ -16,20 +16,24 @@ import cv2
 import numpy as np
 
 from v2xlake.tasks.anonymize.detectors import Box
+from v2xlake.tasks.anonymize.params import FromParams, param
 
 
 @dataclass(frozen=True)
-class BlurConfig:
-    method: str = "pixelate+gaussian"  # or "gaussian"
-    margin: float = 0.2  # fraction of the box size added on each side
+class BlurConfig(FromParams):
+    """How a box is blurred; the fields made with ``param`` are user parameters (params.py:
+    ``BlurConfig.of``)."""
+
+    method: str = param("blur.method")  # "pixelate+gaussian" or "gaussian"
+    margin: float = param("blur.plate_margin")  # fraction of the box size added on each side
     # faces: a detector's box runs brow/hairline to chin, and the whole face (hairline to
     # chin, ear to ear) sticks out of it by up to 0.18 of the box width at the sides, 0.17 of
     # its height at the top and 0.09 at the bottom (two real faces pasted at 24-160 px, tilted
     # +-20 deg, into the real street images, full-frame plan and 480 px safety pass); these
     # margins hold that plus a head turned or bent (None: ``margin``)
-    face_margin_x: float | None = 0.3
-    face_margin_top: float | None = 0.35
-    face_margin_bottom: float | None = 0.25
+    face_margin_x: float | None = param("blur.face_margin_x")
+    face_margin_top: float | None = param("blur.face_margin_top")
+    face_margin_bottom: float | None = param("blur.face_margin_bottom")
     min_margin_px: int = 2
     cells: int = 6  # pixelation cells across the longest side of the grown box
     sigma_frac: float = 0.25  # Gaussian sigma as a fraction of the grown box's longest side

@@ -15,10 +15,10 @@ from v2xlake.tasks.anonymize.detectors import (
     FaceConfig,
     HaarPlateDetector,
     ScanConfig,
+    face_scan,
 )
 from v2xlake.tasks.anonymize.guide import GuideConfig
-from v2xlake.tasks.anonymize.guided import GuidedConfig, GuidedDetector, face_scan
-from v2xlake.tasks.anonymize.plateread import PlateReadConfig
+from v2xlake.tasks.anonymize.guided import GuidedConfig, GuidedDetector
 from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
 
 
@@ -30,42 +30,35 @@ def full_face_scan(cfg: AnonymizeConfig) -> ScanConfig:
 def build_detector(cfg: AnonymizeConfig) -> GuidedDetector:
     """Faces and plates, guided when given regions, the full-frame plan otherwise."""
     f, p = cfg.faces, cfg.plates
-    face = CenterFaceDetector(FaceConfig(threshold=min(f.threshold, f.full_threshold),
-                                         scan=full_face_scan(cfg), quantized=f.int8))
+    face = CenterFaceDetector(FaceConfig.of(cfg))
     face_first = region_first = None
     if ((cfg.full_proposals and f.first_int8) or f.regions_first_int8) and not f.int8:
+        # the proposing pass: only its heat maps are read (``maps`` / ``decode`` with the
+        # plan's own thresholds), never its scan
         int8 = CenterFaceDetector(FaceConfig(threshold=f.proposal_threshold, quantized=True))
         face_first = int8 if cfg.full_proposals and f.first_int8 else None
         region_first = int8 if f.regions_first_int8 else None
     plate = None
     if "text" in p.detector:
-        plate = TextPlateDetector(TextPlateConfig(
-            box_threshold=p.box_threshold, min_aspect=p.min_aspect, max_aspect=p.max_aspect,
-            max_tilt_deg=p.max_tilt_deg,
-            read=PlateReadConfig(min_conf=p.read_min_conf, min_digits=p.read_min_digits)
-            if p.read else None))
+        plate = TextPlateDetector(TextPlateConfig.of(cfg))
     extra: list[Detector] = []
     if "classic" in p.detector:
-        extra.append(ClassicPlateDetector(ClassicPlateConfig(upscale=p.upscale)))
+        extra.append(ClassicPlateDetector(ClassicPlateConfig.of(cfg)))
     if "haar" in p.detector:
         extra.append(HaarPlateDetector())
     return GuidedDetector(face, plate, GuidedConfig.of(cfg), extra, face_first, region_first)
 
 
 def guide_config(cfg: AnonymizeConfig) -> GuideConfig:
-    r = cfg.regions
-    return GuideConfig(margin_px=r.margin_px, margin_frac=r.margin_frac,
-                       max_age_ns=int(r.box_max_age_ms * 1e6), windows=r.windows)
+    """The guide's settings (params.py: each field names its parameter)."""
+    return GuideConfig.of(cfg)
 
 
 def blur_config(cfg: AnonymizeConfig) -> BlurConfig:
-    b = cfg.blur
-    return BlurConfig(method=b.method, margin=b.plate_margin, face_margin_x=b.face_margin_x,
-                      face_margin_top=b.face_margin_top,
-                      face_margin_bottom=b.face_margin_bottom)
+    """The blur's settings (params.py: each field names its parameter)."""
+    return BlurConfig.of(cfg)
 
 
 def cluster_config(cfg: AnonymizeConfig) -> ClusterConfig:
-    c = cfg.clusters
-    return ClusterConfig(gap_deg=c.gap_deg, bridge_new_share=c.bridge_new_share,
-                         bridge_max_m=c.bridge_max_m)
+    """The LiDAR clusters' settings (params.py: each field names its parameter)."""
+    return ClusterConfig.of(cfg)

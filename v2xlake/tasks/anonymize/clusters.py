@@ -33,9 +33,14 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from v2xlake.tasks.anonymize.params import FromParams, param
+
 
 @dataclass(frozen=True)
-class ClusterConfig:
+class ClusterConfig(FromParams):
+    """The clustering's measured constants, and (made with ``param``) the user parameters of
+    bridging gaps (params.py: ``ClusterConfig.of``)."""
+
     ground_cell_m: float = 2.0
     ground_percentile: float = 5.0
     min_above_m: float = 0.2
@@ -63,12 +68,12 @@ class ClusterConfig:
     # cells further apart than the grid are one object when the gap, seen from the sensor,
     # is at most this angle (a spinning LiDAR's azimuth step, with room to spare: 1024-column
     # heads 0.35°, the simulator's 1.1°); the 0.2 m grid's objects are kept too. 0: off
-    gap_deg: float = 1.5
+    gap_deg: float = param("clusters.gap_deg")
     # a bridged group is an object of its own only when no single grid object holds this
     # share of its points (else it is that object plus stragglers: searched already), and
     # when it is car-high or at most ``bridge_max_m`` long (taller and longer: facades)
-    bridge_new_share: float = 0.8
-    bridge_max_m: float = 6.0
+    bridge_new_share: float = param("clusters.bridge_new_share")
+    bridge_max_m: float = param("clusters.bridge_max_m")
 
 
 def cluster_boxes(xyz: np.ndarray, cfg: ClusterConfig | None = None

