@@ -20,6 +20,11 @@ progress display replaced by a recorder, the Prefect server's wait wrapped):
   its states, the manifest key and clip lock, the result), summed over the 7 stages;
 * ``tail``: after the last stage (catalog refresh, artifacts, flows finishing).
 
+Every row also gets the coarser split the warm row can be given (from the progress lines the
+CLI prints on stderr): ``outside the flows`` (process start and exit, imports, the no-op
+check, the server, the tail; for the warm row also the client and the fork) and ``flows and
+tasks`` (flow-run creation and each task's overhead).
+
 Modes: ``temporary``: Prefect's per-process temporary server (``V2XLAKE_SHARED_SERVER=0``,
 what every call paid before); ``shared``: the temporary server shared between calls
 (``flows/shared_server.py``), warm (started by a call before the measured ones);
@@ -39,6 +44,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import statistics
 import subprocess
@@ -102,6 +108,10 @@ print(json.dumps({
 
 PARTS = ("interpreter + exit", "CLI imports", "server wait", "imports, params", "flow runs",
          "per task", "between tasks", "tail")
+# the warm row's split, from the progress lines the CLI prints on stderr (not a terminal):
+# the last line's time stamp counts from the progress display's start, just before the flows
+WARM_PARTS = ("outside the flows", "flows and tasks")
+PROGRESS = re.compile(r"^\[\s*([0-9.]+) s\] \d+/\d+ ", re.MULTILINE)
 
 
 def _env(home: Path, mode: str, url: str | None) -> dict[str, str]:
@@ -165,7 +175,9 @@ def cli_call(clip: Path, lake: Path, env: dict[str, str]) -> dict[str, float]:
     stages = json.loads(res.stdout)[0]["stages"]
     assert all(o["status"] != "cached" for o in stages), stages
     own = sum(float(o["seconds"]) for o in stages)
-    return {"wall": wall, "fixed": wall - own, "stages": own}
+    last = float(PROGRESS.findall(res.stderr)[-1])
+    return {"wall": wall, "fixed": wall - own, "stages": own,
+            "outside the flows": wall - last, "flows and tasks": last - own}
 
 
 def warm_call(clip: Path, lake: Path, env: dict[str, str], home: Path) -> dict[str, float]:
@@ -231,9 +243,15 @@ def main() -> None:
                 runs = [warm_call(small, work / "lake", env, home)
                         for _ in range(args.repeat)]
                 runs = [{k: r.get(k, float("nan")) for k in ("wall", "fixed", "stages",
-                                                              *PARTS)} for r in runs]
+                                                              *PARTS, *WARM_PARTS)}
+                        for r in runs]
             else:
                 runs = [real_call(small, work / "lake", env) for _ in range(args.repeat)]
+                for r in runs:
+                    r["outside the flows"] = (r["interpreter + exit"] + r["CLI imports"]
+                                              + r["server wait"] + r["imports, params"]
+                                              + r["tail"])
+                    r["flows and tasks"] = r["flow runs"] + r["per task"] + r["between tasks"]
             rows[mode] = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
             if mode in ("shared", "warm"):  # the anchor is plain Prefect: the same server
                 state = json.loads((home / "prefect" / "shared-server.json").read_text())
@@ -256,7 +274,7 @@ def main() -> None:
           f"(s); reference: a {args.reference_seconds:g} s camera-less clip's stages took "
           f"{ref['stages']:.1f} s (call {ref['wall']:.1f} s)", flush=True)
     print(f"  {'':28s}" + "".join(f"{m:>11s}" for m in modes))
-    for key in ("wall", "stages", "fixed", *PARTS, "anchor"):
+    for key in ("wall", "stages", "fixed", *PARTS, *WARM_PARTS, "anchor"):
         print(f"  {key:28s}" + "".join(f"{rows[m][key]:11.2f}" for m in modes))
     for m in modes:
         f = rows[m]["fixed"]

@@ -289,19 +289,20 @@ def learn_modules(home: Path, known: set[str] | None = None) -> None:
     """Add this process's imported modules (those not in ``known``) to the learned list."""
     roots = tuple(os.path.realpath(p) + os.sep for p in
                   {str(PACKAGE), sys.prefix, sys.base_prefix, sys.exec_prefix})
-    mine = {n for n, m in list(sys.modules.items()) if _learnable(n, m, roots)}
-    if known is not None and mine <= known:
+    known = known or set()
+    new = {n for n, m in list(sys.modules.items()) if n not in known and _learnable(n, m, roots)}
+    if not new:
         return
     file = home / LEARNED
     try:
         old = set(json.loads(file.read_text()))
     except (OSError, ValueError, TypeError):
         old = set()
-    if mine <= old:
+    if new <= old:
         return
     tmp = file.with_name(f"{LEARNED}.{os.getpid()}")
     with contextlib.suppress(OSError):
-        tmp.write_text(json.dumps(sorted(old | mine)))
+        tmp.write_text(json.dumps(sorted(old | new)))
         os.replace(tmp, file)
 
 
