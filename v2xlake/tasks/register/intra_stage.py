@@ -25,17 +25,22 @@ import numpy as np
 
 from v2xlake.schemas.tables import CalibrationRefinedRow
 from v2xlake.tasks.geometry import invert, matrix_to_quat, rotation_angle, se3_adjoint
+from v2xlake.tasks.register.config import IntraSection
 from v2xlake.tasks.register.intra import IntraConfig, IntraResult, Pooled, combine, refine_extrinsic
 from v2xlake.tasks.register.scans import AgentScans, redeskew
+
+_SECTION = IntraSection()  # the user parameters' one default (register.intra)
 
 
 @dataclass(frozen=True)
 class IntraStageSettings:
-    """How the register stage refines the secondary LiDARs of each agent."""
+    """How the register stage refines the secondary LiDARs of each agent: the user
+    parameters of ``register.intra`` (their defaults read from :class:`IntraSection`) and
+    internal settings."""
 
-    enabled: bool = True
+    enabled: bool = _SECTION.enabled
     primary: str | None = None  # None: LIDAR_TOP, else the agent's first LiDAR (sorted)
-    frames: int = 3  # frame pairs per secondary LiDAR, spread over the clip, then pooled
+    frames: int = _SECTION.frames  # frame pairs per secondary LiDAR, spread, then pooled
     pair_tolerance_ns: int = 50_000_000  # scan starts of a pair at most this far apart
     redeskew: bool = True  # deskew the secondary again with a first pass's rotation
     config: IntraConfig = field(default_factory=IntraConfig)
