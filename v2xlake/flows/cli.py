@@ -23,6 +23,7 @@ import typer
 from typer.exceptions import TyperException
 
 from v2xlake.flows.settings import DEFAULT_LAKE, configure_prefect, prefect_session, v2xlake_home
+from v2xlake.tasks.release_split import SplitConfig
 
 STAGES_HELP = "ingest,qa,anonymize,deskew,register,annotate,align"
 
@@ -853,6 +854,9 @@ def audit(
 
 
 # ---------------------------------------------------------------- release / catalog
+_SPLIT_DEFAULT = SplitConfig()  # the splits' one default (tasks/release_split.py)
+
+
 @release_app.command("build")
 def release_build(
     name: str,
@@ -860,8 +864,9 @@ def release_build(
     lake: LakeOpt = DEFAULT_LAKE,
     formats: Annotated[str, typer.Option(help="comma list: lake,nuscenes,opencood,...")]
     = "lake",
-    seed: int = 0,
-    fractions: Annotated[str, typer.Option(help="train,val,test")] = "0.7,0.15,0.15",
+    seed: int = _SPLIT_DEFAULT.seed,
+    fractions: Annotated[str, typer.Option(help="train,val,test")]
+    = ",".join(f"{f:g}" for f in _SPLIT_DEFAULT.fractions),
 ) -> int:
     """Build release NAME from a predicate on clips."""
     from v2xlake.flows.release import build_release, check_fractions

@@ -118,8 +118,9 @@ def run_export(lake: Lake, writer: ReleaseWriter, fmt: str, clip_ids: Sequence[s
 
 # ---------------------------------------------------------------- build / verify
 def build_release(lake_uri: str, name: str, where: str,
-                  formats: Sequence[str] = ("lake",), seed: int = 0,
-                  fractions: tuple[float, float, float] = (0.7, 0.15, 0.15)) -> dict[str, Any]:
+                  formats: Sequence[str] = ("lake",), seed: int = SplitConfig().seed,
+                  fractions: tuple[float, float, float] = SplitConfig().fractions
+                  ) -> dict[str, Any]:
     """Build release NAME; returns its release.json content. Refuses an existing name."""
     check_release_name(name)
     fractions = check_fractions(fractions)
