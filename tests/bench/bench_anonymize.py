@@ -496,7 +496,9 @@ def speed(quick: bool) -> None:
                 AnonymizeConfig(safety={"face_max_side": None, "plate_max_side": None}), True),
             "guided plan, faces behind windows not searched": (
                 AnonymizeConfig(regions={"windows": False}), True),
-            "guided plan, int8 CenterFace (face_int8=True)": (
+            "guided plan, float CenterFace alone (regions_first_int8=False)": (
+                AnonymizeConfig(faces={"regions_first_int8": False}), True),
+            "guided plan, int8 CenterFace alone (face_int8=True)": (
                 AnonymizeConfig(faces={"int8": True}), True),
             "full-frame plan (frames without pose / boxes; proposals, default)": (
                 AnonymizeConfig(scan_plan="full"), False),
@@ -589,8 +591,10 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False) 
               "(one worker, CPU seconds)")
         for name, upd in (("every frame in full (carry.key_interval_ms=0)",
                            {"carry": {"key_interval_ms": 0}}),
-                          ("default (key frames + carry, float CenterFace)", {}),
-                          ("key frames + carry, int8 CenterFace", {"faces": {"int8": True}})):
+                          ("default (key frames + carry, faces int8 then float)", {}),
+                          ("key frames + carry, float CenterFace alone",
+                           {"faces": {"regions_first_int8": False}}),
+                          ("key frames + carry, int8 CenterFace alone", {"faces": {"int8": True}})):
             t = time.process_time()
             rep = run_anonymize(lake, cid, AnonymizeConfig(work={"workers": 1}, **upd))
             cpu = time.process_time() - t
