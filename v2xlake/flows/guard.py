@@ -36,6 +36,18 @@ except OSError:  # the polling below still applies
     _LIBC = None
 
 
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (one of another user counts: it is not ours to reuse,
+    but it is there)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def die_with_parent() -> None:
     """In the child, before exec: SIGTERM it when its parent (the guard, the shared server's
     keeper) dies, even by SIGKILL. Both fork from their only thread, so this fires exactly

@@ -36,6 +36,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from v2xlake.flows import keeper
+from v2xlake.flows.guard import alive
 
 KEEPER = Path(keeper.__file__).resolve()
 IDLE_S = 600.0
@@ -81,16 +82,6 @@ def healthy(url: str, timeout: float = 1.0) -> bool:
             return bool(r.status == 200)
     except OSError:
         return False
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _hold_lease(home: Path) -> None:
@@ -179,7 +170,7 @@ def attach() -> Callable[[], None] | None:
     if (state.get("url") and all(state.get(k) == v for k, v in ident.items())
             # a generous timeout: a busy server answers late, and replacing it would leave
             # two running until the first one's users are done
-            and _alive(int(state.get("pid", 0))) and healthy(str(state["url"]), timeout=10.0)):
+            and alive(int(state.get("pid", 0))) and healthy(str(state["url"]), timeout=10.0)):
         os.close(lock)
         os.environ["PREFECT_API_URL"] = str(state["url"])
         return lambda: None
@@ -219,13 +210,13 @@ def stop(home: Path | None = None) -> bool:
         pid = int(json.loads((home / keeper.STATE).read_text())["pid"])
     except (OSError, ValueError, KeyError, TypeError):
         return False
-    if not _alive(pid):
+    if not alive(pid):
         return False
     os.kill(pid, 15)
     if _started is not None and _started.pid == pid:  # our child: reap it (no zombie)
         _started.wait(15)
         return True
     deadline = time.monotonic() + 15
-    while _alive(pid) and time.monotonic() < deadline:
+    while alive(pid) and time.monotonic() < deadline:
         time.sleep(0.1)
     return True

@@ -67,6 +67,7 @@ from types import FrameType
 from typing import Any
 
 from v2xlake.flows import keeper
+from v2xlake.flows.guard import alive
 
 NAME = "warm"
 PACKAGE = Path(__file__).resolve().parents[1]
@@ -317,16 +318,6 @@ def start_if_wanted() -> None:
         start(want.home, want.ident, want.env, want.path)
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def start(home: Path, ident: str, env: dict[str, str], path: list[str]) -> int | None:
     """The warm process under its keeper, recorded in its state file; returns the keeper's
     pid, or None when one is already recorded and alive (starts are serialised by a lock)."""
@@ -338,7 +329,7 @@ def start(home: Path, ident: str, env: dict[str, str], path: list[str]) -> int |
     try:
         fcntl.flock(lock, fcntl.LOCK_EX)
         with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
-            if _alive(int(json.loads(state.read_text())["pid"])):
+            if alive(int(json.loads(state.read_text())["pid"])):
                 return None
         from v2xlake.flows.shared_server import idle_seconds
 
@@ -369,7 +360,7 @@ def stop(home: Path | None = None) -> int:
     for state in home.glob(f"{NAME}-*.json"):
         with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
             pid = int(json.loads(state.read_text())["pid"])
-            if _alive(pid):
+            if alive(pid):
                 os.kill(pid, signal.SIGTERM)
                 n += 1
     return n
