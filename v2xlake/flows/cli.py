@@ -1,4 +1,4 @@
-"""The ``v2xlake`` command line (DESIGN.md "Command line"), built with typer.
+"""The ``v2xlake`` command line (README "Command line"), built with typer.
 
 Each command is a thin function: check its arguments, configure Prefect, lazily import the
 flow or stage module it needs (so ``v2xlake --help`` stays fast), call it, print with rich.

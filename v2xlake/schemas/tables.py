@@ -2,9 +2,9 @@
 
 Time columns ending in ``_ns`` are int64 nanoseconds: GNSS epoch time in the raw zone, the
 clip's relative axis (starting at 0.1 s) in the clean zone. Positions in the clean zone are
-local ENU metres (DESIGN.md). ``clip_id`` / ``agent_id`` are hive partition keys in the lake
-(``table/clip_id=.../agent_id=.../*.parquet``): the storage layer strips them from the file
-and the catalog adds them back from the path.
+local ENU metres (docs/architecture.md, "Space"). ``clip_id`` / ``agent_id`` are hive
+partition keys in the lake (``table/clip_id=.../agent_id=.../*.parquet``): the storage layer
+strips them from the file and the catalog adds them back from the path.
 """
 
 from __future__ import annotations

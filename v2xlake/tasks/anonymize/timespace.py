@@ -1,4 +1,4 @@
-"""Raw -> clean for time and position (DESIGN.md "Time", "Space"; CATS-V2V A.3).
+"""Raw -> clean for time and position (docs/architecture.md "Time", "Space"; CATS-V2V A.3).
 
 Time: every clean table uses the clip's relative axis
 ``t_rel = t_abs - clip_t0_abs + 100_000_000`` ns, where ``clip_t0_abs`` is the earliest sensor

@@ -244,8 +244,8 @@ def export_nuscenes(lake: Lake, clip_ids: Sequence[str], out_dir: Path | str,
             scene_idx += 1
             report_step("nuscenes: scenes", scene_idx, n_scenes)
             map_logs[clip.clip_id].append(token("log", clip.clip_id, aid))
-    # one map per clip: each clip has its own local ENU frame (DESIGN.md), so two clips at
-    # one location do not share coordinates
+    # one map per clip: each clip has its own local ENU frame (docs/architecture.md), so two
+    # clips at one location do not share coordinates
     for cid, logs in map_logs.items():
         mtok = token("map", cid)
         fn = f"maps/{mtok}.png"
