@@ -23,9 +23,10 @@ import typer
 from typer.exceptions import TyperException
 
 from v2xlake.flows.settings import DEFAULT_LAKE, configure_prefect, prefect_session, v2xlake_home
-from v2xlake.tasks.release_split import SplitConfig
+from v2xlake.schemas.registry import STAGE_PACKAGES
 
-STAGES_HELP = "ingest,qa,anonymize,deskew,register,annotate,align"
+# the standard stages, from the one stage list (reading it imports no stage and no pydantic)
+STAGES_HELP = ",".join(p.rpartition(".")[2] for p in STAGE_PACKAGES)
 
 app = typer.Typer(
     name="v2xlake", no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
@@ -854,9 +855,6 @@ def audit(
 
 
 # ---------------------------------------------------------------- release / catalog
-_SPLIT_DEFAULT = SplitConfig()  # the splits' one default (tasks/release_split.py)
-
-
 @release_app.command("build")
 def release_build(
     name: str,
@@ -864,22 +862,27 @@ def release_build(
     lake: LakeOpt = DEFAULT_LAKE,
     formats: Annotated[str, typer.Option(help="comma list: lake,nuscenes,opencood,...")]
     = "lake",
-    seed: int = _SPLIT_DEFAULT.seed,
-    fractions: Annotated[str, typer.Option(help="train,val,test")]
-    = ",".join(f"{f:g}" for f in _SPLIT_DEFAULT.fractions),
+    seed: Annotated[int | None, typer.Option(
+        help="split seed (default: the release's SplitConfig)")] = None,
+    fractions: Annotated[str | None, typer.Option(
+        help="train,val,test (default: the release's SplitConfig)")] = None,
 ) -> int:
     """Build release NAME from a predicate on clips."""
     from v2xlake.flows.release import build_release, check_fractions
+    from v2xlake.tasks.release_split import SplitConfig
 
+    default = SplitConfig()  # the splits' one default; not imported before the command runs
     try:
-        parts = check_fractions([float(x) for x in fractions.split(",")])
+        parts = (default.fractions if fractions is None
+                 else check_fractions([float(x) for x in fractions.split(",")]))
     except ValueError as e:
         raise UserError(f"--fractions: {e}") from e
     the_lake = open_lake(lake)
     t0 = time.perf_counter()
     console = _console()
     with console.status(f"building release {name} ({formats}) ..."):
-        meta = build_release(lake, name, where, _csv(formats) or ["lake"], seed, parts)
+        meta = build_release(lake, name, where, _csv(formats) or ["lake"],
+                             default.seed if seed is None else seed, parts)
     console.print(f"release [bold]{name}[/]: {len(meta['clip_ids'])} clip(s), splits "
                   f"{_esc(meta['split_counts'])}, formats {_esc(meta['formats'])} in "
                   f"{time.perf_counter() - t0:.1f} s")

@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import functools
 import importlib
+from typing import TYPE_CHECKING
 
-from v2xlake.schemas.stage import StageDeclaration
+if TYPE_CHECKING:  # imported where a declaration is read: the names need no pydantic
+    from v2xlake.schemas.stage import StageDeclaration
 
 #: The standard pipeline, in order: one package per stage, the stage named after the package.
 STAGE_PACKAGES: tuple[str, ...] = tuple(
@@ -63,6 +65,8 @@ def package(name: str) -> str:
 
 def declaration(name: str) -> StageDeclaration:
     """Stage ``name``'s declaration (imports its package's ``__init__.py`` only)."""
+    from v2xlake.schemas.stage import StageDeclaration
+
     module = importlib.import_module(package(name))
     found = getattr(module, "DECLARATION", None)
     if not isinstance(found, StageDeclaration) or found.name != name:
