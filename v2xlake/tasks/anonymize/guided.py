@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -186,6 +187,17 @@ class Piece:
         return cv2.warpPerspective(image, self.H, (self.out_w, self.out_h),
                                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                    borderMode=cv2.BORDER_CONSTANT)
+
+
+def _face_crop(c: GuidedConfig, box: Any, side: float, scale: float, size_px: float,
+               w: int, h: int) -> list[Any]:
+    """A crop item around a face candidate ``box`` of ``side`` pixels for the float look:
+    the face plus ``face_proposal_pad`` of its side (at least ``face_proposal_min_px``) on
+    every side, clipped to the ``w`` x ``h`` image, to be shown at ``scale``."""
+    r = 0.5 * side + max(c.face_proposal_pad * side, c.face_proposal_min_px)
+    cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+    return ["face", max(0, int(cx - r)), max(0, int(cy - r)), min(w, int(np.ceil(cx + r))),
+            min(h, int(np.ceil(cy + r))), scale, size_px, size_px]
 
 
 def _crop_piece(kind: str, x0: int, y0: int, x1: int, y1: int, s: float,
@@ -454,25 +466,10 @@ class GuidedDetector:
                 out_b.append(b)
                 out_s.append(float(sc))
                 continue
-            side = max(b[2] - b[0], b[3] - b[1])
-            r = 0.5 * side + max(c.face_proposal_pad * side, c.face_proposal_min_px)
-            cx, cy = (b[0] + b[2]) / 2, (b[1] + b[3]) / 2
-            items.append(["face", max(0, int(cx - r)), max(0, int(cy - r)),
-                          min(vw, int(np.ceil(cx + r))), min(vh, int(np.ceil(cy + r))),
-                          1.0, 0.0, 0.0])
-        crops = [_crop_piece(k, x0, y0, x1, y1, s, (lo, hi))
-                 for k, x0, y0, x1, y1, s, lo, hi in _merge_crops(items)]
-        for canvas, ps, pos in mosaics(view, crops,
-                                       replace(c, gap=c.face_proposal_gap, pack_fit=True)):
-            cb, cs = self.face.detect_view(canvas)
-            for b, sc in zip(cb, cs, strict=True):
-                i = _piece_of(b, ps, pos)
-                if sc < threshold or i is None:
-                    continue
-                px, py = pos[i]
-                out_b.append(np.asarray(ps[i].to_frame(np.asarray(b, float) - [px, py, px, py],
-                                                       vw, vh)))
-                out_s.append(float(sc))
+            items.append(_face_crop(c, b, max(b[2] - b[0], b[3] - b[1]), 1.0, 0.0, vw, vh))
+        for box, sc in self._float_look(view, items, threshold):
+            out_b.append(np.asarray(box))
+            out_s.append(sc)
         if not out_b:
             return np.zeros((0, 4)), np.zeros(0)
         return np.asarray(out_b, float).reshape(-1, 4), np.asarray(out_s, float)
@@ -529,23 +526,33 @@ class GuidedDetector:
                     out.append(Detection("face", d.box, d.score, self.face.name))
                 continue
             s = float(np.clip(c.face_proposal_target_px / max(bh, 1.0), 1.0, max(fine, 1.0)))
-            r = 0.5 * max(bw, bh) + max(c.face_proposal_pad * max(bw, bh), c.face_proposal_min_px)
-            cx, cy = (d.box[0] + d.box[2]) / 2, (d.box[1] + d.box[3]) / 2
-            items.append(["face", max(0, int(cx - r)), max(0, int(cy - r)),
-                          min(w, int(np.ceil(cx + r))), min(h, int(np.ceil(cy + r))), s, bh, bh])
+            items.append(_face_crop(c, d.box, max(bw, bh), s, bh, w, h))
+        for box, sc in self._float_look(image, items, c.full_face_threshold):
+            out.append(Detection("face", box, sc, self.face.name))
+        return out
+
+    def _float_look(self, image: np.ndarray, items: list[list[Any]], threshold: float
+                    ) -> list[tuple[Any, float]]:
+        """The float network on the face crops ``items`` (merged, packed into canvases):
+        (box in ``image`` pixels, score) of every face scoring ``threshold``. The second look
+        of both two-stage face passes (guided regions and the full frame)."""
+        assert self.face is not None
+        c = self.config
+        h, w = image.shape[:2]
         pieces = [_crop_piece(k, x0, y0, x1, y1, sc, (lo, hi))
                   for k, x0, y0, x1, y1, sc, lo, hi in _merge_crops(items)]
+        found: list[tuple[Any, float]] = []
         for canvas, ps, pos in mosaics(image, pieces,
-                                            replace(c, gap=c.face_proposal_gap, pack_fit=True)):
+                                       replace(c, gap=c.face_proposal_gap, pack_fit=True)):
             cb, cs = self.face.detect_view(canvas)
             for b, sc in zip(cb, cs, strict=True):
                 i = _piece_of(b, ps, pos)
-                if sc < c.full_face_threshold or i is None:
+                if sc < threshold or i is None:
                     continue
                 px, py = pos[i]
-                box = ps[i].to_frame(np.asarray(b, float) - [px, py, px, py], w, h)
-                out.append(Detection("face", box, float(sc), self.face.name))
-        return out
+                found.append((ps[i].to_frame(np.asarray(b, float) - [px, py, px, py], w, h),
+                              float(sc)))
+        return found
 
     def _plates_proposed(self, image: np.ndarray) -> list[Detection]:
         """Plates in two stages: the text detector on the frame shrunk by
