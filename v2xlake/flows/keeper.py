@@ -40,6 +40,7 @@ import sys
 import time
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 from v2xlake.flows.guard import die_with_parent, stop_group
 
@@ -49,12 +50,37 @@ STATE = f"{NAME}.json"
 LEASE = f"{NAME}.lease"
 
 
+# ---- the protocol's user side (flows/shared_server.py, flows/warm.py): one spelling of it
+def write_state(path: Path, state: dict[str, Any]) -> None:
+    """Write a state file whole (a temporary file renamed over it): a reader never sees half
+    of one."""
+    tmp = path.with_name(f"{path.name}.{os.getpid()}")
+    tmp.write_text(json.dumps(state))
+    os.replace(tmp, path)
+
+
+def state_pid(path: Path) -> int | None:
+    """The keeper's pid a state file names; None when it is missing or unreadable."""
+    try:
+        return int(json.loads(path.read_text())["pid"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def hold_lease(lease: Path) -> int:
+    """A shared lock on ``lease`` for as long as the returned descriptor stays open (the
+    kernel drops it when the holder exits, SIGKILL included), touched now: the keeper stops
+    its command only when nobody holds the lease, and counts idleness from the last touch."""
+    fd = os.open(lease, os.O_RDWR | os.O_CREAT, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_SH)  # waits while a keeper decides to stop (milliseconds)
+    with contextlib.suppress(OSError):
+        os.utime(fd)
+    return fd
+
+
 def _owns_state(state: Path) -> bool:
     """Whether the state file still names this keeper (a replacement server rewrites it)."""
-    try:
-        return int(json.loads(state.read_text())["pid"]) == os.getpid()
-    except (OSError, ValueError, KeyError, TypeError):
-        return False
+    return state_pid(state) == os.getpid()
 
 
 def _drop_state(state: Path) -> None:

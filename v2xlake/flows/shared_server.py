@@ -90,11 +90,7 @@ def _hold_lease(home: Path) -> None:
     global _lease_fd
     if _lease_fd is not None:
         return
-    lease = home / keeper.LEASE
-    fd = os.open(lease, os.O_RDWR | os.O_CREAT, 0o600)
-    fcntl.flock(fd, fcntl.LOCK_SH)  # waits while a keeper decides to stop (milliseconds)
-    os.utime(fd)
-    _lease_fd = fd
+    fd = _lease_fd = keeper.hold_lease(home / keeper.LEASE)
 
     def touch() -> None:
         with contextlib.suppress(OSError):
@@ -128,10 +124,8 @@ def _start(home: Path, ident: dict[str, str]) -> tuple[str, subprocess.Popen[byt
     global _started
     _started = proc
     url = f"http://127.0.0.1:{port}/api"
-    state = {"pid": proc.pid, "url": url, "started": time.time(), **ident}
-    tmp = home / f"{keeper.STATE}.{os.getpid()}"
-    tmp.write_text(json.dumps(state))
-    os.replace(tmp, home / keeper.STATE)
+    keeper.write_state(home / keeper.STATE,
+                       {"pid": proc.pid, "url": url, "started": time.time(), **ident})
     return url, proc
 
 
@@ -206,11 +200,8 @@ def stop(home: Path | None = None) -> bool:
     """Stop the shared server now (tests, or a user who wants it gone): SIGTERM its keeper,
     which stops the server and removes the state file. True when one was running."""
     home = home or _home()
-    try:
-        pid = int(json.loads((home / keeper.STATE).read_text())["pid"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return False
-    if not alive(pid):
+    pid = keeper.state_pid(home / keeper.STATE)
+    if pid is None or not alive(pid):
         return False
     os.kill(pid, 15)
     if _started is not None and _started.pid == pid:  # our child: reap it (no zombie)

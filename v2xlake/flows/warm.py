@@ -176,16 +176,6 @@ def note_prefect_call() -> None:
         _want.ran_prefect = True
 
 
-def _hold_lease(lease: Path) -> int:
-    """A shared lock for the call's lifetime (the keeper stops an idle warm process only
-    when nobody holds it; the kernel drops it even on SIGKILL), touched at start."""
-    fd = os.open(lease, os.O_RDWR | os.O_CREAT, 0o600)
-    fcntl.flock(fd, fcntl.LOCK_SH)
-    with contextlib.suppress(OSError):
-        os.utime(fd)
-    return fd
-
-
 def call(argv: list[str]) -> int | None:
     """Run the CLI call ``argv`` in a warm process; None when none answers (run in-process)."""
     global _want
@@ -197,7 +187,7 @@ def call(argv: list[str]) -> int | None:
     _want = _Want(home, ident, dict(os.environ), list(sys.path))
     if len(os.fsencode(sock_path)) > MAX_SOCKET_PATH or not sock_path.exists():
         return None
-    lease_fd = _hold_lease(lease)
+    lease_fd = keeper.hold_lease(lease)
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     try:
         sock.settimeout(CONNECT_TIMEOUT_S)
@@ -328,9 +318,8 @@ def start(home: Path, ident: str, env: dict[str, str], path: list[str]) -> int |
     lock = os.open(home / f"{NAME}-{ident}.start.lock", os.O_RDWR | os.O_CREAT, 0o600)
     try:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
-            if alive(int(json.loads(state.read_text())["pid"])):
-                return None
+        if (pid := keeper.state_pid(state)) is not None and alive(pid):
+            return None
         from v2xlake.flows.shared_server import idle_seconds
 
         code = ("import sys, json; sys.path[:] = json.loads(sys.argv[1]); "
@@ -343,10 +332,8 @@ def start(home: Path, ident: str, env: dict[str, str], path: list[str]) -> int |
                  str(idle_seconds()), f"{NAME}-{ident}", "--", *cmd],
                 env=env, cwd=home, stdin=subprocess.DEVNULL, stdout=log,
                 stderr=subprocess.STDOUT, start_new_session=True, close_fds=True)
-        tmp = state.with_name(f"{state.name}.{os.getpid()}")
-        tmp.write_text(json.dumps({"pid": proc.pid, "socket": str(sock_path),
-                                   "started": time.time()}))
-        os.replace(tmp, state)
+        keeper.write_state(state, {"pid": proc.pid, "socket": str(sock_path),
+                                   "started": time.time()})
         return proc.pid
     finally:
         os.close(lock)
@@ -358,9 +345,9 @@ def stop(home: Path | None = None) -> int:
     home = home or _home()
     n = 0
     for state in home.glob(f"{NAME}-*.json"):
-        with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
-            pid = int(json.loads(state.read_text())["pid"])
-            if alive(pid):
+        pid = keeper.state_pid(state)
+        if pid is not None and alive(pid):
+            with contextlib.suppress(OSError):  # gone meanwhile
                 os.kill(pid, signal.SIGTERM)
                 n += 1
     return n
