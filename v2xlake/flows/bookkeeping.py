@@ -43,11 +43,12 @@ class StageFacts:
 def facts_of(stage: Stage[Any]) -> StageFacts:
     import sys
 
-    from v2xlake.flows.stage_names import STAGE_REFS
+    from v2xlake.schemas import registry
 
     # the registry's own object (``flows.pipeline.STAGES``)? Its module is imported if so:
     # a test double named like a standard stage must not import the real one to find out
-    mod, attr = STAGE_REFS.get(stage.name, ("", ""))
+    mod, attr = (registry.stage_ref(stage.name) if stage.name in registry.stage_packages()
+                 else ("", ""))
     standard = getattr(sys.modules.get(mod), attr, None) is stage
     code_paths: tuple[str, ...] | None = None
     if not standard:  # a plugin or test double: hash its own source file

@@ -22,14 +22,10 @@ from v2xlake.schemas import registry
 
 
 def __getattr__(name: str) -> Any:
-    """``STAGE_NAMES`` (every registered stage, in pipeline order) and ``STAGE_REFS`` (stage
-    name -> (module, attribute) of its Stage object), from the one stage list
-    (``schemas.registry``) when asked: names cost no stage import, references import each
-    package's ``__init__.py`` (its declaration) only."""
+    """``STAGE_NAMES`` (every registered stage, in pipeline order) from the one stage list
+    (``schemas.registry``) when asked: it costs no stage import."""
     if name == "STAGE_NAMES":
         return registry.stage_names()
-    if name == "STAGE_REFS":
-        return {n: registry.stage_ref(n) for n in registry.stage_names()}
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
