@@ -138,18 +138,30 @@ def test_flat_keys_of_earlier_versions_still_work() -> None:
 
 
 def test_a_clip_without_cameras_builds_no_guide(tmp_path, monkeypatch) -> None:
-    """No image to blur: neither the guide nor the LiDAR clusters are computed."""
+    """No image to blur: neither the guide nor the LiDAR clusters nor the detector are
+    computed, also when ingest wrote (empty) camera_frames files for the agents, as it
+    does for every agent; the clean zone still mirrors those files (0 rows)."""
+    from v2xlake.tasks.anonymize import build as build_mod
+
     lake = Lake(tmp_path)
     build_raw_clip(lake, n_images=0)
+    assert lake.list_files(lake.table_dir("raw", "camera_frames", CLIP), ".parquet")
 
     def boom(*_a: object, **_k: object) -> None:
         raise AssertionError("computed for a clip without cameras")
 
     monkeypatch.setattr(stage_mod, "lidar_clusters", boom)
     monkeypatch.setattr(stage_mod, "build_guide", boom)
+    monkeypatch.setattr(build_mod, "build_detector", boom)
     rep = run_anonymize(lake, CLIP, AnonymizeConfig(work={"workers": 1}))
     assert rep.metrics["n_images"] == 0
     assert any("no camera images" in n for n in rep.notes)
+    for table in ("camera_frames", "anonymization_audit"):
+        files = lake.list_files(lake.table_dir("clean", table, CLIP), ".parquet")
+        assert len(files) == 2, (table, files)  # one per agent, as in raw
+        t = lake.read_table("clean", table, clip_id=CLIP)
+        assert t.num_rows == 0
+    assert "anonymizer" in lake.read_table("clean", "camera_frames", clip_id=CLIP).column_names
 
 
 def test_a_found_face_is_blurred_whole() -> None:

@@ -378,17 +378,25 @@ def _anonymize_images(
     """Every camera image: detect (guided when the guide has regions for it), fill temporal
     gaps per camera, blur, encode; frames of one camera go in time order, ``frames_per_chunk``
     at a time, detected with one frame of look-ahead so a chunk's last frame has its next."""
+    files = partition_files(lake, "raw", "camera_frames", clip_id)
+    tables = [(agent, name, read_parquet(path, filesystem=lake.fs)) for path, agent, name in files]
+    total = sum(t.num_rows for _, _, t in tables)
+    if total == 0:
+        # no image (no camera_frames file, or ingest's empty ones for agents without
+        # cameras): the clean zone still mirrors the raw files, but neither the detector
+        # (its ONNX sessions took ~0.8 s to build) nor its modules (OpenCV, onnxruntime:
+        # ~0.5 s to import) are loaded
+        for agent, name, table in tables:
+            write("camera_frames", _clean_frames(table, t0, [], "", []), agent, name)
+            write("anonymization_audit", _audit_table([], agent), agent, name)
+        return 0, 0, 0, 0
+
     from v2xlake.tasks.anonymize.blur import blur_boxes
     from v2xlake.tasks.anonymize.build import blur_config, build_detector
     from v2xlake.tasks.anonymize.carry import between, key_frames, new_regions
     from v2xlake.tasks.anonymize.images import decode_image, to_bgr8
     from v2xlake.tasks.anonymize.temporal import fill_gaps
 
-    files = partition_files(lake, "raw", "camera_frames", clip_id)
-    tables = [(agent, name, read_parquet(path, filesystem=lake.fs)) for path, agent, name in files]
-    total = sum(t.num_rows for _, _, t in tables)
-    if not tables:  # no camera: no detector either (its ONNX sessions took ~1 s to build)
-        return 0, 0, 0, 0
     detector = build_detector(cfg)
     blur = blur_config(cfg)
     anonymizer = cfg.provenance(detector.version)
@@ -549,25 +557,36 @@ def _anonymize_images(
                             score=d.score,
                         )
                     )
-            clean = shift_times(table, "camera_frames", t0)
-            for col, values, typ in (
-                ("blob", [r[1] for r in result], pa.string()),
-                ("sha256", [r[0] for r in result], pa.string()),
-                ("anonymizer", [anonymizer] * n, pa.string()),
-                ("n_blurred", [len(d) for d in dets], pa.int64()),
-            ):
-                arr = pa.array(values, typ)
-                if col in clean.column_names:
-                    clean = clean.set_column(clean.column_names.index(col), pa.field(col, typ), arr)
-                else:
-                    clean = clean.append_column(col, arr)
-            write("camera_frames", clean, agent, name)
-            audit_table = rows_to_table(AnonymizationAuditRow, list[BaseModel](audit))
-            audit_table = audit_table.drop_columns(
-                ["clip_id"] + (["agent_id"] if agent is not None else [])
-            )
-            write("anonymization_audit", audit_table, agent, name)
+            write("camera_frames", _clean_frames(table, t0, result, anonymizer,
+                                                 [len(d) for d in dets]), agent, name)
+            write("anonymization_audit", _audit_table(audit, agent), agent, name)
     return n_faces, n_plates, int(total), n_guided
+
+
+def _clean_frames(table: pa.Table, t0: int, result: list[tuple[str, str]], anonymizer: str,
+                  n_blurred: list[int]) -> pa.Table:
+    """One raw ``camera_frames`` file's clean rows: relative stamps, the clean blob key and
+    its sha256 (``result``: (sha256, key) per row), the provenance, the boxes blurred."""
+    clean = shift_times(table, "camera_frames", t0)
+    for col, values, typ in (
+        ("blob", [r[1] for r in result], pa.string()),
+        ("sha256", [r[0] for r in result], pa.string()),
+        ("anonymizer", [anonymizer] * len(result), pa.string()),
+        ("n_blurred", n_blurred, pa.int64()),
+    ):
+        arr = pa.array(values, typ)
+        if col in clean.column_names:
+            clean = clean.set_column(clean.column_names.index(col), pa.field(col, typ), arr)
+        else:
+            clean = clean.append_column(col, arr)
+    return clean
+
+
+def _audit_table(audit: list[AnonymizationAuditRow], agent: str | None) -> pa.Table:
+    """The ``anonymization_audit`` rows of one camera_frames file, without the partition
+    columns its path holds."""
+    table = rows_to_table(AnonymizationAuditRow, list[BaseModel](audit))
+    return table.drop_columns(["clip_id"] + (["agent_id"] if agent is not None else []))
 
 
 def build_guide(clip_id: str, t0_abs: int, ego_poses: dict[str, pa.Table], calib: pa.Table,
