@@ -140,8 +140,8 @@ class _Exploding:
     def align(self, target, source, init):  # type: ignore[no-untyped-def]
         raise RuntimeError("solver blew up")
 
-    def nearest_sq_dist(self, target, query):  # type: ignore[no-untyped-def]
-        return self._inner.nearest_sq_dist(target, query)
+    def nearest_sq_dist(self, target, query, max_dist_m=np.inf):  # type: ignore[no-untyped-def]
+        return self._inner.nearest_sq_dist(target, query, max_dist_m)
 
     def prepare_covisible(self, pts, other_origin, min_keep):  # type: ignore[no-untyped-def]
         return self._inner.prepare_covisible(pts, other_origin, min_keep)

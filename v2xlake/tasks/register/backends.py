@@ -29,7 +29,7 @@ import numpy as np
 
 from v2xlake.tasks.geometry import se3_adjoint
 from v2xlake.tasks.register.config import GicpSection
-from v2xlake.tasks.register.voxel import voxel_downsample
+from v2xlake.tasks.register.voxel import VoxelGrid, voxel_downsample
 
 if TYPE_CHECKING:
     from v2xlake.tasks.register.sparse import SparseOutcome
@@ -72,7 +72,11 @@ class RegistrationBackend(Protocol):
 
     def align(self, target: Prepared, source: Prepared, init: np.ndarray) -> AlignOutcome: ...
 
-    def nearest_sq_dist(self, target: Prepared, query: np.ndarray) -> np.ndarray: ...
+    def nearest_sq_dist(self, target: Prepared, query: np.ndarray,
+                        max_dist_m: float = np.inf) -> np.ndarray:
+        """Squared distance of each query point to its nearest target point; a distance
+        beyond ``max_dist_m`` may come back as inf (the quality figures count inliers only)."""
+        ...
 
     def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int
                           ) -> Prepared: ...
@@ -171,7 +175,9 @@ class SmallGicpBackend:
         H_left = right_to_left_information(H, T) if np.isfinite(T).all() else None
         return AlignOutcome(T, bool(r.converged), int(r.iterations), H_left)
 
-    def nearest_sq_dist(self, target: Prepared, query: np.ndarray) -> np.ndarray:
+    def nearest_sq_dist(self, target: Prepared, query: np.ndarray,
+                        max_dist_m: float = np.inf) -> np.ndarray:
+        del max_dist_m  # the k-d tree finds the nearest point at any distance
         _, d2 = target.tree.batch_nearest_neighbor_search(
             np.ascontiguousarray(query, np.float64), num_threads=self.params.num_threads)
         return np.asarray(d2, dtype=np.float64)
@@ -229,7 +235,9 @@ class Open3dBackend:
         d, i = target.tree.query(query, k=1)
         return np.asarray(i, dtype=np.int64), np.asarray(d, dtype=np.float64) ** 2
 
-    def nearest_sq_dist(self, target: Prepared, query: np.ndarray) -> np.ndarray:
+    def nearest_sq_dist(self, target: Prepared, query: np.ndarray,
+                        max_dist_m: float = np.inf) -> np.ndarray:
+        del max_dist_m  # the k-d tree finds the nearest point at any distance
         return self._nearest(target, query)[1]
 
     def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int
@@ -249,7 +257,7 @@ class SparseGicpBackend(SmallGicpBackend):
 
         p = self.params
         pts = _finite(pts)
-        tree = self._sg.KdTree(pts, num_threads=p.num_threads)
+        tree = VoxelGrid(pts, p.grid_cell_m)
         sample = (spread_sample(pts, p.sample_cell_m) if p.sample_cell_m
                   else np.arange(len(pts), dtype=np.int64))
         return Prepared(pts, Surfaces.empty(len(pts)), tree, sample)
@@ -265,6 +273,13 @@ class SparseGicpBackend(SmallGicpBackend):
             if len(dense) > len(rows):
                 out = self._align_rows(target, source, dense, out.T)
         return AlignOutcome(out.T, out.converged, out.iterations, out.H)
+
+    def nearest_sq_dist(self, target: Prepared, query: np.ndarray,
+                        max_dist_m: float = np.inf) -> np.ndarray:
+        """Bounded by ``max_dist_m``: the grid search for a point far from the cloud would
+        visit every cell in between."""
+        _, d2 = target.tree.batch_nearest_neighbor_search(query, max_dist_m=max_dist_m)
+        return np.asarray(d2, dtype=np.float64)
 
     def _align_rows(self, target: Prepared, source: Prepared, rows: np.ndarray,
                     init: np.ndarray) -> SparseOutcome:

@@ -59,6 +59,12 @@ class GicpSection(Section):
         "left single frames 3-15 cm off where every centroid keeps them within 2 cm. 0: "
         "never")
     max_correspondence_m: float = Field(1.0, gt=0)
+    grid_cell_m: float = Field(
+        1.0, gt=0, description="sparse backend: cell of the hash grid its neighbour searches "
+        "use (register/voxel.py VoxelGrid). Speed only, the searches are exact at any size; "
+        "about max_correspondence_m is best (a nearest neighbour within it is then always in "
+        "the query's cell or the 26 around it). On 28k-centroid clouds 0.6 m and 1.5 m were "
+        "1.2-2x slower than 1.0 m")
     max_iterations: int = Field(30, ge=1)
     num_threads: int = Field(1, ge=1, description="threads per GICP call; one leaves the "
                              "other cores to the other clips of a run")
@@ -293,6 +299,13 @@ class RegisterConfig(StageConfig):
         "side only: a pole or parked car between the agents is seen from opposite sides, two "
         "surfaces a diameter apart that GICP pulls together (measured on the cooperative "
         "boulevard: 2 cm along the street with the agents 20 m apart, 9-12 cm at 50 m)")
+    workers: int = Field(
+        0, ge=0, description="threads for the per-frame work: reading, static-scene "
+        "filtering, preparing the clouds and the agents' odometry GICP run a few frames "
+        "ahead on a pool while the cross-agent GICP runs in frame order (each frame starts "
+        "from the previous one's accepted correction). 0: the cores this process may use "
+        "(its affinity mask, a Dask worker's share), at most 8. The results are the same "
+        "for any number (tests/test_register_speed.py)")
     bev_frame: int | None = Field(None, description="reference frame of the BEV picture "
                                   "(default: the middle pair)")
     write_bev: bool = Field(True, description="render the BEV and timeline pictures")

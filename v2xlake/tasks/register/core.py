@@ -83,7 +83,7 @@ def evaluate(backend: RegistrationBackend, target: Prepared, source: Prepared, T
     if n == 0 or len(target.points) == 0:
         return 0.0, 0.0, 0
     moved = apply(T, pts)
-    d2 = backend.nearest_sq_dist(target, moved)
+    d2 = backend.nearest_sq_dist(target, moved, max_dist_m=distance_m)
     inl = d2 <= distance_m**2
     k = int(inl.sum())
     return k / n, float(np.sqrt(d2[inl].mean())) if k else 0.0, k

@@ -23,7 +23,7 @@ import small_gicp
 from numba import njit
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _eig_sym3(a00: float, a01: float, a02: float, a11: float, a12: float, a22: float
               ) -> tuple[float, float, float, float, float]:
     """Smallest and middle eigenvalues of a symmetric 3x3 (closed form, trigonometric) and
@@ -62,7 +62,7 @@ def _eig_sym3(a00: float, a01: float, a02: float, a11: float, a12: float, a22: f
     return l_min, l_mid, vx, vy, vz
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _same_side(px: float, py: float, pz: float, nx: float, ny: float, nz: float, planar: bool,
                sx: float, sy: float, sz: float, cos_min: float) -> bool:
     """Whether the LiDAR at ``s`` sees the surface at ``p`` (own LiDAR at the origin) from the
@@ -78,7 +78,7 @@ def _same_side(px: float, py: float, pz: float, nx: float, ny: float, nz: float,
     return (ox * tx + oy * ty + oz * tz) >= cos_min * max(no, 1e-12)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def knn_surface(p: np.ndarray, idx: np.ndarray, i: int
                 ) -> tuple[float, float, float, float, float]:
     """Smallest and middle eigenvalue of the covariance of the points ``p[idx[i]]`` (a
@@ -106,7 +106,7 @@ def knn_surface(p: np.ndarray, idx: np.ndarray, i: int
     return _eig_sym3(a00, a01, a02, a11, a12, a22)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _mask_kernel(p: np.ndarray, idx: np.ndarray, s: np.ndarray, planar_ratio: float,
                  cos_min: float) -> np.ndarray:
     out = np.ones(idx.shape[0], dtype=np.bool_)
@@ -117,7 +117,7 @@ def _mask_kernel(p: np.ndarray, idx: np.ndarray, s: np.ndarray, planar_ratio: fl
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _rows_kernel(p: np.ndarray, normals: np.ndarray, ratio: np.ndarray, rows: np.ndarray,
                  s: np.ndarray, planar_ratio: float, cos_min: float) -> np.ndarray:
     out = np.ones(len(rows), dtype=np.bool_)

@@ -10,6 +10,7 @@ is in ``voxel.py`` and ``static.py``.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -149,46 +150,65 @@ class StaticScans:
     """An agent's scans reduced to the static scene, one voxel size per use (target/source).
 
     Keeps a small window of fine clouds (``dynamic_voxel_m``) of neighbouring frames for the
-    consistency test; frames are expected roughly in order (each is read once then)."""
+    consistency test; frames are expected roughly in order (each is read once then).
+    ``filtered`` may be called from several threads at once (``in_flight`` frames at a time:
+    the windows grow by that much); the caches only save work, a frame's result never
+    depends on what they hold."""
 
     def __init__(self, scans: AgentScans, settings: StaticSection,
                  bodies: list[tuple[AgentScans, Body]],
-                 redeskew_with: np.ndarray | None = None, max_range_m: float = 80.0) -> None:
+                 redeskew_with: np.ndarray | None = None, max_range_m: float = 80.0,
+                 in_flight: int = 1) -> None:
         self.scans, self.s = scans, settings
         self.max_range_m = max_range_m
         self.bodies = bodies
         self.redeskew_with = redeskew_with
         self._fine: OrderedDict[int, tuple[np.ndarray, object]] = OrderedDict()
         self._raw: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._raw_window = 2 + 2 * (max(in_flight, 1) - 1)
+        self._fine_window = 2 * settings.dynamic_neighbours + 2 + 2 * (max(in_flight, 1) - 1)
+        self._lock = threading.Lock()
         frames = sorted(scans.frames)
         self._order = {f: i for i, f in enumerate(frames)}
         self._frames = frames
         self.seconds = {"read": 0.0, "voxel": 0.0, "filter": 0.0}  # where the time goes
 
+    def _spent(self, key: str, seconds: float) -> None:
+        with self._lock:
+            self.seconds[key] += seconds
+
     def _points(self, f: int) -> tuple[np.ndarray, np.ndarray]:
-        if f not in self._raw:
-            t = time.perf_counter()
-            xyz, t_ns = self.scans.points_t(f)
-            if self.redeskew_with is not None and len(xyz):
-                xyz = redeskew(xyz, t_ns, self.scans.frames[f][1], self.scans.track,
-                               self.scans.T_ego_lidar, self.redeskew_with)
+        with self._lock:
+            hit = self._raw.get(f)
+        if hit is not None:
+            return hit
+        t = time.perf_counter()
+        xyz, t_ns = self.scans.points_t(f)
+        if self.redeskew_with is not None and len(xyz):
+            xyz = redeskew(xyz, t_ns, self.scans.frames[f][1], self.scans.track,
+                           self.scans.T_ego_lidar, self.redeskew_with)
+        with self._lock:
             self._raw[f] = (xyz, t_ns)
             self.seconds["read"] += time.perf_counter() - t
-            while len(self._raw) > 2:
+            while len(self._raw) > self._raw_window:
                 self._raw.popitem(last=False)
-        return self._raw[f]
+        return xyz, t_ns
 
     def _fine_tree(self, f: int) -> tuple[np.ndarray, object]:
-        if f not in self._fine:
-            from scipy.spatial import cKDTree
+        with self._lock:
+            hit = self._fine.get(f)
+        if hit is not None:
+            return hit
+        from scipy.spatial import cKDTree
 
-            xyz, _ = self._points(f)
-            pts = voxel_downsample_t(xyz, None, self.s.dynamic_voxel_m,
-                                     self.max_range_m + 10.0)[0]
-            self._fine[f] = (pts, cKDTree(pts, balanced_tree=False, compact_nodes=False))
-            while len(self._fine) > 2 * self.s.dynamic_neighbours + 2:
+        xyz, _ = self._points(f)
+        pts = voxel_downsample_t(xyz, None, self.s.dynamic_voxel_m, self.max_range_m + 10.0)[0]
+        out = (pts, cKDTree(pts, balanced_tree=False, compact_nodes=False))
+        with self._lock:
+            self._fine[f] = out
+            while len(self._fine) > self._fine_window:
                 self._fine.popitem(last=False)
-        return self._fine[f]
+        return out
 
     def _use_dynamic(self, f: int) -> bool:
         if not self.s.enabled or self.s.dynamic == "off":
@@ -213,11 +233,11 @@ class StaticScans:
         pts, t_s = voxel_downsample_t(xyz, (t_ns - ref_ns) * 1e-9 if len(t_ns) else None,
                                       voxel_m, self.max_range_m)
         t1 = time.perf_counter()
-        self.seconds["voxel"] += t1 - t0
+        self._spent("voxel", t1 - t0)
         try:
             return self._filtered(f, pts, t_s, voxel_m)
         finally:
-            self.seconds["filter"] += time.perf_counter() - t1
+            self._spent("filter", time.perf_counter() - t1)
 
     def _filtered(self, f: int, pts: np.ndarray, t_s: np.ndarray, voxel_m: float
                   ) -> FilteredScan:

@@ -37,9 +37,10 @@ from numba import njit
 from v2xlake.tasks.geometry import so3_exp
 from v2xlake.tasks.register.backends import PLANE_EPS
 from v2xlake.tasks.register.covisible import covisible_rows, knn_surface
+from v2xlake.tasks.register.voxel import _BIAS, _GOLDEN
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _surfaces(pts: np.ndarray, rows: np.ndarray, knn: np.ndarray,
               normals: np.ndarray, ratio: np.ndarray) -> None:
     """For each point ``rows[i]``: the unit normal of its neighbours ``knn[i]`` and the
@@ -53,7 +54,7 @@ def _surfaces(pts: np.ndarray, rows: np.ndarray, knn: np.ndarray,
             ratio[r] = l_min / l_mid
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _linearise(tp: np.ndarray, tn: np.ndarray, tr: np.ndarray, sp: np.ndarray,
                sn: np.ndarray, sr: np.ndarray, nn: np.ndarray, nn_d2: np.ndarray,
                T: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray, int]:
@@ -124,14 +125,44 @@ def _linearise(tp: np.ndarray, tn: np.ndarray, tr: np.ndarray, sp: np.ndarray,
     return H, b, used
 
 
+@njit(cache=True, nogil=True)
+def _first_per_cell(pts: np.ndarray, inv_cell: float) -> np.ndarray:
+    """Index of the first point of each occupied cell, in input order (so ascending)."""
+    n = pts.shape[0]
+    cap = 16
+    while cap < 2 * n:
+        cap <<= 1
+    shift = np.uint64(64 - int(np.log2(cap)))
+    keys = np.full(cap, -1, dtype=np.int64)
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        key = (((int(np.floor(pts[i, 0] * inv_cell)) + _BIAS) << 42)
+               | ((int(np.floor(pts[i, 1] * inv_cell)) + _BIAS) << 21)
+               | (int(np.floor(pts[i, 2] * inv_cell)) + _BIAS))
+        h = np.int64((np.uint64(key) * _GOLDEN) >> shift)
+        while True:
+            k = keys[h]
+            if k == key:
+                break
+            if k == -1:
+                keys[h] = key
+                out[m] = i
+                m += 1
+                break
+            h = (h + 1) & (cap - 1)
+    return out[:m].copy()
+
+
 def spread_sample(points: np.ndarray, cell_m: float) -> np.ndarray:
-    """Indices of one point per ``cell_m`` cell (the first in input order), ascending."""
-    if len(points) == 0:
+    """Indices of one point per ``cell_m`` cell (the first in input order), ascending. One
+    hashing pass (np.unique's sort took 1.7 ms per 28k-centroid cloud)."""
+    p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    if len(p) == 0:
         return np.zeros(0, dtype=np.int64)
-    ijk = np.floor(np.asarray(points) / cell_m).astype(np.int64) + (1 << 20)
-    key = (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
-    _, first = np.unique(key, return_index=True)
-    return np.sort(first).astype(np.int64)
+    if np.abs(p).max() / cell_m >= _BIAS - 2:
+        raise ValueError("points farther than 2^20 sample cells from the origin")
+    return np.asarray(_first_per_cell(p, 1.0 / cell_m))
 
 
 @dataclass
@@ -187,7 +218,7 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
         iterations += 1
         q = sp @ T[:3, :3].T + T[:3, 3]
         nn, d2 = t_tree.batch_nearest_neighbor_search(  # type: ignore[attr-defined]
-            q, num_threads=num_threads)
+            q, num_threads=num_threads, max_dist_m=max_correspondence_m)
         nn = np.asarray(nn, dtype=np.int64)
         d2 = np.asarray(d2, dtype=np.float64)
         close = np.flatnonzero(d2 <= max_d2)

@@ -17,8 +17,12 @@ here for the same reason.
 from __future__ import annotations
 
 import logging
+import os
+import threading
 import time
-from dataclasses import dataclass
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -76,6 +80,9 @@ from v2xlake.tasks.register.timeline import render_registration_timeline
 log = logging.getLogger(__name__)
 
 STAGE = "register"
+#: at most this many threads for the per-frame work when ``workers`` is 0 (auto): beyond
+#: it the in-order cross-agent GICP on the calling thread is the bottleneck anyway
+MAX_WORKERS = 8
 
 __all__ = ["REGISTER", "CalibrationComparison", "compare_calibration", "frame_rows",
            "plot_registration", "plot_registration_timeline", "read_agent_scans",
@@ -142,12 +149,19 @@ def _lidar_scans(a: _AgentTables, sensor: str | None) -> AgentScans:
     if (lf := lidar_frames(a.frames, a.desk).get(sensor)) is not None:
         times = {int(f): (int(t0), int(r)) for f, t0, r, ok in zip(
             lf.frame_idx, lf.t_start_ns, lf.ref_ns, lf.deskewed, strict=True) if ok}
-    index = a.index
-    if not index:
+    if not a.index:
         raise _fail(clip_id, f"no {DESKEWED} rows: run deskew first", agent)
     lidar = sensor
+    # one copy of the frame index per thread (its row groups shared, its open files not):
+    # the register stage reads frames on several threads, and one pyarrow ParquetFile is
+    # not documented as safe to read from two at once
+    local = threading.local()
 
     def read_frame(frame_idx: int) -> tuple[np.ndarray, np.ndarray]:
+        index = getattr(local, "index", None)
+        if index is None:
+            index = local.index = (a.index if threading.current_thread()
+                                   is threading.main_thread() else replace(a.index, _pf={}))
         t = index.read(frame_idx, lidar, ["t_ns", "x", "y", "z"])
         if t is None:
             return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
@@ -594,29 +608,84 @@ def _solve(cfg: RegisterConfig, agents: list[AgentScans], measured: list[_Pair],
     return rel, ext
 
 
+@dataclass
+class _Scan:
+    """One agent's frame as the frame loop uses it: its static-scene voxels, and the whole
+    cloud prepared when the agent's odometry uses this frame."""
+
+    agent: str
+    frame: int
+    points: np.ndarray
+    counts: RemovalCounts
+    ground_m: float
+    odometry: bool
+    whole: Prepared | None
+
+
+@dataclass
+class _CrossWork:
+    """One cross pair of a frame, prepared: what its GICP needs."""
+
+    other: AgentScans
+    other_frame: int
+    T_init: np.ndarray
+    scan: _Scan
+    target: Prepared | None
+    source: Prepared | None
+    why: str
+
+
+def register_workers(cfg: RegisterConfig) -> int:
+    """Threads for the per-frame work: ``cfg.workers``, or (0) the cores this process may
+    use (its affinity mask: a Dask worker pinned to its share), at most ``MAX_WORKERS``."""
+    if cfg.workers > 0:
+        return cfg.workers
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_WORKERS))
+
+
 def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
              others: list[AgentScans], pairs: dict[str, dict[int, int]], ref_frames: list[int],
              bodies: dict[str, Body], t0_ns: int,
              redeskew_with: dict[str, np.ndarray] | None = None
              ) -> tuple[list[_Pair], list[OdoMeasurement], dict[str, Any]]:
     """Per-frame GICP of every pair on the static scene, and the agents' own scan-to-scan
-    GICP (odometry, every ``odometry.every`` frames over ``odometry.gap`` frames)."""
+    GICP (odometry, every ``odometry.every`` frames over ``odometry.gap`` frames).
+
+    With several workers (:func:`register_workers`) each frame's reading, static-scene
+    filtering and cloud preparation run on a thread pool a few frames ahead, as do the
+    odometry GICP calls (independent of each other); the cross-agent GICP runs on this
+    thread in frame order, since each frame starts from the previous frame's accepted
+    correction. Every computation is the one the serial loop does on the same inputs, so
+    the results do not depend on the number of workers. The numeric kernels release the
+    GIL (numba ``nogil``); small_gicp does not, so that backend gains little."""
     static = cfg.static
+    workers = register_workers(cfg)
     scans = {a.agent: a for a in (ref, *others)}
     filt = {a.agent: StaticScans(a, static, [(b, bodies[b.agent]) for b in (ref, *others)
                                              if b is not a and b.agent in bodies],
-                                 (redeskew_with or {}).get(a.agent), cfg.gicp.max_range_m)
+                                 (redeskew_with or {}).get(a.agent), cfg.gicp.max_range_m,
+                                 in_flight=workers)
             for a in (ref, *others)}
     limits = cfg.quality.gated(not cfg.solve.enabled)
     # recent prepared clouds per agent, for odometry: frame -> Prepared
     recent: dict[str, dict[int, Prepared]] = {a: {} for a in scans}
     odo_frames = {a: {g: i for i, g in enumerate(sorted(sc.frames))} for a, sc in scans.items()}
-    odo: list[OdoMeasurement] = []
+    odo_work: list[tuple[str, int, int, np.ndarray, np.ndarray, Future[PairResult] | PairResult]
+                   ] = []
     warm: dict[str, np.ndarray | None] = {o.agent: None for o in others}
     out: list[_Pair] = []
     timing: dict[str, Any] = {"pair_s": [], "gicp_s": 0.0, "filter_s": 0.0, "odometry_s": 0.0,
                               "prepare_s": 0.0,
                               "ground": {a: [] for a in scans}}
+    lock = threading.Lock()
+
+    def spent(key: str, seconds: float) -> None:
+        with lock:
+            timing[key] += seconds
 
     def secs(agent: str, f: int) -> float:
         return (scans[agent].frames[f][1] - t0_ns) * 1e-9
@@ -637,35 +706,64 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         except Exception as e:  # per frame, never the clip's end
             return None, f"{backend.name} could not prepare the scan: {e}"
         finally:
-            timing["gicp_s" if other_origin is None else "prepare_s"] += time.perf_counter() - t
+            spent("gicp_s" if other_origin is None else "prepare_s", time.perf_counter() - t)
 
-    def scan(agent: str, f: int, voxel: float) -> tuple[np.ndarray, int, RemovalCounts]:
-        """The frame's static-scene voxels; prepared whole (and kept) only when the agent's
-        odometry uses this frame, since a cross pair prepares its co-visible part."""
-        sc = filt[agent].filtered(f, voxel)
-        timing["ground"][agent].append(sc.ground_m)
+    def uses_odometry(agent: str, f: int) -> bool:
         frames = odo_frames[agent]
-        if cfg.odometry.every > 0 and f in frames:
-            i = frames[f]
-            if i % cfg.odometry.every == 0 or (i - cfg.odometry.gap) % cfg.odometry.every == 0:
-                prep, _ = prepare(sc.points)
-                if prep is not None:
-                    recent[agent][f] = prep
-                    for old in [g for g in recent[agent] if g < f - cfg.odometry.gap]:
-                        del recent[agent][old]
-                    _odometry(agent, f)
-        return sc.points, len(sc.points), sc.counts
+        if cfg.odometry.every <= 0 or f not in frames:
+            return False
+        i = frames[f]
+        return i % cfg.odometry.every == 0 or (i - cfg.odometry.gap) % cfg.odometry.every == 0
 
-    def cross_cloud(agent: str, f: int, points: np.ndarray, other_origin: np.ndarray
-                    ) -> tuple[Prepared | None, str]:
+    def scan(agent: str, f: int, voxel: float) -> _Scan:
+        """The frame's static-scene voxels; prepared whole only when the agent's odometry
+        uses this frame, since a cross pair prepares its co-visible part."""
+        sc = filt[agent].filtered(f, voxel)
+        odo_f = uses_odometry(agent, f)
+        whole = prepare(sc.points)[0] if odo_f else None
+        return _Scan(agent, f, sc.points, sc.counts, sc.ground_m, odo_f, whole)
+
+    def cross_cloud(s: _Scan, other_origin: np.ndarray) -> tuple[Prepared | None, str]:
         """The cloud a cross pair registers: with ``covisible`` only what the other LiDAR
         sees from the same side (:mod:`covisible`; the whole scan where too little would
         remain), else the whole scan (prepared once, shared with odometry)."""
         if not cfg.covisible:
-            return (recent[agent][f], "") if f in recent[agent] else prepare(points)
-        return prepare(points, other_origin)
+            return (s.whole, "") if s.whole is not None else prepare(s.points)
+        return prepare(s.points, other_origin)
 
-    def _odometry(agent: str, f: int) -> None:
+    def frame_work(f: int) -> tuple[_Scan, list[_CrossWork]]:
+        """Everything of reference frame ``f`` that does not depend on earlier frames."""
+        ref_scan = scan(ref.agent, f, cfg.gicp.voxel_m)
+        work = []
+        for o in others:
+            if f not in pairs[o.agent]:
+                continue
+            fo = pairs[o.agent][f]
+            T_init = initial_transform_at(ref.track, o.track, ref.T_ego_lidar, o.T_ego_lidar,
+                                          ref.frames[f][1], o.frames[fo][1])
+            oth = scan(o.agent, fo, cfg.gicp.source_voxel_m)
+            target, why_t = cross_cloud(ref_scan, T_init[:3, 3])
+            source, why_s = cross_cloud(oth, invert(T_init)[:3, 3])
+            work.append(_CrossWork(o, fo, T_init, oth, target, source, why_t or why_s))
+        return ref_scan, work
+
+    def odometry_gicp(g: Prepared, f: Prepared, T_ins: np.ndarray) -> PairResult:
+        t = time.perf_counter()
+        try:
+            return refine(backend, g, f, T_ins, cfg.quality.gated(False))
+        finally:
+            spent("odometry_s", time.perf_counter() - t)
+
+    def keep(s: _Scan, pool: ThreadPoolExecutor | None) -> None:
+        """In frame order: the scan's ground height, and its odometry pair (GICP on the
+        pool) when this frame closes one."""
+        timing["ground"][s.agent].append(s.ground_m)
+        if not s.odometry or s.whole is None:
+            return
+        agent, f = s.agent, s.frame
+        recent[agent][f] = s.whole
+        for old in [g for g in recent[agent] if g < f - cfg.odometry.gap]:
+            del recent[agent][old]
         a = scans[agent]
         frames = sorted(a.frames)
         i = odo_frames[agent][f]
@@ -681,42 +779,56 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         if straight and (i - cfg.odometry.gap) % max(cfg.odometry.straight_every,
                                                      cfg.odometry.every):
             return
-        t = time.perf_counter()
-        r = refine(backend, recent[agent][g], recent[agent][f], T_ins, cfg.quality.gated(False))
-        if r.accepted and r.H is not None and np.isfinite(r.H).all():
-            odo.append(OdoMeasurement(agent, secs(agent, g), secs(agent, f), M0, M1,
-                                      r.T_refined, r.H))
-        timing["odometry_s"] += time.perf_counter() - t
+        args = (recent[agent][g], recent[agent][f], T_ins)
+        odo_work.append((agent, g, f, M0, M1, pool.submit(odometry_gicp, *args)
+                         if pool is not None else odometry_gicp(*args)))
 
-    for f in ref_frames:
-        t0 = time.perf_counter()
-        ref_pts, n_ref, c_ref = scan(ref.agent, f, cfg.gicp.voxel_m)
-        for o in others:
-            if f not in pairs[o.agent]:
-                continue
-            fo = pairs[o.agent][f]
-            T_init = initial_transform_at(ref.track, o.track, ref.T_ego_lidar, o.T_ego_lidar,
-                                          ref.frames[f][1], o.frames[fo][1])
-            oth_pts, n_oth, c_oth = scan(o.agent, fo, cfg.gicp.source_voxel_m)
-            target, why_t = cross_cloud(ref.agent, f, ref_pts, T_init[:3, 3])
-            source, why_s = cross_cloud(o.agent, fo, oth_pts, invert(T_init)[:3, 3])
+    def register_frame(f: int, ref_scan: _Scan, work: list[_CrossWork],
+                       pool: ThreadPoolExecutor | None, t0: float) -> None:
+        """In frame order: the frame's cross pairs, each warm-started from the previous
+        frame's accepted correction of the same agent."""
+        keep(ref_scan, pool)
+        for w in work:
+            o, fo = w.other, w.other_frame
+            keep(w.scan, pool)
             t = time.perf_counter()
-            if target is None or source is None:
-                res = failed_pair(T_init, why_t or why_s)
+            if w.target is None or w.source is None:
+                res = failed_pair(w.T_init, w.why)
             else:
-                res = refine(backend, target, source, T_init, limits,
+                res = refine(backend, w.target, w.source, w.T_init, limits,
                              warm[o.agent] if cfg.gicp.warm_start else None)
-            timing["gicp_s"] += time.perf_counter() - t
+            spent("gicp_s", time.perf_counter() - t)
             if res.accepted and res.observability >= cfg.quality.min_observability:
                 warm[o.agent] = res.correction
             usable = res.accepted and res.H is not None and bool(np.isfinite(res.H).all())
             meas = CrossMeasurement(f, o.agent, secs(ref.agent, f), M(ref.agent, f),
                                     M(o.agent, fo), res.T_refined if usable else None,
                                     res.H if usable else None, secs(o.agent, fo))
-            out.append(_Pair(f, o.agent, fo, ref.frames[f][0], res, n_ref, n_oth, c_ref, c_oth,
-                             meas))
+            out.append(_Pair(f, o.agent, fo, ref.frames[f][0], res, len(ref_scan.points),
+                             len(w.scan.points), ref_scan.counts, w.scan.counts, meas))
             timing["pair_s"].append(time.perf_counter() - t0)
             t0 = time.perf_counter()  # the target's preparation is charged to the first pair
+
+    if workers <= 1:
+        for f in ref_frames:
+            t0 = time.perf_counter()
+            register_frame(f, *frame_work(f), None, t0)
+    else:
+        with ThreadPoolExecutor(max_workers=workers,
+                                thread_name_prefix=f"register-{ref.agent}") as pool:
+            ahead: deque[Future[tuple[_Scan, list[_CrossWork]]]] = deque()
+            frames = iter(ref_frames)
+            for f in ref_frames:
+                while len(ahead) < 2 * workers and (nxt := next(frames, None)) is not None:
+                    ahead.append(pool.submit(frame_work, nxt))
+                t0 = time.perf_counter()
+                register_frame(f, *ahead.popleft().result(), pool, t0)
+    odo: list[OdoMeasurement] = []
+    for agent, g, f, M0, M1, job in odo_work:
+        r = job.result() if isinstance(job, Future) else job
+        if r.accepted and r.H is not None and np.isfinite(r.H).all():
+            odo.append(OdoMeasurement(agent, secs(agent, g), secs(agent, f), M0, M1,
+                                      r.T_refined, r.H))
     for k in ("read", "voxel", "filter"):
         timing[f"{k}_s"] = sum(f.seconds[k] for f in filt.values())
     return out, odo, timing

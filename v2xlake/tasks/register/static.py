@@ -88,7 +88,7 @@ def body_box(T_scan_ego: np.ndarray, velocity_scan: np.ndarray, t_s: float,
                        np.array([float(margin_m)]))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _in_boxes_kernel(pts: np.ndarray, t: np.ndarray, center: np.ndarray, half: np.ndarray,
                      R: np.ndarray, vel: np.ndarray, tb: np.ndarray, margin: np.ndarray,
                      reach2: np.ndarray) -> np.ndarray:
@@ -148,7 +148,7 @@ def dynamic_mask(nearest_earlier: np.ndarray | None, nearest_later: np.ndarray |
     return np.asarray(out)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _above_kernel(pts: np.ndarray, cell_m: float, clearance_m: float) -> np.ndarray:
     n = pts.shape[0]
     gx = np.empty(n, np.int64)

@@ -1,0 +1,101 @@
+"""The register stage's speed work must not change its results: the sparse backend's hash
+grid searches are exact, the voxel and sample passes are deterministic, and the per-frame
+work gives the same registrations on any number of worker threads."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from v2xlake.tasks.register.sparse import spread_sample
+from v2xlake.tasks.register.voxel import VoxelGrid, voxel_downsample_t
+
+
+def _brute(points: np.ndarray, q: np.ndarray) -> np.ndarray:
+    return np.asarray(((q[:, None, :] - points[None, :, :]) ** 2).sum(-1))
+
+
+@pytest.mark.parametrize("cell", [0.35, 1.0, 3.0])
+def test_grid_searches_are_exact(cell: float) -> None:
+    rng = np.random.default_rng(3)
+    # a wall, a ground patch and scattered points, queries inside and far outside the cloud
+    pts = np.concatenate([
+        np.c_[rng.uniform(-10, 10, 800), np.full(800, 4.0), rng.uniform(0, 5, 800)],
+        np.c_[rng.uniform(-10, 10, (800, 2)), rng.normal(0, 0.02, 800)],
+        rng.uniform(-15, 15, (200, 3))])
+    q = np.concatenate([pts[::7] + rng.normal(0, 0.1, (len(pts[::7]), 3)),
+                        rng.uniform(-30, 30, (100, 3))])
+    D = _brute(pts, q)
+    g = VoxelGrid(pts, cell)
+    idx, d2 = g.batch_nearest_neighbor_search(q)
+    assert np.array_equal(idx, D.argmin(1))
+    assert np.allclose(d2, D.min(1), rtol=1e-12, atol=1e-12)
+    idx, d2 = g.batch_nearest_neighbor_search(q, max_dist_m=0.3)
+    near = D.min(1) <= 0.09
+    assert np.array_equal(idx[near], D.argmin(1)[near]) and (idx[~near] == -1).all()
+    assert np.isinf(d2[~near]).all()
+    knn, kd2 = g.batch_knn_search(q, 10)
+    assert np.allclose(kd2, np.sort(D, 1)[:, :10], rtol=1e-12, atol=1e-12)
+    assert all(set(row) == set(np.argsort(D[i])[:10]) for i, row in enumerate(knn))
+    few = VoxelGrid(pts[:4], cell).batch_knn_search(q[:3], 10)[0]
+    assert few.shape == (3, 4) and all(set(r) == {0, 1, 2, 3} for r in few)
+
+
+def test_voxel_table_growth_and_sample_are_first_seen() -> None:
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(-60, 60, (200_000, 3))  # ~190k voxels of 0.2 m: the table grows twice
+    xyz[::11] = np.nan
+    val = rng.normal(size=len(xyz))
+    pts, mean = voxel_downsample_t(xyz, val, 0.2, 100.0)
+    ok = np.isfinite(xyz).all(1) & ((xyz**2).sum(1) <= 100.0**2)
+    key = np.floor(xyz[ok] / 0.2).astype(np.int64)
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)  # first-seen order
+    cnt = np.bincount(inv.ravel())
+    cen = np.stack([np.bincount(inv.ravel(), xyz[ok][:, a]) / cnt for a in range(3)], 1)
+    assert len(pts) == len(first)
+    assert np.allclose(pts, cen[order], atol=1e-9)
+    assert np.allclose(mean, (np.bincount(inv.ravel(), val[ok]) / cnt)[order], atol=1e-9)
+    s = spread_sample(pts, 0.9)
+    k = np.floor(pts / 0.9).astype(np.int64)
+    assert np.array_equal(s, np.sort(np.unique(k, axis=0, return_index=True)[1]))
+
+
+@pytest.fixture(scope="module")
+def deskewed_pair(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The three-frame two-agent street of test_register_stage, deskewed once."""
+    from tests.test_register_stage import write_clip
+    from v2xlake.storage.lake import Lake
+    from v2xlake.tasks.deskew.stage import run_deskew
+
+    root = tmp_path_factory.mktemp("register_workers") / "lake"
+    lake = Lake(root)
+    write_clip(lake)
+    run_deskew(lake, "street1")
+    return root
+
+
+@pytest.mark.parametrize("backend", ["sparse", "small_gicp"])
+def test_any_number_of_workers_gives_the_same_registrations(
+        deskewed_pair: Path, tmp_path: Path, backend: str) -> None:
+    import shutil
+
+    from v2xlake.storage.lake import Lake
+    from v2xlake.tasks.register.stage import RegisterConfig, run_register
+
+    rows = {}
+    for workers in (1, 2):
+        shutil.copytree(deskewed_pair, tmp_path / str(workers))
+        lake = Lake(tmp_path / str(workers))
+        # odometry over consecutive frames, so its GICP also runs on the pool
+        rep = run_register(lake, "street1", RegisterConfig.model_validate({
+            "workers": workers, "write_bev": False, "gicp": {"backend": backend},
+            "odometry": {"every": 1, "gap": 1, "straight_every": 1}}))
+        assert rep.metrics["n_pairs"] == 3 and rep.metrics["n_odometry"] >= 2
+        rows[workers] = (lake.read_table("clean", "registrations", clip_id="street1")
+                         .sort_by("frame_idx").to_pylist(),
+                         lake.read_table("clean", "calibration_refined", clip_id="street1")
+                         .to_pylist())
+    assert rows[1] == rows[2]
