@@ -77,6 +77,23 @@ def test_every_table_is_clean_and_relative(clean_lake: tuple) -> None:
     assert pq.ParquetFile(f).num_row_groups == 10
 
 
+def test_points_are_copied_exactly_but_their_time(clean_lake: tuple) -> None:
+    """The clean lidar_points (encoded with the stage's faster ``POINTS_OPTIONS``) hold
+    every raw column value for value, row for row; only ``t_ns`` moved, by the clip's
+    shift, and the schema is the raw one."""
+    lake, _truth, _ = clean_lake
+    raw = lake.read_table("raw", "lidar_points", clip_id=CLIP).sort_by(
+        [("agent_id", "ascending"), ("frame_idx", "ascending")])
+    clean = lake.read_table("clean", "lidar_points", clip_id=CLIP).sort_by(
+        [("agent_id", "ascending"), ("frame_idx", "ascending")])
+    assert clean.schema.remove_metadata() == raw.schema.remove_metadata()
+    shift = set(np.unique(raw.column("t_ns").to_numpy() - clean.column("t_ns").to_numpy()))
+    assert len(shift) == 1 and shift.pop() > 10**15  # one absolute-to-relative shift
+    for name in raw.column_names:
+        if name != "t_ns":
+            assert clean.column(name).equals(raw.column(name)), name
+
+
 def test_ego_poses_round_trip_to_wgs84(clean_lake: tuple) -> None:
     lake, _truth, _ = clean_lake
     ego = lake.read_table("clean", "ego_poses", clip_id=CLIP, agent_id="red")
