@@ -3,7 +3,7 @@ same frame pairs, one core.
 
     python tests/bench/bench_register.py [--frames 10] [--voxel 0.3] [--beams 128 --cols 2048]
     python tests/bench/bench_register.py --street [--seconds 16 --turn-at 13] [--workdir DIR]
-    python tests/bench/bench_register.py --coop [--coop-seconds 3 10] [--workdir DIR]
+    python tests/bench/bench_register.py --coop [--coop-seconds 3 10] [--workdir DIR] [--cores 2]
 
 ``--coop``: the cooperative boulevard of issue #21 (``coop_config``, 64 x 1024 scans) and its
 variations (the other vehicle ahead / 5-50 m away, no turn, INS drift and noise, an INS step,
@@ -12,7 +12,8 @@ another seed), each simulated once into ``--workdir``; per variation: pairs with
 and its share of the clip's processing time (ingest + anonymize + deskew timed again in the
 same run on each duration's first variation, + register), and
 small_gicp.align called directly on the same deskewed scan pairs from eq. 1a (time, ratio,
-accuracy).
+accuracy). ``--cores N`` runs every stage on N cores (the register stage's ``workers`` is
+then N: the per-frame work on a thread pool), so the share compares like with like.
 
 ``--street``: the hard street of issue #13 (simulator preset ``street`` at full size, 128
 beams x 1800 columns, ~225k points per scan) through ingest, anonymize and deskew once
@@ -203,7 +204,7 @@ def coop(args: argparse.Namespace) -> None:
 
     base = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench_coop"))
     names = [n for n in COOP_VARIATIONS if not args.only or any(o in n for o in args.only)]
-    print(f"cooperative boulevard, 64 x 1024 scans, one core; workdir {base}")
+    print(f"cooperative boulevard, 64 x 1024 scans, {args.cores} core(s); workdir {base}")
     print(f"{'variation':34s} {'s':>3s} {'eq1a cm':>7s} {'<=3cm':>6s} {'acc':>4s} "
           f"{'wrong':>5s} {'med cm':>6s} {'reg s/pair':>10s} {'share':>6s} "
           f"{'sg.align s':>10s} {'x ours':>6s} {'sg <=3cm':>8s}")
@@ -306,6 +307,8 @@ def main() -> None:
     ap.add_argument("--backend", default=RegisterConfig().gicp.backend,
                     choices=["sparse", "small_gicp", "open3d"],
                     help="--coop: the register stage's GICP backend")
+    ap.add_argument("--cores", type=int, default=1,
+                    help="--coop: run on this many cores (the register stage's workers too)")
     ap.add_argument("--only", nargs="*", default=None, help="variations whose name contains")
     ap.add_argument("--street", action="store_true", help="the hard street of issue #13")
     ap.add_argument("--seconds", type=float, default=16.0)
@@ -323,7 +326,11 @@ def main() -> None:
                     help="the sparse backend's source sample cell")
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})
+        cores = sorted(os.sched_getaffinity(0))
+        n = max(1, args.cores) if args.coop else 1
+        if n > len(cores):
+            ap.error(f"--cores {n}: this process may use {len(cores)}")
+        os.sched_setaffinity(0, set(cores[:n]))
     if args.street:
         street(args)
         return

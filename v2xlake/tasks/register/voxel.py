@@ -211,6 +211,19 @@ def _face_margin(x: float, y: float, z: float, inv_cell: float) -> float:
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _cell_d2(x: float, y: float, z: float, ix: int, iy: int, iz: int, cell: float) -> float:
+    """Squared distance from a point to the nearest point of cell (ix, iy, iz) (biased grid
+    coordinates): a cell farther than the current k-th neighbour is not even looked up."""
+    a = (ix - _BIAS) * cell
+    b = (iy - _BIAS) * cell
+    c = (iz - _BIAS) * cell
+    dx = max(a - x, 0.0, x - a - cell)
+    dy = max(b - y, 0.0, y - b - cell)
+    dz = max(c - z, 0.0, z - c - cell)
+    return dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _shell_z(ix: int, iy: int, cx: int, cy: int, cz: int, s: int, z0: int, z1: int
              ) -> tuple[int, int, int]:
     """The z range of shell ``s`` (cells at Chebyshev distance s from (cx, cy, cz)) at
@@ -262,6 +275,8 @@ def _grid_nearest(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order:
                     za, zb, zs = _shell_z(ix, iy, cx, cy, cz, s, max(cz - s, lo[2]),
                                           min(cz + s, hi[2]))
                     for iz in range(za, zb + 1, zs):
+                        if s > 0 and _cell_d2(x, y, z, ix, iy, iz, cell) > best:
+                            continue
                         c = _probe(keys, cells, shift, ix, iy, iz)
                         if c < 0:
                             continue
@@ -309,6 +324,8 @@ def _grid_knn(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.
                     za, zb, zs = _shell_z(ix, iy, cx, cy, cz, s, max(cz - s, lo[2]),
                                           min(cz + s, hi[2]))
                     for iz in range(za, zb + 1, zs):
+                        if s > 0 and _cell_d2(x, y, z, ix, iy, iz, cell) > bd[k - 1]:
+                            continue
                         c = _probe(keys, cells, shift, ix, iy, iz)
                         if c < 0:
                             continue
