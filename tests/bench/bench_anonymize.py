@@ -335,6 +335,9 @@ def main() -> None:
                     "1080p), ours (every frame vs key frames + carry) and deface")
     ap.add_argument("--clip-sizes", default="1080,4k,lidar",
                     help="with --clips: which clips (1080, 4k, lidar; comma-separated)")
+    ap.add_argument("--lidar-seeds", default="0",
+                    help="with --clips: the simulated scenes of the LiDAR-guided clip "
+                    "(comma-separated seeds)")
     args = ap.parse_args()
     if args.clips:
         cv2.setNumThreads(1)
@@ -343,7 +346,9 @@ def main() -> None:
         if "4k" in args.clip_sizes:
             clip_bench(3840, 30.0, 0.3)
         if "lidar" in args.clip_sizes:
-            clip_bench(1920, 30.0, 0.3 if args.quick else 0.5, lidar_only=True)
+            for seed in args.lidar_seeds.split(","):
+                clip_bench(1920, 30.0, 0.3 if args.quick else 0.5, lidar_only=True,
+                           seed=int(seed))
         return
     if args.real:
         cv2.setNumThreads(1)
@@ -543,14 +548,16 @@ def deface_detections(frames: dict[tuple[str, str, int], Path]) -> dict:
     return out
 
 
-def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False) -> None:
+def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
+               seed: int = 0) -> None:
     """One simulated clip (small preset, front / narrow / back cameras at ``width``, ``hz``)
     through the stage, one worker, CPU seconds: every frame detected in full
     (``key_interval_ms=0``) against the default (key frames + carry), recall of visible
     faces / plates from 16 / 20 px and false blurs per image; deface (recall of its own
     detections, speed of its command line on one core) on the same frames.
     ``lidar_only``: the clip's annotations are deleted after ingest, so the regions come
-    from LiDAR clusters."""
+    from LiDAR clusters. ``seed``: the simulated scene (``--lidar-seeds``: LiDAR clusters
+    are measured on several scenes, not tuned to one)."""
     import pyarrow.parquet as pq
 
     from v2xlake.storage.lake import Lake
@@ -577,7 +584,7 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False) 
 
     with tempfile.TemporaryDirectory() as tmp:
         clip_dir = simulate(Path(tmp) / "clip", SimConfig.preset(
-            "small", seconds=seconds, camera_hz=hz, image_width=width, seed=0,
+            "small", seconds=seconds, camera_hz=hz, image_width=width, seed=seed,
             cameras=("CAM_FRONT", "CAM_FRONT_NARROW", "CAM_BACK")))
         truth = pq.read_table(Path(clip_dir) / "truth" / "boxes2d.parquet").to_pydict()
         lake = Lake(Path(tmp) / "lake")
@@ -586,7 +593,8 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False) 
             for f in lake.list_files(lake.table_dir("raw", "annotations", cid), ".parquet"):
                 os.remove(f)
         keys = lake_image_keys(lake, cid)
-        print(f"\nSimulated clip {width} px, {hz:g} Hz, {seconds:g} s: {len(keys)} images, "
+        print(f"\nSimulated clip {width} px, {hz:g} Hz, {seconds:g} s, seed {seed}: "
+              f"{len(keys)} images, "
               f"regions from {'LiDAR clusters' if lidar_only else 'annotations'} "
               "(one worker, CPU seconds)")
         for name, upd in (("every frame in full (carry.key_interval_ms=0)",
