@@ -339,6 +339,23 @@ class CenterFaceDetector:
             heat, scale, offset, _lms = net.forward(["537", "538", "539", "540"])
         return heat[0, 0], scale[0], offset[0]
 
+    def maps_batch(self, views: Sequence[np.ndarray]
+                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """``maps`` of several BGR views of one shape (a multiple of 32 a side) in one
+        network call (onnxruntime: the batch dimension is symbolic; ``cv2.dnn``: one call per
+        view). Why: the two-stage face passes look at dozens of small crops per frame; packed
+        into a canvas they need gaps between them (each crop's context must not be its
+        neighbour's), which cost the float network 40 % more pixels than the crops hold."""
+        if self._session is None or len(views) == 1:
+            return [self.maps(v) for v in views]
+        h, w = views[0].shape[:2]
+        assert h % 32 == 0 and w % 32 == 0 and all(v.shape[:2] == (h, w) for v in views)
+        blob = cv2.dnn.blobFromImages(list(views), 1.0, (w, h), (0, 0, 0), swapRB=True,
+                                      crop=False)
+        heat, scale, offset, _lms = self._session.run(
+            ["537", "538", "539", "540"], {"input.1": blob})
+        return [(heat[i, 0], scale[i], offset[i]) for i in range(len(views))]
+
     @staticmethod
     def decode(maps: tuple[np.ndarray, np.ndarray, np.ndarray], w: int, h: int,
                threshold: float) -> tuple[np.ndarray, np.ndarray]:
