@@ -2,12 +2,12 @@
 
 Three implementations of Generalized-ICP [Segal et al.]: ``sparse`` (default; :mod:`sparse`: a
 spread sample of the source, surfaces computed only where correspondences land, every
-centroid where the sample finds too few; 2-4x faster per pair here), small_gicp (every point
-of both clouds) and Open3D. Each
-cloud is prepared ONCE (voxel downsampling, per-point covariances or a lazy surface store,
-k-d tree) and reused: the reference agent's scan is the target of every other agent's scan in
-the same frame, and small_gicp's one-call ``align`` on NumPy arrays would redo that work every
-time (60-75 % of its cost).
+centroid where the sample finds too few, searches on a hash grid; 4.5x faster per pair than
+the small_gicp backend on 239k-point scans, 0.036 against 0.160 s), small_gicp (every point
+of both clouds) and Open3D. Each cloud is prepared ONCE (voxel downsampling, per-point
+covariances or a lazy surface store, k-d tree or grid) and reused: the reference agent's
+scan is the target of every other agent's scan in the same frame, and small_gicp's one-call
+``align`` on NumPy arrays would redo that work every time (60-75 % of its cost).
 All report the same quality figures, computed the same way (nearest neighbour of each
 transformed source point -- of its sample for ``sparse`` -- in the target within a distance),
 so thresholds mean the same whichever backend ran, and the same information matrix: the GICP
@@ -247,8 +247,9 @@ class Open3dBackend:
 
 class SparseGicpBackend(SmallGicpBackend):
     """GICP on a spread sample of the source with surfaces computed where they are used
-    (:mod:`sparse`); small_gicp's k-d tree for the searches (and its nearest-neighbour
-    quality figure)."""
+    (:mod:`sparse`); its searches (nearest neighbour, k nearest, the quality figure) on a
+    hash grid (:class:`voxel.VoxelGrid`): exact like small_gicp's k-d tree, built in a
+    sixth of the time, and free of the GIL."""
 
     name = "sparse"
 

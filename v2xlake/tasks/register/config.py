@@ -66,8 +66,10 @@ class GicpSection(Section):
         "the query's cell or the 26 around it). On 28k-centroid clouds 0.6 m and 1.5 m were "
         "1.2-2x slower than 1.0 m")
     max_iterations: int = Field(30, ge=1)
-    num_threads: int = Field(1, ge=1, description="threads per GICP call; one leaves the "
-                             "other cores to the other clips of a run")
+    num_threads: int = Field(1, ge=1, description="small_gicp / open3d: threads per GICP "
+                             "call; one leaves the other cores to the other clips of a run "
+                             "(the sparse backend searches on the calling thread; the stage's "
+                             "workers run frames in parallel)")
     warm_start: bool = Field(True, description="start each frame from the previous frame's "
                              "accepted correction (and from eq. 1a if that fails)")
 
