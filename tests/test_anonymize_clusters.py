@@ -138,3 +138,92 @@ def test_a_sparsely_scanned_car_is_one_vehicle() -> None:
 
     assert not cars(ClusterConfig(gap_deg=0.0)).any()
     assert cars(ClusterConfig()).any()
+
+
+def test_an_l_of_points_gets_the_cars_own_axes() -> None:
+    """A parked car seen from behind-left: its rear face (1.8 m) and 2-4 m of its side, an L
+    of points. The minimum-area rectangle around an L is as small turned diagonally as
+    upright, and was diagonal here (25-45°, so the rear face searched for the plate was
+    not the car's); the L-shape fit keeps the car's axes and its rear face at x = 10."""
+    from v2xlake.tasks.anonymize.clusters import ClusterConfig
+
+    rng = np.random.default_rng(0)
+    ground = _solid((-20, 20), (-20, 20), (0.0, 0.05), 0.4)
+    for seen in (2.0, 3.0, 4.0):
+        rear = np.array([(10.0, y, z) for y in np.arange(-8.2, -6.39, 0.25)
+                         for z in (0.4, 0.8, 1.2)])
+        side = np.array([(x, -6.4, z) for x in np.arange(10.0, 10.0 + seen, 0.25)
+                         for z in (0.4, 0.8, 1.2)])
+        pts = np.vstack([ground, rear, side])
+        pts = pts + rng.normal(0.0, 0.02, pts.shape)
+        for cfg, upright in ((ClusterConfig(), True), (ClusterConfig(lshape_step_deg=0), False)):
+            c, s, yaw, cat = cluster_boxes(pts, cfg)
+            car = (cat == "Car") & (np.abs(c[:, 0] - 11.0) < 2.5)
+            assert car.any(), seen
+            off = np.abs((np.degrees(yaw[car]) + 45) % 90 - 45)  # 0: along the car's axes
+            assert (off.max() < 3) == upright, (seen, np.degrees(yaw[car]))
+            if upright:  # the box's near end is the rear face
+                along_x = np.where(np.abs(np.cos(yaw[car])) > 0.5, s[car, 1], s[car, 0])
+                assert np.allclose(c[car, 0] - along_x / 2, 10.0, atol=0.15), (seen, c, s)
+
+
+def test_a_far_sparsely_scanned_car_face_is_searched_as_a_vehicle() -> None:
+    """A car's rear face 25 m away under a sparse LiDAR (1.05° columns, 0.55 m rows: the
+    simulator's) gets two columns of two returns above the ground: fewer than the 8 a near
+    object needs, and 0.46 m wide (person-sized). Beyond ``dense_range_m`` fewer returns
+    make an object (by range², at least ``min_points_far``) and its extent may be one point
+    spacing larger on each side, so it is searched both as a person and as a vehicle; near,
+    four returns stay nothing."""
+    from v2xlake.tasks.anonymize.clusters import ClusterConfig
+
+    ground = _solid((-40, 40), (-10, 10), (0.0, 0.05), 0.4)
+    face = np.array([(-25.5, y, z) for y in (-3.41, -2.95) for z in (0.47, 1.06)])
+
+    def kinds(pts: np.ndarray, cfg: ClusterConfig) -> set[str]:
+        c, _s, _yaw, cat = cluster_boxes(np.vstack([ground, pts]), cfg)
+        near = np.hypot(c[:, 0] - pts[:, 0].mean(), c[:, 1] - pts[:, 1].mean()) < 1.0
+        return set(cat[near].tolist())
+
+    assert kinds(face, ClusterConfig()) == {"Car", "Pedestrian"}
+    assert kinds(face, ClusterConfig(dense_range_m=0.0)) == set()
+    assert kinds(face, ClusterConfig(sparse_extent=False)) == {"Pedestrian"}
+    assert kinds(face * [0.4, 1.0, 1.0], ClusterConfig()) == set()  # the same 10 m away
+
+
+def test_a_far_car_alone_in_its_ground_cell_keeps_its_lower_returns() -> None:
+    """27 m away a sparse LiDAR may hit no road in the 2 m cell a car stands in: the cell's
+    lowest returns are the car's own, and taken as ground they dropped its lower row (and
+    with it the car: 3 returns left). The road in the cells around is the ground there."""
+    from v2xlake.tasks.anonymize.clusters import ClusterConfig
+
+    ground = _solid((-40, 40), (-10, 10), (0.0, 0.05), 0.7)
+    # no road return in the car's cell (x -28..-26, y -4..-2)
+    ground = ground[~((ground[:, 0] >= -28) & (ground[:, 0] < -26) & (ground[:, 1] >= -4)
+                      & (ground[:, 1] < -2))]
+    car = np.array([(-27.3, y, z) for y in (-3.64, -3.15, -2.7) for z in (0.36, 0.99)])
+
+    def found(cfg: ClusterConfig) -> bool:
+        c, _s, _yaw, cat = cluster_boxes(np.vstack([ground, car]), cfg)
+        near = np.hypot(c[:, 0] + 27.3, c[:, 1] + 3.15) < 1.0
+        return bool((near & (cat == "Car")).any())
+
+    assert found(ClusterConfig())
+    assert not found(ClusterConfig(ground_neighbours=False))
+
+
+def test_a_cluster_plate_slab_starts_at_its_estimated_ground() -> None:
+    """A cluster's bottom is the ground estimated under it, not a labelled box bottom: its
+    vehicle faces are searched for plates from that ground up (a low plate 3 px under the
+    face's lower edge 0.15 m up was missed), annotated boxes keep 0.15 m."""
+    import pyarrow as pa
+
+    from v2xlake.tasks.anonymize.context import assemble_guide
+
+    cfg = GuideConfig()
+    boxes = _boxes(np.array([[10.0, 0.0, 0.75]]), np.array([[1.8, 4.5, 1.5]]),
+                   np.array([0.0]), np.array(["Car"]))
+    g = assemble_guide(0, {}, {}, {}, pa.table({"t_ns": pa.array([], pa.int64())}),
+                       pa.table({}), cfg, {"red": boxes})
+    assert g.source == "lidar clusters"
+    assert g.config.plate_z_m == (cfg.cluster_plate_z0_m, cfg.plate_z_m[1])
+    assert cfg.plate_z_m[0] == 0.15 and cfg.cluster_plate_z0_m == 0.0

@@ -5,20 +5,25 @@ Why so simple: the anonymizer only needs to know where to look and at what scale
 margin; a box that is too large costs a little time, a missed object falls back on the
 safety pass. So: the ground is the lowest points of each 2 m cell; what stands 0.2-4 m above
 it is rasterised on a 0.2 m grid; 8-connected cells form objects; an object's footprint is
-its minimum-area rectangle. A spinning LiDAR's points on a distant object are further apart
+the rectangle around its points. A spinning LiDAR's points on a distant object are further apart
 than the grid (at 20 m a 1° azimuth step is 0.35 m): there a car falls apart into slivers
 that are too small or person-sized, and its plate gets no region (on the simulated 1080p clip
 without annotations most missed plates were missed that way). So cells are also bridged
 when their gap, seen from the sensor, is at most ``gap_deg`` (``_bridged``): every object of
 the 0.2 m grid is kept, and every bridged group that joins several of them is an object too.
 Sizes decide the class: a person is at most 1.2 m across and 1-2.2 m tall (a head on top); a
-vehicle 1.2-20 m across and 0.8-4.5 m tall. A LiDAR sees a car from behind as its rear face
-only (a 1.7 m x 0.5 m footprint at 40 m on the real PJLab scan), so an object shorter than a
-car's length may be seen end-on: it is returned in both orientations, and the camera-facing
-faces of both are searched for plates. Walls longer than 20 m are dropped. A row of parked
-cars touching each other is one cluster: a long, car-high footprint is also cut into
-car-length pieces (and a thin one, the rear faces of cars parked side by side, into car
-widths, each seen end-on), so the plates between the row's ends are searched too. Pure
+vehicle 1.2-20 m across and 0.8-4.5 m tall. A footprint's orientation is fitted to the L a
+LiDAR sees of a vehicle (its near faces, ``_footprint``), not the minimum-area rectangle,
+which turns an L diagonally. Far away (beyond ``dense_range_m``) a sparse LiDAR puts a few
+returns on a car (4-6 on the simulator's at 25 m): fewer returns make an object there (by
+range²), and an object that may be one point spacing larger on each side than its returns,
+person-sized or a vehicle's face, is searched as both. A LiDAR sees a car from behind as its
+rear face only (a 1.7 m x 0.5 m footprint at 40 m on the real PJLab scan), so an object
+shorter than a car's length may be seen end-on: it is returned in both orientations, and the
+camera-facing faces of both are searched for plates. Walls longer than 20 m are dropped. A
+row of parked cars touching each other is one cluster: a long, car-high footprint is also
+cut into car-length pieces (and a thin one, the rear faces of cars parked side by side, into
+car widths, each seen end-on), so the plates between the row's ends are searched too. Pure
 function of the points.
 """
 
@@ -48,6 +53,19 @@ class ClusterConfig(FromParams):
     grid_m: float = 0.2
     max_range_m: float = 80.0
     min_points: int = 8
+    # a cell's ground no higher than its neighbours' median (``_ground_below_neighbours``)
+    ground_neighbours: bool = True
+    # fewer returns suffice beyond ``dense_range_m`` (by range², down to ``min_points_far``):
+    # the simulator's 1.1° LiDAR puts 4-6 returns on a car's rear face at 25 m
+    dense_range_m: float = param("clusters.dense_range_m")
+    min_points_far: int = param("clusters.min_points_far")
+    # a group's extent grown by its point spacing decides whether it can be a vehicle (a far
+    # car's face is 2-3 columns wide); one that could be a person or a vehicle is both
+    sparse_extent: bool = param("clusters.sparse_extent")
+    # the footprint's orientation: L-shape fit in steps of this (0: minimum-area rectangle)
+    lshape_step_deg: float = 1.0
+    lshape_d0_m: float = 0.02
+    lshape_max_points: int = 256
     vehicle_l: tuple[float, float] = (1.2, 20.0)  # the footprint's long side
     vehicle_w_max: float = 3.5
     vehicle_h: tuple[float, float] = (0.8, 4.5)
@@ -84,10 +102,9 @@ def cluster_boxes(xyz: np.ndarray, cfg: ClusterConfig | None = None
     p = np.asarray(xyz, np.float64).reshape(-1, 3)
     p = p[np.isfinite(p).all(1) & (np.hypot(p[:, 0], p[:, 1]) <= c.max_range_m)]
     empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, "<U10"))
-    if len(p) < c.min_points:
+    if len(p) < min(c.min_points, c.min_points_far):
         return empty
-    # ground: a low percentile of z per coarse cell (cells without enough points: the median
-    # ground of the scan)
+    # ground: a low percentile of z per coarse cell
     gc = np.floor(p[:, :2] / c.ground_cell_m).astype(np.int64)
     key = gc[:, 0] * 1_000_003 + gc[:, 1]
     order = np.argsort(key, kind="stable")
@@ -95,11 +112,13 @@ def cluster_boxes(xyz: np.ndarray, cfg: ClusterConfig | None = None
     ground_of = np.empty(len(ks))
     for i, (a, b) in enumerate(zip(start, [*start[1:], len(order)], strict=True)):
         ground_of[i] = np.percentile(p[order[a:b], 2], c.ground_percentile)
+    if c.ground_neighbours:
+        ground_of = _ground_below_neighbours(ks, ground_of)
     ground = ground_of[np.searchsorted(ks, key)]
     above = p[:, 2] - ground
     keep = (above >= c.min_above_m) & (above <= c.max_above_m)
     q, qg = p[keep], ground[keep]
-    if len(q) < c.min_points:
+    if len(q) < min(c.min_points, c.min_points_far):
         return empty
     cell = np.floor(q[:, :2] / c.grid_m).astype(np.int64)
     lo = cell.min(0)
@@ -119,7 +138,7 @@ def cluster_boxes(xyz: np.ndarray, cfg: ClusterConfig | None = None
     if c.gap_deg > 0:
         groups += _bridged(cell, lab, -lo, c)
     for j, idx in enumerate(groups):
-        if len(idx) < c.min_points:
+        if len(idx) < c.min_points_far or len(idx) < _min_points(q[idx], c):
             continue
         _object(q[idx], qg[idx], c, centres, sizes, yaws, cats, bridged=j >= n)
     if not centres:
@@ -134,15 +153,36 @@ def _object(pts: np.ndarray, qg: np.ndarray, c: ClusterConfig,
     its size fits neither a person nor a vehicle (nor, for a ``bridged`` group, when it is
     taller than a car and longer than ``bridge_max_m``); a row of touching cars also as its
     cars, a short vehicle also end-on."""
-    (cx, cy), (a, b), ang = cv2.minAreaRect(pts[:, :2].astype(np.float32))
-    length, width, yaw = (a, b, np.radians(ang)) if a >= b else (b, a, np.radians(ang + 90))
+    (cx, cy), length, width, yaw = _footprint(pts[:, :2], c)
     length, width = max(length, 0.3), max(width, 0.3)
     g = float(np.median(qg))
     h = float(pts[:, 2].max() - g)
-    if length <= c.person_max_wl and c.person_h[0] <= h <= c.person_h[1]:
+    # beyond ``dense_range_m`` an object is larger than its points by up to one point spacing
+    # on each side and above its top return (a car's rear face at 27 m: 3 columns 0.45 m
+    # apart on a 1.8 m face, its top return 1 m up, the next row over its roof)
+    far = c.dense_range_m > 0 and float(np.median(np.hypot(pts[:, 0], pts[:, 1]))) \
+        > c.dense_range_m
+    could = length <= c.person_max_wl or (length >= c.vehicle_l[0] and h < c.vehicle_h[0])
+    sp = _spacing(pts) if c.sparse_extent and far and could else 0.0
+    person = (length <= c.person_max_wl and h <= c.person_h[1]
+              and h + sp >= c.person_h[0])
+    vehicle = (c.vehicle_l[0] <= length + (2.0 * sp if person else 0.0)
+               and length <= c.vehicle_l[1] and width <= c.vehicle_w_max
+               and h <= c.vehicle_h[1] and h + sp >= c.vehicle_h[0])
+    if person and vehicle and (length < c.vehicle_l[0] or h < c.person_h[0]):
+        # too few returns to tell: both
+        hp = max(h, c.person_h[0])
+        _append((cx, cy, g + hp / 2), (width, length, hp), yaw, "Pedestrian",
+                centres, sizes, yaws, cats)
+        length = max(length, c.vehicle_l[0])  # the smallest vehicle face, centred there
+        h = max(h, c.vehicle_h[0])
+        cat = "Car"
+    elif person:
+        h = max(h, c.person_h[0])
         cat = "Pedestrian"
-    elif (c.vehicle_l[0] <= length <= c.vehicle_l[1] and width <= c.vehicle_w_max
-          and c.vehicle_h[0] <= h <= c.vehicle_h[1]):
+    elif person:
+        cat = "Pedestrian"
+    elif vehicle:
         cat = "Car"
     else:
         return
@@ -179,6 +219,103 @@ def _object(pts: np.ndarray, qg: np.ndarray, c: ClusterConfig,
         sizes.append((length, width, h))
         yaws.append(yaw + np.pi / 2)
         cats.append(cat)
+
+
+def _ground_below_neighbours(ks: np.ndarray, ground: np.ndarray) -> np.ndarray:
+    """Each ground cell's height, never above the median of its neighbour cells' (with two
+    of them at least). Why: far away a sparse LiDAR may hit no road in a car's 2 m cell, so
+    the cell's lowest returns are the car's own (a parked car 27 m away got its bumper as
+    ground, and with it most of its 6-8 returns below ``min_above_m``); the road around it
+    is the ground there. A slope keeps its height: its neighbours' median is its own."""
+    cx, cy = np.divmod(ks + 500_001, 1_000_003)  # undo key = gx * 1_000_003 + gy
+    cy = cy - 500_001
+    nb = np.full((len(ks), 8), np.nan)
+    j = 0
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            if dx == dy == 0:
+                continue
+            k = (cx + dx) * 1_000_003 + (cy + dy)
+            pos = np.clip(np.searchsorted(ks, k), 0, len(ks) - 1)
+            hit = ks[pos] == k
+            nb[hit, j] = ground[pos[hit]]
+            j += 1
+    n = np.isfinite(nb).sum(1)
+    out = ground.copy()
+    ok = n >= 2
+    if ok.any():
+        med = np.nanmedian(nb[ok], axis=1)
+        out[ok] = np.minimum(ground[ok], med)
+    return out
+
+
+def _append(centre: tuple[float, float, float], size: tuple[float, float, float], yaw: float,
+            cat: str, centres: list[tuple[float, float, float]],
+            sizes: list[tuple[float, float, float]], yaws: list[float], cats: list[str]) -> None:
+    centres.append(centre)
+    sizes.append(size)
+    yaws.append(yaw)
+    cats.append(cat)
+
+
+def _footprint(xy: np.ndarray, c: ClusterConfig
+               ) -> tuple[tuple[float, float], float, float, float]:
+    """Centre, length, width and yaw (of the length axis) of the rectangle around ``xy``.
+
+    Why not the minimum-area rectangle: a LiDAR sees a vehicle's near faces, an L of points
+    (rear and side), and the diagonal rectangle around an L has the same area as the
+    upright one (a*b either way), so ``minAreaRect`` often picks the diagonal (a parked car
+    seen from behind-left at 12 m: a 3.2 x 1.3 m box turned 36°, whose rear face missed the
+    plate). The orientation is the one whose rectangle edges the points hug (the closeness
+    criterion of L-shape fitting: the sum of 1 / distance to the nearest edge), searched in
+    ``lshape_step_deg`` steps; the rectangle is then the points' extent along those axes."""
+    if len(xy) > c.lshape_max_points:  # the angle search on an even subset (walls: 1000s)
+        xy_fit = xy[np.linspace(0, len(xy) - 1, c.lshape_max_points).astype(np.int64)]
+    else:
+        xy_fit = xy
+    p = xy_fit - xy_fit.mean(0)
+    if len(p) < 3 or c.lshape_step_deg <= 0:
+        (cx, cy), (a, b), ang = cv2.minAreaRect(xy.astype(np.float32))
+        return ((cx, cy), a, b, np.radians(ang)) if a >= b else ((cx, cy), b, a,
+                                                                np.radians(ang + 90))
+    def best(th: np.ndarray) -> float:
+        e1 = p @ np.stack([np.cos(th), np.sin(th)])  # (n, k): coordinate along each axis
+        e2 = p @ np.stack([-np.sin(th), np.cos(th)])
+        d1 = np.minimum(e1 - e1.min(0), e1.max(0) - e1)
+        d2 = np.minimum(e2 - e2.min(0), e2.max(0) - e2)
+        score = (1.0 / np.maximum(np.minimum(d1, d2), c.lshape_d0_m)).sum(0)
+        return float(th[int(np.argmax(score))])
+
+    coarse = 5.0 * c.lshape_step_deg  # coarse steps, then fine ones around the best
+    t = best(np.radians(np.arange(0.0, 90.0, coarse)))
+    t = best(t + np.radians(np.arange(-coarse, coarse + 1e-9, c.lshape_step_deg)))
+    a1 = xy @ np.array([np.cos(t), np.sin(t)])  # every point's extent along the axes found
+    a2 = xy @ np.array([-np.sin(t), np.cos(t)])
+    m1, m2 = (a1.min() + a1.max()) / 2, (a2.min() + a2.max()) / 2
+    centre = m1 * np.array([np.cos(t), np.sin(t)]) + m2 * np.array([-np.sin(t), np.cos(t)])
+    ext1, ext2 = float(np.ptp(a1)), float(np.ptp(a2))
+    if ext1 >= ext2:
+        return (float(centre[0]), float(centre[1])), ext1, ext2, float(t)
+    return (float(centre[0]), float(centre[1])), ext2, ext1, float(t + np.pi / 2)
+
+
+def _spacing(pts: np.ndarray) -> float:
+    """The median distance from each point to its nearest neighbour (the scan's spacing on
+    this object); 0 for a single point."""
+    if len(pts) < 2:
+        return 0.0
+    d, _ = cKDTree(pts).query(pts, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def _min_points(pts: np.ndarray, c: ClusterConfig) -> int:
+    """The returns an object needs to be one: ``min_points`` up to ``dense_range_m``; beyond,
+    fewer by the square of the range (a spinning LiDAR's returns on a surface fall as
+    1 / range²), never under ``min_points_far``."""
+    r = float(np.median(np.hypot(pts[:, 0], pts[:, 1])))
+    if c.dense_range_m <= 0 or r <= c.dense_range_m:
+        return c.min_points
+    return max(c.min_points_far, int(np.ceil(c.min_points * (c.dense_range_m / r) ** 2)))
 
 
 def _bridged(cell: np.ndarray, lab: np.ndarray, origin: np.ndarray, c: ClusterConfig

@@ -166,6 +166,19 @@ class Clusters(Section):
     bridge_max_m: float = Field(
         6.0, gt=0, description="a joined group taller than a car and longer than this is a "
         "facade, not an object")
+    dense_range_m: float = Field(
+        15.0, ge=0, description="an object needs 8 LiDAR returns up to this range; beyond, "
+        "fewer by the square of the range (the returns a surface gets), down to "
+        "min_points_far. A sparse LiDAR (16-32 beams, the simulator's 1.1° heads) puts 4-6 "
+        "returns on a car's rear face at 25 m; 0: 8 at every range")
+    min_points_far: int = Field(
+        4, ge=1, description="the fewest returns that make an object at any range (two rows "
+        "of two columns: a surface, not a stray return)")
+    sparse_extent: bool = Field(
+        True, description="beyond dense_range_m an object may be up to one point spacing "
+        "wider on each side and taller than its returns show: a person-sized object that "
+        "could also be a vehicle is searched as both (a car's rear face at 25-28 m: 2-3 "
+        "columns of 2 rows, 0.5-0.9 m wide, its top return 1 m up)")
 
 
 class Safety(Section):

@@ -15,6 +15,7 @@ assembles the guide from them.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -120,6 +121,9 @@ def assemble_guide(t0_abs: int, tracks: dict[str, PoseTrack],
     elif clusters:
         g.boxes = clusters
         g.source = "lidar clusters"
+        g.config = dataclasses.replace(
+            config, plate_z_m=(min(config.cluster_plate_z0_m, config.plate_z_m[0]),
+                               config.plate_z_m[1]))
     return g
 
 

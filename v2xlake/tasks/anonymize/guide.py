@@ -41,6 +41,11 @@ class GuideConfig(FromParams):
     plate_width_m: float = 0.52  # EU plate; US 0.305: the size prior allows for it
     face_height_m: float = 0.23
     plate_z_m: tuple[float, float] = (0.15, 1.4)  # plate height above the box bottom
+    # a LiDAR cluster's bottom is the ground estimated under it (a low percentile of the
+    # returns of its 2 m cells: a few cm to 0.2 m off), not a labelled one: its plate slab
+    # starts this far above it (a low plate on the simulated clip was cut by the face's
+    # lower edge 0.15 m up, 3 px in the image, and missed)
+    cluster_plate_z0_m: float = 0.0
     plate_depth_m: float = 0.4  # slab thickness at a vehicle face (bumper curvature)
     windows: bool = param("regions.windows")  # search faces behind vehicle windows
     window_z_m: float = 0.9  # faces behind windows: above this height over the box bottom
