@@ -78,8 +78,11 @@ class RegistrationBackend(Protocol):
         beyond ``max_dist_m`` may come back as inf (the quality figures count inliers only)."""
         ...
 
-    def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int
-                          ) -> Prepared: ...
+    def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int,
+                          base: Prepared | None = None) -> Prepared:
+        """Only what the LiDAR at ``other_origin`` sees from the same side. ``base``: the
+        same points already prepared by ``prepare_points``, which a backend may share."""
+        ...
 
 
 def _masked_prepare(backend: RegistrationBackend, pts: np.ndarray, other_origin: np.ndarray,
@@ -182,8 +185,9 @@ class SmallGicpBackend:
             np.ascontiguousarray(query, np.float64), num_threads=self.params.num_threads)
         return np.asarray(d2, dtype=np.float64)
 
-    def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int
-                          ) -> Prepared:
+    def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int,
+                          base: Prepared | None = None) -> Prepared:
+        del base  # the co-visible part is a cloud of its own here
         return _masked_prepare(self, pts, other_origin, min_keep)
 
 
@@ -240,8 +244,9 @@ class Open3dBackend:
         del max_dist_m  # the k-d tree finds the nearest point at any distance
         return self._nearest(target, query)[1]
 
-    def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int
-                          ) -> Prepared:
+    def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int,
+                          base: Prepared | None = None) -> Prepared:
+        del base  # the co-visible part is a cloud of its own here
         return _masked_prepare(self, pts, other_origin, min_keep)
 
 
@@ -310,17 +315,21 @@ class SparseGicpBackend(SmallGicpBackend):
         return rows[covisible_rows(source.points, surf.normals, surf.ratio, rows,
                                    source.covisible_with)]
 
-    def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int
-                          ) -> Prepared:
+    def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int,
+                          base: Prepared | None = None) -> Prepared:
         """Co-visibility decided only where it is used: on the source sample now (its
         surfaces are needed anyway), on the target's points as they become correspondences.
-        The 30 % / ``min_keep`` fallback to the whole scan is judged on the sample."""
+        The 30 % / ``min_keep`` fallback to the whole scan is judged on the sample.
+
+        With ``base`` (``pts`` prepared whole) the result shares its grid and its lazily
+        filled surfaces: a scan registered against two agents, or also used by its agent's
+        odometry, computes each point's surface once (surfaces depend on the points only)."""
         from dataclasses import replace
 
         from v2xlake.tasks.register.covisible import covisible_rows
 
         p = self.params
-        prep = self.prepare_points(pts)
+        prep = base if base is not None else self.prepare_points(pts)
         rows = prep.rows()
         if not len(rows):
             return prep

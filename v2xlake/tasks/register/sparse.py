@@ -31,7 +31,8 @@ pure functions on arrays.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -174,6 +175,9 @@ class Surfaces:
     normals: np.ndarray  # (N, 3)
     ratio: np.ndarray  # (N,) smallest / middle eigenvalue; NaN: none (or not computed)
     known: np.ndarray  # (N,) bool
+    # one scan's surfaces may be filled by two threads at once (its agent's odometry GICP on
+    # the register stage's pool, a cross pair on the calling thread)
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     @classmethod
     def empty(cls, n: int) -> Surfaces:
@@ -182,6 +186,11 @@ class Surfaces:
     def ensure(self, points: np.ndarray, tree: object, rows: np.ndarray, k: int,
                num_threads: int = 1) -> None:
         """Compute the surfaces of ``rows`` not yet known, from their ``k`` nearest points."""
+        with self.lock:
+            self._ensure(points, tree, rows, k, num_threads)
+
+    def _ensure(self, points: np.ndarray, tree: object, rows: np.ndarray, k: int,
+                num_threads: int) -> None:
         todo = rows[~self.known[rows]]
         if not len(todo):
             return

@@ -620,6 +620,9 @@ class _Scan:
     ground_m: float
     odometry: bool
     whole: Prepared | None
+    # prepared whole, shared by its co-visible clouds (grid and surfaces computed once):
+    # ``whole``, or prepared for that when several agents register against the scan
+    base: Prepared | None = None
 
 
 @dataclass
@@ -694,15 +697,17 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         a = scans[agent]
         return a.track.matrices(a.frames[f][1])[0]
 
-    def prepare(points: np.ndarray, other_origin: np.ndarray | None = None
-                ) -> tuple[Prepared | None, str]:
+    def prepare(points: np.ndarray, other_origin: np.ndarray | None = None,
+                base: Prepared | None = None) -> tuple[Prepared | None, str]:
         """The scan prepared for GICP; with ``other_origin`` only what the LiDAR there sees
-        from the same side (:mod:`covisible`; the whole scan where too little would remain)."""
+        from the same side (:mod:`covisible`; the whole scan where too little would remain),
+        sharing what ``base`` (the same points prepared whole) computed."""
         t = time.perf_counter()
         try:
             if other_origin is None:
                 return backend.prepare_points(points), ""
-            return backend.prepare_covisible(points, other_origin, cfg.quality.min_inliers), ""
+            return backend.prepare_covisible(points, other_origin, cfg.quality.min_inliers,
+                                             base), ""
         except Exception as e:  # per frame, never the clip's end
             return None, f"{backend.name} could not prepare the scan: {e}"
         finally:
@@ -721,7 +726,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         sc = filt[agent].filtered(f, voxel)
         odo_f = uses_odometry(agent, f)
         whole = prepare(sc.points)[0] if odo_f else None
-        return _Scan(agent, f, sc.points, sc.counts, sc.ground_m, odo_f, whole)
+        return _Scan(agent, f, sc.points, sc.counts, sc.ground_m, odo_f, whole, whole)
 
     def cross_cloud(s: _Scan, other_origin: np.ndarray) -> tuple[Prepared | None, str]:
         """The cloud a cross pair registers: with ``covisible`` only what the other LiDAR
@@ -729,11 +734,14 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         remain), else the whole scan (prepared once, shared with odometry)."""
         if not cfg.covisible:
             return (s.whole, "") if s.whole is not None else prepare(s.points)
-        return prepare(s.points, other_origin)
+        return prepare(s.points, other_origin, s.base)
 
     def frame_work(f: int) -> tuple[_Scan, list[_CrossWork]]:
         """Everything of reference frame ``f`` that does not depend on earlier frames."""
         ref_scan = scan(ref.agent, f, cfg.gicp.voxel_m)
+        if ref_scan.base is None and cfg.covisible \
+                and sum(f in pairs[o.agent] for o in others) > 1:
+            ref_scan.base = prepare(ref_scan.points)[0]
         work = []
         for o in others:
             if f not in pairs[o.agent]:
