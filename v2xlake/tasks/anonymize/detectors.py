@@ -345,7 +345,8 @@ class CenterFaceDetector:
         network call (onnxruntime: the batch dimension is symbolic; ``cv2.dnn``: one call per
         view). Why: the two-stage face passes look at dozens of small crops per frame; packed
         into a canvas they need gaps between them (each crop's context must not be its
-        neighbour's), which cost the float network 40 % more pixels than the crops hold."""
+        neighbour's): on the real street images the canvases fed the float network 1.47x
+        the pixels of the same crops batched."""
         if self._session is None or len(views) == 1:
             return [self.maps(v) for v in views]
         h, w = views[0].shape[:2]
