@@ -99,3 +99,13 @@ def test_any_number_of_workers_gives_the_same_registrations(
                          lake.read_table("clean", "calibration_refined", clip_id="street1")
                          .to_pylist())
     assert rows[1] == rows[2]
+
+
+def test_workers_default_to_this_process_cores_capped() -> None:
+    import os
+
+    from v2xlake.tasks.register.stage import MAX_WORKERS, RegisterConfig, register_workers
+
+    auto = register_workers(RegisterConfig())
+    assert auto == max(1, min(len(os.sched_getaffinity(0)), MAX_WORKERS))
+    assert register_workers(RegisterConfig.model_validate({"workers": 3})) == 3
