@@ -19,11 +19,26 @@ _BIAS = 1 << 20  # 21-bit signed voxel coordinates per axis
 _START_CAP = 1 << 16
 
 
+@njit(cache=True, nogil=True, inline="always")
 def _pow2_at_least(n: int) -> int:
+    """A hash table's capacity for ``n / 2`` keys (open addressing stays under half full)."""
     c = 16
     while c < n:
         c <<= 1
     return c
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_key(ix: int, iy: int, iz: int) -> int:
+    """Three biased 21-bit cell coordinates packed into one int64 hash key."""
+    return (ix << 42) | (iy << 21) | iz
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _cell_of(x: float, y: float, z: float, inv_cell: float) -> tuple[int, int, int]:
+    """The biased (non-negative) grid coordinates of a point."""
+    return (int(np.floor(x * inv_cell)) + _BIAS, int(np.floor(y * inv_cell)) + _BIAS,
+            int(np.floor(z * inv_cell)) + _BIAS)
 
 
 @njit(cache=True, nogil=True)
@@ -45,12 +60,10 @@ def _voxel_kernel(xyz: np.ndarray, val: np.ndarray, inv_voxel: float, max_r2: fl
         r2 = x * x + y * y + z * z
         if not (r2 < np.inf and r2 <= max_r2):  # also drops NaN and inf
             continue
-        ix = int(np.floor(x * inv_voxel)) + _BIAS
-        iy = int(np.floor(y * inv_voxel)) + _BIAS
-        iz = int(np.floor(z * inv_voxel)) + _BIAS
+        ix, iy, iz = _cell_of(x, y, z, inv_voxel)
         if ix < 0 or iy < 0 or iz < 0 or ix > lim or iy > lim or iz > lim:
             continue
-        key = (ix << 42) | (iy << 21) | iz
+        key = _cell_key(ix, iy, iz)
         if key != last_key:  # a run of returns in one voxel probes once
             h = np.int64((np.uint64(key) * _GOLDEN) >> shift)
             while True:  # open addressing, linear probing
@@ -135,7 +148,7 @@ def voxel_downsample_t(xyz: np.ndarray, values: np.ndarray | None, voxel_m: floa
 def _probe(keys: np.ndarray, cells: np.ndarray, shift: np.uint64, ix: int, iy: int, iz: int
            ) -> int:
     """Cell id of grid coordinates (ix, iy, iz) (biased, non-negative), -1 when empty."""
-    key = (ix << 42) | (iy << 21) | iz
+    key = _cell_key(ix, iy, iz)
     mask = len(keys) - 1
     h = np.int64((np.uint64(key) * _GOLDEN) >> shift)
     while True:
@@ -153,9 +166,7 @@ def _grid_build(pts: np.ndarray, inv_cell: float) -> tuple[
     """Hash table (keys, cell ids), CSR cell starts, point order by cell, the points in that
     order, and the bounding box of the occupied cells (lo, hi)."""
     n = pts.shape[0]
-    cap = 16
-    while cap < 2 * n:
-        cap <<= 1
+    cap = _pow2_at_least(2 * n)
     shift = np.uint64(64 - int(np.log2(cap)))
     keys = np.full(cap, -1, dtype=np.int64)
     cells = np.empty(cap, dtype=np.int64)
@@ -165,12 +176,10 @@ def _grid_build(pts: np.ndarray, inv_cell: float) -> tuple[
     hi = np.full(3, -1, dtype=np.int64)
     m = 0
     for i in range(n):
-        c0 = int(np.floor(pts[i, 0] * inv_cell)) + _BIAS
-        c1 = int(np.floor(pts[i, 1] * inv_cell)) + _BIAS
-        c2 = int(np.floor(pts[i, 2] * inv_cell)) + _BIAS
+        c0, c1, c2 = _cell_of(pts[i, 0], pts[i, 1], pts[i, 2], inv_cell)
         lo[0], lo[1], lo[2] = min(lo[0], c0), min(lo[1], c1), min(lo[2], c2)
         hi[0], hi[1], hi[2] = max(hi[0], c0), max(hi[1], c1), max(hi[2], c2)
-        key = (c0 << 42) | (c1 << 21) | c2
+        key = _cell_key(c0, c1, c2)
         h = np.int64((np.uint64(key) * _GOLDEN) >> shift)
         while True:
             k = keys[h]
@@ -247,69 +256,21 @@ def _covered(cx: int, cy: int, cz: int, s: int, lo: np.ndarray, hi: np.ndarray) 
 
 
 @njit(cache=True, nogil=True)
-def _grid_nearest(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.ndarray,
-                  sp: np.ndarray, lo: np.ndarray, hi: np.ndarray, inv_cell: float,
-                  q: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray]:
-    """Nearest point (original index, squared distance) of each query within
-    ``sqrt(max_d2)``; -1 / inf where there is none."""
-    nq = q.shape[0]
-    out_i = np.full(nq, -1, dtype=np.int64)
-    out_d = np.full(nq, np.inf)
-    shift = np.uint64(64 - int(np.log2(len(keys))))
-    cell = 1.0 / inv_cell
-    for t in range(nq):
-        x, y, z = q[t, 0], q[t, 1], q[t, 2]
-        cx = int(np.floor(x * inv_cell)) + _BIAS
-        cy = int(np.floor(y * inv_cell)) + _BIAS
-        cz = int(np.floor(z * inv_cell)) + _BIAS
-        m0 = _face_margin(x, y, z, inv_cell) * cell
-        best, bi = max_d2, -1
-        s = 0
-        while True:
-            if s > 0:
-                lb = (s - 1) * cell + m0  # nothing nearer than this in shell s or beyond
-                if lb * lb > best:
-                    break
-            for ix in range(max(cx - s, lo[0]), min(cx + s, hi[0]) + 1):
-                for iy in range(max(cy - s, lo[1]), min(cy + s, hi[1]) + 1):
-                    za, zb, zs = _shell_z(ix, iy, cx, cy, cz, s, max(cz - s, lo[2]),
-                                          min(cz + s, hi[2]))
-                    for iz in range(za, zb + 1, zs):
-                        if s > 0 and _cell_d2(x, y, z, ix, iy, iz, cell) > best:
-                            continue
-                        c = _probe(keys, cells, shift, ix, iy, iz)
-                        if c < 0:
-                            continue
-                        for j in range(start[c], start[c + 1]):
-                            dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
-                            d2 = dx * dx + dy * dy + dz * dz
-                            if d2 < best or (bi < 0 and d2 == best):
-                                best, bi = d2, j
-            if _covered(cx, cy, cz, s, lo, hi):
-                break
-            s += 1
-        if bi >= 0:
-            out_i[t] = order[bi]
-            out_d[t] = best
-    return out_i, out_d
-
-
-@njit(cache=True, nogil=True)
 def _grid_knn(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.ndarray,
               sp: np.ndarray, lo: np.ndarray, hi: np.ndarray, inv_cell: float,
-              q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``k`` nearest points of each query (original indices, squared distances,
-    nearest first); k must not exceed the number of points."""
+              q: np.ndarray, k: int, max_d2: float) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` nearest points of each query within ``sqrt(max_d2)`` (original indices,
+    squared distances, nearest first; -1 / inf where fewer lie within); k must not exceed
+    the number of points. A bound ends the search early: without one, a query far from the
+    cloud visits every cell in between."""
     nq = q.shape[0]
     out_i = np.full((nq, k), -1, dtype=np.int64)
-    out_d = np.full((nq, k), np.inf)
+    out_d = np.full((nq, k), max_d2)
     shift = np.uint64(64 - int(np.log2(len(keys))))
     cell = 1.0 / inv_cell
     for t in range(nq):
         x, y, z = q[t, 0], q[t, 1], q[t, 2]
-        cx = int(np.floor(x * inv_cell)) + _BIAS
-        cy = int(np.floor(y * inv_cell)) + _BIAS
-        cz = int(np.floor(z * inv_cell)) + _BIAS
+        cx, cy, cz = _cell_of(x, y, z, inv_cell)
         m0 = _face_margin(x, y, z, inv_cell) * cell
         bd = out_d[t]
         bi = out_i[t]
@@ -317,7 +278,7 @@ def _grid_knn(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.
         while True:
             if s > 0:
                 lb = (s - 1) * cell + m0
-                if bi[k - 1] >= 0 and lb * lb > bd[k - 1]:
+                if lb * lb > bd[k - 1]:  # free slots hold the bound
                     break
             for ix in range(max(cx - s, lo[0]), min(cx + s, hi[0]) + 1):
                 for iy in range(max(cy - s, lo[1]), min(cy + s, hi[1]) + 1):
@@ -332,7 +293,7 @@ def _grid_knn(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.
                         for j in range(start[c], start[c + 1]):
                             dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
                             d2 = dx * dx + dy * dy + dz * dz
-                            if d2 < bd[k - 1]:  # free slots hold inf
+                            if d2 < bd[k - 1]:
                                 u = k - 1  # insertion into the sorted list
                                 while u > 0 and bd[u - 1] > d2:
                                     bd[u], bi[u] = bd[u - 1], bi[u - 1]
@@ -344,7 +305,36 @@ def _grid_knn(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.
         for u in range(k):
             if bi[u] >= 0:
                 bi[u] = order[bi[u]]
+            else:
+                bd[u] = np.inf
     return out_i, out_d
+
+
+@njit(cache=True, nogil=True)
+def first_per_cell(pts: np.ndarray, inv_cell: float) -> np.ndarray:
+    """Index of the first point of each occupied cell, in input order (so ascending): one
+    hashing pass where ``np.unique`` of the cell keys sorts."""
+    n = pts.shape[0]
+    cap = _pow2_at_least(2 * n)
+    shift = np.uint64(64 - int(np.log2(cap)))
+    keys = np.full(cap, -1, dtype=np.int64)
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        ix, iy, iz = _cell_of(pts[i, 0], pts[i, 1], pts[i, 2], inv_cell)
+        key = _cell_key(ix, iy, iz)
+        h = np.int64((np.uint64(key) * _GOLDEN) >> shift)
+        while True:
+            k = keys[h]
+            if k == key:
+                break
+            if k == -1:
+                keys[h] = key
+                out[m] = i
+                m += 1
+                break
+            h = (h + 1) & (cap - 1)
+    return out[:m].copy()
 
 
 class VoxelGrid:
@@ -381,8 +371,9 @@ class VoxelGrid:
         qq = self._q(q)
         if self.n == 0:
             return np.full(len(qq), -1, dtype=np.int64), np.full(len(qq), np.inf)
-        return _grid_nearest(self._keys, self._cells, self._start, self._order, self._sp,
-                             self._lo, self._hi, self.inv_cell, qq, float(max_dist_m) ** 2)
+        i, d2 = _grid_knn(self._keys, self._cells, self._start, self._order, self._sp,
+                          self._lo, self._hi, self.inv_cell, qq, 1, float(max_dist_m) ** 2)
+        return i[:, 0], d2[:, 0]
 
     def batch_knn_search(self, q: np.ndarray, k: int, num_threads: int = 1
                          ) -> tuple[np.ndarray, np.ndarray]:
@@ -393,4 +384,4 @@ class VoxelGrid:
         if kk <= 0:
             return np.zeros((len(qq), 0), dtype=np.int64), np.zeros((len(qq), 0))
         return _grid_knn(self._keys, self._cells, self._start, self._order, self._sp,
-                         self._lo, self._hi, self.inv_cell, qq, kk)
+                         self._lo, self._hi, self.inv_cell, qq, kk, np.inf)
