@@ -104,13 +104,17 @@ def row_group_count(lake: Lake, path: str) -> int:
 
 
 def iter_row_groups(lake: Lake, path: str, start: int = 0, stop: int | None = None,
-                    columns: Sequence[str] | None = None) -> Iterator[pa.Table]:
+                    columns: Sequence[str] | None = None, *, use_threads: bool = True
+                    ) -> Iterator[pa.Table]:
     """Row groups ``start`` .. ``stop - 1`` (all by default) of one points file, one table
-    each: a frame at a time (deskew splits a file into such ranges, anonymize streams it)."""
+    each: a frame at a time (deskew splits a file into such ranges, anonymize streams it).
+    ``use_threads=False``: one frame's columns are too small for pyarrow's pool to pay
+    (anonymize's copy: 1.5 -> 0.9 ms per 61k-point frame)."""
     pf = pq.ParquetFile(path, filesystem=lake.fs)
     end = pf.num_row_groups if stop is None else min(stop, pf.num_row_groups)
     for rg in range(start, end):
-        yield pf.read_row_group(rg, columns=None if columns is None else list(columns))
+        yield pf.read_row_group(rg, columns=None if columns is None else list(columns),
+                                use_threads=use_threads)
 
 
 def file_schema(lake: Lake, path: str) -> pa.Schema:

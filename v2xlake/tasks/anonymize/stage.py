@@ -27,7 +27,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-import pyarrow.parquet as pq
 from pydantic import BaseModel
 
 from v2xlake.schemas.arrow import rows_to_table
@@ -35,7 +34,7 @@ from v2xlake.schemas.errors import ClipError
 from v2xlake.schemas.stage import OutputFile, Stage, StageReport, tables
 from v2xlake.schemas.tables import INGEST_TABLES, RAW_ONLY_TABLES, AnonymizationAuditRow
 from v2xlake.storage.files import read_parquet
-from v2xlake.storage.frames import iter_row_groups, partition_files
+from v2xlake.storage.frames import file_schema, iter_row_groups, partition_files
 from v2xlake.storage.lake import Lake, ParquetOptions
 from v2xlake.storage.reader import CameraCalib, calibrations, pose_samples
 from v2xlake.tasks.anonymize import DECLARATION
@@ -296,13 +295,12 @@ def _stream_points(
     encoded with ``POINTS_OPTIONS``. One thread: a frame's columns are too small for
     pyarrow's pool to pay (reading 1.5 -> 0.9 ms per 61k-point frame), and a background
     encoder saved no time on the loaded 2-core machine (a fleet worker has one core)."""
-    pf = pq.ParquetFile(path, filesystem=lake.fs)
     with stage.open_writer(
-        "clean", "lidar_points", pf.schema_arrow, clip_id=clip_id, agent_id=agent, name=name,
-        options=POINTS_OPTIONS,
+        "clean", "lidar_points", file_schema(lake, path), clip_id=clip_id, agent_id=agent,
+        name=name, options=POINTS_OPTIONS,
     ) as w:
-        for rg in range(pf.num_row_groups):
-            data = shift_times(pf.read_row_group(rg, use_threads=False), "lidar_points", t0)
+        for group in iter_row_groups(lake, path, use_threads=False):
+            data = shift_times(group, "lidar_points", t0)
             if data.num_rows == 0:
                 continue
             keys = data.column("frame_idx").to_numpy()
