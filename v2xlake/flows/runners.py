@@ -31,17 +31,11 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
+from v2xlake.tasks.cores import available_cores
+
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
                "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS", "NUMBA_NUM_THREADS",
                "V2XLAKE_WORKER_THREADS")
-
-
-def available_cores() -> int:
-    """Cores this process may run on (its affinity mask, not the machine's count)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def worker_threads(n_workers: int, cores: int | None = None) -> int:

@@ -14,6 +14,7 @@ row group without usable statistics, or holding several frames (a file written w
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
@@ -38,13 +39,16 @@ class PointFrameIndex:
     """One agent's points table: frame index -> the row groups holding its points.
 
     ``read(frame_idx, sensor, columns)`` returns exactly that frame's rows of that LiDAR
-    (a row group shared by several frames or LiDARs is filtered)."""
+    (a row group shared by several frames or LiDARs is filtered). Safe to read from several
+    threads (the register stage reads frames on a pool): each thread keeps its own open
+    files, since one pyarrow ``ParquetFile`` is not documented as safe to read from two."""
 
     lake: Lake
     table: str
     files: list[str]
     groups: dict[int, list[RowGroupRef]] = field(default_factory=dict)
-    _pf: dict[str, pq.ParquetFile] = field(default_factory=dict, repr=False)
+    _open: threading.local = field(default_factory=threading.local, repr=False,
+                                   compare=False)
 
     @classmethod
     def build(cls, lake: Lake, zone: str, table: str, clip_id: str,
@@ -67,9 +71,12 @@ class PointFrameIndex:
         return idx
 
     def _file(self, path: str) -> pq.ParquetFile:
-        if path not in self._pf:
-            self._pf[path] = pq.ParquetFile(path, filesystem=self.lake.fs)
-        return self._pf[path]
+        files: dict[str, pq.ParquetFile] | None = getattr(self._open, "files", None)
+        if files is None:
+            files = self._open.files = {}
+        if path not in files:
+            files[path] = pq.ParquetFile(path, filesystem=self.lake.fs)
+        return files[path]
 
     def frames(self) -> list[int]:
         return sorted(self.groups)

@@ -18,7 +18,6 @@ import functools
 import hashlib
 import itertools
 import logging
-import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -50,6 +49,7 @@ from v2xlake.tasks.anonymize.timespace import (
     scrub_table,
     shift_times,
 )
+from v2xlake.tasks.cores import available_cores
 from v2xlake.tasks.geodesy import LocalFrame
 from v2xlake.tasks.interpolate import PoseTrack
 
@@ -477,9 +477,7 @@ def _anonymize_images(
         return hashlib.sha256(data).hexdigest(), clean_key
 
     det_names = {d.name: f"{d.name}@{d.version}" for d in detector.detectors}
-    # the cores this process may use (a Dask worker pinned to its share), not the machine
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    workers = cfg.work.workers if cfg.work.workers > 0 else (cores or 1)
+    workers = cfg.work.workers if cfg.work.workers > 0 else available_cores()
     gap_ns = int(cfg.temporal.max_gap_ms * 1e6)
     key_ns = int(cfg.carry.key_interval_ms * 1e6)
     if guide is not None and guide.source == "lidar clusters" and not cfg.clusters.carry:

@@ -70,6 +70,7 @@ from v2xlake.schemas.tables import (
     SensorRow,
 )
 from v2xlake.storage.lake import Lake, TableWriter
+from v2xlake.tasks.cores import available_cores
 from v2xlake.tasks.ingest import DECLARATION
 from v2xlake.tasks.ingest.annotations import annotation_tables, load_annotations
 from v2xlake.tasks.ingest.bagopen import (
@@ -681,9 +682,7 @@ class _AgentIngest:
         return rows
 
 
-# the cores this process may use (a Dask worker pinned to its share, a container), not the machine
-PNG_WORKERS = min(8, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-                  else os.cpu_count() or 1)
+PNG_WORKERS = min(8, available_cores())
 
 
 def _store_image(lake: Lake, key: str, msg: Any, compressed: bool, level: int

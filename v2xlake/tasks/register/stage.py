@@ -17,12 +17,11 @@ here for the same reason.
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +42,7 @@ from v2xlake.storage.reader import (
     read,
     read_extrinsics,
 )
+from v2xlake.tasks.cores import available_cores
 from v2xlake.tasks.geometry import invert, matrix_to_quat, rotation_angle, transform
 from v2xlake.tasks.interpolate import PoseTrack
 from v2xlake.tasks.reader import CalibrationComparison, compare_calibration, load_pose_track
@@ -152,16 +152,9 @@ def _lidar_scans(a: _AgentTables, sensor: str | None) -> AgentScans:
     if not a.index:
         raise _fail(clip_id, f"no {DESKEWED} rows: run deskew first", agent)
     lidar = sensor
-    # one copy of the frame index per thread (its row groups shared, its open files not):
-    # the register stage reads frames on several threads, and one pyarrow ParquetFile is
-    # not documented as safe to read from two at once
-    local = threading.local()
+    index = a.index  # read from the register stage's threads: one open file set per thread
 
     def read_frame(frame_idx: int) -> tuple[np.ndarray, np.ndarray]:
-        index = getattr(local, "index", None)
-        if index is None:
-            index = local.index = (a.index if threading.current_thread()
-                                   is threading.main_thread() else replace(a.index, _pf={}))
         t = index.read(frame_idx, lidar, ["t_ns", "x", "y", "z"])
         if t is None:
             return np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
@@ -643,11 +636,7 @@ def register_workers(cfg: RegisterConfig) -> int:
     use (its affinity mask: a Dask worker pinned to its share), at most ``MAX_WORKERS``."""
     if cfg.workers > 0:
         return cfg.workers
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return max(1, min(cores, MAX_WORKERS))
+    return max(1, min(available_cores(), MAX_WORKERS))
 
 
 def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
