@@ -180,18 +180,13 @@ def _object(pts: np.ndarray, qg: np.ndarray, c: ClusterConfig,
     elif person:
         h = max(h, c.person_h[0])
         cat = "Pedestrian"
-    elif person:
-        cat = "Pedestrian"
     elif vehicle:
         cat = "Car"
     else:
         return
     if bridged and h > c.row_max_h and length > c.bridge_max_m:
         return
-    centres.append((cx, cy, g + h / 2))
-    sizes.append((width, length, h))
-    yaws.append(yaw)
-    cats.append(cat)
+    _append((cx, cy, g + h / 2), (width, length, h), yaw, cat, centres, sizes, yaws, cats)
     if cat == "Car" and c.row_min_m > 0 and length >= c.row_min_m and h <= c.row_max_h:
         thin = width <= c.row_max_w
         piece = c.car_width_m if thin else c.car_length_m
@@ -206,19 +201,14 @@ def _object(pts: np.ndarray, qg: np.ndarray, c: ClusterConfig,
             if thin:  # an end-on car: the row is its near face, its body behind
                 depth = max(width, c.car_length_m)
                 ox, oy = (ox, oy) + normal * (depth - width) / 2
-                centres.append((ox, oy, g + h / 2))
-                sizes.append((seg, depth, h))
-                yaws.append(yaw + np.pi / 2)
+                _append((ox, oy, g + h / 2), (seg, depth, h), yaw + np.pi / 2, cat,
+                        centres, sizes, yaws, cats)
             else:
-                centres.append((ox, oy, g + h / 2))
-                sizes.append((width, seg, h))
-                yaws.append(yaw)
-            cats.append(cat)
+                _append((ox, oy, g + h / 2), (width, seg, h), yaw, cat,
+                        centres, sizes, yaws, cats)
     if cat == "Car" and length < c.full_length_m:  # maybe seen end-on: both ways
-        centres.append((cx, cy, g + h / 2))
-        sizes.append((length, width, h))
-        yaws.append(yaw + np.pi / 2)
-        cats.append(cat)
+        _append((cx, cy, g + h / 2), (length, width, h), yaw + np.pi / 2, cat,
+                centres, sizes, yaws, cats)
 
 
 def _ground_below_neighbours(ks: np.ndarray, ground: np.ndarray) -> np.ndarray:
@@ -252,6 +242,7 @@ def _ground_below_neighbours(ks: np.ndarray, ground: np.ndarray) -> np.ndarray:
 def _append(centre: tuple[float, float, float], size: tuple[float, float, float], yaw: float,
             cat: str, centres: list[tuple[float, float, float]],
             sizes: list[tuple[float, float, float]], yaws: list[float], cats: list[str]) -> None:
+    """One box into the four parallel lists :func:`cluster_boxes` returns as arrays."""
     centres.append(centre)
     sizes.append(size)
     yaws.append(yaw)
