@@ -272,3 +272,53 @@ def test_far_pairs_get_a_floor_that_grows_with_range() -> None:
         std[key] = np.sqrt(np.einsum("nii->ni", sol.cross_cov)[:, 3:].max(axis=1))
     assert (std["flat"] < s.final_max_std_m).any()
     assert (std["range"] > s.final_max_std_m).all()
+
+
+def test_fast_paths_equal_the_direct_computations() -> None:
+    """The solve's analytic and batched paths against what they replace: the non-holonomic
+    Jacobian against central differences of its residual, the ground row's against the
+    height of ``E exp(eps)`` perturbed, and the batched leave-one-out statistic against
+    refitting without the frame (the normal equations rebuilt and solved directly)."""
+    from v2xlake.tasks.register.solve import _leave_one_out, nonholonomic_residual
+
+    rng = np.random.default_rng(3)
+    E = E_PUB["black"]
+    eps = np.array([0.004, -0.005, 0.006, 0.08, -0.10, 0.06])
+    # straight-ish LiDAR motions of 2-6 m with small turns
+    Z = se3_exp(np.column_stack([rng.normal(0, 0.004, (8, 3)), rng.uniform(2, 6, 8),
+                                 rng.normal(0, 0.1, (8, 2))]))
+    _, J = nonholonomic_residual(eps, Z, E)
+    h, Jn = 1e-6, np.zeros_like(J)
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = h
+        Jn[:, :, k] = (nonholonomic_residual(eps + d, Z, E)[0]
+                       - nonholonomic_residual(eps - d, Z, E)[0]) / (2 * h)
+    assert np.abs(J - Jn).max() < 1e-8 * max(1.0, np.abs(J).max())
+    assert np.abs(J).max() > 0.1  # the extrinsic's rotation does move the direction
+
+    P = _Problem(["red", "black"], E_PUB, [], [], SolveSection(), "red")
+    P.ground = {"black": (1.9, -0.3)}
+    th = rng.normal(size=P.n) * 1e-2
+    _, Jg = P.ground_rows(th)
+    for k in range(6):
+        d = np.zeros(P.n)
+        d[P.idx["black"] + k] = 1e-6
+        fd = (P.ground_rows(th + d)[0] - P.ground_rows(th - d)[0]) / 2e-6
+        np.testing.assert_allclose(Jg[:, P.idx["black"] + k], fd, atol=1e-6)
+
+    # leave-one-out: m whitened measurements (6 rows each) of n parameters plus a prior
+    m, n = 12, 9
+    Jm = rng.normal(size=(m, 6, n))
+    rm = rng.normal(size=(m, 6))
+    w = rng.uniform(0.3, 1.0, m)
+    prior = np.eye(n) * 0.5
+    A = np.einsum("k,kin,kim->nm", w, Jm, Jm) + prior.T @ prior
+    got = _leave_one_out(np.linalg.inv(A), Jm, rm, w)
+    for k in range(m):
+        # the others' solution (linearised about the current one, whose gradient is g)
+        A_k = A - w[k] * Jm[k].T @ Jm[k]
+        g_k = w[k] * Jm[k].T @ rm[k]
+        r_loo = rm[k] + Jm[k] @ np.linalg.solve(A_k, g_k)
+        C = np.eye(6) + Jm[k] @ np.linalg.solve(A_k, Jm[k].T)
+        np.testing.assert_allclose(got[k], r_loo @ np.linalg.solve(C, r_loo), rtol=1e-9)

@@ -55,6 +55,7 @@ observe itself needs observing frames before and after it within ``max_bridge_s`
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -168,6 +169,95 @@ def _hat(p: np.ndarray) -> np.ndarray:
     return K
 
 
+def so3_right_jacobian(w: np.ndarray) -> np.ndarray:
+    """``Jr(w)`` with ``Exp(w + d) = Exp(w) Exp(Jr(w) d)`` to first order (3, 3)."""
+    th = float(np.linalg.norm(w))
+    K = _hat(np.asarray(w, np.float64)[None])[0]
+    if th < 1e-8:
+        return np.eye(3) - 0.5 * K + K @ K / 6.0
+    return np.eye(3) - (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * (K @ K)
+
+
+def nonholonomic_residual(eps: np.ndarray, Z: np.ndarray, E: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Straight driving moves the body along its own x axis: for each measured LiDAR motion
+    ``Z`` (m, 4, 4) and extrinsic ``E exp(eps)``, the body motion ``Tb = X Z X^-1`` and the
+    direction of its chord (constant curvature: it leaves at half the heading change) across
+    (lateral) and up (vertical), ``(m, 2)`` radians, and their Jacobian in ``eps`` (m, 2, 6).
+
+    Analytic: ``d exp(eps) = exp(eps) Xi`` with ``Xi`` the twist ``[Jr(w) dw, R^T dt]``, so
+    ``dTb = X (Xi Z - Z Xi) X^-1``; the chain rule through atan2 and the normalisation does
+    the rest (a test compares it with central differences)."""
+    X = E @ se3_exp(eps)
+    Xi_inv = invert(X)
+    Tb = X @ Z @ Xi_inv  # ego(t0) <- ego(t1), (m, 4, 4)
+    c, s_ = Tb[:, 0, 0], Tb[:, 1, 0]
+    half = 0.5 * np.arctan2(s_, c)
+    d = Tb[:, :3, 3]
+    sh, ch = np.sin(half), np.cos(half)
+    lat = -sh * d[:, 0] + ch * d[:, 1]
+    nrm = np.linalg.norm(d, axis=1)
+    n = np.maximum(nrm, 1e-9)
+    r = np.stack([lat / n, d[:, 2] / n], 1)
+    # the six generators of d exp(eps) = exp(eps) Xi, as 4x4 twist matrices
+    Xi = np.zeros((6, 4, 4))
+    Xi[:3, :3, :3] = _hat(so3_right_jacobian(eps[:3]).T)  # d w_k: hat(Jr e_k)
+    Xi[3:, :3, 3] = so3_exp(eps[:3])  # d t_k: R^T e_k, row k of R
+    dTb = X @ (np.einsum("kij,mjl->mkil", Xi, Z) - np.einsum("mij,kjl->mkil", Z, Xi)) @ Xi_inv
+    dT = np.asarray(dTb)  # (m, 6, 4, 4)
+    dc, ds = dT[:, :, 0, 0], dT[:, :, 1, 0]
+    dhalf = 0.5 * (c[:, None] * ds - s_[:, None] * dc) / (c**2 + s_**2)[:, None]
+    dd = dT[:, :, :3, 3]  # (m, 6, 3)
+    dlat = (-ch[:, None] * dhalf * d[:, None, 0] - sh[:, None] * dd[:, :, 0]
+            - sh[:, None] * dhalf * d[:, None, 1] + ch[:, None] * dd[:, :, 1])
+    dn = np.where((nrm > 1e-9)[:, None], np.einsum("mi,mki->mk", d, dd) / n[:, None], 0.0)
+    J = np.stack([dlat / n[:, None] - lat[:, None] * dn / n[:, None] ** 2,
+                  dd[:, :, 2] / n[:, None] - d[:, None, 2] * dn / n[:, None] ** 2], 1)
+    return r, J
+
+
+def _so3_exp1(w: np.ndarray) -> np.ndarray:
+    """:func:`so3_exp` of one rotation vector (the same formula) without the broadcasting
+    machinery: the solve evaluates it for every agent at every step."""
+    x, y, z = float(w[0]), float(w[1]), float(w[2])
+    th2 = x * x + y * y + z * z
+    th = math.sqrt(th2)
+    if th > 1e-8:
+        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+    else:
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def _se3_exp1(x: np.ndarray) -> np.ndarray:
+    """:func:`se3_exp` of one 6-vector."""
+    out = np.eye(4)
+    out[:3, :3] = _so3_exp1(x[:3])
+    out[:3, 3] = x[3:6]
+    return out
+
+
+@dataclass(frozen=True)
+class _Group:
+    """The rows of one side of a measurement stack that belong to one agent."""
+
+    agent: str
+    rows: np.ndarray
+    M: np.ndarray  # (m, 4, 4) INS poses
+    i0: np.ndarray  # knot interpolation: indices and the weight of i0 + 1
+    i1: np.ndarray
+    w: np.ndarray
+    steps: list[tuple[int, np.ndarray]]  # (parameter column, rows from the step on)
+
+
+@dataclass(frozen=True)
+class _Side:
+    n: int
+    groups: list[_Group]
+    D0: np.ndarray  # (n, 6, n_params): the theta-independent part of the Jacobian
+
+
 class _Problem:
     """Parameters per agent: ``[eps (6), omega (3), v at each knot (3 n_k)]``."""
 
@@ -191,6 +281,7 @@ class _Problem:
         self.E = {a: extr[a] for a in agents}
         self.P = self._prior_matrix()
         self.ground: dict[str, tuple[float, float]] = {}
+        self._plans: dict[int, tuple[object, tuple[_Side, _Side]]] = {}
         # straight odometry pairs: (agent, measured T_La0_La1)
         self.nh = [(o.agent, o.Z) for o in odo
                    if np.degrees(np.linalg.norm(so3_log(o.Z[:3, :3]))) < s.straight_deg
@@ -198,56 +289,37 @@ class _Problem:
 
     def ground_rows(self, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One residual per agent with a measured ground distance and a declared body: the
-        corrected LiDAR origin's height above the ego frame's ground plane."""
+        corrected LiDAR origin's height above the ego frame's ground plane. The height of
+        ``E exp(eps)``'s origin is ``E[2, :3] . t + E[2, 3]``: linear in the translation of
+        ``eps`` and independent of its rotation, so the Jacobian is exact and constant."""
         agents = sorted(self.ground)
         r = np.zeros(len(agents))
         J = np.zeros((len(agents), self.n))
         sig = self.s.ground_sigma_m
         for i, a in enumerate(agents):
             h, g = self.ground[a]
-            e = self.eps(th, a)
-
-            def height(eps: np.ndarray, a: str = a, g: float = g) -> float:
-                return float((self.E[a] @ se3_exp(eps))[2, 3] - g)
-
-            r[i] = (height(e) - h) / sig
-            for k in range(6):
-                d = np.zeros(6)
-                d[k] = 1e-6
-                J[i, self.idx[a] + k] = (height(e + d) - height(e - d)) / (2e-6 * sig)
+            e, E = self.eps(th, a), self.E[a]
+            r[i] = (float(E[2, :3] @ e[3:] + E[2, 3] - g) - h) / sig
+            J[i, self.idx[a] + 3:self.idx[a] + 6] = E[2, :3] / sig
         return r, J
 
     def nonholonomic(self, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residuals (2 per straight odometry pair: lateral and vertical direction of the
-        body's displacement, radians / sigma) and their Jacobian (finite differences in the
-        agent's extrinsic correction only, batched per agent)."""
+        body's displacement, radians / sigma) and their Jacobian in the agent's extrinsic
+        correction (analytic, :func:`nonholonomic_residual`; it was central differences, 12
+        evaluations per agent and step)."""
         if not self.nh:
             return np.zeros(0), np.zeros((0, self.n))
         sig = np.radians(self.s.nonholonomic_deg)
         agents = [a for a, _ in self.nh]
         Zs = np.stack([Z for _, Z in self.nh])
-
-        def res(eps: np.ndarray, Z: np.ndarray, E: np.ndarray) -> np.ndarray:
-            Ep = E @ se3_exp(eps)
-            Tb = Ep @ Z @ invert(Ep)  # ego(t0) <- ego(t1), (m, 4, 4)
-            # constant curvature: the chord leaves at half the heading change
-            half = 0.5 * np.arctan2(Tb[:, 1, 0], Tb[:, 0, 0])
-            d = Tb[:, :3, 3]
-            lat = -np.sin(half) * d[:, 0] + np.cos(half) * d[:, 1]
-            n = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
-            return np.stack([lat / n, d[:, 2] / n], 1)
-
         r = np.zeros((len(self.nh), 2))
         J = np.zeros((len(self.nh), 2, self.n))
-        h = 1e-6
-        for a in set(agents):
+        for a in sorted(set(agents)):
             m = np.array([x == a for x in agents])
-            e, Z, E = self.eps(th, a), Zs[m], self.E[a]
-            r[m] = res(e, Z, E) / sig
-            for k in range(6):
-                d = np.zeros(6)
-                d[k] = h
-                J[m, :, self.idx[a] + k] = (res(e + d, Z, E) - res(e - d, Z, E)) / (2 * h * sig)
+            rr, JJ = nonholonomic_residual(self.eps(th, a), Zs[m], self.E[a])
+            r[m] = rr / sig
+            J[m, :, self.idx[a]:self.idx[a] + 6] = JJ / sig
         return r.ravel(), J.reshape(-1, self.n)
 
     def eps(self, th: np.ndarray, a: str) -> np.ndarray:
@@ -267,98 +339,98 @@ class _Problem:
         i = np.floor(u).astype(np.int64)
         return i, i + 1, u - i
 
-    def world_lidar(self, th: np.ndarray, a: str, M: np.ndarray, t: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Corrected ``T_W_La`` (N, 4, 4) and, for the Jacobian, the d(world-left twist)/d
-        (agent's parameters) (N, 6, per_agent) and the corrected ego positions."""
-        i0, i1, w = self.interp_w(t)
-        V = self.knots_v(th, a)
-        v = V[i0] * (1 - w)[:, None] + V[i1] * w[:, None]
-        C = M.copy()
-        C[:, :3, :3] = so3_exp(self.omega(th, a)) @ M[:, :3, :3]
-        C[:, :3, 3] = M[:, :3, 3] + v + self.step_offset(th, a, t)
-        L = C @ (self.E[a] @ se3_exp(self.eps(th, a)))
+    def _side(self, agents: list[str], M: np.ndarray, t: np.ndarray) -> _Side:
+        """What one side of a stack of relative transforms needs besides theta: its rows per
+        agent, their knot interpolation and step masks, and the constant part of its
+        Jacobian (knots, attitude rotation, steps)."""
         n = len(M)
-        D = np.zeros((n, 6, self.per_agent))
-        D[:, :, :6] = se3_adjoint(L)  # eps: L exp(d) = exp(Ad_L d) L
-        D[:, :3, 6:9] = np.eye(3)  # omega: a world rotation about the ego position
-        D[:, 3:, 6:9] = _hat(C[:, :3, 3])
-        r = np.arange(n)
-        for k in range(3):
-            D[r, 3 + k, 9 + 3 * i0 + k] = 1 - w
-            D[r, 3 + k, 9 + 3 * i1 + k] += w
-        return L, D, C[:, :3, 3]
-
-    def step_offset(self, th: np.ndarray, a: str, t: np.ndarray) -> np.ndarray:
-        out = np.zeros((len(np.atleast_1d(t)), 3))
-        for i, (b, ts) in enumerate(self.steps):
-            if b == a:
-                c = self.n_base + 3 * i
-                out += np.where((np.asarray(t) >= ts)[:, None], th[c:c + 3][None, :], 0.0)
-        return out
-
-    def step_jac(self, a: str, t: np.ndarray) -> np.ndarray:
-        """d(world-left twist of the agent's LiDAR)/d(step offsets) (N, 6, n)."""
-        D = np.zeros((len(t), 6, self.n))
-        for i, (b, ts) in enumerate(self.steps):
-            if b == a:
-                c = self.n_base + 3 * i
-                on = np.asarray(t) >= ts
-                D[on, 3:, c:c + 3] = np.eye(3)
-        return D
-
-    def _pairs(self, th: np.ndarray, a1: list[str], M1: np.ndarray, t1: np.ndarray,
-               a2: list[str], M2: np.ndarray, t2: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
-        """``T = L_a1^-1 L_a2`` per row and d(left perturbation of T)/d(theta) (N, 6, n)."""
-        n = len(M1)
-        T = np.zeros((n, 4, 4))
-        G = np.zeros((n, 6, self.n))
-        L1 = np.zeros((n, 4, 4))
-        D1 = np.zeros((n, 6, self.per_agent))
-        L2 = np.zeros((n, 4, 4))
-        D2 = np.zeros((n, 6, self.per_agent))
-        for a in set(a1):
-            m = np.array([x == a for x in a1])
-            L1[m], D1[m], _ = self.world_lidar(th, a, M1[m], t1[m])
-        for a in set(a2):
-            m = np.array([x == a for x in a2])
-            L2[m], D2[m], _ = self.world_lidar(th, a, M2[m], t2[m])
-        L1i = invert(L1)
-        T = L1i @ L2
-        Ad = se3_adjoint(L1i)
-        g1 = -Ad @ D1  # a world twist on L1 moves T by -Ad(L1^-1) xi
-        g2 = Ad @ D2
-        r = np.arange(n)
-        for a in set(a1) | set(a2):
+        D0 = np.zeros((n, 6, self.n))
+        groups = []
+        for a in sorted(set(agents)):
+            rows = np.flatnonzero(np.array([x == a for x in agents]))
+            tg = np.asarray(t, np.float64)[rows]
+            i0, i1, w = self.interp_w(tg)
             b = self.idx[a]
-            sl = slice(b, b + self.per_agent)
-            m1 = np.array([x == a for x in a1])
-            m2 = np.array([x == a for x in a2])
-            G[r[m1], :, sl] += g1[m1]
-            G[r[m2], :, sl] += g2[m2]
-            if self.steps:
-                G[r[m1]] -= Ad[m1] @ self.step_jac(a, t1[m1])
-                G[r[m2]] += Ad[m2] @ self.step_jac(a, t2[m2])
-        return T, G
+            D0[rows, :3, b + 6:b + 9] = np.eye(3)  # omega: a world rotation about the ego
+            for k in range(3):
+                D0[rows, 3 + k, b + 9 + 3 * i0 + k] = 1 - w
+                D0[rows, 3 + k, b + 9 + 3 * i1 + k] += w
+            steps = []
+            for i, (sa, ts) in enumerate(self.steps):
+                if sa == a:
+                    c = self.n_base + 3 * i
+                    on = tg >= ts
+                    D0[rows[on], 3:, c:c + 3] = np.eye(3)
+                    steps.append((c, on))
+            groups.append(_Group(a, rows, M[rows], i0, i1, w, steps))
+        return _Side(n, groups, D0)
+
+    def _world(self, th: np.ndarray, side: _Side) -> tuple[np.ndarray, np.ndarray]:
+        """Corrected ``T_W_La`` (N, 4, 4) of every row and d(its world-left twist)/d(theta)
+        (N, 6, n): ``eps`` moves it by ``Ad_L`` (``L exp(d) = exp(Ad_L d) L``), ``omega`` by
+        a world rotation about the corrected ego position, the knots and steps by the
+        constant part."""
+        L = np.zeros((side.n, 4, 4))
+        D = side.D0.copy()
+        for g in side.groups:
+            V = self.knots_v(th, g.agent)
+            v = V[g.i0] * (1 - g.w)[:, None] + V[g.i1] * g.w[:, None]
+            for c, on in g.steps:
+                v = v + np.where(on[:, None], th[c:c + 3][None, :], 0.0)
+            C = g.M.copy()
+            C[:, :3, :3] = _so3_exp1(self.omega(th, g.agent)) @ g.M[:, :3, :3]
+            C[:, :3, 3] = g.M[:, :3, 3] + v
+            Lg = C @ (self.E[g.agent] @ _se3_exp1(self.eps(th, g.agent)))
+            b = self.idx[g.agent]
+            L[g.rows] = Lg
+            D[g.rows, :, b:b + 6] = se3_adjoint(Lg)
+            D[g.rows, 3:, b + 6:b + 9] = _hat(C[:, :3, 3])
+        return L, D
+
+    def _pairs(self, th: np.ndarray, s1: _Side, s2: _Side) -> tuple[np.ndarray, np.ndarray]:
+        """``T = L_1^-1 L_2`` per row and d(left perturbation of T)/d(theta) (N, 6, n): a
+        world twist on ``L_1`` moves ``T`` by ``-Ad(L_1^-1) xi``, one on ``L_2`` by
+        ``+Ad(L_1^-1) xi``."""
+        L1, D1 = self._world(th, s1)
+        L2, D2 = self._world(th, s2)
+        L1i = invert(L1)
+        return L1i @ L2, se3_adjoint(L1i) @ (D2 - D1)
+
+    def _plan(self, key: list[CrossMeasurement] | list[OdoMeasurement],
+              make: Callable[[], tuple[_Side, _Side]]) -> tuple[_Side, _Side]:
+        """The two sides of a measurement list, built once per list (the solve evaluates
+        the same lists at every step)."""
+        hit = self._plans.get(id(key))
+        if hit is None or hit[0] is not key:
+            hit = (key, make())
+            self._plans[id(key)] = hit
+        return hit[1]
 
     def cross_model(self, th: np.ndarray, cross: list[CrossMeasurement]
                     ) -> tuple[np.ndarray, np.ndarray]:
         if not cross:
             return np.zeros((0, 4, 4)), np.zeros((0, 6, self.n))
-        return self._pairs(
-            th, [self.ref] * len(cross), np.stack([c.M_ref for c in cross]),
-            np.array([c.t_s for c in cross]), [c.other for c in cross],
-            np.stack([c.M_oth for c in cross]),
-            np.array([c.t_oth_s if c.t_oth_s is not None else c.t_s for c in cross]))
+
+        def make() -> tuple[_Side, _Side]:
+            t1 = np.array([c.t_s for c in cross])
+            t2 = np.array([c.t_oth_s if c.t_oth_s is not None else c.t_s for c in cross])
+            return (self._side([self.ref] * len(cross), np.stack([c.M_ref for c in cross]), t1),
+                    self._side([c.other for c in cross], np.stack([c.M_oth for c in cross]),
+                               t2))
+
+        return self._pairs(th, *self._plan(cross, make))
 
     def odo_model(self, th: np.ndarray, odo: list[OdoMeasurement]
                   ) -> tuple[np.ndarray, np.ndarray]:
         if not odo:
             return np.zeros((0, 4, 4)), np.zeros((0, 6, self.n))
-        ag = [o.agent for o in odo]
-        return self._pairs(th, ag, np.stack([o.M0 for o in odo]), np.array([o.t0_s for o in odo]),
-                           ag, np.stack([o.M1 for o in odo]), np.array([o.t1_s for o in odo]))
+
+        def make() -> tuple[_Side, _Side]:
+            ag = [o.agent for o in odo]
+            return (self._side(ag, np.stack([o.M0 for o in odo]), np.array([o.t0_s for o in odo])),
+                    self._side(ag, np.stack([o.M1 for o in odo]), np.array([o.t1_s for o in odo])))
+
+        return self._pairs(th, *self._plan(odo, make))
 
     def _prior_matrix(self) -> np.ndarray:
         """Priors are linear in theta: rows of ``P theta`` (metric, in standard deviations)."""
@@ -396,30 +468,58 @@ def weak_directions(H: np.ndarray, ratio: float) -> list[np.ndarray]:
     """Translation directions (unit 3-vectors) a GICP Hessian barely constrains: the
     eigen-directions of its translation block after eliminating rotation (the
     ``observability`` of ``core``) below ``ratio`` of the strongest."""
-    if ratio <= 0:
-        return []
-    H = 0.5 * (H + H.T)
+    V, weak = weak_directions_batch(np.asarray(H, np.float64)[None], ratio)
+    return [V[0, :, i] for i in range(3) if weak[0, i]]
+
+
+def weak_directions_batch(H: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`weak_directions` of a stack (n, 6, 6) at once: the eigenvectors of each
+    translation Schur complement (n, 3, 3; columns, ascending) and which are weak (n, 3).
+    One LAPACK call per stack instead of one per frame and IRLS pass (the solve's
+    reweighting calls it for every measurement each time). A rotation block that cannot be
+    inverted leaves that Hessian without weak directions, as before."""
+    n = len(H)
+    weak = np.zeros((n, 3), bool)
+    V = np.zeros((n, 3, 3))
+    if ratio <= 0 or not n:
+        return V, weak
+    H = 0.5 * (H + H.transpose(0, 2, 1))
+    ok = np.ones(n, bool)
     try:
-        S = H[3:, 3:] - H[3:, :3] @ np.linalg.solve(H[:3, :3], H[:3, 3:])
-    except np.linalg.LinAlgError:
-        return []
-    lam, V = np.linalg.eigh(0.5 * (S + S.T))
-    return [V[:, i] for i in range(3) if lam[i] < ratio * max(lam[-1], 0.0)]
+        X = np.linalg.solve(H[:, :3, :3], H[:, :3, 3:])
+    except np.linalg.LinAlgError:  # some singular: one by one, those get none
+        X = np.zeros((n, 3, 3))
+        for i in range(n):
+            try:
+                X[i] = np.linalg.solve(H[i, :3, :3], H[i, :3, 3:])
+            except np.linalg.LinAlgError:
+                ok[i] = False
+    S = H[:, 3:, 3:] - H[:, 3:, :3] @ X
+    lam, V = np.linalg.eigh(0.5 * (S + S.transpose(0, 2, 1)))
+    weak = (lam < ratio * np.maximum(lam[:, -1:], 0.0)) & ok[:, None]
+    return V, weak
 
 
-def _drop_weak(W: np.ndarray, directions: list[np.ndarray]) -> np.ndarray:
-    """``W`` with the translation along each direction marginalised out. Along a street of
-    parallel walls GICP's Hessian still claims a little (poles, what filtering left) and the
-    scan slides exactly there: trusting that little is how a slide enters a fused solution;
+def _drop_weak_batch(W: np.ndarray, V: np.ndarray, weak: np.ndarray) -> np.ndarray:
+    """``W`` (n, 6, 6) with the translation along each column of ``V`` (n, 3, 3) flagged in
+    ``weak`` (n, 3) marginalised out, one after the other. Along a street of parallel walls
+    GICP's Hessian still claims a little (poles, what filtering left) and the scan slides
+    exactly there: trusting that little is how a slide enters a fused solution;
     marginalising it lets the other frames decide."""
-    W = 0.5 * (W + W.T)
-    for u in directions:
-        e = np.concatenate([np.zeros(3), u])
-        We = W @ e
-        d = float(e @ We)
-        if d > 0:
-            W = W - np.outer(We, We) / d
-    return np.asarray(0.5 * (W + W.T))
+    W = 0.5 * (W + W.transpose(0, 2, 1))
+    for i in range(3):
+        m = weak[:, i]
+        if not m.any():
+            continue
+        e = np.zeros((int(m.sum()), 6))
+        e[:, 3:] = V[m, :, i]
+        Wm = W[m]
+        We = (Wm @ e[:, :, None])[:, :, 0]
+        d = np.einsum("ni,ni->n", e, We)
+        pos = d > 0
+        upd = Wm - We[:, :, None] * We[:, None, :] / np.where(pos, d, 1.0)[:, None, None]
+        W[m] = np.where(pos[:, None, None], upd, Wm)
+    return np.asarray(0.5 * (W + W.transpose(0, 2, 1)))
 
 
 def _gauss_newton(fun_jac: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
@@ -455,11 +555,40 @@ def _gauss_newton(fun_jac: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
     return th
 
 
+def _mv(M: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Batched matrix-vector product ``M[n] @ x[n]`` (n, 6, 6) x (n, 6)."""
+    return np.asarray((M @ x[:, :, None])[:, :, 0])
+
+
 def _chol_upper(W: np.ndarray) -> np.ndarray:
-    """U with U^T U = W (W symmetric PSD; a tiny ridge keeps rank-deficient ones usable)."""
-    W = 0.5 * (W + W.T)
-    ridge = 1e-12 * max(float(np.trace(W)), 1e-30)
-    return np.linalg.cholesky(W + ridge * np.eye(6)).T
+    """U with U^T U = W (W symmetric PSD, (6, 6) or a stack (n, 6, 6); a tiny ridge keeps
+    rank-deficient ones usable)."""
+    W = 0.5 * (W + np.swapaxes(W, -1, -2))
+    ridge = 1e-12 * np.maximum(np.trace(W, axis1=-2, axis2=-1), 1e-30)
+    L = np.linalg.cholesky(W + ridge[..., None, None] * np.eye(6))
+    return np.asarray(np.swapaxes(L, -1, -2))
+
+
+def _leave_one_out(A_inv: np.ndarray, J: np.ndarray, r: np.ndarray, w: np.ndarray
+                   ) -> np.ndarray:
+    """Each measurement against the solution of all the others: its rows ``J[k]`` (6, n;
+    whitened, weighted ``w[k]`` in the solve) are taken out of the normal equations ``A``
+    (a rank-6 downdate, Woodbury), its residual predicted from the rest and compared with
+    its own (whitened) residual ``r[k]``: the chi^2 (6 dof) of the difference, (m,).
+
+    With ``AJ = A^-1 J^T`` and ``S = I - w J AJ``, ``(A - w J^T J)^-1 x = A^-1 x + w AJ
+    S^+ J A^-1 x``; every term reduces to 6x6 algebra per measurement, batched."""
+    if not len(J):
+        return np.zeros(0)
+    wc = w[:, None, None]
+    AJ = A_inv @ J.transpose(0, 2, 1)  # (m, n, 6)
+    JAJ = J @ AJ  # (m, 6, 6)
+    eye = np.eye(6)
+    S_inv = np.linalg.pinv(eye - wc * JAJ, rcond=1e-12)
+    JAJr = _mv(JAJ, r)
+    r_loo = r + w[:, None] * JAJr + w[:, None] * _mv(JAJ, _mv(S_inv, w[:, None] * JAJr))
+    Ck = eye + JAJ + wc * (JAJ @ (S_inv @ JAJ))
+    return np.asarray(np.einsum("mi,mi->m", r_loo, np.linalg.solve(Ck, r_loo[:, :, None])[:, :, 0]))
 
 
 def _cauchy_weight(chi: np.ndarray, c: float) -> np.ndarray:
@@ -504,10 +633,12 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
         if n_c + n_o else np.zeros((0, 6, 6))
     Ws = [c.W for c in uc if c.W is not None] + [o.W for o in odo]
     # GICP's own covariance, and its whitening (for the variance factor)
-    Cw = np.stack([np.linalg.pinv(0.5 * (W + W.T), rcond=1e-12, hermitian=True)
-                   for W in Ws]) if Ws else np.zeros((0, 6, 6))
-    Uh = np.stack([_chol_upper(W) for W in Ws]) if Ws else np.zeros((0, 6, 6))
-    weak_dirs: list[list[np.ndarray]] = [[] for _ in Ws]
+    Cw = np.linalg.pinv(np.stack([0.5 * (W + W.T) for W in Ws]), rcond=1e-12,
+                        hermitian=True) if Ws else np.zeros((0, 6, 6))
+    Uh = _chol_upper(np.stack(Ws)) if Ws else np.zeros((0, 6, 6))
+    # the effective information of each measurement without its degenerate directions, as
+    # the last reweighting computed it (reported per frame)
+    dropped: list[np.ndarray] = [np.zeros((0, 6, 6))]
 
     def effective(vf: float) -> np.ndarray:
         """Whitening of each measurement: GICP's covariance (scaled by the variance factor)
@@ -522,10 +653,10 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
         boulevard was "blind" along it and the clip reported 2.5 m for frames within 2 cm."""
         if not len(Cw):
             return np.zeros((0, 6, 6))
-        infos = [np.linalg.inv(vf * C + F) for C, F in zip(Cw, floors, strict=True)]
-        weak_dirs[:] = [weak_directions(I, s.degenerate_ratio) for I in infos]
-        return np.stack([_chol_upper(_drop_weak(I, weak))
-                         for I, weak in zip(infos, weak_dirs, strict=True)])
+        infos = np.linalg.inv(vf * Cw + floors)
+        V, weak = weak_directions_batch(infos, s.degenerate_ratio)
+        dropped[:] = [_drop_weak_batch(infos, V, weak)]
+        return _chol_upper(dropped[0])
 
     Z = np.stack([c.Z for c in uc if c.Z is not None] + [o.Z for o in odo]) \
         if n_c + n_o else np.zeros((0, 4, 4))
@@ -546,8 +677,8 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
     def fun_jac(th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r, G = residuals(th)
         f = np.sqrt(np.maximum(w, 0.0))[:, None]
-        rw = np.einsum("nij,nj->ni", U, r) * f
-        Jw = -np.einsum("nij,njk->nik", U, G) * f[:, :, None]
+        rw = _mv(U, r) * f
+        Jw = -(U @ G) * f[:, :, None]
         rn, Jn = P.nonholonomic(th)
         rg, Jg = P.ground_rows(th)
         return (np.concatenate([rw.ravel(), rn, rg, P.P @ th]),
@@ -559,20 +690,20 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
         if it == max(1, s.irls_iterations):
             break
         r, _ = residuals(th)
-        rh = np.einsum("nij,nj->ni", Uh, r)
+        rh = _mv(Uh, r)
         chi_h = np.einsum("ni,ni->n", rh, rh)
         if len(chi_h) >= s.min_for_variance:  # the Hessians' scale, from the median one
             vf = max(float(np.median(chi_h)) / med6, 1e-12)
         U = effective(vf)
-        re = np.einsum("nij,nj->ni", U, r)
+        re = _mv(U, r)
         w = _cauchy_weight(np.sqrt(np.einsum("ni,ni->n", re, re)), s.robust_scale)
         w[n_c:] *= s.odometry_weight
     _, J_all = fun_jac(th)
     A = J_all.T @ J_all
     A_inv = np.linalg.pinv(A, rcond=1e-13, hermitian=True)
     r, G = residuals(th)
-    rw = np.einsum("nij,nj->ni", U, r)  # unweighted, whitened: unit variance for an inlier
-    Jw = -np.einsum("nij,njk->nik", U, G)
+    rw = _mv(U, r)  # unweighted, whitened: unit variance for an inlier
+    Jw = -(U @ G)
     chi = np.einsum("ni,ni->n", rw, rw)
 
     N = len(cross)
@@ -593,34 +724,18 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
     PtP = P.P.T @ P.P
     A_c = (A - PtP) / corr + PtP
     A_c_inv = np.linalg.pinv(A_c, rcond=1e-13, hermitian=True)
-    cov_all = np.einsum("nai,ij,nbj->nab", G_all, A_c_inv, G_all)
+    cov_all = (G_all @ A_c_inv) @ G_all.transpose(0, 2, 1)
     d = np.arange(6)
     cov_all[:, d, d] = np.maximum(cov_all[:, d, d], np.diag(floor))
     weight, chi_all, loo = np.zeros(N), np.full(N, np.nan), np.full(N, np.nan)
     limit = chi2_isf(s.outlier_p, 6)
-    for j, k in enumerate(usable):
-        weight[k], chi_all[k] = w[j], chi[j]
-        # leave-one-out: take this frame's rows (as weighted in the solve) out of the normal
-        # equations (a rank-6 downdate, Woodbury), predict its residual from the rest and
-        # compare it with the frame's own measurement
-        Jk = Jw[j]
-        AJ = A_inv @ Jk.T  # (n, 6)
-        S = np.eye(6) - w[j] * Jk @ AJ
-        g = w[j] * Jk.T @ rw[j]
-
-        def ak_inv(x: np.ndarray, AJ: np.ndarray = AJ, S: np.ndarray = S,
-                   Jk: np.ndarray = Jk, wk: float = float(w[j])) -> np.ndarray:
-            """(A - w Jk^T Jk)^-1 x."""
-            y = A_inv @ x
-            return np.asarray(y + wk * AJ @ np.linalg.lstsq(S, Jk @ y, rcond=1e-12)[0])
-
-        r_loo = rw[j] + Jk @ ak_inv(g)
-        Ck = np.eye(6) + Jk @ ak_inv(Jk.T)
-        loo[k] = float(r_loo @ np.linalg.solve(Ck, r_loo))
+    uix = np.array(usable, np.int64)
+    weight[uix], chi_all[uix] = w[:n_c], chi[:n_c]
+    loo[uix] = _leave_one_out(A_inv, Jw[:n_c], rw[:n_c], w[:n_c])
     outlier = np.where(np.isfinite(loo), loo > limit, False)
     info = np.full((N, 6, 6), np.nan)
     for j, k in enumerate(usable):
-        info[k] = _drop_weak(np.linalg.inv(vf * Cw[j] + floors[j]), weak_dirs[j])
+        info[k] = dropped[0][j]
     unbracketed = bracketing(cross, info, outlier, extrinsics[ref], s)
     frac = {}
     for a in agents:
@@ -636,26 +751,29 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
         seconds=time.perf_counter() - t_start, n_params=P.n)
 
 
-def _unobserved(I: np.ndarray | None, lim_t: float, lim_r: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """A frame's own marginal covariances (translation, rotation; 3x3, L1 frame) from its
-    metric information, and the eigen-directions of each whose 1-sigma exceeds the limit
-    (all of them without a measurement)."""
-    if I is None or not np.isfinite(I).all():
-        big = np.eye(3) * 1e12
-        return big, big, np.eye(3), np.eye(3)
+def _unobserved(info: np.ndarray, ok: np.ndarray, lim_t: float, lim_r: float
+                ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Each frame's own marginal covariance, translation then rotation (N, 3, 3; L1 frame),
+    from its metric information ``info`` (N, 6, 6; ``ok``: it has one), with the
+    eigenvectors of that marginal (N, 3, 3; columns) and which of them have a 1-sigma above
+    the limit (N, 3): every direction of a frame without a measurement."""
+    n = len(info)
+    I = np.where(ok[:, None, None], info, 0.0)
     out = []
-    for sl, lim in ((slice(3, 6), lim_t), (slice(0, 3), lim_r)):
+    for sl, o, lim in ((slice(3, 6), slice(0, 3), lim_t), (slice(0, 3), slice(3, 6), lim_r)):
         # a direction without information (pinv: zero variance) is unobserved too
-        Ib = I[sl, sl] - I[sl, :][:, _other(sl)] @ np.linalg.pinv(
-            I[_other(sl), :][:, _other(sl)], rcond=1e-12, hermitian=True) @ I[_other(sl), :][:, sl]
-        lam, V = np.linalg.eigh(0.5 * (Ib + Ib.T))
+        Ib = I[:, sl, sl] - I[:, sl, o] @ np.linalg.pinv(I[:, o, o], rcond=1e-12,
+                                                        hermitian=True) @ I[:, o, sl]
+        lam, V = np.linalg.eigh(0.5 * (Ib + Ib.transpose(0, 2, 1)))
         # marginal covariance: a direction without information has infinite variance (not
         # the zero a pseudo-inverse would give it)
-        C = (V / np.maximum(lam, 1e-30)) @ V.T
-        out.append((C, V[:, lam < 1.0 / lim**2]))
-    (Ct, Ut), (Cr, Ur) = out
-    return Ct, Cr, Ut, Ur
+        C = (V / np.maximum(lam, 1e-30)[:, None, :]) @ V.transpose(0, 2, 1)
+        weak = lam < 1.0 / lim**2
+        C[~ok] = np.eye(3) * 1e12
+        V[~ok] = np.eye(3)
+        weak[~ok] = True
+        out.append((C, V, weak))
+    return out if n else [(np.zeros((0, 3, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3), bool))] * 2
 
 
 def range_floor(c: CrossMeasurement, s: SolveSection) -> np.ndarray:
@@ -691,26 +809,24 @@ def bracketing(cross: list[CrossMeasurement], info: np.ndarray, outlier: np.ndar
     n = len(cross)
     R = np.stack([(c.M_ref @ E_ref)[:3, :3] for c in cross]) if n else np.zeros((0, 3, 3))
     t = np.array([c.t_s for c in cross])
-    own = []
-    for k, c in enumerate(cross):
-        ok = c.usable and np.isfinite(info[k]).all()
-        own.append(_unobserved(info[k] if ok else None, lim_t, lim_r))
-    good = np.array([c.usable and not outlier[k] for k, c in enumerate(cross)], bool)
+    usable = np.array([c.usable for c in cross], bool)
+    ok = usable & np.isfinite(info).all(axis=(1, 2)) if n else usable
+    own = _unobserved(np.nan_to_num(info), ok, lim_t, lim_r)
+    other = np.array([c.other for c in cross])
+    good = usable & ~np.asarray(outlier, bool)
     out = []
     for k, c in enumerate(cross):
-        _, _, Ut, Ur = own[k]
         why = []
-        for kind, U, lim, ci in (("translation", Ut, lim_t, 0), ("rotation", Ur, lim_r, 1)):
-            for u in U.T:
+        cand = np.flatnonzero(good & (other == c.other) & (np.abs(t - t[k]) <= s.max_bridge_s))
+        cand = cand[cand != k]
+        for kind, (C, V, weak), lim in (("translation", own[0], lim_t),
+                                        ("rotation", own[1], lim_r)):
+            for u in V[k][:, weak[k]].T:
                 uw = R[k] @ u
-                cand = [j for j in range(n) if good[j] and j != k and cross[j].other == c.other
-                        and abs(t[j] - t[k]) <= s.max_bridge_s]
-                before = after = False
-                for j in cand:
-                    uj = R[j].T @ uw
-                    if float(uj @ own[j][ci] @ uj) <= lim**2:
-                        before |= t[j] < t[k]
-                        after |= t[j] > t[k]
+                uj = np.einsum("jba,b->ja", R[cand], uw)  # R_j^T uw
+                seen = np.einsum("ja,jab,jb->j", uj, C[cand], uj) <= lim**2
+                before = bool((seen & (t[cand] < t[k])).any())
+                after = bool((seen & (t[cand] > t[k])).any())
                 if not (before and after):
                     side = "before" if not before else "after"
                     ax = "xyz"[int(np.argmax(np.abs(uw)))]
