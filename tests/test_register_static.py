@@ -143,8 +143,9 @@ class _Exploding:
     def nearest_sq_dist(self, target, query, max_dist_m=np.inf):  # type: ignore[no-untyped-def]
         return self._inner.nearest_sq_dist(target, query, max_dist_m)
 
-    def prepare_covisible(self, pts, other_origin, min_keep, base=None):  # type: ignore[no-untyped-def]
-        return self._inner.prepare_covisible(pts, other_origin, min_keep, base)
+    def prepare_covisible(self, pts, other_origin, min_keep, base=None, *, as_target=False):  # type: ignore[no-untyped-def]
+        return self._inner.prepare_covisible(pts, other_origin, min_keep, base,
+                                             as_target=as_target)
 
 
 def test_backend_failure_is_a_per_frame_reason() -> None:

@@ -32,6 +32,9 @@ class RowGroupRef:
 
     path: str
     row_group: int
+    # the one LiDAR all its rows belong to when its footer says so (frame_idx and sensor
+    # statistics min == max): then ``read`` needs neither column nor a filter
+    sensor: str | None = None
 
 
 @dataclass
@@ -59,15 +62,23 @@ class PointFrameIndex:
         for path in files:
             pf = idx._file(path)
             col = pf.schema_arrow.get_field_index("frame_idx")
+            scol = pf.schema_arrow.get_field_index("sensor")
             for rg in range(pf.num_row_groups):
-                st = pf.metadata.row_group(rg).column(col).statistics
+                meta = pf.metadata.row_group(rg)
+                st = meta.column(col).statistics
+                sensor = None
                 if st is not None and st.has_min_max and st.min == st.max:
                     frames = [int(st.min)]
+                    ss = meta.column(scol).statistics if scol >= 0 else None
+                    if ss is not None and ss.has_min_max and ss.min == ss.max \
+                            and ss.null_count == 0:
+                        v = ss.min
+                        sensor = v.decode() if isinstance(v, bytes) else str(v)
                 else:
                     frames = [int(f) for f in np.unique(
                         pf.read_row_group(rg, columns=["frame_idx"]).column(0).to_numpy())]
                 for f in frames:
-                    idx.groups.setdefault(f, []).append(RowGroupRef(path, rg))
+                    idx.groups.setdefault(f, []).append(RowGroupRef(path, rg, sensor))
         return idx
 
     def _file(self, path: str) -> pq.ParquetFile:
@@ -94,15 +105,24 @@ class PointFrameIndex:
             [*want, "frame_idx", *(["sensor"] if sensor is not None else [])]))
         parts = []
         for ref in self.groups.get(int(frame_idx), []):
+            if want is not None and ref.sensor is not None:
+                # one frame of one LiDAR (the lake's layout): the filter below copied every
+                # column to keep all rows (deskewed 61k-point frames of the register stage:
+                # 4-6 ms -> 1.7 ms a frame)
+                pf = self._file(ref.path)
+                parts.append(pf.read_row_group(ref.row_group, columns=want)
+                             if sensor is None or ref.sensor == sensor else pa.schema(
+                                 [pf.schema_arrow.field(c) for c in want]).empty_table())
+                continue
             t = self._file(ref.path).read_row_group(ref.row_group, columns=read)
             keep = pc.equal(t.column("frame_idx"), int(frame_idx))
             if sensor is not None:
                 keep = pc.and_(keep, pc.equal(t.column("sensor").cast(pa.string()), sensor))
-            parts.append(t.filter(keep))
+            t = t.filter(keep)
+            parts.append(t if want is None else t.select(want))
         if not parts:
             return None
-        t = parts[0] if len(parts) == 1 else pa.concat_tables(parts)
-        return t if want is None else t.select(want)
+        return parts[0] if len(parts) == 1 else pa.concat_tables(parts)
 
 
 def row_group_count(lake: Lake, path: str) -> int:

@@ -79,9 +79,12 @@ class RegistrationBackend(Protocol):
         ...
 
     def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int,
-                          base: Prepared | None = None) -> Prepared:
+                          base: Prepared | None = None, *, as_target: bool = False
+                          ) -> Prepared:
         """Only what the LiDAR at ``other_origin`` sees from the same side. ``base``: the
-        same points already prepared by ``prepare_points``, which a backend may share."""
+        same points already prepared by ``prepare_points``, which a backend may share;
+        ``as_target``: the cloud will only be a target (a backend may skip what only a
+        source uses)."""
         ...
 
 
@@ -186,8 +189,9 @@ class SmallGicpBackend:
         return np.asarray(d2, dtype=np.float64)
 
     def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int,
-                          base: Prepared | None = None) -> Prepared:
-        del base  # the co-visible part is a cloud of its own here
+                          base: Prepared | None = None, *, as_target: bool = False
+                          ) -> Prepared:
+        del base, as_target  # the co-visible part is a cloud of its own here
         return _masked_prepare(self, pts, other_origin, min_keep)
 
 
@@ -245,8 +249,9 @@ class Open3dBackend:
         return self._nearest(target, query)[1]
 
     def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int,
-                          base: Prepared | None = None) -> Prepared:
-        del base  # the co-visible part is a cloud of its own here
+                          base: Prepared | None = None, *, as_target: bool = False
+                          ) -> Prepared:
+        del base, as_target  # the co-visible part is a cloud of its own here
         return _masked_prepare(self, pts, other_origin, min_keep)
 
 
@@ -316,30 +321,55 @@ class SparseGicpBackend(SmallGicpBackend):
                                    source.covisible_with)]
 
     def prepare_covisible(self, pts: np.ndarray, other_origin: np.ndarray, min_keep: int,
-                          base: Prepared | None = None) -> Prepared:
+                          base: Prepared | None = None, *, as_target: bool = False
+                          ) -> Prepared:
         """Co-visibility decided only where it is used: on the source sample now (its
         surfaces are needed anyway), on the target's points as they become correspondences.
         The 30 % / ``min_keep`` fallback to the whole scan is judged on the sample.
 
         With ``base`` (``pts`` prepared whole) the result shares its grid and its lazily
         filled surfaces: a scan registered against two agents, or also used by its agent's
-        odometry, computes each point's surface once (surfaces depend on the points only)."""
+        odometry, computes each point's surface once (surfaces depend on the points only).
+
+        ``as_target``: a target's sample is never aligned, only the fallback decision reads
+        it, so the sample's surfaces are computed a chunk at a time until the count of
+        co-visible rows settles that decision either way (the same decision as on the whole
+        sample). On the boulevard that left out a third of a cross pair's k-nearest-neighbour
+        searches; the returned sample is then the whole scan's."""
         from dataclasses import replace
 
-        from v2xlake.tasks.register.covisible import covisible_rows
-
-        p = self.params
         prep = base if base is not None else self.prepare_points(pts)
         rows = prep.rows()
         if not len(rows):
             return prep
+        n, r = len(prep.points), len(rows)
+        limit = max(min_keep, 0.3 * n)  # fewer co-visible (scaled to the scan): whole scan
+        origin = np.asarray(other_origin, dtype=np.float64).reshape(3)
+        step = r if not as_target else max(256, r // 8)
+        kept: list[np.ndarray] = []
+        n_kept = 0
+        for a in range(0, r, step):
+            part = rows[a:a + step]
+            keep = self._covisible(prep, part, origin)
+            kept.append(part[keep])
+            n_kept += int(keep.sum())
+            left = r - a - len(part)
+            if as_target and (n_kept * n / r >= limit or (n_kept + left) * n / r < limit):
+                break
+        if n_kept * n / r < limit:  # with every row done: the decision on the whole sample
+            return prep
+        return replace(prep, sample=prep.sample if as_target else np.concatenate(kept),
+                       covisible_with=origin)
+
+    def _covisible(self, prep: Prepared, rows: np.ndarray, origin: np.ndarray) -> np.ndarray:
+        """Which of ``rows`` the LiDAR at ``origin`` sees from the same side (their surfaces
+        computed first)."""
+        from v2xlake.tasks.register.covisible import covisible_rows
+
+        p = self.params
         surf = prep.handle
         surf.ensure(prep.points, prep.tree, rows, p.num_neighbors, p.num_threads)
-        keep = covisible_rows(prep.points, surf.normals, surf.ratio, rows, other_origin)
-        if keep.sum() * len(prep.points) / len(rows) < max(min_keep, 0.3 * len(prep.points)):
-            return prep
-        return replace(prep, sample=rows[keep],
-                       covisible_with=np.asarray(other_origin, dtype=np.float64).reshape(3))
+        return covisible_rows(prep.points, surf.normals, surf.ratio, rows, origin)
 
 
 def make_backend(name: BackendName,

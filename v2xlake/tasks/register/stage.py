@@ -687,7 +687,8 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         return a.track.matrices(a.frames[f][1])[0]
 
     def prepare(points: np.ndarray, other_origin: np.ndarray | None = None,
-                base: Prepared | None = None) -> tuple[Prepared | None, str]:
+                base: Prepared | None = None, as_target: bool = False
+                ) -> tuple[Prepared | None, str]:
         """The scan prepared for GICP; with ``other_origin`` only what the LiDAR there sees
         from the same side (:mod:`covisible`; the whole scan where too little would remain),
         sharing what ``base`` (the same points prepared whole) computed."""
@@ -696,7 +697,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
             if other_origin is None:
                 return backend.prepare_points(points), ""
             return backend.prepare_covisible(points, other_origin, cfg.quality.min_inliers,
-                                             base), ""
+                                             base, as_target=as_target), ""
         except Exception as e:  # per frame, never the clip's end
             return None, f"{backend.name} could not prepare the scan: {e}"
         finally:
@@ -717,13 +718,14 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         whole = prepare(sc.points)[0] if odo_f else None
         return _Scan(agent, f, sc.points, sc.counts, sc.ground_m, odo_f, whole, whole)
 
-    def cross_cloud(s: _Scan, other_origin: np.ndarray) -> tuple[Prepared | None, str]:
+    def cross_cloud(s: _Scan, other_origin: np.ndarray, as_target: bool
+                    ) -> tuple[Prepared | None, str]:
         """The cloud a cross pair registers: with ``covisible`` only what the other LiDAR
         sees from the same side (:mod:`covisible`; the whole scan where too little would
         remain), else the whole scan (prepared once, shared with odometry)."""
         if not cfg.covisible:
             return (s.whole, "") if s.whole is not None else prepare(s.points)
-        return prepare(s.points, other_origin, s.base)
+        return prepare(s.points, other_origin, s.base, as_target)
 
     def frame_work(f: int) -> tuple[_Scan, list[_CrossWork]]:
         """Everything of reference frame ``f`` that does not depend on earlier frames."""
@@ -739,8 +741,8 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
             T_init = initial_transform_at(ref.track, o.track, ref.T_ego_lidar, o.T_ego_lidar,
                                           ref.frames[f][1], o.frames[fo][1])
             oth = scan(o.agent, fo, cfg.gicp.source_voxel_m)
-            target, why_t = cross_cloud(ref_scan, T_init[:3, 3])
-            source, why_s = cross_cloud(oth, invert(T_init)[:3, 3])
+            target, why_t = cross_cloud(ref_scan, T_init[:3, 3], True)
+            source, why_s = cross_cloud(oth, invert(T_init)[:3, 3], False)
             work.append(_CrossWork(o, fo, T_init, oth, target, source, why_t or why_s))
         return ref_scan, work
 
