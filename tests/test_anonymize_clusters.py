@@ -227,3 +227,95 @@ def test_a_cluster_plate_slab_starts_at_its_estimated_ground() -> None:
     assert g.source == "lidar clusters"
     assert g.config.plate_z_m == (cfg.cluster_plate_z0_m, cfg.plate_z_m[1])
     assert cfg.plate_z_m[0] == 0.15 and cfg.cluster_plate_z0_m == 0.0
+
+
+def test_the_far_band_holds_far_plates_of_a_narrow_camera_only() -> None:
+    """The far band (a guide region from geometry, for cars too far for the LiDAR to make):
+    a narrow camera (f 3583 px, 1080p) 1.25 m above a flat road sees a 0.52 m plate 20 px
+    wide out to 93 m; the band's rows hold a plate 0.3-1.1 m up at 35, 60 and 90 m ahead,
+    and across the frame; it expects plates of 20 px (its farthest) to 62 px (30 m). A wide
+    camera (f 554 px: a plate is 20 px at 14 m, where the LiDAR makes cars) gets none, nor
+    does any camera with the band off."""
+    from v2xlake.tasks.anonymize.guide import band_region
+    from v2xlake.tasks.projection import project_points
+
+    T_cam_ego = np.array([[0, -1, 0, 0], [0, 0, -1, 1.25], [1, 0, 0, 0], [0, 0, 0, 1.0]])
+    T_world_ego = np.eye(4)
+    T_world_ego[:3, 3] = (100.0, -20.0, 3.0)  # the ego somewhere in the world
+    T_cam_world = T_cam_ego @ np.linalg.inv(T_world_ego)
+    narrow = CameraIntrinsics(width=1920, height=1080, fx=3583, fy=3583, cx=960, cy=540)
+    cfg = GuideConfig()
+    band = band_region(T_cam_world, T_world_ego, narrow, 0.0, cfg)
+    assert band is not None and band.kind == "plate" and band.part == "band"
+    assert band.expected_px == cfg.band_min_plate_px == 20.0
+    assert band.expected_max_px == pytest.approx(3583 * 0.52 / cfg.band_from_m)
+    assert band.box[0] == 0 and band.box[2] == 1920
+    plates = np.array([[r, y, z] for r in (35.0, 60.0, 90.0) for z in (0.3, 1.1)
+                       for y in (-r * 0.2, 0.0, r * 0.2)])  # the frame is +-0.27 r wide
+    uv, _ = project_points(plates @ T_cam_ego[:3, :3].T + T_cam_ego[:3, 3], narrow)
+    assert (uv[:, 1] >= band.box[1]).all() and (uv[:, 1] <= band.box[3]).all()
+    assert band.box[3] - band.box[1] < 0.3 * 1080  # a band, not the frame
+    # a ground 0.4 m lower (an ego frame above the road) moves the band down
+    low = band_region(T_cam_world, T_world_ego, narrow, -0.4, cfg)
+    assert low is not None and low.box[3] > band.box[3]
+    wide = CameraIntrinsics(width=1920, height=1080, fx=554, fy=554, cx=960, cy=540)
+    assert band_region(T_cam_world, T_world_ego, wide, 0.0, cfg) is None
+    off = GuideConfig(band_from_m=0.0)
+    assert band_region(T_cam_world, T_world_ego, narrow, 0.0, off) is None
+
+
+def test_the_far_band_is_one_piece_at_its_smallest_plates_scale() -> None:
+    """The band is cut out whole (not merged with a vehicle face's crop) at the scale that
+    brings its smallest plate to ``band_plate_px``, expecting plates of its whole size range."""
+    from v2xlake.tasks.anonymize.guide import Region
+
+    band = Region("plate", (0.0, 400.0, 1920.0, 600.0), 20.0, "band", part="band",
+                  expected_max_px=62.0)
+    other = Region("plate", (100.0, 450.0, 300.0, 550.0), 20.0, "c1", part="rear")
+    cfg = GuidedConfig()
+    pieces = plan_pieces([band, other], (1080, 1920), cfg)
+    assert len(pieces) == 2
+    p = next(p for p in pieces if p.out_w > 1000)
+    assert p.crop == (0, 400, 1920, 600, pytest.approx(cfg.band_plate_px / 20.0))
+    assert p.expected == (20.0, 62.0)
+
+
+def test_the_cluster_ground_sets_the_band() -> None:
+    """The ground under the far band is the median bottom of the LiDAR-cluster boxes near the
+    ego (their estimated ground), in the ego frame; none near: the ego frame's z = 0."""
+    from v2xlake.tasks.anonymize.guide import ground_height
+
+    T_world_ego = np.eye(4)
+    T_world_ego[:3, 3] = (50.0, 0.0, 10.0)
+    boxes = _boxes(np.array([[55.0, 0.0, 9.6 + 0.75], [60.0, 3.0, 9.6 + 0.9],
+                             [200.0, 0.0, 30.0]]),
+                   np.array([[1.8, 4.5, 1.5], [0.6, 0.6, 1.8], [1.8, 4.5, 1.5]]),
+                   np.zeros(3), np.array(["Car", "Pedestrian", "Car"]))
+    assert ground_height(boxes, T_world_ego, 30.0) == pytest.approx(-0.4)
+    assert ground_height(boxes, T_world_ego, 1.0) == 0.0
+    assert ground_height(None, T_world_ego, 30.0) == 0.0
+
+
+def test_a_plate_cut_by_the_frame_edge_is_found_on_a_large_face() -> None:
+    """On a vehicle face whose plate the text detector looks for (expected over
+    ``blob_below_px``), the blob test keeps only the plate-coloured, textured rectangles the
+    frame edge cuts (``cut_only``): the visible 2 cm-wide strip of a plate is no text line.
+    The whole plate beside it is the text detector's (not returned here), and a piece cut by
+    the frame knows it is."""
+    from v2xlake.tasks.anonymize.guided import _crop_piece, plate_blobs
+
+    rng = np.random.default_rng(0)
+    ppm = 185.0  # px per metre of the rectified face
+    view = np.full((260, 600, 3), (60, 60, 160), np.uint8)  # a red car body
+    outside = np.zeros(view.shape[:2], bool)
+    outside[:, :40] = True  # the frame ends 40 px into the view
+    view[outside] = 0
+    for x0 in (40, 300):  # a plate cut at the frame edge (0.10 m visible), a whole one
+        w = 18 if x0 == 40 else 96
+        view[120:140, x0 : x0 + w] = 235
+        view[124:136, x0 + 2 : x0 + w - 2] = rng.integers(0, 255, (12, w - 4, 1))
+    found = plate_blobs(view, ppm, GuidedConfig(), outside, cut_only=True)
+    assert len(found) == 1 and found[0][0][0] <= 41
+    assert len(plate_blobs(view, ppm, GuidedConfig(), outside)) == 2
+    piece = _crop_piece("plate", 0, 0, 100, 100, 1.0, (20.0, 20.0))
+    assert not piece.cut_by_frame(200, 200) and piece.cut_by_frame(80, 200)

@@ -27,6 +27,8 @@ from v2xlake.tasks.anonymize.guide import (
     GuideConfig,
     Region,
     WorldBoxes,
+    band_region,
+    ground_height,
     project_regions,
     world_boxes_from_sensor,
 )
@@ -75,7 +77,14 @@ class ClipGuide:
             keep = ~np.isin(ob.instance, list(seen)) if seen else np.ones(len(ob), bool)
             parts.append(_take(ob, keep))
             seen |= set(ob.instance[keep].tolist())
-        return project_regions(WorldBoxes.concat(parts), T_cam_world, intr, self.config)
+        regions = project_regions(WorldBoxes.concat(parts), T_cam_world, intr, self.config)
+        if self.source == "lidar clusters" and self.config.band_from_m > 0:
+            T_world_ego = track.matrices(t)[0]
+            ground = ground_height(own, T_world_ego, self.config.band_from_m)
+            band = band_region(T_cam_world, T_world_ego, intr, ground, self.config)
+            if band is not None:
+                regions.append(band)
+        return regions
 
 
     def _at(self, b: WorldBoxes, t: int) -> WorldBoxes:

@@ -65,6 +65,14 @@ class GuideConfig(FromParams):
     min_plate_px: float = 12.0
     face_margin_m: float = 0.3  # a rectified vehicle face is this much wider on each side
     max_oblique_deg: float = 80.0  # a vehicle face seen more edge-on than this is not rectified
+    # the far band (``band_region``; LiDAR clusters only): the image rows where plates of
+    # vehicles from ``band_from_m`` out to the range where a plate is still
+    # ``band_min_plate_px`` wide can be, searched whole (no object there to guide to: a
+    # sparse LiDAR puts 0-3 returns on a car that far); 0: off
+    band_from_m: float = param("clusters.band_from_m")
+    band_min_plate_px: float = param("regions.plate_text_min_px")
+    # the road's height there is known to this much (slope, pitch, the ground estimate)
+    band_ground_margin_m: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -88,6 +96,9 @@ class Region:
     # with ``expected_px`` (inversely proportional to depth) it moves and scales a box found
     # in this region to where the same part is in a neighbouring frame (``carry.py``)
     anchor: tuple[float, float] | None = None
+    # a region holding objects at several depths (the far band): the largest object size
+    # expected in it (``expected_px`` the smallest); 0: ``expected_px`` alone
+    expected_max_px: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,6 +264,70 @@ def _face_quad(centre: np.ndarray, size: np.ndarray, quat: np.ndarray, name: str
     if not np.isfinite(uv).all():
         return None, None
     return tuple((float(u), float(v)) for u, v in uv), (float(w), float(h))
+
+
+def ground_height(boxes: WorldBoxes | None, T_world_ego: np.ndarray, within_m: float) -> float:
+    """The ground's height in the ego frame (z up) where the far band starts: the median
+    bottom of the LiDAR-cluster boxes within ``within_m`` of the ego (each cluster's bottom
+    is the ground estimated under it), 0 (the ego frame's origin on the road, as
+    base_link conventions put it) when there are none. Why the clusters': an ego frame
+    whose origin is at the rear axle or the LiDAR would put the band metres off."""
+    if boxes is None or not len(boxes):
+        return 0.0
+    local = apply(invert(T_world_ego), boxes.center)
+    near = np.hypot(local[:, 0], local[:, 1]) <= within_m
+    if not near.any():
+        return 0.0
+    return float(np.median(local[near, 2] - boxes.size[near, 2] / 2))
+
+
+def band_region(T_cam_world: np.ndarray, T_world_ego: np.ndarray, intr: CameraIntrinsics,
+                ground_z: float, cfg: GuideConfig) -> Region | None:
+    """The far band of one image: where a plate of a vehicle between ``band_from_m`` and the
+    range where it shrinks to ``band_min_plate_px`` (0.52 m at f px: f x 0.52 / 20 m, 93 m
+    for a 30° 1080p camera) can be, from the camera's calibration and the ground (``ground_z``
+    in the ego frame, z up): the full image width, the rows between the ground
+    (``band_ground_margin_m`` below it) at the nearest range and the top of the plate slab
+    (``plate_z_m``, plus the margin) at either range. None when the camera's plates are under
+    ``band_min_plate_px`` already at ``band_from_m`` (a wide camera: its far plates need
+    not be found) or the band is off.
+
+    Why geometry and no object: beyond ~40 m a spinning LiDAR of 32 beams and 1° columns puts
+    0-3 returns on a car (one ring at car height, one or two columns), too few to tell a car
+    from a pole, while a narrow camera still sees its plate 20-40 px wide. The search is
+    then bounded by where such a plate can be (a band ~0.1 of a narrow camera's rows),
+    not by what the LiDAR saw."""
+    if cfg.band_from_m <= 0:
+        return None
+    f = 0.5 * (intr.fx + intr.fy)
+    r_far = f * cfg.plate_width_m / max(cfg.band_min_plate_px, 1e-6)
+    if r_far <= cfg.band_from_m:
+        return None
+    T_ego_cam = invert(T_world_ego) @ invert(T_cam_world)
+    axis = T_ego_cam[:3, 2]
+    if np.hypot(axis[0], axis[1]) < 1e-6:
+        return None  # a camera looking straight up or down sees no far road
+    a0 = float(np.arctan2(axis[1], axis[0]))
+    half = float(np.arctan(0.5 * intr.width / intr.fx))
+    az = a0 + np.linspace(-half, half, 9)
+    m = cfg.band_ground_margin_m
+    pts = []
+    for r in (cfg.band_from_m, r_far):
+        for z in (ground_z - m, ground_z + cfg.plate_z_m[1] + m):
+            xy = T_ego_cam[:2, 3] + r * np.stack([np.cos(az), np.sin(az)], 1)
+            pts.append(np.column_stack([xy, np.full(len(az), z)]))
+    world = apply(T_world_ego, np.concatenate(pts))
+    cam = apply(T_cam_world, world)
+    uv, _ = project_points(np.where(cam[:, 2:3] >= cfg.near_m, cam, np.nan), intr,
+                           near=cfg.near_m)
+    v = uv[:, 1][np.isfinite(uv[:, 1])]
+    if not len(v):
+        return None
+    y0, y1 = max(0.0, float(v.min())), min(float(intr.height), float(v.max()))
+    if y1 - y0 < 2:
+        return None
+    return Region("plate", (0.0, y0, float(intr.width), y1), cfg.band_min_plate_px, "band",
+                  part="band", expected_max_px=float(f * cfg.plate_width_m / cfg.band_from_m))
 
 
 def world_boxes_from_sensor(t_ns: np.ndarray, T_world_sensor: np.ndarray, center: np.ndarray,

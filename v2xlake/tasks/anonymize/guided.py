@@ -88,6 +88,9 @@ class GuidedConfig(FromParams):
     blob_min_fill: float = 0.6
     blob_min_contrast: float = 25.0  # colour distance (Lab units) from the body
     blob_min_texture: float = 12.0  # grey-level std inside the rectangle (glyphs)
+    # faces whose plate the text detector looks for (expected from ``blob_below_px``) but
+    # that the frame edge cuts get the blob test's cut rectangles too
+    blob_cut_faces: bool = _param("regions.blob_cut_faces")
     # the safety pass over the whole frame, shrunk to this longest side (None: no pass of
     # that kind): what has no box (missed by the LiDAR, not annotated) but is large
     safety_face_max_side: int | None = _param("safety.face_max_side")
@@ -155,6 +158,9 @@ class GuidedConfig(FromParams):
     # vehicle faces whose plate is expected narrower than this (px) get no text-detector
     # look (the plate-blob test still runs there): below the plate size that must be found
     plate_text_min_px: float = _param("regions.plate_text_min_px")
+    # the far band (``guide.band_region``) is cut out at the scale that brings its smallest
+    # plate to this width (one scale for the band: its plates are 20-60 px, not 200)
+    band_plate_px: float = _param("clusters.band_plate_px")
 
 
 @dataclass(frozen=True, eq=False)
@@ -179,6 +185,14 @@ class Piece:
         q = cv2.perspectiveTransform(pts, self.H).reshape(-1, 2)
         return (float(np.clip(q[:, 0].min(), 0, w)), float(np.clip(q[:, 1].min(), 0, h)),
                 float(np.clip(q[:, 0].max(), 0, w)), float(np.clip(q[:, 1].max(), 0, h)))
+
+    def cut_by_frame(self, w: int, h: int) -> bool:
+        """Does the piece reach beyond the ``w`` x ``h`` frame (a face cut by its edge)?"""
+        pts = np.array([[[0.0, 0.0]], [[self.out_w, 0.0]], [[self.out_w, self.out_h]],
+                        [[0.0, self.out_h]]], np.float64)
+        q = cv2.perspectiveTransform(pts, self.H).reshape(-1, 2)
+        return bool((q[:, 0] < 0).any() or (q[:, 0] > w).any() or (q[:, 1] < 0).any()
+                    or (q[:, 1] > h).any())
 
     def outside(self, shape: tuple[int, ...]) -> np.ndarray:
         """Mask of the piece pixels that lie beyond the frame's edge."""
@@ -248,6 +262,17 @@ def plan_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedCo
     out: list[Piece] = []
     items: list[list] = []
     for r in regions:
+        if r.part == "band":  # one piece, at the scale of its smallest plate (not merged)
+            x0, y0 = max(0, int(np.floor(r.box[0]))), max(0, int(np.floor(r.box[1])))
+            x1, y1 = min(w, int(np.ceil(r.box[2]))), min(h, int(np.ceil(r.box[3])))
+            if x1 - x0 < 2 or y1 - y0 < 2:
+                continue
+            s = float(np.clip(cfg.band_plate_px / max(r.expected_px, 1e-3), cfg.min_scale,
+                              cfg.max_upscale))
+            s = min(s, cfg.max_piece_side / max(x1 - x0, y1 - y0))
+            out.append(_crop_piece("plate", x0, y0, x1, y1, s, (
+                r.expected_px, max(r.expected_px, r.expected_max_px))))
+            continue
         if r.quad is not None:
             fp = _face_piece(r, cfg, plate_width_m)
             if fp is not None:
@@ -389,18 +414,22 @@ def edge_lines(image: np.ndarray, cfg: GuidedConfig) -> list[tuple[float, float,
 
 
 def plate_blobs(view: np.ndarray, ppm: float, cfg: GuidedConfig,
-                outside: np.ndarray | None = None) -> list[tuple[np.ndarray, float]]:
+                outside: np.ndarray | None = None, cut_only: bool = False
+                ) -> list[tuple[np.ndarray, float]]:
     """Plates too small for glyphs, on a rectified vehicle face (``ppm`` px per metre): a
     rectangle of plate size in metres, filling its box, whose colour stands out from the
     body's (the view's median colour) and that holds texture (its glyphs, even unreadable).
     Tail lights and reflectors are plate-sized too but plain: the texture test drops them.
     A rectangle touching ``outside`` (view pixels beyond the frame edge) is a plate cut by
-    the frame: only its height and texture are checked."""
+    the frame: only its height and texture are checked. ``cut_only``: only such rectangles
+    (a face whose whole plates the text detector looks for)."""
     lab = cv2.cvtColor(view, cv2.COLOR_BGR2LAB).astype(np.float32)
     body = np.median(lab.reshape(-1, 3), axis=0)
     dist = np.linalg.norm(lab - body, axis=2)
     mask = (dist >= cfg.blob_min_contrast).astype(np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    if outside is not None:
+        mask[outside] = 0  # the black beyond the frame is no rectangle (nor part of one)
     n, _lab, stats, _c = cv2.connectedComponentsWithStats(mask, connectivity=8)
     gray = cv2.cvtColor(view, cv2.COLOR_BGR2GRAY)
     wlo, whi, hlo, hhi = cfg.plate_m
@@ -413,6 +442,8 @@ def plate_blobs(view: np.ndarray, ppm: float, cfg: GuidedConfig,
         if cut:
             if not (0.03 <= wm <= whi and hlo <= hm <= hhi):
                 continue
+        elif cut_only:
+            continue
         elif not (wlo <= wm <= whi and hlo <= hm <= hhi and 1.8 <= bw / max(bh, 1) <= 6.5):
             continue
         fill = area / float(bw * bh)
@@ -708,10 +739,17 @@ class GuidedDetector:
                 dets += self._in_canvas(kind, det, canvas, ps, pos, w, h)
         if self.plate is not None and c.blob_below_px > 0:
             for p in pieces:
-                if p.kind == "plate" and p.ppm > 0 and p.expected[0] < c.blob_below_px:
-                    for box, score in plate_blobs(p.cut(image), p.ppm, c,
-                                                  p.outside(image.shape)):
-                        dets.append(Detection("plate", p.to_frame(box, w, h), score, BLOB))
+                if p.kind != "plate" or p.ppm <= 0:
+                    continue
+                small = p.expected[0] < c.blob_below_px
+                # a vehicle face cut by the frame edge: a plate there may show one or two
+                # characters, no text line (the 30 Hz narrow camera's plates 20-30 px in
+                # view of 160 px ones were missed so): its cut rectangles are tested too
+                if not small and not (c.blob_cut_faces and p.cut_by_frame(w, h)):
+                    continue
+                for box, score in plate_blobs(p.cut(image), p.ppm, c, p.outside(image.shape),
+                                              cut_only=not small):
+                    dets.append(Detection("plate", p.to_frame(box, w, h), score, BLOB))
         return dets
 
     def _in_canvas(self, kind: str, det: CenterFaceDetector | TextPlateDetector,

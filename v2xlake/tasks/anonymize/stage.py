@@ -321,6 +321,7 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
     from v2xlake.tasks.anonymize.build import cluster_config
     from v2xlake.tasks.anonymize.clusters import cluster_boxes, yaw_quat
     from v2xlake.tasks.anonymize.guide import WorldBoxes, world_boxes_from_sensor
+    from v2xlake.tasks.motion import deskew_points
 
     if not cfg.clusters.enabled or not ego:
         return None
@@ -343,7 +344,8 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
         sensors = calibrations(calib.filter(pc.equal(calib.column("agent_id"), agent)),
                                clip_id, agent)
         parts = []
-        for g in iter_row_groups(lake, path, columns=["sensor", "frame_idx", "x", "y", "z"]):
+        for g in iter_row_groups(lake, path,
+                                 columns=["sensor", "frame_idx", "t_ns", "x", "y", "z"]):
             if g.num_rows == 0:
                 continue
             sensor, fidx = str(g.column("sensor")[0]), int(g.column("frame_idx")[0].as_py())
@@ -355,6 +357,12 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
                 continue
             xyz = np.stack([g.column(c).to_numpy() for c in ("x", "y", "z")], 1)
             T_ego = sensors[sensor].T_ego_sensor
+            # each point into the LiDAR frame at the scan's start: a raw sweep's points are
+            # in the frame of their own instant (anonymize runs before the deskew stage),
+            # and the ego moves 1.5 m in a 0.1 s sweep at 15 m/s (a pedestrian 8 m to the
+            # side of the simulated clip got its head region 1.4 m off, and its face missed)
+            t_pts = g.column("t_ns").to_numpy().astype(np.int64) - t0 + T0_OFFSET_NS
+            xyz = deskew_points(xyz, t_pts, track, T_ego, t_rel).xyz
             c, size, yaw, cat = cluster_boxes(xyz @ T_ego[:3, :3].T + T_ego[:3, 3], ccfg)
             if not len(c):
                 continue
