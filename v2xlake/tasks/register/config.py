@@ -196,6 +196,26 @@ class SolveSection(Section):
         "estimate itself is unchanged). Measured on the hard street: runs of 1-2 s of frames "
         "off by 4-19 cm with the same sign while GICP claims 1.6 cm; 1 s still accepted frames "
         "3-5 cm off at the edge of such a run (black 20 m behind), 2 s none")
+    own_bound: bool = Field(
+        True, description="a frame's reported 1-sigma is at most what its own GICP result "
+        "gives (honestly stated: variance factor, floor, weak_geometry_ratio; plus its "
+        "distance to the clip estimate), for inliers that observe every direction: the "
+        "clip covariance counts correlated frames once per correlation_s, so the clip's end "
+        "frames (neighbours on one side) were reported twice as uncertain as their own "
+        "measurement (demo clip: 2.0-2.1 cm for frames measured to 1.0 cm, 0.3 cm off)")
+    weak_geometry_ratio: float | None = Field(
+        0.08, gt=0, lt=1, description="a GICP result's Hessian claims too little along a "
+        "direction its surfaces barely constrain (a voxel or sampling bias is shared by the "
+        "whole surface): along each translation eigen-direction (rotation eliminated) weaker "
+        "than this fraction of the strongest, its own covariance (own_bound) gets "
+        "floor_m^2 (this / ratio - 1). Measured on the cooperative boulevard (12 clips, "
+        "1200 frames at 0.01-0.03): errors along the street 0.9-1.5x the claim rms, up to "
+        "3.7x (3.4 cm off claiming 1.05 cm); at 0.03-0.05 and on the demo street "
+        "(0.11-0.20) within 0.45x. With 0.08 seed 2's 3.4 cm frame gets 2.5 cm own 1-sigma "
+        "(not accepted; 0.05 accepted it, 0.06 did not) and none of 28 boulevard variations, "
+        "two hard-street clips and the demo accepts a frame outside 3 cm / 0.1 deg; 0.1 and "
+        "above gave back most of the gain (INS step, 3 s: 23/30 accepted, 27 with 0.08). "
+        "None: no floor")
     ins_step_m: float = Field(
         0.05, gt=0, description="an INS step: a pose-to-pose displacement that differs from "
         "the mean of its two neighbouring displacements (scaled by time) by more than this; "
