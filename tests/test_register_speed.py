@@ -101,6 +101,41 @@ def test_any_number_of_workers_gives_the_same_registrations(
     assert rows[1] == rows[2]
 
 
+def test_three_agents_register_the_same_with_their_pairs_in_parallel(tmp_path: Path) -> None:
+    """With several other agents each frame's cross pairs run side by side (the first on the
+    calling thread, the others on a pool of their own): the registrations must be those of
+    one worker, where they run one after the other."""
+    import shutil
+
+    import tests.test_register_stage as rs
+    from tests.test_register import lidar_pose
+    from v2xlake.storage.lake import Lake
+    from v2xlake.tasks.deskew.stage import run_deskew
+    from v2xlake.tasks.register.stage import RegisterConfig, run_register
+
+    # a third agent on black's track with its own LiDAR mount and INS error
+    rs.EXTR["blue"] = lidar_pose(-0.5, -0.2, 2.0, pitch_deg=-0.3, height=1.7)
+    rs.BIAS["blue"] = lidar_pose(-0.1, 0.08, -0.3, height=0.03)
+    try:
+        lake = Lake(tmp_path / "base")
+        rs.write_clip(lake, ("red", "black", "blue"))
+    finally:
+        del rs.EXTR["blue"], rs.BIAS["blue"]
+    run_deskew(lake, rs.CLIP)
+    rows = {}
+    for workers in (1, 2):
+        shutil.copytree(tmp_path / "base", tmp_path / str(workers))
+        lk = Lake(tmp_path / str(workers))
+        rep = run_register(lk, rs.CLIP, RegisterConfig.model_validate(
+            {"workers": workers, "write_bev": False}))
+        assert rep.metrics["n_pairs"] == 6
+        rows[workers] = (lk.read_table("clean", "registrations", clip_id=rs.CLIP)
+                         .sort_by([("agent_other", "ascending"), ("frame_idx", "ascending")])
+                         .to_pylist())
+    assert {r["agent_other"] for r in rows[1]} == {"black", "blue"}
+    assert rows[1] == rows[2]
+
+
 def test_workers_default_to_this_process_cores_capped() -> None:
     import os
 

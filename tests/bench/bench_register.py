@@ -10,7 +10,8 @@ variations (the other vehicle ahead / 5-50 m away, no turn, INS drift and noise,
 another seed), each simulated once into ``--workdir``; per variation: pairs within 3 cm /
 0.1 deg, accepted, accepted outside it (must be 0), the register stage's time per frame pair
 and its share of the clip's processing time (ingest + anonymize + deskew timed again in the
-same run on each duration's first variation, + register), and
+same run on the first variation of each duration and set of agents -- the roadside unit's
+clip has three agents' scans to process --, + register), and
 small_gicp.align called directly on the same deskewed scan pairs from eq. 1a (time, ratio,
 accuracy). ``--cores N`` runs every stage on N cores (the register stage's ``workers`` is
 then N: the per-frame work on a thread pool), so the share compares like with like.
@@ -208,7 +209,9 @@ def coop(args: argparse.Namespace) -> None:
     print(f"{'variation':34s} {'s':>3s} {'eq1a cm':>7s} {'<=3cm':>6s} {'acc':>4s} "
           f"{'wrong':>5s} {'med cm':>6s} {'reg s/pair':>10s} {'share':>6s} "
           f"{'sg.align s':>10s} {'x ours':>6s} {'sg <=3cm':>8s}")
-    same_run: dict[float, dict[str, float]] = {}
+    # keyed by (duration, agents): a third agent (the roadside unit) is a third agent's
+    # scans to ingest, anonymize and deskew, as it is a second cross pair to register
+    same_run: dict[tuple[float, tuple[str, ...]], dict[str, float]] = {}
     for secs in args.coop_seconds:
         for name in names:
             over = dict(COOP_VARIATIONS[name])
@@ -230,11 +233,13 @@ def coop(args: argparse.Namespace) -> None:
                 run_deskew(lake, cid)
                 times["deskew"] = time.perf_counter() - t
                 (root / "times.json").write_text(json.dumps(times))
-            if secs not in same_run:
+            key = (secs, tuple(over.get("agents", ())))
+            if key not in same_run:
                 # the other stages timed again in this run (the cached times.json come from
-                # whatever load the machine had when the variation was simulated), on this
-                # duration's first variation; the stages' cost depends on the clip's length
-                # and scans, not on where the other vehicle drives
+                # whatever load the machine had when the variation was simulated), on the
+                # first variation of this duration and set of agents; the stages' cost
+                # depends on the clip's length and scans, not on where the other vehicle
+                # drives
                 fresh = Path(tempfile.mkdtemp(prefix="bench_coop_stages"))
                 lk = Lake(fresh / "lake")
                 t = time.perf_counter()
@@ -243,12 +248,13 @@ def coop(args: argparse.Namespace) -> None:
                 run_anonymize(lk, cid)
                 t2 = time.perf_counter()
                 run_deskew(lk, cid)
-                same_run[secs] = {"ingest": t1 - t, "anonymize": t2 - t1,
-                                  "deskew": time.perf_counter() - t2}
+                same_run[key] = {"ingest": t1 - t, "anonymize": t2 - t1,
+                                 "deskew": time.perf_counter() - t2}
                 shutil.rmtree(fresh, ignore_errors=True)
-                print(f"{'':38s}other stages this run, {secs:g} s clip: " + ", ".join(
-                    f"{k} {v:.1f} s" for k, v in same_run[secs].items()))
-            times = same_run[secs]
+                print(f"{'':38s}other stages this run, {secs:g} s clip"
+                      + (f" ({', '.join(key[1])})" if key[1] else "") + ": " + ", ".join(
+                          f"{k} {v:.1f} s" for k, v in same_run[key].items()))
+            times = same_run[key]
             lake, clip_dir = Lake(root / "lake"), root / "clip"
             t = time.perf_counter()
             rep = run_register(lake, cid, RegisterConfig.model_validate(

@@ -32,7 +32,7 @@ from v2xlake.tasks.register.static import (
     ground_distance,
     grow_to_objects,
 )
-from v2xlake.tasks.register.voxel import voxel_downsample_t
+from v2xlake.tasks.register.voxel import VoxelGrid, voxel_downsample_t
 
 #: one deskewed frame of one LiDAR: frame index -> ((N, 3) float32 points, (N,) int64 capture
 #: times), empty arrays for a frame without points
@@ -99,6 +99,9 @@ class AgentScans:
         self.frames = frames
         self._read_frame = read_frame
         self._boxes = boxes or {}
+        # frame -> T_world_lidar: the static filter asks for each frame's pose once per
+        # neighbouring frame (interpolating the track each time)
+        self._T_world_lidar: dict[int, np.ndarray] = {}
 
     def has_annotations(self, frame_idx: int) -> bool:
         return frame_idx in self._boxes
@@ -128,8 +131,13 @@ class AgentScans:
         return float(np.percentile(speed, 95)) * period if len(speed) else 0.0
 
     def T_world_lidar(self, frame_idx: int) -> np.ndarray:
-        """Where the frame's deskewed points live: ``T_world_ego(t_ref) T_ego_lidar``."""
-        return self.track.matrices(self.frames[frame_idx][1])[0] @ self.T_ego_lidar
+        """Where the frame's deskewed points live: ``T_world_ego(t_ref) T_ego_lidar`` (computed
+        once per frame; do not modify the returned array)."""
+        T = self._T_world_lidar.get(frame_idx)
+        if T is None:
+            T = self.track.matrices(self.frames[frame_idx][1])[0] @ self.T_ego_lidar
+            self._T_world_lidar[frame_idx] = T
+        return T
 
 
 def redeskew(xyz: np.ndarray, t_ns: np.ndarray, t_ref_ns: int, track: PoseTrack,
@@ -163,7 +171,7 @@ class StaticScans:
         self.max_range_m = max_range_m
         self.bodies = bodies
         self.redeskew_with = redeskew_with
-        self._fine: OrderedDict[int, tuple[np.ndarray, object]] = OrderedDict()
+        self._fine: OrderedDict[int, tuple[np.ndarray, VoxelGrid]] = OrderedDict()
         self._raw: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._raw_window = 2 + 2 * (max(in_flight, 1) - 1)
         self._fine_window = 2 * settings.dynamic_neighbours + 2 + 2 * (max(in_flight, 1) - 1)
@@ -194,16 +202,16 @@ class StaticScans:
                 self._raw.popitem(last=False)
         return xyz, t_ns
 
-    def _fine_tree(self, f: int) -> tuple[np.ndarray, object]:
+    def _fine_tree(self, f: int) -> tuple[np.ndarray, VoxelGrid]:
         with self._lock:
             hit = self._fine.get(f)
         if hit is not None:
             return hit
-        from scipy.spatial import cKDTree
-
         xyz, _ = self._points(f)
         pts = voxel_downsample_t(xyz, None, self.s.dynamic_voxel_m, self.max_range_m + 10.0)[0]
-        out = (pts, cKDTree(pts, balanced_tree=False, compact_nodes=False))
+        # the hash grid of the GICP searches (exact, GIL-free), with cells as large as the
+        # search bound's half: a SciPy k-d tree held the GIL while it was built
+        out = (pts, VoxelGrid(pts, 2.0 * self.s.dynamic_residual_m))
         with self._lock:
             self._fine[f] = out
             while len(self._fine) > self._fine_window:
@@ -222,9 +230,9 @@ class StaticScans:
         if len(fine) == 0:
             return np.full(len(pts_f), np.inf)
         T_g_f = invert(self.scans.T_world_lidar(g)) @ self.scans.T_world_lidar(f)
-        d, _ = tree.query(apply(T_g_f, pts_f), k=1, distance_upper_bound=4.0 *  # type: ignore[attr-defined]
-                          self.s.dynamic_residual_m, workers=1)
-        return np.asarray(d, dtype=np.float64) ** 2
+        _, d2 = tree.batch_nearest_neighbor_search(apply(T_g_f, pts_f),
+                                                   max_dist_m=4.0 * self.s.dynamic_residual_m)
+        return np.asarray(d2, dtype=np.float64)
 
     def filtered(self, f: int, voxel_m: float) -> FilteredScan:
         xyz, t_ns = self._points(f)

@@ -782,21 +782,33 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         odo_work.append((agent, g, f, M0, M1, pool.submit(odometry_gicp, *args)
                          if pool is not None else odometry_gicp(*args)))
 
+    def cross_gicp(w: _CrossWork, start: np.ndarray | None) -> PairResult:
+        """One cross pair's GICP from ``start`` (the agent's previous accepted correction)."""
+        t = time.perf_counter()
+        try:
+            if w.target is None or w.source is None:
+                return failed_pair(w.T_init, w.why)
+            return refine(backend, w.target, w.source, w.T_init, limits, start)
+        finally:
+            spent("gicp_s", time.perf_counter() - t)
+
     def register_frame(f: int, ref_scan: _Scan, work: list[_CrossWork],
-                       pool: ThreadPoolExecutor | None, t0: float) -> None:
+                       pool: ThreadPoolExecutor | None, cross_pool: ThreadPoolExecutor | None,
+                       t0: float) -> None:
         """In frame order: the frame's cross pairs, each warm-started from the previous
-        frame's accepted correction of the same agent."""
+        frame's accepted correction of the same agent. The pairs of different agents do not
+        depend on each other: with ``cross_pool`` all but the first run there while the first
+        runs here (a roadside unit's pairs beside the other vehicle's)."""
         keep(ref_scan, pool)
         for w in work:
-            o, fo = w.other, w.other_frame
             keep(w.scan, pool)
-            t = time.perf_counter()
-            if w.target is None or w.source is None:
-                res = failed_pair(w.T_init, w.why)
-            else:
-                res = refine(backend, w.target, w.source, w.T_init, limits,
-                             warm[o.agent] if cfg.gicp.warm_start else None)
-            spent("gicp_s", time.perf_counter() - t)
+        starts = [warm[w.other.agent] if cfg.gicp.warm_start else None for w in work]
+        jobs: list[Future[PairResult] | None] = [
+            cross_pool.submit(cross_gicp, w, st) if cross_pool is not None and i > 0 else None
+            for i, (w, st) in enumerate(zip(work, starts, strict=True))]
+        for w, st, job in zip(work, starts, jobs, strict=True):
+            o, fo = w.other, w.other_frame
+            res = cross_gicp(w, st) if job is None else job.result()
             if res.accepted and res.observability >= cfg.quality.min_observability:
                 warm[o.agent] = res.correction
             usable = res.accepted and res.H is not None and bool(np.isfinite(res.H).all())
@@ -811,17 +823,20 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     if workers <= 1:
         for f in ref_frames:
             t0 = time.perf_counter()
-            register_frame(f, *frame_work(f), None, t0)
+            register_frame(f, *frame_work(f), None, None, t0)
     else:
         with ThreadPoolExecutor(max_workers=workers,
-                                thread_name_prefix=f"register-{ref.agent}") as pool:
+                                thread_name_prefix=f"register-{ref.agent}") as pool, \
+                ThreadPoolExecutor(max_workers=max(len(others) - 1, 1),
+                                   thread_name_prefix=f"register-cross-{ref.agent}") as cross:
             ahead: deque[Future[tuple[_Scan, list[_CrossWork]]]] = deque()
             frames = iter(ref_frames)
             for f in ref_frames:
                 while len(ahead) < 2 * workers and (nxt := next(frames, None)) is not None:
                     ahead.append(pool.submit(frame_work, nxt))
                 t0 = time.perf_counter()
-                register_frame(f, *ahead.popleft().result(), pool, t0)
+                register_frame(f, *ahead.popleft().result(), pool,
+                               cross if len(others) > 1 else None, t0)
     odo: list[OdoMeasurement] = []
     for agent, g, f, M0, M1, job in odo_work:
         r = job.result() if isinstance(job, Future) else job
