@@ -13,6 +13,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from tests.fixtures.real import requires_real_data
 from v2xlake.tasks.anonymize.guided import GuidedConfig, _crop_piece, edge_lines, pack
@@ -94,3 +95,42 @@ def test_fitted_packing_is_smaller_and_keeps_pieces_apart() -> None:
     pieces = [_crop_piece("face", 0, 0, 150, 150, 1.0, (16.0, 16.0)) for _ in range(10)]
     assert (lambda r: r[1] * r[2])(pack(pieces, 512, 32, fit=True)) < (
         lambda r: r[1] * r[2])(pack(pieces, 512, 32))
+
+
+def test_edge_bands_too_short_for_a_text_line_propose_no_crop(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """An edge band narrower than the shortest line the text detector finds
+    (``plate_line_min_px`` at the crop scale) gets no plate crop: a 100 px plate's line does,
+    a 16 px textured speck (an edge band the detector could never turn into a plate) does
+    not; with the floor at 0 the speck is cut out too (the plan before)."""
+    from dataclasses import replace
+
+    from v2xlake.tasks.anonymize import guided
+    from v2xlake.tasks.anonymize.build import build_detector
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
+
+    img = np.full((400, 640, 3), 120, np.uint8)
+    cv2.rectangle(img, (400, 300), (500, 324), (235, 235, 235), -1)  # a plate: 100 x 24 px
+    cv2.putText(img, "AB 123", (406, 320), cv2.FONT_HERSHEY_SIMPLEX, 0.7, (20, 20, 20), 2)
+    for x in range(100, 116, 4):  # a 16 x 10 px speck of vertical strokes
+        img[100:110, x : x + 2] = 250
+    cfg = GuidedConfig()
+    bands = edge_lines(img, cfg)
+    assert any(b[0] < 120 and b[2] - b[0] < cfg.plate_line_min_px for b in bands)
+    det = build_detector(AnonymizeConfig(scan_plan="full"))
+    crops: list[tuple[int, int, int, int]] = []
+    mosaics = guided.mosaics
+
+    def spy(image: np.ndarray, pieces: list, c: GuidedConfig) -> list:
+        crops.extend(p.crop[:4] for p in pieces)
+        return mosaics(image, pieces, c)
+
+    monkeypatch.setattr(guided, "mosaics", spy)
+    for floor, speck_cut in ((cfg.plate_line_min_px, False), (0.0, True)):
+        crops.clear()
+        det.config = replace(det.config, plate_line_min_px=floor)
+        det._plates_proposed(img)
+        assert any(x0 <= 400 and x1 >= 500 and y0 <= 300 and y1 >= 324
+                   for x0, y0, x1, y1 in crops), crops
+        assert any(x0 <= 100 and x1 >= 116 and y0 <= 100 and y1 >= 110
+                   for x0, y0, x1, y1 in crops) == speck_cut, (floor, crops)

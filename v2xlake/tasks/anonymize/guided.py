@@ -147,6 +147,13 @@ class GuidedConfig(FromParams):
     plate_edge_w: tuple[float, float] = (12.0, 300.0)
     plate_edge_aspect: tuple[float, float] = (1.3, 12.0)
     plate_edge_fill: float = 0.35
+    # the shortest text line (px in the detector's input) the DB detector finds: an edge band
+    # narrower than this at the crop scale cannot become a detection, and its crop (the band
+    # plus ``plate_proposal_pad_px`` each side) was most of the proposal canvas. Real plates
+    # (plates_eu photos shrunk to 30-90 px, pasted into the real street frames): every one
+    # found had a band >= 32 px wide; on the real street frames the narrower bands' crops
+    # were 33-45 % of the canvas pixels (and made their one false plate)
+    plate_line_min_px: float = 24.0
     # the guided plan's faces in two stages (``GuidedDetector``'s ``region_first`` given):
     # the int8 copy runs on the region canvases and the safety view; each local maximum of
     # its heat map scoring ``face_proposal_threshold`` is a candidate; one scoring
@@ -487,7 +494,8 @@ class GuidedDetector:
                 f"|full-proposals:first@{(face_first or face).version if face else '-'}"
                 f":f{c.face_proposal_threshold:g}/{c.face_accept_px:g}"
                 f"/{c.face_proposal_target_px:g}:p{c.plate_proposal_scale:g}"
-                f"/{c.plate_proposal_threshold:g}/e{c.plate_edge_threshold:g}:fit")
+                f"/{c.plate_proposal_threshold:g}/e{c.plate_edge_threshold:g}"
+                f"/l{c.plate_line_min_px:g}:fit")
             if c.face_look_batch > 0:
                 self.version += f":look-batch:m{c.face_look_margin}"
         self.detectors = [d for d in (face, plate, *self.extra) if d is not None]
@@ -662,9 +670,9 @@ class GuidedDetector:
         _n, _lab, stats, _cent = cv2.connectedComponentsWithStats(mask, connectivity=8)
         boxes = [(x * sx, y * sy, (x + bw) * sx, (y + bh) * sy)
                  for x, y, bw, bh, _a in stats[1:].tolist()]
-        boxes += edge_lines(image, c)
         scan = c.full_plate_scan
         s = max(scan.fine_scale or 1.0, 1.0)
+        boxes += [b for b in edge_lines(image, c) if (b[2] - b[0]) * s >= c.plate_line_min_px]
         pad = c.plate_proposal_pad_px
         items = []
         for x0, y0, x1, y1 in boxes:
