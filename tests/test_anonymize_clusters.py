@@ -319,3 +319,14 @@ def test_a_plate_cut_by_the_frame_edge_is_found_on_a_large_face() -> None:
     assert len(plate_blobs(view, ppm, GuidedConfig(), outside)) == 2
     piece = _crop_piece("plate", 0, 0, 100, 100, 1.0, (20.0, 20.0))
     assert not piece.cut_by_frame(200, 200) and piece.cut_by_frame(80, 200)
+
+
+def test_a_blob_is_no_larger_than_the_plate_its_face_expects() -> None:
+    """A plate-sized rectangle in a rectified face's metres can map to half the frame where
+    the face's plane runs off the frame edge near the camera: such a box is no plate."""
+    from v2xlake.tasks.anonymize.guided import plate_sized
+
+    c = GuidedConfig()
+    assert plate_sized((100.0, 500.0, 250.0, 540.0), 150.0, c)
+    assert not plate_sized((5.0, 526.0, 1920.0, 1080.0), 150.0, c)
+    assert not plate_sized((100.0, 100.0, 130.0, 600.0), 150.0, c)

@@ -420,6 +420,17 @@ def edge_lines(image: np.ndarray, cfg: GuidedConfig) -> list[tuple[float, float,
     return out
 
 
+def plate_sized(box: tuple[float, float, float, float], expected_px: float,
+                cfg: GuidedConfig) -> bool:
+    """A frame box no wider and no taller than ``plate_size_range[1]`` times the plate width
+    its region expects. Why: a rectangle of plate size in a rectified face's metres can map
+    to half the frame where the face's plane runs off the frame edge near the camera (the
+    homography diverges there): a close car cut by the narrow camera's edge gave 1920 x
+    550 px 'plates' (half its frame blurred, and 2.5 s of blurring per image)."""
+    hi = cfg.plate_size_range[1] * expected_px
+    return box[2] - box[0] <= hi and box[3] - box[1] <= hi
+
+
 def plate_blobs(view: np.ndarray, ppm: float, cfg: GuidedConfig,
                 outside: np.ndarray | None = None, cut_only: bool = False
                 ) -> list[tuple[np.ndarray, float]]:
@@ -757,7 +768,9 @@ class GuidedDetector:
                     continue
                 for box, score in plate_blobs(p.cut(image), p.ppm, c, p.outside(image.shape),
                                               cut_only=not small):
-                    dets.append(Detection("plate", p.to_frame(box, w, h), score, BLOB))
+                    fb = p.to_frame(box, w, h)
+                    if plate_sized(fb, p.expected[1], c):
+                        dets.append(Detection("plate", fb, score, BLOB))
         return dets
 
     def _in_canvas(self, kind: str, det: CenterFaceDetector | TextPlateDetector,
