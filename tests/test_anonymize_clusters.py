@@ -330,3 +330,7 @@ def test_a_blob_is_no_larger_than_the_plate_its_face_expects() -> None:
     assert plate_sized((100.0, 500.0, 250.0, 540.0), 150.0, c)
     assert not plate_sized((5.0, 526.0, 1920.0, 1080.0), 150.0, c)
     assert not plate_sized((100.0, 100.0, 130.0, 600.0), 150.0, c)
+    # a car 3 m ahead of a narrow camera: its plate 620 px wide, the half-frame box still no
+    # plate, a plate cut to 40 x 150 px by the frame edge one
+    assert not plate_sized((5.0, 526.0, 1920.0, 1080.0), 620.0, c)
+    assert plate_sized((0.0, 600.0, 40.0, 750.0), 620.0, c)

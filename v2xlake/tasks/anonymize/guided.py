@@ -91,6 +91,7 @@ class GuidedConfig(FromParams):
     # faces whose plate the text detector looks for (expected from ``blob_below_px``) but
     # that the frame edge cuts get the blob test's cut rectangles too
     blob_cut_faces: bool = _param("regions.blob_cut_faces")
+    blob_cut_max_share: float = 0.01
     # the safety pass over the whole frame, shrunk to this longest side (None: no pass of
     # that kind): what has no box (missed by the LiDAR, not annotated) but is large
     safety_face_max_side: int | None = _param("safety.face_max_side")
@@ -421,14 +422,16 @@ def edge_lines(image: np.ndarray, cfg: GuidedConfig) -> list[tuple[float, float,
 
 
 def plate_sized(box: tuple[float, float, float, float], expected_px: float,
-                cfg: GuidedConfig) -> bool:
-    """A frame box no wider and no taller than ``plate_size_range[1]`` times the plate width
-    its region expects. Why: a rectangle of plate size in a rectified face's metres can map
-    to half the frame where the face's plane runs off the frame edge near the camera (the
-    homography diverges there): a close car cut by the narrow camera's edge gave 1920 x
-    550 px 'plates' (half its frame blurred, and 2.5 s of blurring per image)."""
-    hi = cfg.plate_size_range[1] * expected_px
-    return box[2] - box[0] <= hi and box[3] - box[1] <= hi
+                cfg: GuidedConfig, plate_width_m: float = 0.52) -> bool:
+    """A frame box no larger than 1.5x the largest plate (``plate_m``: 0.7 x 0.3 m) at the
+    scale its region expects (``expected_px`` for a ``plate_width_m`` plate). Why: a
+    rectangle of plate size in a rectified face's metres can map to half the frame where the
+    face's plane runs off the frame edge near the camera (the homography diverges there): a
+    car 3 m ahead, cut by the narrow camera's edge, gave 1920 x 550 px 'plates' (half its
+    frame blurred, and 2 s of blurring per image)."""
+    px_per_m = 1.5 * expected_px / plate_width_m
+    return (box[2] - box[0] <= cfg.plate_m[1] * px_per_m
+            and box[3] - box[1] <= cfg.plate_m[3] * px_per_m)
 
 
 def plate_blobs(view: np.ndarray, ppm: float, cfg: GuidedConfig,
@@ -769,7 +772,10 @@ class GuidedDetector:
                 for box, score in plate_blobs(p.cut(image), p.ppm, c, p.outside(image.shape),
                                               cut_only=not small):
                     fb = p.to_frame(box, w, h)
-                    if plate_sized(fb, p.expected[1], c):
+                    # a cut face's blob larger than ``blob_cut_max_share`` of the frame is a
+                    # plate legible to the text detector, or none (a car filling the frame)
+                    big = (fb[2] - fb[0]) * (fb[3] - fb[1]) > c.blob_cut_max_share * w * h
+                    if plate_sized(fb, p.expected[1], c) and (small or not big):
                         dets.append(Detection("plate", fb, score, BLOB))
         return dets
 
