@@ -67,10 +67,18 @@ def test_shared_server_reused_held_and_stopped_when_idle(tmp_path: Path) -> None
         while state_file.exists() and time.monotonic() < deadline:
             time.sleep(0.5)
         assert not state_file.exists()
+        # the keeper drops the state first (a new user then starts a fresh server) and then
+        # stops the server's process group: on a loaded machine that takes a moment
+        def keeper_alive() -> bool:
+            try:
+                cmd = Path(f"/proc/{keeper_pid}/cmdline").read_text(errors="replace")
+            except OSError:
+                return False
+            return "keeper.py" in cmd
+        while keeper_alive() and time.monotonic() < deadline + 30:
+            time.sleep(0.5)
+        assert not keeper_alive()
         assert not shared_server.healthy(url)
-        time.sleep(1.5)
-        assert not Path(f"/proc/{keeper_pid}").exists() or \
-            "keeper.py" not in Path(f"/proc/{keeper_pid}/cmdline").read_text(errors="replace")
     finally:
         shared_server.stop(home / "prefect")  # a failed assertion leaves nothing running
 
