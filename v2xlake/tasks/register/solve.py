@@ -822,16 +822,13 @@ def own_bound(cov_clip: np.ndarray, cov_own: np.ndarray, weight: np.ndarray,
     C = cov_own / np.maximum(weight, 1e-12)[:, None, None] + d[:, :, None] * d[:, None, :]
     dc = np.einsum("mii->mi", cov_clip)
     do = np.einsum("mii->mi", C)
-    rot = do[:, :3].max(1) < dc[:, :3].max(1)
-    tra = do[:, 3:].max(1) < dc[:, 3:].max(1)
-    out = cov_clip.copy()
-    out[rot | tra] = 0.0  # a block from each: no cross-covariance between them
-    out[rot, :3, :3] = C[rot, :3, :3]
-    out[~rot & tra, :3, :3] = cov_clip[~rot & tra, :3, :3]
-    out[tra, 3:, 3:] = C[tra, 3:, 3:]
-    out[rot & ~tra, 3:, 3:] = cov_clip[rot & ~tra, 3:, 3:]
-    both = rot & tra
-    out[both] = C[both]
+    rot = (do[:, :3].max(1) < dc[:, :3].max(1))[:, None, None]
+    tra = (do[:, 3:].max(1) < dc[:, 3:].max(1))[:, None, None]
+    src_r, src_t = np.where(rot, C, cov_clip), np.where(tra, C, cov_clip)
+    # one source for both blocks: its whole matrix; a block from each: no cross-covariance
+    out = np.where(rot == tra, src_r, 0.0)
+    out[:, :3, :3] = src_r[:, :3, :3]
+    out[:, 3:, 3:] = src_t[:, 3:, 3:]
     return out
 
 
@@ -874,10 +871,6 @@ def range_floor(c: CrossMeasurement, s: SolveSection) -> np.ndarray:
         d = float(np.linalg.norm((np.linalg.inv(c.M_ref) @ c.M_oth)[:3, 3]))
         f = f * max(1.0, d / s.floor_range_m)
     return np.diag(f**2)
-
-
-def _other(sl: slice) -> slice:
-    return slice(0, 3) if sl.start == 3 else slice(3, 6)
 
 
 def bracketing(cross: list[CrossMeasurement], info: np.ndarray, outlier: np.ndarray,
