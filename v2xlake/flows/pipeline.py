@@ -373,18 +373,24 @@ def process_clip(clip_dir: str, lake: str, stages: list[str] | None = None,
     return summary
 
 
-def summary_from_state(clip_dir: str, state: Any) -> dict[str, Any]:
-    """A clip summary from a finished ``process_clip`` flow state, whatever it ended as."""
-    if state.is_completed():
-        return dict(state.result())
-    err = state.result(raise_on_failure=False)
-    if isinstance(err, ClipFailed):
-        out = err.summary
-    else:
+def run_clip_flow(clip_flow: Any, clip_dir: str, *args: Any, **kwargs: Any) -> dict[str, Any]:
+    """A clip summary from one ``process_clip`` flow run, whatever it ended as.
+
+    The summary is taken from the run's in-memory return value (or the exception it raised),
+    never from its final state: results are not persisted, and a state the engine re-reads
+    from the API server (it does when a state proposal is answered late, as on a loaded
+    machine with a Dask task runner) carries no data (Prefect's ``MissingResult``)."""
+    try:
+        return dict(clip_flow(clip_dir, *args, **kwargs))
+    except ClipFailed as exc:
+        out = exc.summary
+        reason: Exception = exc
+    except Exception as exc:
         out = {"clip_dir": clip_dir, "clip_id": peek_clip_id(clip_dir), "status": "failed",
-               "error": str(err), "stages": [], "quarantine_report": None}
-    out["state"] = state.name
-    out["message"] = state.message
+               "error": str(exc), "stages": [], "quarantine_report": None}
+        reason = exc
+    out["state"] = "Failed"
+    out["message"] = f"Flow run encountered an exception: {type(reason).__name__}: {reason}"
     return out
 
 
@@ -403,18 +409,16 @@ def process_clips(clip_dirs: list[str], lake: str, stages: list[str] | None = No
     if spec.kind == "local":
         results = []
         for d in dirs:
-            state = process_clip(d, lake, stages, checked, pipeline, refresh_catalog=False,
-                                 return_state=True)
-            results.append(summary_from_state(d, state))
+            results.append(run_clip_flow(process_clip, d, lake, stages, checked, pipeline,
+                                         refresh_catalog=False))
     else:
         with dask_cluster(spec) as (address, threads):
             clip_flow = process_clip.with_options(task_runner=make_task_runner(
                 f"dask={address}"))
 
             def one(d: str) -> dict[str, Any]:
-                state = clip_flow(d, lake, stages, checked, pipeline, refresh_catalog=False,
-                                  return_state=True)
-                return summary_from_state(d, state)
+                return run_clip_flow(clip_flow, d, lake, stages, checked, pipeline,
+                                     refresh_catalog=False)
 
             # a few clips' flows at a time here; their stages and chunks run on the workers.
             # One flow per worker thread: with twice as many (to fill the 0.5-1 s between a
