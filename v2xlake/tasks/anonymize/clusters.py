@@ -55,6 +55,9 @@ class ClusterConfig(FromParams):
     min_points: int = 8
     # a cell's ground no higher than its neighbours' median (``_ground_below_neighbours``)
     ground_neighbours: bool = True
+    # a cell with fewer than two occupied neighbours (a lone object's own returns, the road
+    # around it unseen) takes the lower quartile of the cells' ground within this (m); 0: off
+    ground_isolated_m: float = param("clusters.ground_isolated_m")
     # fewer returns suffice beyond ``dense_range_m`` (by range², down to ``min_points_far``):
     # the simulator's 1.1° LiDAR puts 4-6 returns on a car's rear face at 25 m
     dense_range_m: float = param("clusters.dense_range_m")
@@ -62,6 +65,10 @@ class ClusterConfig(FromParams):
     # a group's extent grown by its point spacing decides whether it can be a vehicle (a far
     # car's face is 2-3 columns wide); one that could be a person or a vehicle is both
     sparse_extent: bool = param("clusters.sparse_extent")
+    # beyond ``dense_range_m`` a person whose top return is under this (m) is also given a box
+    # one point spacing taller (at most ``person_h[1]``): the rings above it may have passed
+    # over its head; 0: off
+    sparse_person_top_m: float = param("clusters.sparse_person_top_m")
     # the footprint's orientation: L-shape fit in steps of this (0: minimum-area rectangle)
     lshape_step_deg: float = 1.0
     lshape_d0_m: float = 0.02
@@ -113,7 +120,8 @@ def cluster_boxes(xyz: np.ndarray, cfg: ClusterConfig | None = None
     for i, (a, b) in enumerate(zip(start, [*start[1:], len(order)], strict=True)):
         ground_of[i] = np.percentile(p[order[a:b], 2], c.ground_percentile)
     if c.ground_neighbours:
-        ground_of = _ground_below_neighbours(ks, ground_of)
+        ground_of = _ground_below_neighbours(ks, ground_of, c.ground_cell_m,
+                                             c.ground_isolated_m)
     ground = ground_of[np.searchsorted(ks, key)]
     above = p[:, 2] - ground
     keep = (above >= c.min_above_m) & (above <= c.max_above_m)
@@ -155,8 +163,10 @@ def _object(pts: np.ndarray, qg: np.ndarray, c: ClusterConfig,
     cars, a short vehicle also end-on."""
     (cx, cy), length, width, yaw = _footprint(pts[:, :2], c)
     length, width = max(length, 0.3), max(width, 0.3)
+    own_length = length  # a person's, before a vehicle reading may grow it
     g = float(np.median(qg))
     h = float(pts[:, 2].max() - g)
+    top_return = h  # before a class's smallest height may raise it
     # beyond ``dense_range_m`` an object is larger than its points by up to one point spacing
     # on each side and above its top return (a car's rear face at 27 m: 3 columns 0.45 m
     # apart on a 1.8 m face, its top return 1 m up, the next row over its roof)
@@ -186,6 +196,15 @@ def _object(pts: np.ndarray, qg: np.ndarray, c: ClusterConfig,
         return
     if bridged and h > c.row_max_h and length > c.bridge_max_m:
         return
+    if person and sp > 0 and top_return < c.sparse_person_top_m:
+        # the measured box's head region is the top 0.5 m of its returns; at 30-50 m a
+        # 32-beam head's rings are 0.6-0.8 m apart, so the face may be a ring spacing higher
+        # (a walker 32 m away: top return 1.1 m up, head region 0.2-0.9 m, face at 1.5 m)
+        hp = max(top_return, c.person_h[0])
+        top = min(hp + sp, c.person_h[1])
+        if top > hp + 0.05:
+            _append((cx, cy, g + top / 2), (width, own_length, top), yaw, "Pedestrian",
+                    centres, sizes, yaws, cats)
     _append((cx, cy, g + h / 2), (width, length, h), yaw, cat, centres, sizes, yaws, cats)
     if cat == "Car" and c.row_min_m > 0 and length >= c.row_min_m and h <= c.row_max_h:
         thin = width <= c.row_max_w
@@ -211,12 +230,20 @@ def _object(pts: np.ndarray, qg: np.ndarray, c: ClusterConfig,
                 centres, sizes, yaws, cats)
 
 
-def _ground_below_neighbours(ks: np.ndarray, ground: np.ndarray) -> np.ndarray:
+def _ground_below_neighbours(ks: np.ndarray, ground: np.ndarray, cell_m: float = 2.0,
+                             isolated_m: float = 0.0) -> np.ndarray:
     """Each ground cell's height, never above the median of its neighbour cells' (with two
     of them at least). Why: far away a sparse LiDAR may hit no road in a car's 2 m cell, so
     the cell's lowest returns are the car's own (a parked car 27 m away got its bumper as
     ground, and with it most of its 6-8 returns below ``min_above_m``); the road around it
-    is the ground there. A slope keeps its height: its neighbours' median is its own."""
+    is the ground there. A slope keeps its height: its neighbours' median is its own.
+
+    A cell with fewer than two occupied neighbours, never above the lower quartile of the
+    cells' ground within ``isolated_m`` (two of them at least): a walker 32-35 m from the
+    simulated LiDAR got 4 returns in two rings, alone in its cell and with no return in the
+    eight around it (the road there hidden), so its lower ring was its 'ground' and it was no
+    object. The quartile, not the median: within 4-5 m parked cars and walls are ground
+    cells too (their lowest returns 0.5-0.7 m up)."""
     cx, cy = np.divmod(ks + 500_001, 1_000_003)  # undo key = gx * 1_000_003 + gy
     cy = cy - 500_001
     nb = np.full((len(ks), 8), np.nan)
@@ -236,6 +263,14 @@ def _ground_below_neighbours(ks: np.ndarray, ground: np.ndarray) -> np.ndarray:
     if ok.any():
         med = np.nanmedian(nb[ok], axis=1)
         out[ok] = np.minimum(ground[ok], med)
+    lone = np.flatnonzero(~ok)
+    if isolated_m > 0 and len(lone) and len(ks) > 2:
+        centres = np.stack([cx, cy], 1).astype(np.float64) * cell_m
+        tree = cKDTree(centres)
+        for i, near in zip(lone, tree.query_ball_point(centres[lone], isolated_m), strict=True):
+            others = [j for j in near if j != i]
+            if len(others) >= 2:
+                out[i] = min(out[i], float(np.percentile(ground[others], 25)))
     return out
 
 

@@ -202,6 +202,28 @@ class Clusters(Section):
         "smallest plate (regions.plate_text_min_px) to this width: the simulator's 20-30 px "
         "plates in the narrow camera were all found from x1.5 (30 px); real plates need "
         "~80 px in the text detector's input (its cost grows with the square of the scale)")
+    ground_isolated_m: float = Field(
+        5.0, ge=0, description="a ground cell (2 m) with fewer than two occupied neighbours "
+        "is a lone object's own returns (the road around it unseen): its ground is at most "
+        "the lower quartile of the cells' ground within this range (m). Simulated seed 0: "
+        "a walker 32-35 m from the other car's LiDAR, 4 returns in two rings alone in its "
+        "cell, took its lower ring as the ground and was no object. 0: off")
+    sparse_person_top_m: float = Field(
+        1.5, ge=0, description="beyond dense_range_m a person whose top return is lower than "
+        "this (m above its ground; an adult's face is higher) is also given a box one point "
+        "spacing taller (at most 2.2 m): the rings above its top return may have passed "
+        "over its head (a 32-beam head's rings are 0.6-0.8 m apart at 30-35 m), and the head "
+        "region (the top 0.5 m) is then under the face. Simulated seed 0: a pedestrian 32 m "
+        "from the other car (4 returns, top return 1.1 m up) got a head region at 0.2-0.9 m. "
+        "Taller persons are not doubled: a cyclist's second, overlapping head region (top "
+        "return 1.6 m up) changed how its region was cut out and lost its 16 px face. 0: off")
+    person_hold_ms: float = Field(
+        150.0, ge=0, description="a LiDAR cluster has no identity across scans, so an image "
+        "is guided by the scan nearest in time; person boxes of the scans within this of "
+        "the image guide it too (a walker moves 0.2 m in 150 ms, inside a head region's "
+        "margins). Why: far away a person gets its few returns in some sweeps only (4, 0, "
+        "4 in three sweeps of the simulated seed 0, 32 m away), and the camera frames "
+        "nearest the empty sweep lost its face. 0: the nearest scan only")
 
 
 class Safety(Section):

@@ -24,6 +24,7 @@ import pyarrow as pa
 
 from v2xlake.schemas.calibration import CameraIntrinsics, DistortionModel
 from v2xlake.tasks.anonymize.guide import (
+    PEOPLE,
     GuideConfig,
     Region,
     WorldBoxes,
@@ -80,6 +81,8 @@ class ClipGuide:
         regions = project_regions(WorldBoxes.concat(parts), T_cam_world, intr, self.config)
         if self.source == "lidar clusters" and self.config.band_from_m > 0:
             T_world_ego = track.matrices(t)[0]
+            if own is not None and len(own):  # the nearest scan's, without held persons
+                own = _take(own, own.t_ns == own.t_ns[np.argmin(np.abs(own.t_ns - t))])
             ground = ground_height(own, T_world_ego, self.config.band_from_m)
             band = band_region(T_cam_world, T_world_ego, intr, ground, self.config)
             if band is not None:
@@ -89,12 +92,21 @@ class ClipGuide:
 
     def _at(self, b: WorldBoxes, t: int) -> WorldBoxes:
         """Boxes at time ``t``: annotated instances moved by their velocity; LiDAR clusters
-        (no identity across scans, no velocity) from the one scan nearest in time."""
+        (no identity across scans, no velocity) from the one scan nearest in time, plus the
+        person boxes of the scans within ``person_hold_ns``. Why persons: far away a sparse
+        LiDAR puts its few returns on a walker in some sweeps only (4, 0, 4 returns in three
+        sweeps of a simulated pedestrian 32 m away), and the frames nearest an empty sweep
+        got no head region; a walker moves 0.2 m in 150 ms, inside the region's margins
+        (a car 2 m: its boxes are not held)."""
         if self.source == "lidar clusters" and len(b):
-            near = b.t_ns[np.argmin(np.abs(b.t_ns - t))]
+            dt = np.abs(b.t_ns - t)
+            near = b.t_ns[np.argmin(dt)]
             if abs(int(near) - t) > self.config.max_age_ns:
                 return _take(b, np.zeros(len(b), bool))
-            return _take(b, b.t_ns == near)
+            keep = b.t_ns == near
+            if self.config.person_hold_ns > 0:
+                keep |= (dt <= self.config.person_hold_ns) & np.isin(b.category, list(PEOPLE))
+            return _take(b, keep)
         return b.at(t, self.config.max_age_ns)
 
 

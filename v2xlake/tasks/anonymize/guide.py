@@ -73,6 +73,9 @@ class GuideConfig(FromParams):
     band_min_plate_px: float = param("regions.plate_text_min_px")
     # the road's height there is known to this much (slope, pitch, the ground estimate)
     band_ground_margin_m: float = 0.5
+    # LiDAR clusters: person boxes of the scans this close in time guide an image too, not
+    # only the nearest scan's (``ClipGuide._at``); 0: the nearest scan only
+    person_hold_ns: int = param("clusters.person_hold_ms", _ms_to_ns)
 
 
 @dataclass(frozen=True)
