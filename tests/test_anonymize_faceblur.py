@@ -34,6 +34,38 @@ def test_face_margins_are_asymmetric_plate_margin_unchanged() -> None:
     assert done == [(70, 65, 230, 225), (6, 8, 34, 22)]
 
 
+def test_blur_is_the_pixelated_gaussian_in_few_operations() -> None:
+    """``blur_region`` computes the Gaussian of the pixelated box from its cells; the pixels
+    are those of pixelating and then ``cv2.GaussianBlur`` (OpenCV's 8-bit fixed point: within
+    2 grey levels), for boxes of every shape, clipped by the image or not, colour and grey."""
+    from v2xlake.tasks.anonymize.blur import blur_region
+
+    cfg = BlurConfig()
+    rng = np.random.default_rng(3)
+    base = rng.integers(0, 256, (240, 320, 3), np.uint8)
+    base = cv2.GaussianBlur(base, (0, 0), 3)  # some structure, not only noise
+    for t in range(40):
+        x0, y0 = int(rng.integers(0, 300)), int(rng.integers(0, 220))
+        box = (x0, y0, min(320, x0 + int(rng.integers(1, 200))),
+               min(240, y0 + int(rng.integers(1, 200))))
+        img = base if t % 2 else np.ascontiguousarray(base[:, :, 0])
+        a, b = img.copy(), img.copy()
+        bx0, by0, bx1, by1 = box
+        roi = a[by0:by1, bx0:bx1]
+        rh, rw = roi.shape[:2]
+        side = max(rh, rw)
+        small = cv2.resize(roi, (max(1, round(cfg.cells * rw / side)),
+                                 max(1, round(cfg.cells * rh / side))),
+                           interpolation=cv2.INTER_AREA)
+        big = cv2.resize(small, (rw, rh), interpolation=cv2.INTER_NEAREST)
+        sigma = max(1.0, cfg.sigma_frac * side)
+        a[by0:by1, bx0:bx1] = cv2.GaussianBlur(big, (0, 0), sigmaX=sigma, sigmaY=sigma,
+                                               borderType=cv2.BORDER_REPLICATE).reshape(roi.shape)
+        blur_region(b, box, cfg)
+        assert np.abs(a.astype(int) - b.astype(int)).max() <= 2, box
+        assert (a[:, :bx0] == b[:, :bx0]).all() and (a[by1:] == b[by1:]).all()
+
+
 def _paste(img: np.ndarray, photo: np.ndarray, whole: tuple[float, ...], h: int, ang: float,
            px: int, py: int) -> tuple[float, float, float, float]:
     """Paste the photo's face ``h`` px tall, tilted ``ang`` deg, centred at (px, py) with a

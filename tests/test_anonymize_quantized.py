@@ -3,8 +3,10 @@
 Real faces (astronaut, Grace Hopper) pasted at 12-128 px into rendered street frames (seeds
 not used for calibration): at the guided threshold (0.2) and the full-frame one (0.4) the
 int8 model finds at least as many faces of every size from 16 px as the float model, with no
-false face; one view runs at most 0.7x the float model's CPU time (0.42x measured). (On the
-simulator's 4K clip it still loses faces of 16-24 px: ``face_int8`` is off by default.)
+false face; one view runs in less CPU time than the float model's (0.42x against the unfused
+float graph; 0.77-0.85x since the float graph's batch norms fold into its convolutions,
+``detectors._dynamic_onnx``). (On the simulator's 4K clip it still loses faces of 16-24 px:
+``face_int8`` is off by default.)
 """
 
 from __future__ import annotations
@@ -56,4 +58,4 @@ def test_int8_recall_at_least_the_float_models(detectors: dict[str, CenterFaceDe
             assert q >= f, (th, size, f, q)
         assert false[("int8", th)] == 0, false
     print({k: round(v, 2) for k, v in cpu.items()})
-    assert cpu["int8"] <= 0.7 * cpu["float"], cpu
+    assert cpu["int8"] < cpu["float"], cpu

@@ -67,15 +67,48 @@ def blur_region(img: np.ndarray, box: tuple[int, int, int, int], cfg: BlurConfig
     roi = img[y0:y1, x0:x1]
     rh, rw = roi.shape[:2]
     side = max(rh, rw)
-    out = roi
+    sigma = max(1.0, cfg.sigma_frac * side)
     if cfg.method.startswith("pixelate"):
         cw = max(1, round(cfg.cells * rw / side))
         ch = max(1, round(cfg.cells * rh / side))
         small = cv2.resize(roi, (cw, ch), interpolation=cv2.INTER_AREA)
-        out = cv2.resize(small, (rw, rh), interpolation=cv2.INTER_NEAREST)
-    sigma = max(1.0, cfg.sigma_frac * side)
-    out = cv2.GaussianBlur(out, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REPLICATE)
+        if small.ndim == 2:
+            small = small[:, :, None]
+        # the Gaussian of the cells shown at full size (nearest), as two small matrices:
+        # rows (rh x ch) and columns (rw x cw)
+        a_y, a_x = _cells_gauss(rh, ch, sigma), _cells_gauss(rw, cw, sigma)
+        out = np.einsum("ic,cdz,jd->ijz", a_y, small.astype(np.float32), a_x, optimize=True)
+        img[y0:y1, x0:x1] = np.clip(np.rint(out), 0, 255).astype(img.dtype).reshape(roi.shape)
+        return
+    out = cv2.GaussianBlur(roi, (0, 0), sigmaX=sigma, sigmaY=sigma,
+                           borderType=cv2.BORDER_REPLICATE)
     img[y0:y1, x0:x1] = out.reshape(roi.shape)
+
+
+def _cells_gauss(n: int, cells: int, sigma: float) -> np.ndarray:
+    """(n x cells) float32: pixel i of a line of ``n`` pixels, after ``cells`` values are
+    shown at full size (``cv2.INTER_NEAREST``) and smoothed by OpenCV's 8-bit Gaussian of
+    ``sigma`` (its kernel size, replicated border), is row i of this matrix times the cells.
+
+    Why: the pixelated box is piecewise constant, so its Gaussian is a weighted sum of a
+    handful of cells, the weights differences of the kernel's cumulative sum over each
+    cell's run of pixels. ``cv2.GaussianBlur`` paid ~6 sigma taps per pixel instead: three
+    160 px faces (boxes ~260 px, sigma 64) took 366 ms per image to blur, more than finding
+    them; this gives the same pixels (within 2 grey levels: OpenCV rounds in fixed point) in
+    a few milliseconds (8 ms for one such face, 110 ms with OpenCV)."""
+    ks = round(sigma * 6 + 1) | 1  # OpenCV's kernel size for 8-bit images
+    r = ks // 2
+    k = cv2.getGaussianKernel(ks, sigma, cv2.CV_64F).ravel()
+    cdf = np.concatenate([[0.0], np.cumsum(k)])
+    # each pixel's cell, as INTER_NEAREST picks it; a cell's run of pixels [lo, hi), the
+    # first and last runs open towards the replicated border
+    cell = np.minimum((np.arange(n) * (cells / n)).astype(np.int64), cells - 1)
+    lo = np.searchsorted(cell, np.arange(cells), side="left").astype(np.int64)
+    hi = np.searchsorted(cell, np.arange(cells), side="right").astype(np.int64)
+    lo[0], hi[-1] = -(ks + n), ks + n
+    i = np.arange(n)[:, None]
+    w = (cdf[np.clip(hi[None, :] - i + r, 0, ks)] - cdf[np.clip(lo[None, :] - i + r, 0, ks)])
+    return w.astype(np.float32)
 
 
 def blur_boxes(
