@@ -300,3 +300,87 @@ def test_sparse_aligns_every_centroid_when_the_sample_finds_few_pairs() -> None:
     # every centroid: several times the sample's information
     assert np.trace(fallback.H[3:, 3:]) > 2.5 * np.trace(sample.H[3:, 3:])
     np.testing.assert_allclose(fallback.H, dense.H, rtol=0.05, atol=1e-6 * np.abs(dense.H).max())
+
+
+def test_sparse_fallback_aligns_a_finer_sample() -> None:
+    """``sample_fallback: finer``: a pair whose sample finds fewer than ``sample_min_pairs``
+    correspondences is aligned again with a spread sample whose cell shrinks with the
+    square root of the shortfall -- more rows than the sample, fewer than every centroid
+    -- and lands where aligning every centroid lands."""
+    from v2xlake.tasks.register.sparse import spread_sample
+
+    c = drive("turning", 1, beams=48, cols=720)[0]
+    base = GicpSection(voxel_m=0.3, source_voxel_m=0.3, sample_fallback="finer")
+    be = make_backend("sparse", base)
+    target, source = be.prepare(c.ref), be.prepare(c.other, as_target=False)
+    first = be._align_rows(target, source, source.rows(), c.T_init)  # type: ignore[attr-defined]
+    short = base.model_copy(update={"sample_min_pairs": 4 * first.pairs})
+    finer = make_backend("sparse", short)
+    rows = finer._fallback_rows(source, first.pairs)  # type: ignore[attr-defined]
+    # a quarter of the pairs needed: half the cell
+    np.testing.assert_array_equal(rows, spread_sample(source.points, 0.45))
+    assert len(source.rows()) < len(rows) < len(source.points)
+    res = {}
+    for key, params in (("finer", short),
+                        ("every", short.model_copy(update={"sample_fallback": "every"}))):
+        b = make_backend("sparse", params)
+        res[key] = refine(b, b.prepare(c.ref), b.prepare(c.other, as_target=False), c.T_init,
+                          QualitySection())
+    assert res["finer"].accepted and res["every"].accepted
+    m, d = transform_delta(res["finer"].T_refined, res["every"].T_refined)
+    assert m < 3e-3 and d < 0.02
+
+
+def test_sparse_quality_figures_from_the_last_search() -> None:
+    """``reuse_last_search``: fitness and inlier RMSE come from GICP's last nearest-neighbour
+    search of the sample (one converged update before the result) instead of a search of
+    their own: the same transform, figures within a fraction of a percent / millimetre.
+    (Where the sample finds too few pairs the fallback aligns other rows and the figures are
+    searched again: ``sample_min_pairs`` 0 keeps this pair on its sample.)"""
+    c = drive("turning", 1, beams=48, cols=720)[0]
+    out = {}
+    for reuse in (True, False):
+        be = make_backend("sparse", GicpSection(reuse_last_search=reuse, sample_min_pairs=0))
+        target, source = be.prepare(c.ref), be.prepare(c.other, as_target=False)
+        got = be.align(target, source, c.T_init)
+        assert (got.sq_dist is not None) == reuse
+        if got.sq_dist is not None:
+            assert len(got.sq_dist) == len(source.rows())
+        out[reuse] = refine(be, target, source, c.T_init, QualitySection())
+    a, b = out[True], out[False]
+    assert a.accepted and b.accepted
+    np.testing.assert_array_equal(a.T_refined, b.T_refined)
+    assert abs(a.fitness - b.fitness) < 0.005
+    assert abs(a.n_inliers - b.n_inliers) <= 0.005 * b.n_inliers
+    assert abs(a.inlier_rmse - b.inlier_rmse) < 1e-3
+
+
+def test_sparse_fallback_on_the_matched_cells() -> None:
+    """``sample_fallback: matched``: the pair is aligned again with every centroid of the
+    sample cells whose sample point found a correspondence -- where the overlap is -- and
+    lands where aligning every centroid lands; a cell whose sample point matched nothing
+    contributes nothing."""
+    c = drive("turning", 1, beams=48, cols=720)[0]
+    base = GicpSection(voxel_m=0.3, source_voxel_m=0.3, sample_fallback="matched")
+    be = make_backend("sparse", base)
+    target, source = be.prepare(c.ref), be.prepare(c.other, as_target=False)
+    rows = source.rows()
+    first = be._align_rows(target, source, rows, c.T_init)  # type: ignore[attr-defined]
+    assert first.sq_dist is not None
+    got = be._fallback_rows(source, first.pairs, rows, first.sq_dist)  # type: ignore[attr-defined]
+    cell = np.floor(source.points / 0.9).astype(np.int64)
+    hit = {tuple(x) for x in cell[rows[first.sq_dist <= 1.0]]}
+    missed = {tuple(x) for x in cell[rows[~(first.sq_dist <= 1.0)]]}
+    assert missed, "the test needs sample points without a correspondence"
+    assert {tuple(x) for x in cell[got]} == hit
+    assert len(rows) < len(got) < len(source.points)
+    res = {}
+    for key, params in (("matched", base.model_copy(update={"sample_min_pairs": 10**9})),
+                        ("every", base.model_copy(update={"sample_min_pairs": 10**9,
+                                                          "sample_fallback": "every"}))):
+        b = make_backend("sparse", params)
+        res[key] = refine(b, b.prepare(c.ref), b.prepare(c.other, as_target=False), c.T_init,
+                          QualitySection())
+    assert res["matched"].accepted and res["every"].accepted
+    m, d = transform_delta(res["matched"].T_refined, res["every"].T_refined)
+    assert m < 2e-3 and d < 0.01

@@ -60,6 +60,10 @@ class AlignOutcome:
     converged: bool
     iterations: int
     H: np.ndarray | None = None  # 6x6 Gauss-Newton Hessian at the solution [rot, trans]
+    # squared distance of each source row (``Prepared.rows``) to its nearest target point
+    # at the last linearisation (inf beyond the correspondence distance), where the backend
+    # has it: the quality figures then need no search of their own
+    sq_dist: np.ndarray | None = None
 
 
 class RegistrationBackend(Protocol):
@@ -279,11 +283,50 @@ class SparseGicpBackend(SmallGicpBackend):
         p = self.params
         rows = source.rows()
         out = self._align_rows(target, source, rows, init)
+        sq = out.sq_dist
         if out.pairs < p.sample_min_pairs and source.sample is not None:
-            dense = self._dense_rows(source)
+            dense = self._fallback_rows(source, out.pairs, rows, out.sq_dist)
             if len(dense) > len(rows):
                 out = self._align_rows(target, source, dense, out.T)
-        return AlignOutcome(out.T, out.converged, out.iterations, out.H)
+                sq = None  # aligned on other rows: the quality figures search again
+        return AlignOutcome(out.T, out.converged, out.iterations, out.H,
+                            sq if p.reuse_last_search else None)
+
+    def _fallback_rows(self, source: Prepared, pairs: int, rows: np.ndarray | None = None,
+                       sq_dist: np.ndarray | None = None) -> np.ndarray:
+        """The source rows of a pair whose sample (``rows``, their squared nearest distances
+        ``sq_dist`` at its last search) found only ``pairs`` correspondences.
+
+        ``sample_fallback`` "matched": every centroid in the sample cells whose sample point
+        found a correspondence. A far pair's overlap is a small part of its scan: the rest
+        finds no correspondence at any density, but aligning every centroid computed the
+        surface of all of them (their co-visibility needs it) and searched each one in every
+        iteration.
+
+        ``sample_fallback`` "finer": a spread sample whose cell is shrunk by
+        ``sqrt(pairs / sample_min_pairs)`` (the correspondences on the overlapping surfaces
+        grow as the inverse square of the cell), so it should find about
+        ``sample_min_pairs``; every centroid when that cell is not larger than the source
+        voxel. WHY: a far pair (a roadside unit 70 m away) found 1,100-1,400 sample
+        correspondences, and aligning every centroid instead computed the surface of all of
+        them (their co-visibility needs it) and ran GICP on 9x the sample. "every": every
+        centroid."""
+        p = self.params
+        cell = p.sample_cell_m
+        if p.sample_fallback == "every" or cell is None or pairs <= 0:
+            return self._dense_rows(source)
+        if p.sample_fallback == "matched":
+            if rows is None or sq_dist is None or len(sq_dist) != len(rows):
+                return self._dense_rows(source)
+            hit = rows[sq_dist <= p.max_correspondence_m ** 2]
+            key = _cell_keys(source.points, cell)
+            return self._dense_rows(source, np.flatnonzero(np.isin(key, key[hit])))
+        cell = cell * float(np.sqrt(pairs / max(p.sample_min_pairs, 1)))
+        if cell <= p.source_voxel_m:
+            return self._dense_rows(source)
+        from v2xlake.tasks.register.sparse import spread_sample
+
+        return self._dense_rows(source, spread_sample(source.points, cell))
 
     def nearest_sq_dist(self, target: Prepared, query: np.ndarray,
                         max_dist_m: float = np.inf) -> np.ndarray:
@@ -306,13 +349,14 @@ class SparseGicpBackend(SmallGicpBackend):
                             max_iterations=p.max_iterations, num_threads=p.num_threads,
                             t_covisible_with=target.covisible_with)
 
-    def _dense_rows(self, source: Prepared) -> np.ndarray:
-        """Every source centroid, less those the other LiDAR cannot see where the sample was
-        cut the same way (:meth:`prepare_covisible`)."""
+    def _dense_rows(self, source: Prepared, rows: np.ndarray | None = None) -> np.ndarray:
+        """``rows`` (default: every source centroid), less those the other LiDAR cannot see
+        where the sample was cut the same way (:meth:`prepare_covisible`)."""
         from v2xlake.tasks.register.covisible import covisible_rows
 
         p = self.params
-        rows = np.arange(len(source.points), dtype=np.int64)
+        if rows is None:
+            rows = np.arange(len(source.points), dtype=np.int64)
         if source.covisible_with is None:
             return rows
         surf = source.handle
@@ -332,16 +376,19 @@ class SparseGicpBackend(SmallGicpBackend):
         odometry, computes each point's surface once (surfaces depend on the points only).
 
         ``as_target``: a target's sample is never aligned, only the fallback decision reads
-        it, so the sample's surfaces are computed a chunk at a time until the count of
-        co-visible rows settles that decision either way (the same decision as on the whole
-        sample). On the boulevard that left out a third of a cross pair's k-nearest-neighbour
-        searches; the returned sample is then the whole scan's."""
+        it, so the co-visible fraction is estimated on ``covisible_target_rows`` of its
+        sample's rows, evenly strided (each needs its surface, a k-nearest-neighbour search:
+        deciding on the whole sample was a sixth of a cross pair's such searches); the
+        returned sample is then the whole scan's."""
         from dataclasses import replace
 
         prep = base if base is not None else self.prepare_points(pts)
         rows = prep.rows()
         if not len(rows):
             return prep
+        m = self.params.covisible_target_rows
+        if as_target and m and len(rows) > m:
+            rows = rows[::-(-len(rows) // m)]
         n, r = len(prep.points), len(rows)
         limit = max(min_keep, 0.3 * n)  # fewer co-visible (scaled to the scan): whole scan
         origin = np.asarray(other_origin, dtype=np.float64).reshape(3)
@@ -370,6 +417,13 @@ class SparseGicpBackend(SmallGicpBackend):
         surf = prep.handle
         surf.ensure(prep.points, prep.tree, rows, p.num_neighbors, p.num_threads)
         return covisible_rows(prep.points, surf.normals, surf.ratio, rows, origin)
+
+
+def _cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
+    """One int64 key per point naming its ``cell_m`` cell (21 bits per axis, as the hash
+    grids pack them)."""
+    c = np.floor(points / cell_m).astype(np.int64) + (1 << 20)
+    return np.asarray((c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2])
 
 
 def make_backend(name: BackendName,

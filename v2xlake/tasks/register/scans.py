@@ -102,6 +102,10 @@ class AgentScans:
         # frame -> T_world_lidar: the static filter asks for each frame's pose once per
         # neighbouring frame (interpolating the track each time)
         self._T_world_lidar: dict[int, np.ndarray] = {}
+        # time -> T_world_ego: the register stage asks for the same few times per frame from
+        # several places (its pose, eq. 1a, the other agents' bodies), and each track
+        # interpolation validates the whole track again (about 9 per frame pair, 1 ms each)
+        self._world_ego: dict[int, np.ndarray] = {}
 
     def has_annotations(self, frame_idx: int) -> bool:
         return frame_idx in self._boxes
@@ -130,12 +134,23 @@ class AgentScans:
         period = float(np.median(np.diff(starts))) * 1e-9
         return float(np.percentile(speed, 95)) * period if len(speed) else 0.0
 
+    def world_ego(self, *t_ns: int) -> list[np.ndarray]:
+        """``T_world_ego`` at each of ``t_ns``, the track interpolated once per time and the
+        missing times in one call (raises where the track does not cover one; do not modify
+        the returned arrays)."""
+        todo = [t for t in t_ns if t not in self._world_ego]
+        if todo:
+            for t, T in zip(todo, self.track.matrices(np.array(todo, dtype=np.int64)),
+                            strict=True):
+                self._world_ego[t] = T
+        return [self._world_ego[t] for t in t_ns]
+
     def T_world_lidar(self, frame_idx: int) -> np.ndarray:
         """Where the frame's deskewed points live: ``T_world_ego(t_ref) T_ego_lidar`` (computed
         once per frame; do not modify the returned array)."""
         T = self._T_world_lidar.get(frame_idx)
         if T is None:
-            T = self.track.matrices(self.frames[frame_idx][1])[0] @ self.T_ego_lidar
+            T = self.world_ego(self.frames[frame_idx][1])[0] @ self.T_ego_lidar
             self._T_world_lidar[frame_idx] = T
         return T
 
@@ -291,8 +306,7 @@ class StaticScans:
         ref_ns = self.scans.frames[f][1]
         W_L = self.scans.T_world_lidar(f)
         try:
-            W_e = other.track.matrices(ref_ns)[0]
-            W_e2 = other.track.matrices(ref_ns + 20_000_000)[0]
+            W_e, W_e2 = other.world_ego(ref_ns, ref_ns + 20_000_000)
         except Exception:  # the other agent's INS does not cover this time
             return MovingBoxes.empty()
         T = invert(W_L) @ W_e

@@ -184,6 +184,9 @@ class SparseOutcome:
     iterations: int
     H: np.ndarray
     pairs: int
+    # squared distance of each aligned point to its nearest target point (inf beyond the
+    # correspondence distance) at the last linearisation, one update before ``T``
+    sq_dist: np.ndarray | None = None
 
 
 def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarray,
@@ -200,6 +203,7 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
     H = np.zeros((6, 6))
     converged, iterations, used = False, 0, 0
     max_d2 = max_correspondence_m**2
+    d2: np.ndarray | None = None
     while iterations < max_iterations:
         iterations += 1
         q = sp @ T[:3, :3].T + T[:3, 3]
@@ -228,4 +232,4 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
         if np.linalg.norm(dx[:3]) < rotation_eps_rad and np.linalg.norm(dx[3:]) < translation_eps_m:
             converged = True
             break
-    return SparseOutcome(T, converged, iterations, 0.5 * (H + H.T), used)
+    return SparseOutcome(T, converged, iterations, 0.5 * (H + H.T), used, d2)

@@ -53,7 +53,7 @@ from v2xlake.tasks.register.config import RegisterConfig
 from v2xlake.tasks.register.core import (
     PairResult,
     failed_pair,
-    initial_transform_at,
+    initial_transform,
     refine,
     transform_delta,
 )
@@ -684,7 +684,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
 
     def M(agent: str, f: int) -> np.ndarray:
         a = scans[agent]
-        return a.track.matrices(a.frames[f][1])[0]
+        return a.world_ego(a.frames[f][1])[0]
 
     def prepare(points: np.ndarray, other_origin: np.ndarray | None = None,
                 base: Prepared | None = None, as_target: bool = False
@@ -738,8 +738,10 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
             if f not in pairs[o.agent]:
                 continue
             fo = pairs[o.agent][f]
-            T_init = initial_transform_at(ref.track, o.track, ref.T_ego_lidar, o.T_ego_lidar,
-                                          ref.frames[f][1], o.frames[fo][1])
+            # eq. 1a as initial_transform_at computes it, from the poses already interpolated
+            T_init = initial_transform(ref.world_ego(ref.frames[f][1])[0],
+                                       o.world_ego(o.frames[fo][1])[0], ref.T_ego_lidar,
+                                       o.T_ego_lidar)
             oth = scan(o.agent, fo, cfg.gicp.source_voxel_m)
             target, why_t = cross_cloud(ref_scan, T_init[:3, 3], True)
             source, why_s = cross_cloud(oth, invert(T_init)[:3, 3], False)

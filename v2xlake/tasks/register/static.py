@@ -209,6 +209,44 @@ def grow_to_objects(pts: np.ndarray, moving: np.ndarray, above: np.ndarray, cell
     return out
 
 
+@njit(cache=True, nogil=True)
+def _ground_fit(pts: np.ndarray, above: np.ndarray, r_min2: float, r_max2: float,
+                trim_m: float, min_points: int) -> float:
+    """:func:`ground_distance`'s plane fit in one pass per refit: the 3x3 normal equations
+    accumulated over the kept points (NumPy's masks, stacks and products over the scan took
+    1.6 ms of the static filter's ~5 ms per scan)."""
+    n = pts.shape[0]
+    use = np.zeros(n, np.bool_)
+    for i in range(n):
+        r2 = pts[i, 0] * pts[i, 0] + pts[i, 1] * pts[i, 1]
+        use[i] = not above[i] and r2 >= r_min2 and r2 <= r_max2
+    a = b = c = 0.0
+    for _ in range(3):
+        m = 0
+        sxx = sxy = sx = syy = sy = sxz = syz = sz = 0.0
+        for i in range(n):
+            if use[i]:
+                x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+                m += 1
+                sxx += x * x
+                sxy += x * y
+                sx += x
+                syy += y * y
+                sy += y
+                sxz += x * z
+                syz += y * z
+                sz += z
+        if m < min_points:
+            return np.nan
+        M = np.array([[sxx, sxy, sx], [sxy, syy, sy], [sx, sy, float(m)]])
+        coef = np.linalg.solve(M, np.array([sxz, syz, sz]))
+        a, b, c = coef[0], coef[1], coef[2]
+        for i in range(n):
+            if use[i] and abs(pts[i, 2] - (a * pts[i, 0] + b * pts[i, 1] + c)) > trim_m:
+                use[i] = False
+    return abs(c) / np.sqrt(a * a + b * b + 1.0)
+
+
 def ground_distance(pts: np.ndarray, min_range_m: float = 3.0, max_range_m: float = 15.0,
                     trim_m: float = 0.05, min_points: int = 30) -> float:
     """Distance (m) from the sensor origin to the ground plane around it: a least-squares
@@ -216,22 +254,13 @@ def ground_distance(pts: np.ndarray, min_range_m: float = 3.0, max_range_m: floa
     ``max_range_m`` horizontally, refitted twice without points farther than ``trim_m``.
     NaN when there are fewer than ``min_points``. With the agent's declared body (ground to
     roof) this is the LiDAR's height in its ego frame: the extrinsic's z, which driving on a
-    plane never shows otherwise."""
+    plane never shows otherwise. (Normal equations, a 3x3 solve: x and y span metres to
+    15 m, so they stay well conditioned.)"""
     if len(pts) == 0:
         return float("nan")
-    r2 = pts[:, 0] * pts[:, 0] + pts[:, 1] * pts[:, 1]
-    g = pts[~above_ground(pts) & (r2 >= min_range_m ** 2) & (r2 <= max_range_m ** 2)]
-    for _ in range(3):
-        if len(g) < min_points:
-            return float("nan")
-        A = np.column_stack([g[:, 0], g[:, 1], np.ones(len(g))])
-        # normal equations: a 3x3 solve, not an SVD of the (n, 3) matrix (x and y span
-        # metres to 15 m, so A^T A stays well conditioned)
-        coef = np.linalg.solve(A.T @ A, A.T @ g[:, 2])
-        res = g[:, 2] - A @ coef
-        g = g[np.abs(res) <= trim_m]
-    a, b, c = coef
-    return float(abs(c) / np.sqrt(a * a + b * b + 1.0))
+    p = np.ascontiguousarray(pts, np.float64)
+    return float(_ground_fit(p, above_ground(p), float(min_range_m) ** 2,
+                             float(max_range_m) ** 2, float(trim_m), int(min_points)))
 
 
 @dataclass
