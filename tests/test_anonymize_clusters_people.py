@@ -17,6 +17,7 @@ import pyarrow as pa
 from v2xlake.tasks.anonymize.clusters import ClusterConfig, cluster_boxes, yaw_quat
 from v2xlake.tasks.anonymize.context import assemble_guide
 from v2xlake.tasks.anonymize.guide import GuideConfig, WorldBoxes
+from v2xlake.tasks.interpolate import PoseTrack
 
 # a walker 32 m away: two columns 0.55 m apart, rings at 0.45 and 1.13 m above the road
 WALKER = np.array([(-32.0, y, z) for y in (8.0, 8.55) for z in (0.45, 1.13)])
@@ -64,27 +65,48 @@ def test_the_isolated_ground_leaves_a_walker_on_seen_road_alone() -> None:
 
 
 def _scans() -> WorldBoxes:
-    """Two scans 100 ms apart: a walker and a car in the first, the car alone in the second
-    (the walker got no return there)."""
-    t = np.array([0, 0, 100_000_000], np.int64)
-    centre = np.array([[20.0, 3.0, 0.85], [15.0, -2.0, 0.75], [16.5, -2.0, 0.75]])
-    size = np.array([[0.5, 0.5, 1.7], [1.8, 4.5, 1.5], [1.8, 4.5, 1.5]])
-    return WorldBoxes(t, centre, size, yaw_quat(np.zeros(3)), np.zeros((3, 3)),
-                      np.array(["Pedestrian", "Car", "Car"]),
-                      np.array(["lidar:a:L:0:0", "lidar:a:L:0:1", "lidar:a:L:1:0"]))
+    """Two scans 100 ms apart: a walker 20 m away, a walker 5 m away and a car in the first,
+    the car alone in the second (the walkers got no return there)."""
+    t = np.array([0, 0, 0, 100_000_000], np.int64)
+    centre = np.array([[20.0, 3.0, 0.85], [5.0, 1.0, 0.85], [15.0, -2.0, 0.75],
+                       [16.5, -2.0, 0.75]])
+    size = np.array([[0.5, 0.5, 1.7], [0.5, 0.5, 1.7], [1.8, 4.5, 1.5], [1.8, 4.5, 1.5]])
+    return WorldBoxes(t, centre, size, yaw_quat(np.zeros(4)), np.zeros((4, 3)),
+                      np.array(["Pedestrian", "Pedestrian", "Car", "Car"]),
+                      np.array(["lidar:a:L:0:0", "lidar:a:L:0:1", "lidar:a:L:0:2",
+                                "lidar:a:L:1:0"]))
 
 
-def test_person_boxes_of_neighbouring_scans_guide_an_image() -> None:
+def test_far_person_boxes_of_neighbouring_scans_guide_an_image() -> None:
     """An image 90 ms after the first scan (the second one nearest) is guided by the second
-    scan's boxes and by the first scan's walker, not by its car (2 m away by then); with
-    ``person_hold_ms`` 0 by the nearest scan alone, and a scan beyond the hold is not used."""
+    scan's boxes and by the first scan's far walker (20 m from the LiDAR), not by its near
+    walker (5 m: returns in every sweep) nor its car (2 m away by then); with
+    ``person_hold_ms`` 0 by the nearest scan alone; a scan beyond the hold is not used."""
     empty = pa.table({"t_ns": pa.array([], pa.int64())})
+    track = PoseTrack.create(np.array([0, 200_000_000]), np.zeros((2, 3)),
+                             np.tile([1.0, 0.0, 0.0, 0.0], (2, 1)))
 
     def at(hold_ns: int, t_ns: int) -> list[str]:
         cfg = GuideConfig(person_hold_ns=hold_ns)
-        g = assemble_guide(0, {}, {}, {}, empty, pa.table({}), cfg, {"a": _scans()})
-        return sorted(g._at(g.boxes["a"], t_ns).instance.tolist())
+        g = assemble_guide(0, {"a": track}, {}, {}, empty, pa.table({}), cfg, {"a": _scans()})
+        return sorted(g._at(g.boxes["a"], t_ns, "a").instance.tolist())
 
     assert at(150_000_000, 90_000_000) == ["lidar:a:L:0:0", "lidar:a:L:1:0"]
     assert at(0, 90_000_000) == ["lidar:a:L:1:0"]
     assert at(150_000_000, 160_000_000) == ["lidar:a:L:1:0"]
+
+
+def test_a_walker_the_nearest_scan_sees_again_is_not_held() -> None:
+    """When the nearest scan has a person within ``person_hold_gap_m`` of a held one (the
+    same walker, 0.15 m on), the older box adds nothing and is not held."""
+    b = _scans()
+    again = WorldBoxes(np.array([100_000_000], np.int64), np.array([[20.15, 3.0, 0.85]]),
+                       np.array([[0.5, 0.5, 1.7]]), yaw_quat(np.zeros(1)), np.zeros((1, 3)),
+                       np.array(["Pedestrian"]), np.array(["lidar:a:L:1:1"]))
+    track = PoseTrack.create(np.array([0, 200_000_000]), np.zeros((2, 3)),
+                             np.tile([1.0, 0.0, 0.0, 0.0], (2, 1)))
+    empty = pa.table({"t_ns": pa.array([], pa.int64())})
+    g = assemble_guide(0, {"a": track}, {}, {}, empty, pa.table({}), GuideConfig(),
+                       {"a": WorldBoxes.concat([b, again])})
+    assert sorted(g._at(g.boxes["a"], 90_000_000, "a").instance.tolist()) == [
+        "lidar:a:L:1:0", "lidar:a:L:1:1"]

@@ -223,7 +223,12 @@ class Clusters(Section):
         "the image guide it too (a walker moves 0.2 m in 150 ms, inside a head region's "
         "margins). Why: far away a person gets its few returns in some sweeps only (4, 0, "
         "4 in three sweeps of the simulated seed 0, 32 m away), and the camera frames "
-        "nearest the empty sweep lost its face. 0: the nearest scan only")
+        "nearest the empty sweep lost its face. Only persons beyond dense_range_m from the "
+        "LiDAR that saw them are held (nearer ones get returns in every sweep), and not "
+        "where the nearest scan has a person within 1 m (the same walker seen again). Head "
+        "regions per image on seeds 0 / 1 / 2: 3.4 / 6.9 / 4.0 before this hold, "
+        "ground_isolated_m and sparse_person_top_m, 6.1 / 12.2 / 5.3 with them (11.6 / "
+        "23.2 / 12.5 holding every person). 0: the nearest scan only")
 
 
 class Safety(Section):

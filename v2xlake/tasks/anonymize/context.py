@@ -68,13 +68,13 @@ class ClipGuide:
             return None
         T_ego_cam, intr = cam
         T_cam_world = invert(track.matrices(t)[0] @ T_ego_cam)
-        own = self._at(self.boxes[agent], t) if agent in self.boxes else None
+        own = self._at(self.boxes[agent], t, agent) if agent in self.boxes else None
         seen = set(own.instance.tolist()) if own is not None else set()
         parts = [own] if own is not None else []
         for other, b in self.boxes.items():
             if other == agent:
                 continue
-            ob = self._at(b, t)
+            ob = self._at(b, t, other)
             keep = ~np.isin(ob.instance, list(seen)) if seen else np.ones(len(ob), bool)
             parts.append(_take(ob, keep))
             seen |= set(ob.instance[keep].tolist())
@@ -90,14 +90,17 @@ class ClipGuide:
         return regions
 
 
-    def _at(self, b: WorldBoxes, t: int) -> WorldBoxes:
+    def _at(self, b: WorldBoxes, t: int, agent: str = "") -> WorldBoxes:
         """Boxes at time ``t``: annotated instances moved by their velocity; LiDAR clusters
         (no identity across scans, no velocity) from the one scan nearest in time, plus the
         person boxes of the scans within ``person_hold_ns``. Why persons: far away a sparse
         LiDAR puts its few returns on a walker in some sweeps only (4, 0, 4 returns in three
         sweeps of a simulated pedestrian 32 m away), and the frames nearest an empty sweep
         got no head region; a walker moves 0.2 m in 150 ms, inside the region's margins
-        (a car 2 m: its boxes are not held)."""
+        (a car 2 m: its boxes are not held). Only persons farther than ``person_hold_from_m``
+        from ``agent`` (whose LiDAR saw them) are held: nearer ones have returns in every
+        sweep), and only where the nearest scan has no person within ``person_hold_gap_m``
+        (the same walker seen again)."""
         if self.source == "lidar clusters" and len(b):
             dt = np.abs(b.t_ns - t)
             near = b.t_ns[np.argmin(dt)]
@@ -105,7 +108,24 @@ class ClipGuide:
                 return _take(b, np.zeros(len(b), bool))
             keep = b.t_ns == near
             if self.config.person_hold_ns > 0:
-                keep |= (dt <= self.config.person_hold_ns) & np.isin(b.category, list(PEOPLE))
+                held = ~keep & (dt <= self.config.person_hold_ns) & np.isin(b.category,
+                                                                            list(PEOPLE))
+                track = self.tracks.get(agent)
+                if held.any() and track is not None and self.config.person_hold_from_m > 0:
+                    idx = np.flatnonzero(held)
+                    ok = np.asarray(track.covers(b.t_ns[idx]), bool)
+                    seen_from = track.matrices(b.t_ns[idx[ok]])[:, :2, 3]
+                    far = np.zeros(len(idx), bool)
+                    far[ok] = np.hypot(*(b.center[idx[ok], :2] - seen_from).T) \
+                        > self.config.person_hold_from_m
+                    held[idx[~far]] = False
+                now = keep & np.isin(b.category, list(PEOPLE))
+                if held.any() and now.any():  # the nearest scan saw it again: no need
+                    idx = np.flatnonzero(held)
+                    gap = np.hypot(b.center[idx, None, 0] - b.center[now][None, :, 0],
+                                   b.center[idx, None, 1] - b.center[now][None, :, 1])
+                    held[idx[gap.min(1) < self.config.person_hold_gap_m]] = False
+                keep |= held
             return _take(b, keep)
         return b.at(t, self.config.max_age_ns)
 

@@ -76,6 +76,12 @@ class GuideConfig(FromParams):
     # LiDAR clusters: person boxes of the scans this close in time guide an image too, not
     # only the nearest scan's (``ClipGuide._at``); 0: the nearest scan only
     person_hold_ns: int = param("clusters.person_hold_ms", _ms_to_ns)
+    # ... only persons farther than this from the LiDAR that saw them (nearer, a walker gets
+    # returns in every sweep: holding it adds regions, not faces)
+    person_hold_from_m: float = param("clusters.dense_range_m")
+    # ... and only where the nearest scan has no person within this (m): the same walker,
+    # seen again (it moves 0.2 m in 150 ms; two people side by side are ~0.6 m apart)
+    person_hold_gap_m: float = 1.0
 
 
 @dataclass(frozen=True)
