@@ -285,7 +285,7 @@ def test_sparse_aligns_every_centroid_when_the_sample_finds_few_pairs() -> None:
     lands where the dense alignment lands and carries its information; with enough pairs
     the sample's own result stands."""
     c = drive("turning", 1, beams=48, cols=720)[0]
-    base = GicpSection(voxel_m=0.4, source_voxel_m=0.4)
+    base = GicpSection(voxel_m=0.4, source_voxel_m=0.4, sample_fallback="every")
     res = {}
     for key, params in (("dense", base.model_copy(update={"sample_cell_m": None})),
                         ("fallback", base.model_copy(update={"sample_min_pairs": 10**9})),
