@@ -10,7 +10,8 @@ object; everything else is pure (arrays and images in, arrays out):
   boxes -> regions per image), ``clusters.py`` (object boxes from a LiDAR scan);
 - ``guided.py`` (the guided scan plan, its safety pass and the full-frame plan),
   ``detectors.py`` (CenterFace, the classic and Haar plate detectors, scans in tiles),
-  ``textplate.py`` (PP-OCR text lines as plates), ``plateread.py`` (reading a candidate);
+  ``textplate.py`` (PP-OCR text lines as plates), ``plateread.py`` (reading a candidate),
+  ``plateprop.py`` (the scale to search a small plate's edge band at);
 - ``carry.py`` (key frames, detections carried between them), ``temporal.py`` (gaps filled);
 - ``blur.py`` (irreversible blur), ``images.py`` (decode, encode, metadata stripped),
   ``timespace.py`` (relative time, local ENU);

@@ -107,6 +107,24 @@ class Plates(Section):
         "0.29 / 0.24 of the image proposed (real streets 0.1-0.3 / 0.07-0.33 / 0.08-0.22); "
         "below 60 the 20 px simulated plates are proposed, but the text detector does not "
         "find them natively anyway")
+    edge_strong_threshold: float | None = Field(
+        200.0, gt=0, description="full-frame plan: a second band pass at this |Sobel x|. At "
+        "edge_threshold a small plate's glyph row often touches its car's grille or body edges "
+        "and becomes one component too large for a text line; a plate's own glyph edges are "
+        "the strongest around (saturated), so a stricter pass separates them. Real plates 40 "
+        "px wide pasted into real street frames: covered by a band 47 -> 54 of 54. None: off")
+    small_line_px: float = Field(
+        28.0, ge=0, description="full-frame plan: an edge band (a glyph row) lower than this "
+        "(px) is cut out at the scale that makes it this tall (at most small_max_scale): the "
+        "text detector needs glyphs of ~12 px and a 40 px wide plate's are 5-7 px. 0: every "
+        "band at the plate scan's scale (native; real 40 px plates 19 / 54 found)")
+    small_max_scale: float = Field(
+        3.0, ge=1, description="full-frame plan: the largest scale of a small band's crop")
+    small_min_transitions: int = Field(
+        8, ge=0, description="full-frame plan: a small band is upscaled only when one of its "
+        "three middle rows crosses its Otsu threshold this often (a row of 4+ glyphs: 40 px "
+        "real plates' bands 44 / 45, the real street images' bands 28 %); the others are "
+        "searched natively as before (their upscaled crops cost the most)")
 
 
 class Regions(Section):

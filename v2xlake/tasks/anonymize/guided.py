@@ -39,6 +39,7 @@ from v2xlake.tasks.anonymize.detectors import (
 from v2xlake.tasks.anonymize.guide import Region
 from v2xlake.tasks.anonymize.params import FromParams, derived
 from v2xlake.tasks.anonymize.params import param as _param
+from v2xlake.tasks.anonymize.plateprop import band_scale, edge_bands
 from v2xlake.tasks.anonymize.textplate import TextPlateDetector
 
 
@@ -155,6 +156,14 @@ class GuidedConfig(FromParams):
     # found had a band >= 32 px wide; on the real street frames the narrower bands' crops
     # were 33-45 % of the canvas pixels (and made their one false plate)
     plate_line_min_px: float = 24.0
+    # small edge bands (glyph rows too low for the DB detector natively) are cut out at the
+    # scale that makes them ``plate_small_line_px`` tall, at most ``plate_small_max_scale``,
+    # when a middle row crosses its Otsu threshold ``plate_small_min_transitions`` times
+    # (plateprop.py); ``plate_edge_strong``: the stricter second band pass (None: off)
+    plate_edge_strong: float | None = _param("plates.edge_strong_threshold")
+    plate_small_line_px: float = _param("plates.small_line_px")
+    plate_small_max_scale: float = _param("plates.small_max_scale")
+    plate_small_min_transitions: int = _param("plates.small_min_transitions")
     # the guided plan's faces in two stages (``GuidedDetector``'s ``region_first`` given):
     # the int8 copy runs on the region canvases and the safety view; each local maximum of
     # its heat map scoring ``face_proposal_threshold`` is a candidate; one scoring
@@ -402,22 +411,23 @@ def _piece_of(box: np.ndarray, pieces: Sequence[Piece], pos: Sequence[tuple[int,
 BLOB = "plate-blob"
 
 
-def edge_lines(image: np.ndarray, cfg: GuidedConfig) -> list[tuple[float, float, float, float]]:
+def edge_lines(image: np.ndarray, cfg: GuidedConfig, strong: bool = True
+               ) -> list[tuple[float, float, float, float]]:
     """Where a small text line can be (x0, y0, x1, y1 px): bands of dense vertical edges
     (glyph strokes) of a line's size and shape. A cheap proposal (~20 ms at 1080p), not a
-    detector: facades and foliage pass it too, the text detector decides in the crops."""
+    detector: facades and foliage pass it too, the text detector decides in the crops. The
+    bands at ``plate_edge_threshold`` and (``strong``, when set) at the stricter
+    ``plate_edge_strong`` after them: a small plate's glyph row often touches its car's
+    grille or body edges at the first and is one component too large for a line there (6 of
+    54 real 40 px plates), while its own glyph edges are the strongest around."""
     g = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
     gx = cv2.convertScaleAbs(cv2.Sobel(g, cv2.CV_16S, 1, 0, ksize=3))
-    m0 = (gx >= cfg.plate_edge_threshold).astype(np.uint8)
-    m1 = cv2.morphologyEx(m0, cv2.MORPH_CLOSE, np.ones((3, 9), np.uint8))
-    m2 = cv2.morphologyEx(m1, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    _n, _lab, stats, _c = cv2.connectedComponentsWithStats(m2, connectivity=8)
-    (hlo, hhi), (wlo, whi), (alo, ahi) = cfg.plate_edge_h, cfg.plate_edge_w, cfg.plate_edge_aspect
-    out = []
-    for x, y, bw, bh, area in stats[1:].tolist():
-        if (hlo <= bh <= hhi and wlo <= bw <= whi and alo <= bw / bh <= ahi
-                and area >= cfg.plate_edge_fill * bw * bh):
-            out.append((float(x), float(y), float(x + bw), float(y + bh)))
+    out: list[tuple[float, float, float, float]] = []
+    for thr in (cfg.plate_edge_threshold, cfg.plate_edge_strong if strong else None):
+        if thr is not None:
+            out += [b for b in edge_bands(gx, thr, cfg.plate_edge_h, cfg.plate_edge_w,
+                                          cfg.plate_edge_aspect, cfg.plate_edge_fill)
+                    if b not in out]
     return out
 
 
@@ -672,7 +682,10 @@ class GuidedDetector:
         ``plate_proposal_scale`` marks where text can be (pixels above
         ``plate_proposal_threshold``); those places, grown by ``plate_proposal_pad_px``, are
         cut out at the plate scan's finest scale, packed, and searched for plate lines there
-        (geometry, then the reading, as in the every-pixel pass)."""
+        (geometry, then the reading, as in the every-pixel pass). Bands of glyph edges
+        (``edge_lines``) propose small lines; a low one holding a row of glyphs is cut out at
+        the scale that makes it ``plate_small_line_px`` tall (``plateprop.band_scale``): real
+        plates 40 px wide pasted into real street frames 19 -> 49 of 54 found."""
         assert self.plate is not None
         c = self.config
         h, w = image.shape[:2]
@@ -686,14 +699,33 @@ class GuidedDetector:
                  for x, y, bw, bh, _a in stats[1:].tolist()]
         scan = c.full_plate_scan
         s = max(scan.fine_scale or 1.0, 1.0)
-        boxes += [b for b in edge_lines(image, c) if (b[2] - b[0]) * s >= c.plate_line_min_px]
-        pad = c.plate_proposal_pad_px
+        # (box, scale): the text pass's lines at the scan's scale; an edge band at the scale
+        # that makes its glyphs legible when they look like a row of glyphs (plateprop.py)
+        scaled = [(b, s) for b in boxes]
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        gx = cv2.convertScaleAbs(cv2.Sobel(gray, cv2.CV_16S, 1, 0, ksize=3))
+        geom = (c.plate_edge_h, c.plate_edge_w, c.plate_edge_aspect, c.plate_edge_fill)
+        weak = edge_bands(gx, c.plate_edge_threshold, *geom)
+        strong = [] if c.plate_edge_strong is None else [
+            b for b in edge_bands(gx, c.plate_edge_strong, *geom) if b not in weak]
+        for b in weak + strong:
+            sb = band_scale(b, gray, s, c.plate_small_line_px, c.plate_small_max_scale,
+                            c.plate_small_min_transitions)
+            # a band of the stricter pass only for a closer look: at the scan's scale the
+            # weaker pass's band around it is searched already (``edge_lines``: both). The
+            # line floor at the scan's scale, not the closer look's: a band that narrow
+            # holds no plate of the sizes sought (30 px real plates' bands: 30 px and more)
+            if (b[2] - b[0]) * s >= c.plate_line_min_px and (sb > s or b in weak):
+                scaled.append((b, sb))
         items = []
-        for x0, y0, x1, y1 in boxes:
+        for (x0, y0, x1, y1), sb in scaled:
+            # the pad is ``plate_proposal_pad_px`` at the scan's scale (the detector's context),
+            # so an upscaled small band's crop is that many of its own pixels, not s x more
+            pad = c.plate_proposal_pad_px * s / sb
             px_, py_ = pad + 0.25 * (x1 - x0), pad + 0.5 * (y1 - y0)
             items.append(["plate", max(0, int(x0 - px_)), max(0, int(y0 - py_)),
                           min(w, int(np.ceil(x1 + px_))), min(h, int(np.ceil(y1 + py_))),
-                          s, 0.0, 0.0])
+                          sb, 0.0, 0.0])
         pieces = [_crop_piece(k, x0, y0, x1, y1, sc, (lo, hi))
                   for k, x0, y0, x1, y1, sc, lo, hi in _merge_crops(items)]
         if sum(p.out_w * p.out_h for p in pieces) > c.plate_proposal_max_share * w * h * s * s:
