@@ -715,7 +715,10 @@ class GuidedDetector:
             # weaker pass's band around it is searched already (``edge_lines``: both). The
             # line floor at the scan's scale, not the closer look's: a band that narrow
             # holds no plate of the sizes sought (30 px real plates' bands: 30 px and more)
-            if (b[2] - b[0]) * s >= c.plate_line_min_px and (sb > s or b in weak):
+            # a band too low to be legible even at the closest look's scale that holds no
+            # row of glyphs: its glyphs stay under the detector's ~12 px at ``s`` (no crop)
+            low = (b[3] - b[1]) * s * c.plate_small_max_scale < c.plate_small_line_px
+            if (b[2] - b[0]) * s >= c.plate_line_min_px and (sb > s or (b in weak and not low)):
                 scaled.append((b, sb))
         items = []
         for (x0, y0, x1, y1), sb in scaled:
