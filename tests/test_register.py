@@ -10,6 +10,7 @@ sensor would: dense near, sparse far, shadows behind objects.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pytest
@@ -302,6 +303,18 @@ def test_sparse_aligns_every_centroid_when_the_sample_finds_few_pairs() -> None:
     np.testing.assert_allclose(fallback.H, dense.H, rtol=0.05, atol=1e-6 * np.abs(dense.H).max())
 
 
+def _fallback_vs_every(c: Any, params: GicpSection) -> tuple[float, float]:
+    """Rotation / translation between a pair refined with ``params``' fallback and with the
+    ``every``-centroid fallback (both must be accepted)."""
+    res = []
+    for p in (params, params.model_copy(update={"sample_fallback": "every"})):
+        b = make_backend("sparse", p)
+        res.append(refine(b, b.prepare(c.ref), b.prepare(c.other, as_target=False), c.T_init,
+                          QualitySection()))
+    assert res[0].accepted and res[1].accepted
+    return transform_delta(res[0].T_refined, res[1].T_refined)
+
+
 def test_sparse_fallback_aligns_a_finer_sample() -> None:
     """``sample_fallback: finer``: a pair whose sample finds fewer than ``sample_min_pairs``
     correspondences is aligned again with a spread sample whose cell shrinks with the
@@ -320,14 +333,7 @@ def test_sparse_fallback_aligns_a_finer_sample() -> None:
     # a quarter of the pairs needed: half the cell
     np.testing.assert_array_equal(rows, spread_sample(source.points, 0.45))
     assert len(source.rows()) < len(rows) < len(source.points)
-    res = {}
-    for key, params in (("finer", short),
-                        ("every", short.model_copy(update={"sample_fallback": "every"}))):
-        b = make_backend("sparse", params)
-        res[key] = refine(b, b.prepare(c.ref), b.prepare(c.other, as_target=False), c.T_init,
-                          QualitySection())
-    assert res["finer"].accepted and res["every"].accepted
-    m, d = transform_delta(res["finer"].T_refined, res["every"].T_refined)
+    m, d = _fallback_vs_every(c, short)
     assert m < 3e-3 and d < 0.02
 
 
@@ -374,13 +380,5 @@ def test_sparse_fallback_on_the_matched_cells() -> None:
     assert missed, "the test needs sample points without a correspondence"
     assert {tuple(x) for x in cell[got]} == hit
     assert len(rows) < len(got) < len(source.points)
-    res = {}
-    for key, params in (("matched", base.model_copy(update={"sample_min_pairs": 10**9})),
-                        ("every", base.model_copy(update={"sample_min_pairs": 10**9,
-                                                          "sample_fallback": "every"}))):
-        b = make_backend("sparse", params)
-        res[key] = refine(b, b.prepare(c.ref), b.prepare(c.other, as_target=False), c.T_init,
-                          QualitySection())
-    assert res["matched"].accepted and res["every"].accepted
-    m, d = transform_delta(res["matched"].T_refined, res["every"].T_refined)
+    m, d = _fallback_vs_every(c, base.model_copy(update={"sample_min_pairs": 10**9}))
     assert m < 2e-3 and d < 0.01
