@@ -411,24 +411,35 @@ def _piece_of(box: np.ndarray, pieces: Sequence[Piece], pos: Sequence[tuple[int,
 BLOB = "plate-blob"
 
 
-def edge_lines(image: np.ndarray, cfg: GuidedConfig, strong: bool = True
-               ) -> list[tuple[float, float, float, float]]:
+def edge_band_sets(gray: np.ndarray, cfg: GuidedConfig
+                   ) -> tuple[list[tuple[float, float, float, float]],
+                              list[tuple[float, float, float, float]]]:
+    """The bands of dense vertical edges of ``gray`` (x0, y0, x1, y1 px) at
+    ``plate_edge_threshold``, and those at the stricter ``plate_edge_strong`` (when set) not
+    among them: a small plate's glyph row often touches its car's grille or body edges at
+    the first and is one component too large for a line there (6 of 54 real 40 px plates),
+    while its own glyph edges are the strongest around."""
+    gx = cv2.convertScaleAbs(cv2.Sobel(gray, cv2.CV_16S, 1, 0, ksize=3))
+    geom = (cfg.plate_edge_h, cfg.plate_edge_w, cfg.plate_edge_aspect, cfg.plate_edge_fill)
+    weak = edge_bands(gx, cfg.plate_edge_threshold, *geom)
+    if cfg.plate_edge_strong is None:
+        return weak, []
+    seen = set(weak)
+    return weak, [b for b in edge_bands(gx, cfg.plate_edge_strong, *geom) if b not in seen]
+
+
+def edge_lines(image: np.ndarray, cfg: GuidedConfig) -> list[tuple[float, float, float, float]]:
     """Where a small text line can be (x0, y0, x1, y1 px): bands of dense vertical edges
-    (glyph strokes) of a line's size and shape. A cheap proposal (~20 ms at 1080p), not a
-    detector: facades and foliage pass it too, the text detector decides in the crops. The
-    bands at ``plate_edge_threshold`` and (``strong``, when set) at the stricter
-    ``plate_edge_strong`` after them: a small plate's glyph row often touches its car's
-    grille or body edges at the first and is one component too large for a line there (6 of
-    54 real 40 px plates), while its own glyph edges are the strongest around."""
-    g = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-    gx = cv2.convertScaleAbs(cv2.Sobel(g, cv2.CV_16S, 1, 0, ksize=3))
-    out: list[tuple[float, float, float, float]] = []
-    for thr in (cfg.plate_edge_threshold, cfg.plate_edge_strong if strong else None):
-        if thr is not None:
-            out += [b for b in edge_bands(gx, thr, cfg.plate_edge_h, cfg.plate_edge_w,
-                                          cfg.plate_edge_aspect, cfg.plate_edge_fill)
-                    if b not in out]
-    return out
+    (glyph strokes) of a line's size and shape, both passes of :func:`edge_band_sets`. A
+    cheap proposal (~20 ms at 1080p), not a detector: facades and foliage pass it too, the
+    text detector decides in the crops."""
+    weak, strong = edge_band_sets(_gray(image), cfg)
+    return weak + strong
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    """The frame in grey levels (BGR or already grey)."""
+    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
 
 
 def plate_sized(box: tuple[float, float, float, float], expected_px: float,
@@ -702,12 +713,9 @@ class GuidedDetector:
         # (box, scale): the text pass's lines at the scan's scale; an edge band at the scale
         # that makes its glyphs legible when they look like a row of glyphs (plateprop.py)
         scaled = [(b, s) for b in boxes]
-        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-        gx = cv2.convertScaleAbs(cv2.Sobel(gray, cv2.CV_16S, 1, 0, ksize=3))
-        geom = (c.plate_edge_h, c.plate_edge_w, c.plate_edge_aspect, c.plate_edge_fill)
-        weak = edge_bands(gx, c.plate_edge_threshold, *geom)
-        strong = [] if c.plate_edge_strong is None else [
-            b for b in edge_bands(gx, c.plate_edge_strong, *geom) if b not in weak]
+        gray = _gray(image)
+        weak, strong = edge_band_sets(gray, c)
+        weak_set = set(weak)
         for b in weak + strong:
             sb = band_scale(b, gray, s, c.plate_small_line_px, c.plate_small_max_scale,
                             c.plate_small_min_transitions)
@@ -718,7 +726,7 @@ class GuidedDetector:
             # a band too low to be legible even at the closest look's scale that holds no
             # row of glyphs: its glyphs stay under the detector's ~12 px at ``s`` (no crop)
             low = (b[3] - b[1]) * s * c.plate_small_max_scale < c.plate_small_line_px
-            if (b[2] - b[0]) * s >= c.plate_line_min_px and (sb > s or (b in weak and not low)):
+            if (b[2] - b[0]) * s >= c.plate_line_min_px and (sb > s or (b in weak_set and not low)):
                 scaled.append((b, sb))
         items = []
         for (x0, y0, x1, y1), sb in scaled:

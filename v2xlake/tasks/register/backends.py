@@ -29,7 +29,7 @@ import numpy as np
 
 from v2xlake.tasks.geometry import se3_adjoint
 from v2xlake.tasks.register.config import GicpSection
-from v2xlake.tasks.register.voxel import VoxelGrid, voxel_downsample
+from v2xlake.tasks.register.voxel import VoxelGrid, cell_keys, voxel_downsample
 
 if TYPE_CHECKING:
     from v2xlake.tasks.register.sparse import SparseOutcome
@@ -320,7 +320,7 @@ class SparseGicpBackend(SmallGicpBackend):
             if rows is None or sq_dist is None or len(sq_dist) != len(rows):
                 return self._dense_rows(source)
             hit = rows[sq_dist <= p.max_correspondence_m ** 2]
-            key = _cell_keys(source.points, cell)
+            key = cell_keys(source.points, cell)
             return self._dense_rows(source, np.flatnonzero(np.isin(key, key[hit])))
         cell = cell * float(np.sqrt(pairs / max(p.sample_min_pairs, 1)))
         if cell <= p.source_voxel_m:
@@ -418,13 +418,6 @@ class SparseGicpBackend(SmallGicpBackend):
         surf = prep.handle
         surf.ensure(prep.points, prep.tree, rows, p.num_neighbors, p.num_threads)
         return covisible_rows(prep.points, surf.normals, surf.ratio, rows, origin)
-
-
-def _cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
-    """One int64 key per point naming its ``cell_m`` cell (21 bits per axis, as the hash
-    grids pack them)."""
-    c = np.floor(points / cell_m).astype(np.int64) + (1 << 20)
-    return np.asarray((c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2])
 
 
 def make_backend(name: BackendName,

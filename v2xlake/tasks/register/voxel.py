@@ -34,6 +34,13 @@ def _cell_key(ix: int, iy: int, iz: int) -> int:
     return (ix << 42) | (iy << 21) | iz
 
 
+def cell_keys(points: np.ndarray, cell_m: float) -> np.ndarray:
+    """:func:`_cell_key` of every point's ``cell_m`` cell, vectorised: one int64 per point
+    (for NumPy code that groups points by the hash grids' cells)."""
+    c = np.floor(points / cell_m).astype(np.int64) + _BIAS
+    return np.asarray((c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2])
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _cell_of(x: float, y: float, z: float, inv_cell: float) -> tuple[int, int, int]:
     """The biased (non-negative) grid coordinates of a point."""
