@@ -144,3 +144,75 @@ def test_workers_default_to_this_process_cores_capped() -> None:
     auto = register_workers(RegisterConfig())
     assert auto == max(1, min(len(os.sched_getaffinity(0)), MAX_WORKERS))
     assert register_workers(RegisterConfig.model_validate({"workers": 3})) == 3
+
+
+class _CountingGrid(VoxelGrid):
+    """A grid that counts the points its nearest-neighbour searches were asked for."""
+
+    searched = 0
+
+    def batch_nearest_neighbor_search(self, q: np.ndarray, num_threads: int = 1,
+                                      max_dist_m: float = np.inf
+                                      ) -> tuple[np.ndarray, np.ndarray]:
+        self.searched += len(q)
+        return super().batch_nearest_neighbor_search(q, num_threads, max_dist_m)
+
+
+def test_skipping_far_points_gives_the_plain_search() -> None:
+    """``gicp.search_skip_margin_m``: over GICP-like iterations (the source moved a little
+    each time) the points known to be out of reach are not searched again, and every
+    iteration's result is the plain bounded search's, index for index, bit for bit."""
+    from v2xlake.tasks.geometry import so3_exp
+    from v2xlake.tasks.register.sparse import NearestSkipping
+
+    rng = np.random.default_rng(11)
+    wall = np.c_[rng.uniform(-10, 10, 1500), np.full(1500, 4.0), rng.uniform(0, 5, 1500)]
+    ground = np.c_[rng.uniform(-10, 10, (1500, 2)), rng.normal(0, 0.02, 1500)]
+    tgt = np.concatenate([wall, ground])
+    # half the source near the target, half 0.5-3 m off it (a far pair's unmatched points)
+    src = np.concatenate([tgt[::3] + rng.normal(0, 0.05, (1000, 3)),
+                          np.c_[rng.uniform(-10, 10, (1000, 2)), rng.uniform(0.5, 3.0, 1000)]])
+    plain, grid = VoxelGrid(tgt, 1.0), _CountingGrid(tgt, 1.0)
+    skip = NearestSkipping(grid, 1.0, 0.1)
+    T = np.eye(4)
+    for it in range(12):
+        # steps shrinking as GICP's do, the first ones beyond the margin
+        T[:3, :3] = so3_exp(rng.normal(0, 0.01 / (it + 1), 3)) @ T[:3, :3]
+        T[:3, 3] += rng.normal(0, 0.15 / (it + 1), 3)
+        q = src @ T[:3, :3].T + T[:3, 3]
+        want_i, want_d = plain.batch_nearest_neighbor_search(q, max_dist_m=1.0)
+        got_i, got_d = skip.search(q)
+        np.testing.assert_array_equal(got_i, want_i)
+        np.testing.assert_array_equal(got_d, want_d)
+    assert 0 < (want_i < 0).sum() < len(src) - 100
+    assert grid.searched < 0.85 * 12 * len(src)  # far points were skipped
+    skip.exclude(np.arange(10))
+    assert (skip.search(q)[0][:10] == -1).all()
+
+
+def test_lazy_covisible_fallback_equals_the_eager_one() -> None:
+    """``gicp.fallback_lazy_covisible`` (and the skipping search): a pair aligned again with
+    every co-visible source centroid gives bit for bit the transform, Hessian, iterations and
+    pairs of deciding every centroid's co-visibility first, with fewer surfaces computed."""
+    from tests.test_register import drive
+    from v2xlake.tasks.geometry import invert
+    from v2xlake.tasks.register.backends import make_backend
+    from v2xlake.tasks.register.config import GicpSection
+
+    c = drive("turning", 1, beams=48, cols=720)[0]
+    out, known = [], []
+    for lazy, margin in ((False, 0.0), (True, 0.0), (True, 0.1)):
+        be = make_backend("sparse", GicpSection(
+            sample_min_pairs=10**9, fallback_lazy_covisible=lazy, search_skip_margin_m=margin))
+        t = be.prepare_covisible(be.prepare(c.ref).points, c.T_init[:3, 3], 300,
+                                 as_target=True)
+        s = be.prepare_covisible(be.prepare(c.other, as_target=False).points,
+                                 invert(c.T_init)[:3, 3], 300)
+        assert s.covisible_with is not None and t.covisible_with is not None
+        out.append(be.align(t, s, c.T_init))
+        known.append(int(s.handle.known.sum()))
+    for o in out[1:]:
+        np.testing.assert_array_equal(o.T, out[0].T)
+        np.testing.assert_array_equal(o.H, out[0].H)
+        assert (o.iterations, o.converged) == (out[0].iterations, out[0].converged)
+    assert known[1] < known[0]

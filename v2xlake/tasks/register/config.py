@@ -84,6 +84,18 @@ class GicpSection(Section):
         "(a fifth of a cross pair's nearest-neighbour searches); off: searched again at the "
         "result")
     max_correspondence_m: float = Field(1.0, gt=0)
+    search_skip_margin_m: float = Field(
+        0.1, ge=0, description="sparse backend, speed only (the same result): each GICP "
+        "iteration's nearest-neighbour search reaches this much beyond "
+        "max_correspondence_m, and a source point whose nearest target point was farther "
+        "than max_correspondence_m by more than it has moved since is not searched again "
+        "(sparse.py NearestSkipping). A far pair's points mostly find nothing; 0: every "
+        "point searched in every iteration")
+    fallback_lazy_covisible: bool = Field(
+        True, description="sparse backend, speed only (the same result): a pair aligned again "
+        "with more source centroids (sample_min_pairs) decides which are co-visible as they "
+        "find a correspondence, not all before (each decision is a k-nearest-neighbour "
+        "surface; a far pair's rows mostly find none). Off: all decided first")
     grid_cell_m: float = Field(
         1.0, gt=0, description="sparse backend: cell of the hash grid its neighbour searches "
         "use (register/voxel.py VoxelGrid). Speed only, the searches are exact at any size; "
