@@ -13,8 +13,10 @@ and its share of the clip's processing time (ingest + anonymize + deskew timed a
 same run on the first variation of each duration and set of agents -- the roadside unit's
 clip has three agents' scans to process --, + register), and
 small_gicp.align called directly on the same deskewed scan pairs from eq. 1a (time, ratio,
-accuracy). ``--cores N`` runs every stage on N cores (the register stage's ``workers`` is
-then N: the per-frame work on a thread pool), so the share compares like with like.
+accuracy). Every stage runs once untimed on the first variation before anything is
+timed (``--no-warmup``: not). ``--cores N`` runs every stage on N cores (the register
+stage's ``workers`` is then N: the per-frame work on a thread pool), so the share compares
+like with like.
 
 ``--street``: the hard street of issue #13 (simulator preset ``street`` at full size, 128
 beams x 1800 columns, ~225k points per scan) through ingest, anonymize and deskew once
@@ -233,6 +235,19 @@ def coop(args: argparse.Namespace) -> None:
                 run_deskew(lake, cid)
                 times["deskew"] = time.perf_counter() - t
                 (root / "times.json").write_text(json.dumps(times))
+            if args.warmup and not same_run:
+                # once per process, untimed: every stage on this clip in a scratch lake, so
+                # that no timed run pays numba's cache loading (or compiling, in a fresh
+                # checkout), which a process pays once, not per clip: it made the first
+                # variation's register stage 3x slower (85 % instead of ~30 %)
+                warm = Path(tempfile.mkdtemp(prefix="bench_coop_warmup"))
+                wl = Lake(warm / "lake")
+                run_ingest(wl, root / "clip")
+                run_anonymize(wl, cid)
+                run_deskew(wl, cid)
+                run_register(wl, cid, RegisterConfig.model_validate(
+                    {"write_bev": False, "gicp": {"backend": args.backend}}))
+                shutil.rmtree(warm, ignore_errors=True)
             key = (secs, tuple(over.get("agents", ())))
             if key not in same_run:
                 # the other stages timed again in this run (the cached times.json come from
@@ -316,6 +331,8 @@ def main() -> None:
     ap.add_argument("--cores", type=int, default=1,
                     help="--coop: run on this many cores (the register stage's workers too)")
     ap.add_argument("--only", nargs="*", default=None, help="variations whose name contains")
+    ap.add_argument("--no-warmup", dest="warmup", action="store_false",
+                    help="--coop: time the first variation cold (numba cache loading included)")
     ap.add_argument("--street", action="store_true", help="the hard street of issue #13")
     ap.add_argument("--seconds", type=float, default=16.0)
     ap.add_argument("--turn-at", type=float, default=13.0)
