@@ -279,16 +279,8 @@ def plan_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedCo
     out: list[Piece] = []
     items: list[list] = []
     for r in regions:
-        if r.part == "band":  # one piece, at the scale of its smallest plate (not merged)
-            x0, y0 = max(0, int(np.floor(r.box[0]))), max(0, int(np.floor(r.box[1])))
-            x1, y1 = min(w, int(np.ceil(r.box[2]))), min(h, int(np.ceil(r.box[3])))
-            if x1 - x0 < 2 or y1 - y0 < 2:
-                continue
-            s = float(np.clip(cfg.band_plate_px / max(r.expected_px, 1e-3), cfg.min_scale,
-                              cfg.max_upscale))
-            s = min(s, cfg.max_piece_side / max(x1 - x0, y1 - y0))
-            out.append(_crop_piece("plate", x0, y0, x1, y1, s, (
-                r.expected_px, max(r.expected_px, r.expected_max_px))))
+        if r.part == "band":  # at the scale of its smallest plate (not merged)
+            out += _band_pieces(r, w, h, cfg)
             continue
         if r.quad is not None:
             fp = _face_piece(r, cfg, plate_width_m)
@@ -307,6 +299,31 @@ def plan_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedCo
         s = min(s, cfg.max_piece_side / max(x1 - x0, y1 - y0))
         out.append(_crop_piece(kind, x0, y0, x1, y1, float(s), (float(lo), float(hi))))
     return out
+
+
+def _band_pieces(r: Region, w: int, h: int, cfg: GuidedConfig) -> list[Piece]:
+    """A far-band strip cut out at the scale that brings its smallest plate to
+    ``band_plate_px``; a strip wider than ``max_piece_side`` at that scale in pieces side by
+    side, overlapping by twice its largest plate (a plate on a cut is whole in one of them).
+    Why pieces, not a smaller scale: the piece side capped the scale (a 1920 px band at
+    most x2.1), and the smallest plates are the ones that need it."""
+    x0, y0 = max(0, int(np.floor(r.box[0]))), max(0, int(np.floor(r.box[1])))
+    x1, y1 = min(w, int(np.ceil(r.box[2]))), min(h, int(np.ceil(r.box[3])))
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return []
+    s = float(np.clip(cfg.band_plate_px / max(r.expected_px, 1e-3), cfg.min_scale,
+                      cfg.max_upscale))
+    s = min(s, cfg.max_piece_side / (y1 - y0))
+    expected = (r.expected_px, max(r.expected_px, r.expected_max_px))
+    if (x1 - x0) * s <= cfg.max_piece_side:
+        return [_crop_piece("plate", x0, y0, x1, y1, s, expected)]
+    # n pieces of (step + overlap) frame px, each at most ``max_piece_side`` at scale s
+    overlap = min(2.0 * expected[1], 0.5 * cfg.max_piece_side / s)
+    n = int(np.ceil((x1 - x0 - overlap) * s / (cfg.max_piece_side - overlap * s - 2)))
+    step = (x1 - x0 - overlap) / n
+    return [_crop_piece("plate", int(x0 + i * step), y0,
+                        min(x1, int(np.ceil(x0 + (i + 1) * step + overlap))), y1, s, expected)
+            for i in range(n)]
 
 
 def _merge_crops(items: list[list]) -> list[list]:
