@@ -88,6 +88,69 @@ def test_new_regions_are_those_not_in_both_key_frames() -> None:
     assert new_regions([edge], [edge], [edge], SHAPE) == [edge]
 
 
+def test_a_small_face_found_in_both_key_frames_is_carried_not_searched() -> None:
+    """Small faces (under ``min_face_px``) are searched in every frame, because they flicker;
+    one that both key frames found is there, and is carried (interpolated) like a large
+    one. Found in only one key frame, or in none: searched here."""
+    f0 = Detection("face", (95.0, 430.0, 107.0, 442.0), 0.5, "centerface")
+    f1 = Detection("face", (185.0, 430.0, 197.0, 442.0), 0.4, "centerface")
+    small = lambda x: _head(x, expected=12.0)  # noqa: E731
+    before, after, here = [small(105)], [small(195)], [small(135)]
+    assert new_regions(here, before, after, SHAPE, 16.0) == here  # no detections given
+    assert new_regions(here, before, after, SHAPE, 16.0, ([f0], [f1])) == []
+    assert new_regions(here, before, after, SHAPE, 16.0, ([f0], [])) == here
+    assert new_regions(here, before, after, SHAPE, 16.0, ([], [f1])) == here
+    # a face of another region (another person) does not vouch for this one
+    other = Detection("face", (595.0, 430.0, 607.0, 442.0), 0.5, "centerface")
+    assert new_regions(here, [*before, _head(600, 12.0, "ped-2")], after, SHAPE, 16.0,
+                       ([other], [f1])) == here
+    dets, again = between(([f0], before, 0), ([f1], after, 100 * MS), here, 33 * MS, 0.5,
+                          SHAPE, new_regions(here, before, after, SHAPE, 16.0, ([f0], [f1])))
+    assert not again and len(dets) == 1 and dets[0].detector == CARRIED
+
+
+def test_onnx_sessions_are_built_once_per_model_file(tmp_path) -> None:
+    """Each ``run_anonymize`` builds its detector; the onnxruntime sessions behind it (the
+    costly part: graph optimisation) are shared within the process, per model file and
+    version of that file (``quantize.py`` rewrites the int8 copy in place)."""
+    import os
+    import shutil
+
+    from v2xlake.tasks.anonymize.detectors import centerface_onnx_path, ort_session
+
+    src = centerface_onnx_path().parent / "centerface_int8.onnx"
+    a, b = build_detector(AnonymizeConfig()), build_detector(AnonymizeConfig())
+    assert a.face is not None and b.face is not None and a.plate is not None
+    assert a.face._session is b.face._session and a.plate._session is b.plate._session
+    copy = tmp_path / "m.onnx"
+    shutil.copy(src, copy)
+    s1 = ort_session(str(copy))
+    assert ort_session(str(copy)) is s1
+    st = copy.stat()
+    os.utime(copy, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+    assert ort_session(str(copy)) is not s1
+
+
+def test_each_image_is_decoded_once(tmp_path, monkeypatch) -> None:
+    """The look-ahead frames a chunk detects (the next key frame, the carried frames before
+    it) are decoded there and kept for the next chunk, not decoded again (a PNG decode costs
+    about what the encode does)."""
+    from v2xlake.tasks.anonymize import images as images_mod
+
+    calls: list[int] = []
+    real = images_mod.decode_image
+
+    def counting(data: bytes) -> object:
+        calls.append(len(data))
+        return real(data)
+
+    monkeypatch.setattr(images_mod, "decode_image", counting)
+    lk = Lake(tmp_path / "lake")
+    build_raw_clip(lk, n_images=5)
+    rep = run_anonymize(lk, CLIP, AnonymizeConfig(work={"frames_per_chunk": 1, "workers": 1}))
+    assert rep.metrics["n_images"] >= 5 and len(calls) == rep.metrics["n_images"]
+
+
 def test_the_provenance_names_every_setting_that_changes_what_is_blurred() -> None:
     base = AnonymizeConfig()
     det = build_detector(base)

@@ -69,24 +69,41 @@ def _at_edge(r: Region, shape: tuple[int, ...]) -> bool:
 
 def new_regions(here: Sequence[Region], before: Sequence[Region] | None,
                 after: Sequence[Region] | None, shape: tuple[int, ...],
-                min_face_px: float = 0.0) -> list[Region]:
+                min_face_px: float = 0.0,
+                found: tuple[Sequence[Detection], Sequence[Detection]] | None = None
+                ) -> list[Region]:
     """Regions of this frame searched here: those whose (instance, kind, part) is missing
     from either neighbouring key frame (None: that key frame had no guidance), those cut
     by the frame edge here or in a key frame (the clipped box does not follow the object:
     an object entering or leaving the view, often close and fast), and face regions whose
     expected face is under ``min_face_px`` (small faces score near the threshold and
-    flicker from frame to frame: each frame is its own chance to find them)."""
+    flicker from frame to frame: each frame is its own chance to find them), unless
+    ``found`` (the detections of the key frame before and after) shows a face in that
+    region in both key frames: it is there, and carried here like a large one."""
     if before is None or after is None:
         return list(here)
-    small = [r for r in here if r.kind == "face" and r.expected_px < min_face_px]
+    seen = (_found_in(found[0], before) & _found_in(found[1], after)
+            if found is not None else set())
+    small = [r for r in here if r.kind == "face" and r.expected_px < min_face_px
+             and not (r.instance and _key(r) in seen)]
     if small:
-        rest = new_regions([r for r in here if not (r.kind == "face"
-                                                    and r.expected_px < min_face_px)],
+        rest = new_regions([r for r in here if not any(r is q for q in small)],
                            before, after, shape)
         return small + rest
     known = ({_key(r) for r in before if not _at_edge(r, shape)}
              & {_key(r) for r in after if not _at_edge(r, shape)})  # (the frames share a size)
     return [r for r in here if not r.instance or _key(r) not in known or _at_edge(r, shape)]
+
+
+def _found_in(dets: Sequence[Detection], regions: Sequence[Region]
+              ) -> set[tuple[str, str, str]]:
+    """The (instance, kind, part) of every region holding one of ``dets``."""
+    out = set()
+    for d in dets:
+        r = _region_of(d, regions)
+        if r is not None:
+            out.add(_key(r))
+    return out
 
 
 def _region_of(d: Detection, regions: Sequence[Region]) -> Region | None:
