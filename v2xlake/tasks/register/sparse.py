@@ -191,7 +191,9 @@ class NearestSkipping:
     beyond the correspondence distance; a point found within ``max_dist_m`` is always
     searched again. The result is the one a search of every point to ``max_dist_m`` gives
     (index -1 and inf beyond it): the nearest point within ``max_dist_m`` is the nearest
-    within the longer reach too, found in the same cell order."""
+    within the longer reach too, found in the same cell order. Measured: 40 % fewer points
+    searched on that clip but no gain in the stage's CPU time (a skipped point was a cheap
+    miss), so ``gicp.search_skip_margin_m`` is off by default."""
 
     def __init__(self, tree: object, max_dist_m: float, margin_m: float) -> None:
         if margin_m <= 0:
@@ -247,7 +249,9 @@ class LazyCovisible:
     that clip's such searches). A row that finds no correspondence adds nothing to GICP
     whether or not it is co-visible, so the decision is made for the rows that do, and a row
     found not co-visible is dropped from then on: the same sums as aligning the co-visible
-    rows only."""
+    rows only. Measured: 16 % fewer surfaces on that clip, no gain in the stage's CPU time
+    (the rows not co-visible are searched until they match), so
+    ``gicp.fallback_lazy_covisible`` is off by default."""
 
     points: np.ndarray  # (N, 3) the source cloud
     tree: object  # its neighbour grid
