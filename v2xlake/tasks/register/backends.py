@@ -286,18 +286,15 @@ class SparseGicpBackend(SmallGicpBackend):
         out = self._align_rows(target, source, rows, init)
         sq = out.sq_dist
         if out.pairs < p.sample_min_pairs and source.sample is not None:
-            lazy = p.fallback_lazy_covisible and source.covisible_with is not None
-            dense = self._fallback_rows(source, out.pairs, rows, out.sq_dist, covisible=not lazy)
-            if (self._covisible_more_than(source, dense, len(rows)) if lazy
-                    else len(dense) > len(rows)):
-                out = self._align_rows(target, source, dense, out.T, lazy_covisible=lazy)
+            dense = self._fallback_rows(source, out.pairs, rows, out.sq_dist)
+            if len(dense) > len(rows):
+                out = self._align_rows(target, source, dense, out.T)
                 sq = None  # aligned on other rows: the quality figures search again
         return AlignOutcome(out.T, out.converged, out.iterations, out.H,
                             sq if p.reuse_last_search else None)
 
     def _fallback_rows(self, source: Prepared, pairs: int, rows: np.ndarray | None = None,
-                       sq_dist: np.ndarray | None = None, covisible: bool = True
-                       ) -> np.ndarray:
+                       sq_dist: np.ndarray | None = None) -> np.ndarray:
         """The source rows of a pair whose sample (``rows``, their squared nearest distances
         ``sq_dist`` at its last search) found only ``pairs`` correspondences.
 
@@ -314,57 +311,23 @@ class SparseGicpBackend(SmallGicpBackend):
         voxel. WHY: a far pair (a roadside unit 70 m away) found 1,100-1,400 sample
         correspondences, and aligning every centroid instead computed the surface of all of
         them (their co-visibility needs it) and ran GICP on 9x the sample. "every": every
-        centroid.
-
-        ``covisible`` off: the rows before the co-visibility cut (:meth:`_dense_rows`), for a
-        caller that decides it lazily."""
+        centroid."""
         p = self.params
         cell = p.sample_cell_m
-
-        def dense(r: np.ndarray | None = None) -> np.ndarray:
-            if covisible:
-                return self._dense_rows(source, r)
-            return r if r is not None else np.arange(len(source.points), dtype=np.int64)
-
         if p.sample_fallback == "every" or cell is None or pairs <= 0:
-            return dense()
+            return self._dense_rows(source)
         if p.sample_fallback == "matched":
             if rows is None or sq_dist is None or len(sq_dist) != len(rows):
-                return dense()
+                return self._dense_rows(source)
             hit = rows[sq_dist <= p.max_correspondence_m ** 2]
             key = cell_keys(source.points, cell)
-            return dense(np.flatnonzero(np.isin(key, key[hit])))
+            return self._dense_rows(source, np.flatnonzero(np.isin(key, key[hit])))
         cell = cell * float(np.sqrt(pairs / max(p.sample_min_pairs, 1)))
         if cell <= p.source_voxel_m:
-            return dense()
+            return self._dense_rows(source)
         from v2xlake.tasks.register.sparse import spread_sample
 
-        return dense(spread_sample(source.points, cell))
-
-    def _covisible_more_than(self, source: Prepared, rows: np.ndarray, m: int) -> bool:
-        """Whether more than ``m`` of ``rows`` are co-visible (``len(_dense_rows(source,
-        rows)) > m``), deciding as few as it takes: first the rows whose surface is already
-        known (the source sample's), then the others in blocks."""
-        from v2xlake.tasks.register.covisible import covisible_rows
-
-        if len(rows) <= m:
-            return False
-        if source.covisible_with is None:
-            return True
-        p, surf = self.params, source.handle
-        known = surf.known[rows]
-        count, order = 0, np.concatenate([rows[known], rows[~known]])
-        step = 256
-        for a in range(0, len(order), step):
-            part = order[a:a + step]
-            surf.ensure(source.points, source.tree, part, p.num_neighbors, p.num_threads)
-            count += int(covisible_rows(source.points, surf.normals, surf.ratio, part,
-                                        source.covisible_with).sum())
-            if count > m:
-                return True
-            if count + len(order) - a - len(part) <= m:
-                return False
-        return False
+        return self._dense_rows(source, spread_sample(source.points, cell))
 
     def nearest_sq_dist(self, target: Prepared, query: np.ndarray,
                         max_dist_m: float = np.inf) -> np.ndarray:
@@ -374,27 +337,18 @@ class SparseGicpBackend(SmallGicpBackend):
         return np.asarray(d2, dtype=np.float64)
 
     def _align_rows(self, target: Prepared, source: Prepared, rows: np.ndarray,
-                    init: np.ndarray, lazy_covisible: bool = False) -> SparseOutcome:
-        """GICP of the source ``rows``; ``lazy_covisible``: ``rows`` not yet cut to what the
-        other LiDAR sees, decided as they find correspondences (:class:`sparse.LazyCovisible`,
-        the same result as aligning ``_dense_rows(source, rows)``)."""
-        from v2xlake.tasks.register.sparse import LazyCovisible, align_sparse
+                    init: np.ndarray) -> SparseOutcome:
+        from v2xlake.tasks.register.sparse import align_sparse
 
         p = self.params
         surf = source.handle
-        lazy = None
-        if lazy_covisible and source.covisible_with is not None:
-            lazy = LazyCovisible(source.points, source.tree, surf, rows, source.covisible_with,
-                                 p.num_neighbors)
-        else:
-            surf.ensure(source.points, source.tree, rows, p.num_neighbors, p.num_threads)
+        surf.ensure(source.points, source.tree, rows, p.num_neighbors, p.num_threads)
         return align_sparse(target.points, target.tree, target.handle, source.points[rows],
-                            surf.normals[rows], surf.ratio[rows], init, s_lazy=lazy,
+                            surf.normals[rows], surf.ratio[rows], init,
                             num_neighbors=p.num_neighbors,
                             max_correspondence_m=p.max_correspondence_m,
                             max_iterations=p.max_iterations, num_threads=p.num_threads,
-                            t_covisible_with=target.covisible_with,
-                            skip_margin_m=p.search_skip_margin_m)
+                            t_covisible_with=target.covisible_with)
 
     def _dense_rows(self, source: Prepared, rows: np.ndarray | None = None) -> np.ndarray:
         """``rows`` (default: every source centroid), less those the other LiDAR cannot see

@@ -84,24 +84,6 @@ class GicpSection(Section):
         "(a fifth of a cross pair's nearest-neighbour searches); off: searched again at the "
         "result")
     max_correspondence_m: float = Field(1.0, gt=0)
-    search_skip_margin_m: float = Field(
-        0.0, ge=0, description="sparse backend, speed only (registrations bit-identical): "
-        "each GICP iteration's nearest-neighbour search reaches this much beyond "
-        "max_correspondence_m, and a source point whose nearest target point was farther "
-        "than max_correspondence_m by more than it has moved since is not searched again "
-        "(sparse.py NearestSkipping). 0 (default): every point searched in every iteration. "
-        "0.1 cut the roadside unit's 3 s clip's searches from 5.7 M to 3.5 M points but not "
-        "the stage's CPU time (10 s clip, in one process: 14.4 s off, 15.1 s on with "
-        "fallback_lazy_covisible; a skipped point was a cheap miss, the longer reach costs "
-        "the others), so it is off")
-    fallback_lazy_covisible: bool = Field(
-        False, description="sparse backend, speed only (registrations bit-identical): a pair "
-        "aligned again with more source centroids (sample_min_pairs) decides which are "
-        "co-visible as they find a correspondence, not all before (each decision is a "
-        "k-nearest-neighbour surface). On the roadside unit's 3 s clip 1.04 M -> 0.87 M "
-        "such searches, but the rows not co-visible are then searched until they match "
-        "something: no measurable gain in the stage's time (see search_skip_margin_m), so "
-        "off (default): all decided first")
     grid_cell_m: float = Field(
         1.0, gt=0, description="sparse backend: cell of the hash grid its neighbour searches "
         "use (register/voxel.py VoxelGrid). Speed only, the searches are exact at any size; "

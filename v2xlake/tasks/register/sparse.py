@@ -177,112 +177,6 @@ class Surfaces:
         self.known[todo] = True
 
 
-class NearestSkipping:
-    """Each GICP iteration's nearest-neighbour search of the same source points, skipping
-    the points that cannot have a target point within the correspondence distance.
-
-    Why: a far pair (a roadside unit 70 m away, little co-visible overlap) aligns ~20k
-    source centroids for up to 30 iterations, and most of them find no target point within
-    ``max_dist_m``: such a search visits all 27 grid cells around the query, the costliest
-    kind, and the register stage's largest single cost on that clip. A point searched at
-    ``q0`` with nothing closer than ``c`` (its clearance) has nothing closer than
-    ``c - |q - q0|`` at ``q`` (triangle inequality): while that exceeds ``max_dist_m`` it
-    is not searched. The search runs to ``max_dist_m + margin_m`` to learn a clearance
-    beyond the correspondence distance; a point found within ``max_dist_m`` is always
-    searched again. The result is the one a search of every point to ``max_dist_m`` gives
-    (index -1 and inf beyond it): the nearest point within ``max_dist_m`` is the nearest
-    within the longer reach too, found in the same cell order. Measured: 40 % fewer points
-    searched on that clip but no gain in the stage's CPU time (a skipped point was a cheap
-    miss), so ``gicp.search_skip_margin_m`` is off by default."""
-
-    def __init__(self, tree: object, max_dist_m: float, margin_m: float) -> None:
-        if margin_m <= 0:
-            raise ValueError(f"margin must be positive, got {margin_m}")
-        self.tree = tree
-        self.max_d = float(max_dist_m)
-        self.max_d2 = self.max_d ** 2
-        self.reach = self.max_d + float(margin_m)
-        self.q0: np.ndarray | None = None  # where each point was last searched
-        self.clear = np.zeros(0)  # its clearance there (m)
-
-    def search(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(index, squared distance) of each point's nearest target point within
-        ``max_dist_m`` (-1 / inf where none)."""
-        n = len(q)
-        nn = np.full(n, -1, dtype=np.int64)
-        d2 = np.full(n, np.inf)
-        if self.q0 is None or len(self.q0) != n:
-            self.q0, self.clear = q.copy(), np.zeros(n)
-            todo = np.arange(n)
-        else:
-            moved = np.sqrt(((q - self.q0) ** 2).sum(axis=1))
-            # 1 nm: rounding of the distances (they are exact to ~1e-15 m here)
-            todo = np.flatnonzero(~(self.clear - moved > self.max_d + 1e-9))
-        if not len(todo):
-            return nn, d2
-        qt = q[todo]
-        i, d = self.tree.batch_nearest_neighbor_search(  # type: ignore[attr-defined]
-            qt, max_dist_m=self.reach)
-        i = np.asarray(i, dtype=np.int64)
-        d = np.asarray(d, dtype=np.float64)
-        self.q0[todo] = qt
-        self.clear[todo] = np.sqrt(np.minimum(d, self.reach ** 2))
-        # the plain search finds a point only strictly within max_dist_m (its initial bound)
-        hit = d < self.max_d2
-        nn[todo[hit]] = i[hit]
-        d2[todo[hit]] = d[hit]
-        return nn, d2
-
-    def exclude(self, idx: np.ndarray) -> None:
-        """Never search the points ``idx`` again (their result no longer matters): -1 / inf."""
-        if self.q0 is not None and len(idx):
-            self.clear[idx] = np.inf
-
-
-@dataclass
-class LazyCovisible:
-    """Source rows aligned with their co-visibility (:mod:`covisible`) decided only once they
-    find a correspondence.
-
-    Why: a far pair's fallback aligns every co-visible source centroid, and deciding which
-    are co-visible needs each one's surface, a k-nearest-neighbour search (about half of
-    that clip's such searches). A row that finds no correspondence adds nothing to GICP
-    whether or not it is co-visible, so the decision is made for the rows that do, and a row
-    found not co-visible is dropped from then on: the same sums as aligning the co-visible
-    rows only. Measured: 16 % fewer surfaces on that clip, no gain in the stage's CPU time
-    (the rows not co-visible are searched until they match), so
-    ``gicp.fallback_lazy_covisible`` is off by default."""
-
-    points: np.ndarray  # (N, 3) the source cloud
-    tree: object  # its neighbour grid
-    surf: Surfaces  # its lazily filled surfaces
-    rows: np.ndarray  # (M,) the rows aligned, ascending
-    origin: np.ndarray  # (3,) the other LiDAR in the source frame
-    k: int  # neighbours per surface
-    state: np.ndarray = field(init=False)  # per row: 0 undecided, 1 co-visible, 2 not
-
-    def __post_init__(self) -> None:
-        self.state = np.zeros(len(self.rows), dtype=np.int8)
-
-    def keep(self, idx: np.ndarray) -> np.ndarray:
-        """Which of the aligned rows at positions ``idx`` are co-visible (decided now where
-        not yet)."""
-        from v2xlake.tasks.register.covisible import covisible_rows
-
-        new = idx[self.state[idx] == 0]
-        if len(new):
-            r = self.rows[new]
-            self.surf.ensure(self.points, self.tree, r, self.k)
-            seen = covisible_rows(self.points, self.surf.normals, self.surf.ratio, r,
-                                  self.origin)
-            self.state[new] = np.where(seen, 1, 2)
-        return np.asarray(self.state[idx] == 1)
-
-    def surfaces(self) -> tuple[np.ndarray, np.ndarray]:
-        """The aligned rows' normals and planarity ratios (meaningful where decided)."""
-        return self.surf.normals[self.rows], self.surf.ratio[self.rows]
-
-
 @dataclass(frozen=True)
 class SparseOutcome:
     T: np.ndarray
@@ -299,43 +193,25 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
                  s_surf_n: np.ndarray, s_surf_r: np.ndarray, init: np.ndarray, *,
                  num_neighbors: int, max_correspondence_m: float, max_iterations: int,
                  num_threads: int = 1, rotation_eps_rad: float = np.radians(0.1),
-                 translation_eps_m: float = 1e-3, t_covisible_with: np.ndarray | None = None,
-                 skip_margin_m: float = 0.0, s_lazy: LazyCovisible | None = None
+                 translation_eps_m: float = 1e-3, t_covisible_with: np.ndarray | None = None
                  ) -> SparseOutcome:
     """Gauss-Newton GICP of the source sample ``sp`` (with its surfaces) onto the target
     points ``tp`` (neighbour grid ``t_tree``, lazily filled ``t_surf``) from ``init``. With
     ``t_covisible_with`` (the source LiDAR's origin in the target frame) a pair is kept only
-    where the target surface is seen from that side too (:mod:`covisible`). With
-    ``skip_margin_m`` a point known to be farther than the correspondence distance from the
-    target is not searched again (:class:`NearestSkipping`; the same result). With
-    ``s_lazy`` the source rows' surfaces and co-visibility are decided as they find a
-    correspondence (``s_surf_n`` / ``s_surf_r`` are then read from it)."""
+    where the target surface is seen from that side too (:mod:`covisible`)."""
     T = np.array(init, dtype=np.float64, copy=True)
     H = np.zeros((6, 6))
     converged, iterations, used = False, 0, 0
     max_d2 = max_correspondence_m**2
     d2: np.ndarray | None = None
-    skip = (NearestSkipping(t_tree, max_correspondence_m, skip_margin_m)
-            if skip_margin_m > 0 else None)
     while iterations < max_iterations:
         iterations += 1
         q = sp @ T[:3, :3].T + T[:3, 3]
-        if skip is not None:
-            nn, d2 = skip.search(q)
-        else:
-            nn, d2 = t_tree.batch_nearest_neighbor_search(  # type: ignore[attr-defined]
-                q, num_threads=num_threads, max_dist_m=max_correspondence_m)
-            nn = np.asarray(nn, dtype=np.int64)
-            d2 = np.asarray(d2, dtype=np.float64)
+        nn, d2 = t_tree.batch_nearest_neighbor_search(  # type: ignore[attr-defined]
+            q, num_threads=num_threads, max_dist_m=max_correspondence_m)
+        nn = np.asarray(nn, dtype=np.int64)
+        d2 = np.asarray(d2, dtype=np.float64)
         close = np.flatnonzero(d2 <= max_d2)
-        if s_lazy is not None:
-            ok = s_lazy.keep(close)
-            drop = close[~ok]
-            nn[drop], d2[drop] = -1, np.inf
-            if skip is not None:
-                skip.exclude(drop)
-            close = close[ok]
-            s_surf_n, s_surf_r = s_lazy.surfaces()
         t_surf.ensure(tp, t_tree, nn[close], num_neighbors, num_threads)
         if t_covisible_with is not None and len(close):
             seen = covisible_rows(tp, t_surf.normals, t_surf.ratio, nn[close],
