@@ -158,6 +158,10 @@ class Regions(Section):
         "1080p clips without annotations: plates cut to 20-28 px of 160 px by the narrow "
         "camera's edge were missed without it; with annotations (1 s clip) plates >= 20 px "
         "326 -> 330 of 345, false blurs and speed unchanged")
+    edge_heads: bool = Field(
+        True, description="head regions that the frame's left or right edge cuts are also "
+        "searched with the frame mirrored at that edge (CenterFace finds no half face; "
+        "mirrored, it is a whole face centred on the edge, blurred where it is in the frame)")
     plate_text_min_px: float = Field(
         20.0, ge=0, description="vehicle faces whose plate (0.52 m) is expected narrower than "
         "this (px) are not searched by the text detector (the plate-blob test still runs "

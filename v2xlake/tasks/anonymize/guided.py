@@ -93,6 +93,9 @@ class GuidedConfig(FromParams):
     # that the frame edge cuts get the blob test's cut rectangles too
     blob_cut_faces: bool = _param("regions.blob_cut_faces")
     blob_cut_max_share: float = 0.01
+    # head regions cut by the frame's left / right edge also searched mirrored at the edge
+    # (``edge_pieces``)
+    edge_heads: bool = _param("regions.edge_heads")
     # the safety pass over the whole frame, shrunk to this longest side (None: no pass of
     # that kind): what has no box (missed by the LiDAR, not annotated) but is large
     safety_face_max_side: int | None = _param("safety.face_max_side")
@@ -194,6 +197,9 @@ class Piece:
     expected: tuple[float, float]
     ppm: float = 0.0
     crop: tuple[int, int, int, int, float] | None = None  # x0, y0, x1, y1, scale of a crop
+    # how pixels beyond the frame are filled: black, or (``edge_pieces``) the frame mirrored
+    # at its edge
+    border: int = cv2.BORDER_CONSTANT
 
     def to_frame(self, box: np.ndarray, w: int, h: int) -> tuple[float, float, float, float]:
         """Axis-aligned frame box around a piece box (its 4 corners through ``H``)."""
@@ -220,14 +226,14 @@ class Piece:
         return inside == 0
 
     def cut(self, image: np.ndarray) -> np.ndarray:
-        if self.crop is not None:
+        if self.crop is not None and self.border == cv2.BORDER_CONSTANT:
             x0, y0, x1, y1, s = self.crop
             interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
             return cv2.resize(image[y0:y1, x0:x1], (self.out_w, self.out_h),
                               interpolation=interp)
         return cv2.warpPerspective(image, self.H, (self.out_w, self.out_h),
                                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                   borderMode=cv2.BORDER_CONSTANT)
+                                   borderMode=self.border)
 
 
 def _face_crop(c: GuidedConfig, box: Any, side: float, scale: float, size_px: float,
@@ -298,6 +304,37 @@ def plan_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedCo
     for kind, x0, y0, x1, y1, s, lo, hi in _merge_crops(items):
         s = min(s, cfg.max_piece_side / max(x1 - x0, y1 - y0))
         out.append(_crop_piece(kind, x0, y0, x1, y1, float(s), (float(lo), float(hi))))
+    return out
+
+
+def edge_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedConfig
+                ) -> list[Piece]:
+    """Head regions that the frame's left or right edge cuts, each as a piece reaching as far
+    beyond that edge as it reaches into the frame, filled with the frame mirrored at the edge
+    (at the head region's scale). Why: CenterFace finds no half face (a head cut by the edge
+    of the 30 Hz LiDAR-only clips was missed in every frame it was cut in); mirrored, the
+    half face is a whole, nearly symmetric face centred on the edge, and its box clipped to
+    the frame is the visible half."""
+    h, w = shape[:2]
+    out: list[Piece] = []
+    for r in regions:
+        if r.kind != "face" or r.part != "head":
+            continue
+        x0, y0 = max(0, int(np.floor(r.box[0]))), max(0, int(np.floor(r.box[1])))
+        x1, y1 = min(w, int(np.ceil(r.box[2]))), min(h, int(np.ceil(r.box[3])))
+        if x1 - x0 < 2 or y1 - y0 < 2:
+            continue
+        if x0 <= 0:
+            x0 = -x1
+        elif x1 >= w:
+            x1 = 2 * w - x0
+        else:
+            continue
+        s = float(np.clip(cfg.face_target_px / max(r.expected_px, 1e-3), cfg.min_scale,
+                          cfg.max_upscale))
+        s = min(s, cfg.max_piece_side / max(x1 - x0, y1 - y0))
+        p = _crop_piece("face", x0, y0, x1, y1, s, (r.expected_px, r.expected_px))
+        out.append(replace(p, border=cv2.BORDER_REFLECT))
     return out
 
 
@@ -537,7 +574,8 @@ class GuidedDetector:
         self.version = "+".join(parts) + (
             f"|guided:f{c.face_target_px:g}:p{c.plate_target_px:g}:up{c.max_upscale:g}"
             f":ft{c.face_threshold:g}/{c.full_face_threshold:g}"
-            f":safe{c.safety_face_max_side}/{c.safety_plate_max_side}:blob{c.blob_below_px:g}")
+            f":safe{c.safety_face_max_side}/{c.safety_plate_max_side}:blob{c.blob_below_px:g}"
+            + (":edge-heads" if c.edge_heads else ""))
         if region_first is not None and face is not None:
             self.version += (f"|region-first@{region_first.version}"
                              f":f{c.face_proposal_threshold:g}/{c.face_first_accept:g}")
@@ -811,10 +849,13 @@ class GuidedDetector:
         c = self.config
         h, w = image.shape[:2]
         pieces = plan_pieces(regions, image.shape, c)
+        edge = edge_pieces(regions, image.shape, c) if c.edge_heads else []
         dets: list[Detection] = []
         for kind, det in (("face", self.face), ("plate", self.plate)):
             kp = [p for p in pieces if p.kind == kind
                   and (kind == "face" or p.expected[0] >= c.plate_text_min_px)]
+            if kind == "face":
+                kp += edge
             if det is None or not kp:
                 continue
             for canvas, ps, pos in mosaics(image, kp, c):
@@ -891,6 +932,8 @@ class GuidedDetector:
         for b, score, i in found:
             px, py = pos[i]
             box = ps[i].to_frame(np.asarray(b, float) - [px, py, px, py], w, h)
+            if box[2] - box[0] < 1.0 or box[3] - box[1] < 1.0:
+                continue  # a mirrored piece's mirror image of a face inside the frame
             out.append(Detection(kind, box, score, det.name))
         return out
 
