@@ -1,7 +1,10 @@
 """Small plates in frames without guidance (``plateprop.py``): an edge band that looks like a
 row of glyphs is searched at the scale that makes it legible to the text detector.
 
-* ``glyph_transitions`` counts a row of glyphs, not an edge, a gradient or a flat patch;
+* ``glyph_transitions`` counts a row of glyphs, not an edge, a gradient or a flat patch, also
+  beside a dark car body and off the band's middle row (where one Otsu threshold for the
+  band, the measure before, counted a handful);
+* ``join_bands`` / ``edge_bands`` join the halves of one glyph row, not bands of two rows;
 * ``band_scale`` upscales only low bands that hold glyphs, to ``line_px`` tall, capped;
 * on real data: real plates (plates_eu photos shrunk to 40 px wide) pasted into a real
   street frame are found by the full-frame plan with the closer look, and fewer without it.
@@ -15,7 +18,13 @@ import cv2
 import numpy as np
 
 from tests.fixtures.real import requires_real_data
-from v2xlake.tasks.anonymize.plateprop import band_scale, glyph_transitions
+from v2xlake.tasks.anonymize.plateprop import (
+    band_scale,
+    edge_bands,
+    glyph_transitions,
+    join_bands,
+    row_transitions,
+)
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 
@@ -44,11 +53,75 @@ def test_glyph_transitions_count_a_row_of_glyphs_not_an_edge() -> None:
     assert glyph_transitions(gray, (0.0, 0.0, 0.0, 0.0)) == 0  # an empty band
 
 
+def _small_plate_on_dark_car(glyph_rows: tuple[int, int] = (5, 11)) -> np.ndarray:
+    """A 14 x 60 px band as a 40 px plate gives it: the car's near-black body left and right,
+    a bright plate between with 7 grey, 1 px glyph strokes pairs (blurred, as a shrunk plate's
+    glyphs are: lighter than the body), in ``glyph_rows``."""
+    band = np.full((14, 60), 25, np.uint8)
+    band[3:13, 8:52] = 215
+    r0, r1 = glyph_rows
+    for i in range(7):
+        x = 11 + 6 * i
+        band[r0:r1, x] = 120
+        band[r0:r1, x + 2] = 120
+    return band
+
+
+def test_glyph_transitions_beside_a_dark_body_and_off_the_middle_row() -> None:
+    """One Otsu threshold for the band splits the dark body from the bright plate and leaves
+    the grey strokes on the bright side (2 crossings: the body's edges): the running mean
+    sees all 28 stroke edges. Glyphs in the band's upper half (a band that also holds the
+    grille below) are still counted."""
+    band = _small_plate_on_dark_car()
+    box = (0.0, 0.0, 60.0, 14.0)
+    t_otsu, _ = cv2.threshold(band, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    otsu = int(np.abs(np.diff((band[6:9] > t_otsu).astype(np.int8), axis=1)).sum(1).max())
+    assert otsu <= 4  # the measure before: not a row of glyphs
+    assert glyph_transitions(band, box) >= 20
+    high = _small_plate_on_dark_car((3, 8))
+    assert glyph_transitions(high, box) >= 20
+    t = row_transitions(high, box)
+    assert len(t) == 14 and t[-2:].max() <= 2  # the body below: no glyphs
+    # the closer look's scale follows the 5 glyph rows, not the 14 px band (that gave x2)
+    assert band_scale(box, high, 1.0, 28.0, 3.0, 10) == 3.0
+    # a band over half of line_px tall (a large plate's) keeps the Otsu test: not upscaled
+    assert band_scale(box, high, 1.0, 20.0, 3.0, 10) == 1.0
+
+
+def test_join_bands_joins_one_line_not_two() -> None:
+    left, right = (100.0, 50.0, 126.0, 59.0), (135.0, 50.0, 153.0, 58.0)
+    assert join_bands([left, right]) == [(100.0, 50.0, 153.0, 59.0)]  # 9 px apart, 8-9 tall
+    assert len(join_bands([left, right], gap=0.5)) == 2
+    assert len(join_bands([left, (170.0, 50.0, 190.0, 58.0)])) == 2  # 44 px apart
+    assert len(join_bands([left, (128.0, 62.0, 150.0, 70.0)])) == 2  # the row below
+    assert len(join_bands([left, right], max_w=40.0)) == 2  # the union too wide
+    assert len(join_bands([left, right], max_h=8.0)) == 2  # not small bands
+    assert len(join_bands([left, (130.0, 44.0, 150.0, 58.0)])) == 2  # a taller object
+    three = join_bands([left, right, (156.0, 51.0, 170.0, 58.0)])
+    assert three == [(100.0, 50.0, 170.0, 59.0)]
+
+
+def test_edge_bands_join_a_glyph_row_split_at_its_hyphen() -> None:
+    """A row of strokes with a 15 px gap (a plate's hyphen or emblem): one band, the
+    whole row (``join_gap`` 0: the two halves, as before)."""
+    img = np.zeros((40, 200), np.uint8)
+    for x in list(range(40, 70, 4)) + list(range(86, 116, 4)):
+        img[15:24, x : x + 2] = 255
+    gx = cv2.convertScaleAbs(cv2.Sobel(img, cv2.CV_16S, 1, 0, ksize=3))
+    geom = ((5.0, 60.0), (12.0, 300.0), (1.3, 12.0), 0.35)
+    halves = edge_bands(gx, 90.0, *geom, join_gap=0)
+    assert len(halves) == 2
+    whole = edge_bands(gx, 90.0, *geom)
+    assert len(whole) == 1 and whole[0][0] <= 40 and whole[0][2] >= 116
+
+
 def test_band_scale_upscales_only_low_bands_of_glyphs() -> None:
     img, band = _glyph_row()
     gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    # a 10 px band of glyphs: brought to 28 px, at most 3x (capped) and never below base
-    assert abs(band_scale(band, gray, 1.0, 28.0, 3.0, 8) - 2.8) < 1e-9
+    # a 10 px band of glyphs: its glyph row (+2 px, at least 6 px) brought to 28 px, at
+    # most 3x (capped) and never below base
+    assert band_scale(band, gray, 1.0, 28.0, 3.0, 8) == 3.0
+    assert 2.8 < band_scale(band, gray, 1.0, 28.0, 9.0, 8) <= 28.0 / 6.0
     assert band_scale(band, gray, 1.0, 28.0, 2.0, 8) == 2.0
     assert band_scale(band, gray, 1.0, 0.0, 3.0, 8) == 1.0  # off
     assert band_scale(band, gray, 3.0, 28.0, 3.0, 8) == 3.0  # the scan's scale suffices

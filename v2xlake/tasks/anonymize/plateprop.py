@@ -8,12 +8,16 @@ frame at x2.5 finds them, at ~3x the plate time of the plan. Here only the bands
 like a row of glyphs are upscaled, each to the scale that makes it ``small_line_px`` tall:
 their crops are a few thousand pixels, the frame is a million.
 
-What looks like a row of glyphs, cheaply (no network): one of the band's three middle rows
-crosses the band's Otsu threshold at least ``min_transitions`` times (two per glyph stroke
-pair; a plate's 5-8 glyphs cross it 10-20 times). Real 40 px plates: 44 of 45 bands pass at
-8; of the real street images' bands 28 % (facade edges, poles, foliage cross it 4-7 times).
-The reading (``plateread.py``) still decides what is a plate: this only decides where the
-detector looks closer.
+What looks like a row of glyphs, cheaply (no network): one row of the band's middle 60 %
+alternates dark / bright about its own running mean at least ``min_transitions`` times (two
+per glyph stroke; a plate's 5-8 glyphs give 10-24): ``glyph_transitions``. The measure before
+(crossings of one Otsu threshold for the band along its three middle rows, at 8) missed a
+plate beside its car's dark body or grille, whose thin grey glyphs stayed on the plate's side
+of the threshold, and one whose glyphs sat off the band's middle. A glyph row split in two
+bands (at its hyphen or emblem) is one band again (``join_bands``). Bands over half
+``line_px`` tall (large plates, legible at the scan's scale) keep the Otsu test. The reading
+(``plateread.py``) still decides what is a plate: this only decides where the detector looks
+closer.
 """
 
 from __future__ import annotations
@@ -24,9 +28,50 @@ import numpy as np
 Band = tuple[float, float, float, float]
 
 
-def glyph_transitions(gray: np.ndarray, band: Band) -> int:
+def row_transitions(gray: np.ndarray, band: Band, contrast: float = 0.1) -> np.ndarray:
+    """Dark / bright alternations along each row of the band (``gray``: the frame in grey
+    levels, ``band``: x0, y0, x1, y1 px): a pixel is dark or bright when it differs from the
+    row's running mean over one band height by more than ``contrast`` of the band's grey
+    range (5-95 %) plus 2 grey levels; pixels in between keep the last state (hysteresis),
+    so noise on a plain patch counts nothing.
+
+    Why a local mean and not one threshold for the band (Otsu, before): a small plate's band
+    also holds its car's dark body or grille, and one threshold then splits car from plate
+    while the plate's thin, grey-blurred glyphs stay on the bright side (real 40 px plates:
+    2-6 crossings where 14 glyph edges are)."""
+    h, w = gray.shape[:2]
+    x0, y0 = max(0, int(band[0])), max(0, int(band[1]))
+    x1, y1 = min(w, int(np.ceil(band[2]))), min(h, int(np.ceil(band[3])))
+    core = gray[y0:y1, x0:x1].astype(np.float32)
+    if core.shape[0] < 1 or core.shape[1] < 2:
+        return np.zeros(0, int)
+    lo, hi = np.percentile(core, (5, 95))
+    dead = contrast * float(hi - lo) + 2.0
+    k = max(3, core.shape[0] | 1)
+    local = core - cv2.blur(core, (k, 1), borderType=cv2.BORDER_REPLICATE)
+    return np.array([np.count_nonzero(np.diff(np.sign(r)[np.abs(r) > dead])) for r in local])
+
+
+def _middle(n: int, share: float) -> slice:
+    """The middle ``share`` of ``n`` rows (at least one)."""
+    m = round(n * (1 - share) / 2)
+    return slice(m, n - m) if n - 2 * m >= 1 else slice(0, n)
+
+
+def glyph_transitions(gray: np.ndarray, band: Band, contrast: float = 0.1,
+                      rows: float = 0.6) -> int:
+    """The most alternations (``row_transitions``) along one row of the band's middle
+    ``rows`` share: a band of edges is rarely centred on its glyphs (it also holds the
+    plate's frame or the grille below), so not only its middle row. A plate's 5-8 glyphs
+    give 10-20, a facade edge, a pole or foliage 2-7."""
+    t = row_transitions(gray, band, contrast)
+    return int(t[_middle(len(t), rows)].max()) if len(t) else 0
+
+
+def otsu_transitions(gray: np.ndarray, band: Band) -> int:
     """The most crossings of the band's Otsu threshold along one of its three middle rows
-    (``gray``: the frame in grey levels, ``band``: x0, y0, x1, y1 px)."""
+    (``gray``: the frame in grey levels, ``band``: x0, y0, x1, y1 px): the test of a band of
+    a large plate (``band_scale``), as before ``glyph_transitions``."""
     h, w = gray.shape[:2]
     x0, y0 = max(0, int(band[0])), max(0, int(band[1]))
     x1, y1 = min(w, int(np.ceil(band[2]))), min(h, int(np.ceil(band[3])))
@@ -40,32 +85,102 @@ def glyph_transitions(gray: np.ndarray, band: Band) -> int:
     return int(np.abs(np.diff(rows.astype(np.int8), axis=1)).sum(axis=1).max())
 
 
+def glyph_rows(t: np.ndarray, rows: float = 0.6) -> int:
+    """How many rows a band's glyph row spans: the run of rows around the busiest row of the
+    middle ``rows`` share whose alternations (``t``: ``row_transitions``) reach half its
+    count. A band of edges is often taller than its glyphs (a 40 px plate's 6 px glyphs in
+    a 13-15 px band with the plate's frame and the grille below)."""
+    if not len(t):
+        return 0
+    mid = _middle(len(t), rows)
+    peak = mid.start + int(np.argmax(t[mid]))
+    keep = t >= 0.5 * t[peak]
+    lo, hi = peak, peak + 1
+    while lo > 0 and keep[lo - 1]:
+        lo -= 1
+    while hi < len(t) and keep[hi]:
+        hi += 1
+    return hi - lo
+
+
 def band_scale(band: Band, gray: np.ndarray, base: float, line_px: float, max_scale: float,
-               min_transitions: int) -> float:
+               min_transitions: int, large_min_transitions: int = 8) -> float:
     """The scale to search an edge band at: ``base`` (the plate scan's), or, for a band lower
-    than ``line_px`` that holds a row of glyphs (``glyph_transitions``), the scale that makes
-    it ``line_px`` tall, at most ``max_scale`` (``line_px`` 0: always ``base``)."""
+    than ``line_px`` that holds a row of glyphs, a closer one, at most ``max_scale``
+    (``line_px`` 0: always ``base``). A small plate's band (at most half ``line_px`` tall):
+    ``glyph_transitions`` at least ``min_transitions``, and the scale that makes its glyph
+    row (``glyph_rows`` + 2 px, at least 60 % of the band: the crop costs the square of its
+    scale) ``line_px`` tall; real 40 px plates in 13-14 px bands were looked at x2 and
+    missed. A taller band (a large plate's, legible already): the test and scale of before,
+    ``otsu_transitions`` at least ``large_min_transitions`` and the band ``line_px`` tall
+    (plates_eu through the plan lost 2 of 108 when their crops changed)."""
     bh = band[3] - band[1]
-    if line_px <= 0 or bh * base >= line_px:
+    if line_px <= 0 or bh * base >= line_px or base >= max_scale:
         return base
-    s = float(min(max_scale, line_px / max(bh, 1.0)))
-    if s <= base or glyph_transitions(gray, band) < min_transitions:
+    if 2 * bh > line_px:
+        s = float(min(max_scale, line_px / max(bh, 1.0)))
+        if s <= base or otsu_transitions(gray, band) < large_min_transitions:
+            return base
+        return s
+    t = row_transitions(gray, band)
+    if not len(t) or int(t[_middle(len(t), 0.6)].max()) < min_transitions:
         return base
-    return s
+    gh = min(bh, max(glyph_rows(t) + 2.0, 0.6 * bh))
+    s = float(min(max_scale, line_px / max(gh, 1.0)))
+    return s if s > base else base
+
+
+def join_bands(bands: list[Band], gap: float = 1.5, max_h: float = 14.0,
+               max_w: float = np.inf, max_aspect: float = np.inf) -> list[Band]:
+    """The bands of one small glyph row joined: two at most ``max_h`` tall whose union is at
+    most 1.5x as tall as the lower one (one row, not a row beside a taller object) and that
+    lie at most ``gap`` of that height apart side by side become their union (when it is at
+    most ``max_w`` wide and ``max_aspect`` as wide as tall). Why: a small plate's glyph row
+    is often two bands, split at its hyphen or emblem, and half a plate cut out is half a
+    line (read as no plate, or not found). Larger plates' rows are one band already (60 px
+    plates: bands of 13-20 px), and joining them to a neighbour on their row only changes a
+    crop that was found (``max_h``)."""
+    out = [tuple(b) for b in bands]
+    joined = True
+    while joined:
+        joined = False
+        for i in range(len(out)):
+            for j in range(i + 1, len(out)):
+                a, b = out[i], out[j]
+                hmin = min(a[3] - a[1], b[3] - b[1])
+                if max(a[3] - a[1], b[3] - b[1]) > max_h:
+                    continue
+                if max(a[0], b[0]) - min(a[2], b[2]) > gap * hmin:
+                    continue
+                u = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+                if (u[3] - u[1] > 1.5 * hmin or u[2] - u[0] > max_w
+                        or u[2] - u[0] > max_aspect * (u[3] - u[1])):
+                    continue
+                out[i] = u
+                del out[j]
+                joined = True
+                break
+            if joined:
+                break
+    return [(float(b[0]), float(b[1]), float(b[2]), float(b[3])) for b in out]
 
 
 def edge_bands(gx: np.ndarray, threshold: float, h_range: tuple[float, float],
-               w_range: tuple[float, float], aspect: tuple[float, float], fill: float
-               ) -> list[Band]:
+               w_range: tuple[float, float], aspect: tuple[float, float], fill: float,
+               join_gap: float = 1.5) -> list[Band]:
     """Bands of dense vertical edges in ``gx`` (|Sobel x|, grey levels) at ``threshold``:
     edges closed horizontally (3 x 9) and opened (3 x 3), components of a text line's
-    height, width, aspect (px) and ``fill`` of their box."""
+    height, width, aspect (px) and ``fill`` of their box, those of one line joined
+    (``join_bands``, ``join_gap`` of their height apart at most; 0: not joined)."""
     m0 = (gx >= threshold).astype(np.uint8)
     m1 = cv2.morphologyEx(m0, cv2.MORPH_CLOSE, np.ones((3, 9), np.uint8))
     m2 = cv2.morphologyEx(m1, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     _n, _lab, stats, _c = cv2.connectedComponentsWithStats(m2, connectivity=8)
     (hlo, hhi), (wlo, whi), (alo, ahi) = h_range, w_range, aspect
-    return [(float(x), float(y), float(x + bw), float(y + bh))
-            for x, y, bw, bh, area in stats[1:].tolist()
-            if hlo <= bh <= hhi and wlo <= bw <= whi and alo <= bw / bh <= ahi
-            and area >= fill * bw * bh]
+    bands = [(float(x), float(y), float(x + bw), float(y + bh))
+             for x, y, bw, bh, area in stats[1:].tolist()
+             if hlo <= bh <= hhi and wlo <= bw <= whi and alo <= bw / bh <= ahi
+             and area >= fill * bw * bh]
+    if join_gap <= 0:
+        return bands
+    return join_bands(bands, join_gap, max_w=whi, max_aspect=ahi)
