@@ -293,10 +293,10 @@ def plan_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedCo
             if fp is not None:
                 out.append(fp)
                 continue
-        x0, y0 = max(0, int(np.floor(r.box[0]))), max(0, int(np.floor(r.box[1])))
-        x1, y1 = min(w, int(np.ceil(r.box[2]))), min(h, int(np.ceil(r.box[3])))
-        if x1 - x0 < 2 or y1 - y0 < 2:
+        fb = _frame_box(r.box, w, h)
+        if fb is None:
             continue
+        x0, y0, x1, y1 = fb
         target = (cfg.plate_target_px if r.kind == "plate" else
                   cfg.window_face_target_px if r.part == "window" else cfg.face_target_px)
         s = float(np.clip(target / max(r.expected_px, 1e-3), cfg.min_scale, cfg.max_upscale))
@@ -305,6 +305,14 @@ def plan_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedCo
         s = min(s, cfg.max_piece_side / max(x1 - x0, y1 - y0))
         out.append(_crop_piece(kind, x0, y0, x1, y1, float(s), (float(lo), float(hi))))
     return out
+
+
+def _frame_box(box: Any, w: int, h: int) -> tuple[int, int, int, int] | None:
+    """A region's box as whole frame pixels clipped to the frame; None when under 2 px a side
+    (nothing there to cut out)."""
+    x0, y0 = max(0, int(np.floor(box[0]))), max(0, int(np.floor(box[1])))
+    x1, y1 = min(w, int(np.ceil(box[2]))), min(h, int(np.ceil(box[3])))
+    return None if x1 - x0 < 2 or y1 - y0 < 2 else (x0, y0, x1, y1)
 
 
 def edge_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedConfig
@@ -320,10 +328,10 @@ def edge_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedCo
     for r in regions:
         if r.kind != "face" or r.part != "head":
             continue
-        x0, y0 = max(0, int(np.floor(r.box[0]))), max(0, int(np.floor(r.box[1])))
-        x1, y1 = min(w, int(np.ceil(r.box[2]))), min(h, int(np.ceil(r.box[3])))
-        if x1 - x0 < 2 or y1 - y0 < 2:
+        fb = _frame_box(r.box, w, h)
+        if fb is None:
             continue
+        x0, y0, x1, y1 = fb
         if x0 <= 0:
             x0 = -x1
         elif x1 >= w:
@@ -344,10 +352,10 @@ def _band_pieces(r: Region, w: int, h: int, cfg: GuidedConfig) -> list[Piece]:
     side, overlapping by twice its largest plate (a plate on a cut is whole in one of them).
     Why pieces, not a smaller scale: the piece side capped the scale (a 1920 px band at
     most x2.1), and the smallest plates are the ones that need it."""
-    x0, y0 = max(0, int(np.floor(r.box[0]))), max(0, int(np.floor(r.box[1])))
-    x1, y1 = min(w, int(np.ceil(r.box[2]))), min(h, int(np.ceil(r.box[3])))
-    if x1 - x0 < 2 or y1 - y0 < 2:
+    fb = _frame_box(r.box, w, h)
+    if fb is None:
         return []
+    x0, y0, x1, y1 = fb
     s = float(np.clip(cfg.band_plate_px / max(r.expected_px, 1e-3), cfg.min_scale,
                       cfg.max_upscale))
     s = min(s, cfg.max_piece_side / (y1 - y0))
