@@ -161,3 +161,18 @@ def test_se3_adjoint_moves_a_perturbation_across_a_transform() -> None:
     np.testing.assert_allclose(lhs, expm(hat(se3_adjoint(T) @ d)), atol=1e-12)
     np.testing.assert_allclose(se3_adjoint(np.stack([T, np.eye(4)]))[0], se3_adjoint(T))
     np.testing.assert_allclose(se3_adjoint(np.eye(4)), np.eye(6))
+
+
+def test_merge_until_stable_merges_in_order_until_nothing_merges() -> None:
+    """Intervals that touch are merged; a merge can make a new pair mergeable (the scan starts
+    again), and the first pair in order is merged first."""
+    from v2xlake.tasks.geometry import merge_until_stable
+
+    def union(a: tuple[int, int], b: tuple[int, int]) -> tuple[int, int] | None:
+        return (min(a[0], b[0]), max(a[1], b[1])) if a[0] <= b[1] and b[0] <= a[1] else None
+
+    # (0, 2) and (5, 7) only touch once (2, 5) has joined the first
+    assert merge_until_stable([(0, 2), (5, 7), (2, 5), (9, 10)], union) == [(0, 7), (9, 10)]
+    assert merge_until_stable([], union) == []
+    # a rule that merges nothing returns the items as they were
+    assert merge_until_stable([(0, 1), (0, 1)], lambda a, b: None) == [(0, 1), (0, 1)]

@@ -18,7 +18,9 @@ quaternion -> matrix matches NumPy. So the vocabulary is plain NumPy on (..., 4,
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from functools import reduce
+from typing import TypeVar
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -34,6 +36,7 @@ __all__ = [
     "invert",
     "iou_xyxy",
     "matrix_to_quat",
+    "merge_until_stable",
     "points_in_boxes",
     "quat_to_matrix",
     "quat_wxyz_of",
@@ -194,6 +197,32 @@ def iou_xyxy(a: np.ndarray, b: np.ndarray, *, paired: bool = False) -> np.ndarra
         iou = np.where(union > 0, inter / union, 0.0)
     iou = np.nan_to_num(iou, nan=0.0)
     return iou[:, 0] if paired else iou
+
+
+_Item = TypeVar("_Item")
+
+
+def merge_until_stable(items: Sequence[_Item], union: Callable[[_Item, _Item], _Item | None]
+                       ) -> list[_Item]:
+    """``items`` merged pairwise until no pair merges: the first pair (i < j, in order) whose
+    ``union`` is not None is replaced by it at i, and the scan starts again. Why one loop:
+    boxes, bands and crops are merged under different rules, but always this way, and a
+    result that depends on the order must depend on it the same way everywhere."""
+    out = list(items)
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(out)):
+            for j in range(i + 1, len(out)):
+                u = union(out[i], out[j])
+                if u is not None:
+                    out[i] = u
+                    del out[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return out
 
 
 def quat_wxyz_of(T: np.ndarray) -> np.ndarray:

@@ -41,6 +41,7 @@ from v2xlake.tasks.anonymize.params import FromParams, derived
 from v2xlake.tasks.anonymize.params import param as _param
 from v2xlake.tasks.anonymize.plateprop import band_scale, edge_bands
 from v2xlake.tasks.anonymize.textplate import TextPlateDetector
+from v2xlake.tasks.geometry import merge_until_stable
 
 
 def plate_scan(faces: Faces, plates: Plates) -> ScanConfig:
@@ -375,30 +376,22 @@ def _merge_crops(items: list[list]) -> list[list]:
     """Crops [kind, x0, y0, x1, y1, scale, lo, hi] of one kind and similar scale that
     overlap, merged while their union is not much larger than the two (a crowd is one piece,
     not twenty): the larger scale and the wider size range."""
-    items = [list(it) for it in items]
-    merged = True
-    while merged:
-        merged = False
-        for i in range(len(items)):
-            for j in range(i + 1, len(items)):
-                a, b = items[i], items[j]
-                if a[0] != b[0] or max(a[5], b[5]) > 1.25 * min(a[5], b[5]):
-                    continue
-                ix = min(a[3], b[3]) - max(a[1], b[1])
-                iy = min(a[4], b[4]) - max(a[2], b[2])
-                if ix <= 0 or iy <= 0:
-                    continue
-                u = [min(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]), max(a[4], b[4])]
-                area = lambda t: (t[2] - t[0]) * (t[3] - t[1])  # noqa: E731
-                if area(u) > 1.15 * (area(a[1:5]) + area(b[1:5]) - ix * iy):
-                    continue
-                items[i] = [a[0], *u, max(a[5], b[5]), min(a[6], b[6]), max(a[7], b[7])]
-                del items[j]
-                merged = True
-                break
-            if merged:
-                break
-    return items
+    def area(t: Sequence[float]) -> float:
+        return (t[2] - t[0]) * (t[3] - t[1])
+
+    def union(a: list, b: list) -> list | None:
+        if a[0] != b[0] or max(a[5], b[5]) > 1.25 * min(a[5], b[5]):
+            return None
+        ix = min(a[3], b[3]) - max(a[1], b[1])
+        iy = min(a[4], b[4]) - max(a[2], b[2])
+        if ix <= 0 or iy <= 0:
+            return None
+        u = [min(a[1], b[1]), min(a[2], b[2]), max(a[3], b[3]), max(a[4], b[4])]
+        if area(u) > 1.15 * (area(a[1:5]) + area(b[1:5]) - ix * iy):
+            return None
+        return [a[0], *u, max(a[5], b[5]), min(a[6], b[6]), max(a[7], b[7])]
+
+    return merge_until_stable([list(it) for it in items], union)
 
 
 def pack(pieces: Sequence[Piece], width: int, gap: int, fit: bool = False

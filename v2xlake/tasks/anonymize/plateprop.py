@@ -25,7 +25,18 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from v2xlake.tasks.geometry import merge_until_stable
+
 Band = tuple[float, float, float, float]
+
+
+def band_pixels(gray: np.ndarray, band: Band) -> np.ndarray:
+    """The frame's pixels under a band (x0, y0, x1, y1 px, widened to whole pixels and clipped
+    to the frame): what the row tests read."""
+    h, w = gray.shape[:2]
+    x0, y0 = max(0, int(band[0])), max(0, int(band[1]))
+    x1, y1 = min(w, int(np.ceil(band[2]))), min(h, int(np.ceil(band[3])))
+    return gray[y0:y1, x0:x1]
 
 
 def row_transitions(gray: np.ndarray, band: Band, contrast: float = 0.1) -> np.ndarray:
@@ -39,10 +50,7 @@ def row_transitions(gray: np.ndarray, band: Band, contrast: float = 0.1) -> np.n
     also holds its car's dark body or grille, and one threshold then splits car from plate
     while the plate's thin, grey-blurred glyphs stay on the bright side (real 40 px plates:
     2-6 crossings where 14 glyph edges are)."""
-    h, w = gray.shape[:2]
-    x0, y0 = max(0, int(band[0])), max(0, int(band[1]))
-    x1, y1 = min(w, int(np.ceil(band[2]))), min(h, int(np.ceil(band[3])))
-    core = gray[y0:y1, x0:x1].astype(np.float32)
+    core = band_pixels(gray, band).astype(np.float32)
     if core.shape[0] < 1 or core.shape[1] < 2:
         return np.zeros(0, int)
     lo, hi = np.percentile(core, (5, 95))
@@ -72,10 +80,7 @@ def otsu_transitions(gray: np.ndarray, band: Band) -> int:
     """The most crossings of the band's Otsu threshold along one of its three middle rows
     (``gray``: the frame in grey levels, ``band``: x0, y0, x1, y1 px): the test of a band of
     a large plate (``band_scale``), as before ``glyph_transitions``."""
-    h, w = gray.shape[:2]
-    x0, y0 = max(0, int(band[0])), max(0, int(band[1]))
-    x1, y1 = min(w, int(np.ceil(band[2]))), min(h, int(np.ceil(band[3])))
-    core = gray[y0:y1, x0:x1]
+    core = band_pixels(gray, band)
     if core.shape[0] < 1 or core.shape[1] < 2:
         return 0
     t, _ = cv2.threshold(np.ascontiguousarray(core), 0, 255,
@@ -140,28 +145,20 @@ def join_bands(bands: list[Band], gap: float = 1.5, max_h: float = 14.0,
     line (read as no plate, or not found). Larger plates' rows are one band already (60 px
     plates: bands of 13-20 px), and joining them to a neighbour on their row only changes a
     crop that was found (``max_h``)."""
-    out = [tuple(b) for b in bands]
-    joined = True
-    while joined:
-        joined = False
-        for i in range(len(out)):
-            for j in range(i + 1, len(out)):
-                a, b = out[i], out[j]
-                hmin = min(a[3] - a[1], b[3] - b[1])
-                if max(a[3] - a[1], b[3] - b[1]) > max_h:
-                    continue
-                if max(a[0], b[0]) - min(a[2], b[2]) > gap * hmin:
-                    continue
-                u = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
-                if (u[3] - u[1] > 1.5 * hmin or u[2] - u[0] > max_w
-                        or u[2] - u[0] > max_aspect * (u[3] - u[1])):
-                    continue
-                out[i] = u
-                del out[j]
-                joined = True
-                break
-            if joined:
-                break
+
+    def union(a: Band, b: Band) -> Band | None:
+        hmin = min(a[3] - a[1], b[3] - b[1])
+        if max(a[3] - a[1], b[3] - b[1]) > max_h:
+            return None
+        if max(a[0], b[0]) - min(a[2], b[2]) > gap * hmin:
+            return None
+        u = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+        if (u[3] - u[1] > 1.5 * hmin or u[2] - u[0] > max_w
+                or u[2] - u[0] > max_aspect * (u[3] - u[1])):
+            return None
+        return u
+
+    out = merge_until_stable([(b[0], b[1], b[2], b[3]) for b in bands], union)
     return [(float(b[0]), float(b[1]), float(b[2]), float(b[3])) for b in out]
 
 
