@@ -463,6 +463,13 @@ def main() -> None:
     speed(args.quick)
 
 
+def drop_annotations(lake, cid: str) -> None:
+    """A clip without annotations: its ingested annotation files deleted, so the stage's
+    regions come from LiDAR clusters (and the far band) alone."""
+    for f in lake.list_files(lake.table_dir("raw", "annotations", cid), ".parquet"):
+        os.remove(f)
+
+
 def sim_frames(tmp: Path, width: int, seconds: float, cameras: tuple[str, ...],
                lidar_only: bool = False, seed: int = 0) -> tuple:
     """A simulated clip at ``width`` (small preset, 5 Hz), ingested; its raw PNG frames, each
@@ -489,8 +496,7 @@ def sim_frames(tmp: Path, width: int, seconds: float, cameras: tuple[str, ...],
     lake = Lake(tmp / "lake")
     cid = run_ingest(lake, clip).clip_id
     if lidar_only:
-        for f in lake.list_files(lake.table_dir("raw", "annotations", cid), ".parquet"):
-            os.remove(f)
+        drop_annotations(lake, cid)
     raw = {n: lake.read_table("raw", n, clip_id=cid) for n in (
         "clips", "lidar_frames", "camera_frames", "ins", "imu", "gnss", "ego_poses",
         "calibrated_sensors", "annotations")}
@@ -738,8 +744,7 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
         lake = Lake(Path(tmp) / "lake")
         cid = run_ingest(lake, clip_dir).clip_id
         if lidar_only:
-            for f in lake.list_files(lake.table_dir("raw", "annotations", cid), ".parquet"):
-                os.remove(f)
+            drop_annotations(lake, cid)
         keys = lake_image_keys(lake, cid)
         print(f"\nSimulated clip {width} px, {hz:g} Hz, {seconds:g} s, seed {seed}: "
               f"{len(keys)} images, "
