@@ -219,6 +219,8 @@ def coop(args: argparse.Namespace) -> None:
     # the same in CPU seconds of this process: on a machine shared with other jobs the wall
     # times carry their load, the CPU times much less of it
     same_cpu: dict[tuple[float, tuple[str, ...]], float] = {}
+    reg_cfg = RegisterConfig.model_validate({"write_bev": False,
+                                             "gicp": {"backend": args.backend}})
     for secs in args.coop_seconds:
         for name in names:
             over = dict(COOP_VARIATIONS[name])
@@ -250,8 +252,7 @@ def coop(args: argparse.Namespace) -> None:
                 run_ingest(wl, root / "clip")
                 run_anonymize(wl, cid)
                 run_deskew(wl, cid)
-                run_register(wl, cid, RegisterConfig.model_validate(
-                    {"write_bev": False, "gicp": {"backend": args.backend}}))
+                run_register(wl, cid, reg_cfg)
                 shutil.rmtree(warm, ignore_errors=True)
             key = (secs, tuple(over.get("agents", ())))
             if key not in same_run:
@@ -280,8 +281,7 @@ def coop(args: argparse.Namespace) -> None:
             lake, clip_dir = Lake(root / "lake"), root / "clip"
             c0 = time.process_time()
             t = time.perf_counter()
-            rep = run_register(lake, cid, RegisterConfig.model_validate(
-                {"write_bev": False, "gicp": {"backend": args.backend}}))
+            rep = run_register(lake, cid, reg_cfg)
             t_reg = time.perf_counter() - t
             c_reg = time.process_time() - c0
             errs = registration_errors(lake, clip_dir, cid)
