@@ -43,6 +43,37 @@ def test_grid_searches_are_exact(cell: float) -> None:
     assert few.shape == (3, 4) and all(set(r) == {0, 1, 2, 3} for r in few)
 
 
+def test_bounded_search_skips_only_what_cannot_match() -> None:
+    """``nearest_bounded`` on a source moving step by step (as in GICP iterations) gives the
+    plain bounded search's answer every time, while skipping queries that found nothing."""
+    from v2xlake.tasks.register.voxel import _grid_nn_bounded
+
+    rng = np.random.default_rng(7)
+    pts = np.concatenate([
+        np.c_[rng.uniform(-10, 10, 1500), np.full(1500, 4.0), rng.uniform(0, 5, 1500)],
+        np.c_[rng.uniform(-10, 10, (1500, 2)), rng.normal(0, 0.02, 1500)]])
+    src = np.concatenate([pts[::5] + rng.normal(0, 0.3, (len(pts[::5]), 3)),
+                          rng.uniform(-25, 25, (400, 3))])
+    g = VoxelGrid(pts, 1.0)
+    anchor, lb = np.zeros((len(src), 3)), np.zeros(len(src))
+    skipped = 0
+    for it in range(12):
+        # shrinking steps, as GICP's, with one large jump that must invalidate bounds
+        step = 0.6 if it == 6 else 0.2 / (it + 1)
+        src = src + rng.normal(0, step, 3)
+        want_i, want_d = g.batch_nearest_neighbor_search(src, max_dist_m=1.0)
+        a0, l0 = anchor.copy(), lb.copy()
+        i, d2, sk = _grid_nn_bounded(g._keys, g._cells, g._start, g._order, g._sp, g._lo,
+                                     g._hi, g.inv_cell, src, 1.0, a0, l0)
+        assert np.array_equal(i, want_i) and np.array_equal(d2, want_d)
+        got_i, got_d = g.nearest_bounded(src, 1.0, anchor, lb)
+        assert np.array_equal(got_i, want_i) and np.array_equal(got_d, want_d)
+        assert np.array_equal(anchor, a0) and np.array_equal(lb, l0)
+        assert (lb[want_i >= 0] == 0).all() and (lb[want_i < 0] > 1.0).all()
+        skipped += sk
+    assert skipped > 1000  # the bounds do skip searches (400 far queries x 11 iterations)
+
+
 def test_voxel_table_growth_and_sample_are_first_seen() -> None:
     rng = np.random.default_rng(5)
     xyz = rng.uniform(-60, 60, (200_000, 3))  # ~190k voxels of 0.2 m: the table grows twice

@@ -40,7 +40,7 @@ from numba import njit
 from v2xlake.tasks.geometry import so3_exp
 from v2xlake.tasks.register.backends import PLANE_EPS
 from v2xlake.tasks.register.covisible import covisible_rows, knn_surface
-from v2xlake.tasks.register.voxel import _BIAS, first_per_cell
+from v2xlake.tasks.register.voxel import _BIAS, VoxelGrid, first_per_cell
 
 
 @njit(cache=True, nogil=True)
@@ -204,11 +204,16 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
     converged, iterations, used = False, 0, 0
     max_d2 = max_correspondence_m**2
     d2: np.ndarray | None = None
+    # the lower bounds of the points without correspondence (VoxelGrid.nearest_bounded)
+    anchor, lb = np.zeros((len(sp), 3)), np.zeros(len(sp))
     while iterations < max_iterations:
         iterations += 1
         q = sp @ T[:3, :3].T + T[:3, 3]
-        nn, d2 = t_tree.batch_nearest_neighbor_search(  # type: ignore[attr-defined]
-            q, num_threads=num_threads, max_dist_m=max_correspondence_m)
+        if isinstance(t_tree, VoxelGrid):
+            nn, d2 = t_tree.nearest_bounded(q, max_correspondence_m, anchor, lb)
+        else:
+            nn, d2 = t_tree.batch_nearest_neighbor_search(  # type: ignore[attr-defined]
+                q, num_threads=num_threads, max_dist_m=max_correspondence_m)
         nn = np.asarray(nn, dtype=np.int64)
         d2 = np.asarray(d2, dtype=np.float64)
         close = np.flatnonzero(d2 <= max_d2)

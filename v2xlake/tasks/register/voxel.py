@@ -318,6 +318,78 @@ def _grid_knn(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.
 
 
 @njit(cache=True, nogil=True)
+def _grid_nn_bounded(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.ndarray,
+                     sp: np.ndarray, lo: np.ndarray, hi: np.ndarray, inv_cell: float,
+                     q: np.ndarray, max_d2: float, anchor: np.ndarray, lb: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`_grid_knn` with k = 1 for a query set that moves a little between calls (the
+    source of a GICP iteration). A query that finds nothing within ``sqrt(max_d2)`` records
+    a lower bound on its distance to the cloud (``lb``) and where it was (``anchor``); while
+    the query stays close enough to its anchor that ``lb`` minus the move still exceeds the
+    search radius, it cannot find anything either and is not searched (triangle
+    inequality). ``lb`` 0: no bound. Results are those of the plain search; also returns the
+    number of queries skipped."""
+    nq = q.shape[0]
+    out_i = np.full(nq, -1, dtype=np.int64)
+    out_d = np.full(nq, np.inf)
+    shift = np.uint64(64 - int(np.log2(len(keys))))
+    cell = 1.0 / inv_cell
+    max_d = np.sqrt(max_d2)
+    skipped = 0
+    for t in range(nq):
+        x, y, z = q[t, 0], q[t, 1], q[t, 2]
+        if lb[t] > 0.0:
+            ax, ay, az = x - anchor[t, 0], y - anchor[t, 1], z - anchor[t, 2]
+            # the margin covers rounding in lb and in the move (both ~1e-15 relative)
+            if lb[t] - np.sqrt(ax * ax + ay * ay + az * az) > max_d * (1.0 + 1e-9) + 1e-9:
+                skipped += 1
+                continue
+        cx, cy, cz = _cell_of(x, y, z, inv_cell)
+        m0 = _face_margin(x, y, z, inv_cell) * cell
+        bd = max_d2
+        bi = -1
+        low = np.inf  # lower bound on every squared distance not below bd
+        s = 0
+        while True:
+            if s > 0:
+                lbs = (s - 1) * cell + m0
+                if lbs * lbs > bd:
+                    low = min(low, lbs * lbs)
+                    break
+            for ix in range(max(cx - s, lo[0]), min(cx + s, hi[0]) + 1):
+                for iy in range(max(cy - s, lo[1]), min(cy + s, hi[1]) + 1):
+                    za, zb, zs = _shell_z(ix, iy, cx, cy, cz, s, max(cz - s, lo[2]),
+                                          min(cz + s, hi[2]))
+                    for iz in range(za, zb + 1, zs):
+                        if s > 0:
+                            cd = _cell_d2(x, y, z, ix, iy, iz, cell)
+                            if cd > bd:
+                                low = min(low, cd)
+                                continue
+                        c = _probe(keys, cells, shift, ix, iy, iz)
+                        if c < 0:
+                            continue
+                        for j in range(start[c], start[c + 1]):
+                            dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
+                            d2 = dx * dx + dy * dy + dz * dz
+                            if d2 < bd:
+                                bd, bi = d2, j
+                            else:
+                                low = min(low, d2)
+            if _covered(cx, cy, cz, s, lo, hi):
+                break
+            s += 1
+        if bi >= 0:
+            out_i[t] = order[bi]
+            out_d[t] = bd
+            lb[t] = 0.0
+        else:
+            lb[t] = np.sqrt(low)  # inf: an empty cloud around it, nothing anywhere
+            anchor[t, 0], anchor[t, 1], anchor[t, 2] = x, y, z
+    return out_i, out_d, skipped
+
+
+@njit(cache=True, nogil=True)
 def first_per_cell(pts: np.ndarray, inv_cell: float) -> np.ndarray:
     """Index of the first point of each occupied cell, in input order (so ascending): one
     hashing pass where ``np.unique`` of the cell keys sorts."""
@@ -381,6 +453,26 @@ class VoxelGrid:
         i, d2 = _grid_knn(self._keys, self._cells, self._start, self._order, self._sp,
                           self._lo, self._hi, self.inv_cell, qq, 1, float(max_dist_m) ** 2)
         return i[:, 0], d2[:, 0]
+
+    def nearest_bounded(self, q: np.ndarray, max_dist_m: float, anchor: np.ndarray,
+                        lb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`batch_nearest_neighbor_search` within ``max_dist_m`` for a query set
+        searched again and again as it moves a little (a GICP source, iteration after
+        iteration): ``anchor`` (N, 3) and ``lb`` (N,) float64, zeros at first, carry from
+        one call to the next a lower bound on the distance of the queries that found
+        nothing, so those that cannot find anything now are not searched. WHY: a far pair
+        (a roadside unit 70 m away) aligns thousands of centroids that have no
+        correspondence, each searching its 27 cells in every iteration. The results are
+        the plain search's."""
+        qq = self._q(q)
+        if self.n == 0:
+            return np.full(len(qq), -1, dtype=np.int64), np.full(len(qq), np.inf)
+        if anchor.shape != qq.shape or lb.shape != (len(qq),):
+            raise ValueError("anchor / lb must be (N, 3) / (N,) for N queries")
+        i, d2, _ = _grid_nn_bounded(self._keys, self._cells, self._start, self._order,
+                                    self._sp, self._lo, self._hi, self.inv_cell, qq,
+                                    float(max_dist_m) ** 2, anchor, lb)
+        return i, d2
 
     def batch_knn_search(self, q: np.ndarray, k: int, num_threads: int = 1
                          ) -> tuple[np.ndarray, np.ndarray]:
