@@ -356,6 +356,30 @@ def _grid_nn_bounded(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, ord
                 if lbs * lbs > bd:
                     low = min(low, lbs * lbs)
                     break
+            if s == 1 and bd < cell * cell:
+                # something found within a cell: only the neighbours its ball reaches (the
+                # same cells in the same order as below, the rest would be skipped there)
+                r = np.sqrt(bd) * (1.0 + 1e-9) + 1e-12
+                x0, x1 = _cell_of(x - r, y - r, z - r, inv_cell), _cell_of(x + r, y + r, z + r,
+                                                                             inv_cell)
+                for ix in range(max(cx - 1, x0[0]), min(cx + 1, x1[0]) + 1):
+                    for iy in range(max(cy - 1, x0[1]), min(cy + 1, x1[1]) + 1):
+                        for iz in range(max(cz - 1, x0[2]), min(cz + 1, x1[2]) + 1):
+                            if ix == cx and iy == cy and iz == cz:
+                                continue
+                            if _cell_d2(x, y, z, ix, iy, iz, cell) > bd:
+                                continue
+                            c = _probe(keys, cells, shift, ix, iy, iz)
+                            if c < 0:
+                                continue
+                            for j in range(start[c], start[c + 1]):
+                                dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
+                                d2 = dx * dx + dy * dy + dz * dz
+                                if d2 < bd:
+                                    bd, bi = d2, j
+                low = min(low, bd)  # a miss here (search radius under a cell): no slack
+                s = 2  # the shell-2 test above ends it: the ball lies within shell 1
+                continue
             for ix in range(max(cx - s, lo[0]), min(cx + s, hi[0]) + 1):
                 for iy in range(max(cy - s, lo[1]), min(cy + s, hi[1]) + 1):
                     za, zb, zs = _shell_z(ix, iy, cx, cy, cz, s, max(cz - s, lo[2]),
