@@ -283,14 +283,25 @@ def _grid_knn(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.
         bi = out_i[t]
         s = 0
         while True:
+            x0, y0, z0 = max(cx - s, lo[0]), max(cy - s, lo[1]), max(cz - s, lo[2])
+            x1, y1, z1 = min(cx + s, hi[0]), min(cy + s, hi[1]), min(cz + s, hi[2])
             if s > 0:
+                w = bd[k - 1]
                 lb = (s - 1) * cell + m0
-                if lb * lb > bd[k - 1]:  # free slots hold the bound
+                if lb * lb > w:  # free slots hold the bound
                     break
-            for ix in range(max(cx - s, lo[0]), min(cx + s, hi[0]) + 1):
-                for iy in range(max(cy - s, lo[1]), min(cy + s, hi[1]) + 1):
-                    za, zb, zs = _shell_z(ix, iy, cx, cy, cz, s, max(cz - s, lo[2]),
-                                          min(cz + s, hi[2]))
+                if w * inv_cell * inv_cell < 1e12:
+                    # only the cells the ball of the k-th distance reaches: the others would
+                    # be skipped below (farther than it), in the same order (WHY: a sparse
+                    # region's query reaching the next shell looped over its 98 cells)
+                    r = np.sqrt(w) * (1.0 + 1e-9) + 1e-12
+                    a0, a1, a2 = _cell_of(x - r, y - r, z - r, inv_cell)
+                    b0, b1, b2 = _cell_of(x + r, y + r, z + r, inv_cell)
+                    x0, y0, z0 = max(x0, a0), max(y0, a1), max(z0, a2)
+                    x1, y1, z1 = min(x1, b0), min(y1, b1), min(z1, b2)
+            for ix in range(x0, x1 + 1):
+                for iy in range(y0, y1 + 1):
+                    za, zb, zs = _shell_z(ix, iy, cx, cy, cz, s, z0, z1)
                     for iz in range(za, zb + 1, zs):
                         if s > 0 and _cell_d2(x, y, z, ix, iy, iz, cell) > bd[k - 1]:
                             continue
