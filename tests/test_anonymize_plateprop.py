@@ -23,6 +23,7 @@ from v2xlake.tasks.anonymize.plateprop import (
     edge_bands,
     glyph_transitions,
     join_bands,
+    plate_band,
     row_transitions,
 )
 
@@ -84,8 +85,49 @@ def test_glyph_transitions_beside_a_dark_body_and_off_the_middle_row() -> None:
     assert len(t) == 14 and t[-2:].max() <= 2  # the body below: no glyphs
     # the closer look's scale follows the 5 glyph rows, not the 14 px band (that gave x2)
     assert band_scale(box, high, 1.0, 28.0, 3.0, 10) == 3.0
-    # a band over half of line_px tall (a large plate's) keeps the Otsu test: not upscaled
-    assert band_scale(box, high, 1.0, 20.0, 3.0, 10) == 1.0
+    # a band over half of line_px tall (a large plate's) whose glyphs fill over half of it
+    # keeps the Otsu test: not upscaled; one whose glyph row is at most half of it is scaled
+    # for the glyph row (+2 px: 7 px to 20 px)
+    assert band_scale(box, band, 1.0, 20.0, 3.0, 10) == 1.0
+    assert abs(band_scale(box, high, 1.0, 20.0, 3.0, 10) - 20.0 / 7.0) < 1e-6
+
+
+def test_a_tall_band_is_scaled_for_its_glyph_row() -> None:
+    """A 22 px band (over half ``line_px``) whose glyphs are 6 of its rows (a 40 px plate's
+    band with the car's lamp or trim above): scaled so that its glyph row, not the band, is
+    ``line_px`` tall (before: 28 / 22 = 1.27x at most, and real 40 px plates in such bands
+    were missed); a tall band without a glyph row keeps the band's scale."""
+    band = np.full((22, 60), 60, np.uint8)
+    band[:9] = 200  # the lamp / trim: plain
+    band[10:21, 6:54] = 215
+    for i in range(7):
+        band[13:19, 9 + 6 * i] = 40
+        band[13:19, 11 + 6 * i] = 40
+    box = (0.0, 0.0, 60.0, 22.0)
+    assert band_scale(box, band, 1.0, 28.0, 3.0, 10) == 3.0
+    plain = band.copy()
+    plain[13:19] = 215
+    assert band_scale(box, plain, 1.0, 28.0, 3.0, 10) <= 28.0 / 22.0
+
+
+def test_plate_band_grows_part_of_a_glyph_row_to_a_plate_s_text() -> None:
+    """A band over the first glyphs of a row (the rest touched the bumper) is grown evenly
+    to ``text_aspect`` glyph heights, so that its crop holds the whole plate; a band as wide
+    already, one not narrower than ``below`` and ``text_aspect`` 0 are left as they are."""
+    gray = np.full((30, 120), 200, np.uint8)
+    for x in range(20, 72, 4):
+        gray[10:17, x : x + 2] = 30
+    part = (20.0, 9.0, 40.0, 18.0)
+    grown = plate_band(part, gray, 5.6)
+    assert grown[1:4:2] == part[1:4:2]
+    assert abs((grown[0] + grown[2]) / 2 - 30.0) < 1e-6  # both sides evenly
+    assert 38.0 <= grown[2] - grown[0] <= 50.0  # 5.6 x (7 glyph rows + 1)
+    assert plate_band(part, gray, 0.0) == part
+    assert plate_band(part, gray, 5.6, below=20.0) == part
+    whole = (20.0, 9.0, 72.0, 18.0)
+    assert plate_band(whole, gray, 5.6) == whole
+    edge = plate_band((0.0, 9.0, 10.0, 18.0), gray, 5.6)
+    assert edge[0] == 0.0  # clipped to the frame
 
 
 def test_join_bands_joins_one_line_not_two() -> None:

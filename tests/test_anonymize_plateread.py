@@ -66,6 +66,25 @@ def test_low_confidence_fails() -> None:
     assert not _ok("RK-755AJ", conf=0.35) and _ok("RK-755AJ", conf=0.6)
 
 
+def test_a_line_low_in_the_frame_is_judged_on_a_guess() -> None:
+    """A line lower than ``small_h`` px in the frame (a ~30 px plate) keeps symbols from
+    ``small_char_conf`` and needs no mean confidence (real 30 px plates: '14981' at 0.44,
+    '8AT' at 0.25 were rejected); the rules that tell words, dates and stripes from plates
+    still hold there, and a line as low in the view but larger in the frame is read as
+    before."""
+    guess = Reading("14981", (0.5, 0.5, 0.27, 0.3, 0.46))
+    faint = Reading("8AT", (0.22, 0.25, 0.27))
+    assert CFG.small_h > 8.0
+    for r in (guess, faint):
+        assert not plate_reading_ok(r, 3.6, CFG)[0]
+        assert not plate_reading_ok(r, 3.6, CFG, frame_h=CFG.small_h + 1)[0]
+        assert plate_reading_ok(r, 3.6, CFG, frame_h=8.0)[0]
+    for text in ("CITROEN", "NORTH", "12:30:45", "1111111", "", "Berlingo7"):
+        r = Reading(text, (0.9,) * len(text))
+        assert not plate_reading_ok(r, 4.0, CFG, frame_h=8.0)[0], text
+    assert not plate_reading_ok(Reading("8AT", (0.05, 0.05, 0.05)), 3.6, CFG, frame_h=8.0)[0]
+
+
 @pytest.fixture(scope="module")
 def reader() -> PlateReader:
     return PlateReader()

@@ -94,6 +94,12 @@ class Plates(Section):
     read_min_digits: int = Field(
         1, ge=0, description="digits a reading needs (lettering has none; 0 also keeps "
         "vanity plates without digits, 3 of 108 in plates_eu, and brand lettering)")
+    read_small_h: float = Field(
+        10.5, ge=0, description="full-frame plan: a text line lower than this (px in the "
+        "frame; a plate under ~38 px wide) is judged on a guess: its symbols read from a "
+        "confidence of 0.1 and no mean confidence asked; the digit, word, share, date and "
+        "repeat rules still apply. Real 30 px plates pasted into real streets: the reading "
+        "rejected 24 of 38 misses. 0: every line read as the large ones")
     proposal_scale: float = Field(
         0.25, gt=0, le=1, description="full-frame plan: the text pass that proposes plate "
         "crops runs on the frame shrunk by this (it proposes large plates; edge bands propose "
@@ -131,6 +137,11 @@ class Plates(Section):
         "searched natively (their upscaled crops cost the most). Before: crossings of the "
         "band's Otsu threshold along its three middle rows, at 8 (plates 52 / 54, street "
         "bands 38 %), still the test of taller bands")
+    small_text_aspect: float = Field(
+        5.6, ge=0, description="full-frame plan: an upscaled edge band narrower than this "
+        "many glyph heights (a plate's text: EU 7 glyphs ~5.6, US ~3) is widened, both sides "
+        "evenly, to it before its crop is cut (plateprop.plate_band): a small plate's band is "
+        "often only part of its glyph row and its crop cut the other glyphs off. 0: off")
 
 
 class Regions(Section):

@@ -39,7 +39,7 @@ from v2xlake.tasks.anonymize.detectors import (
 from v2xlake.tasks.anonymize.guide import Region
 from v2xlake.tasks.anonymize.params import FromParams, derived
 from v2xlake.tasks.anonymize.params import param as _param
-from v2xlake.tasks.anonymize.plateprop import band_scale, edge_bands
+from v2xlake.tasks.anonymize.plateprop import band_scale, edge_bands, plate_band
 from v2xlake.tasks.anonymize.textplate import TextPlateDetector
 from v2xlake.tasks.geometry import merge_until_stable
 
@@ -168,6 +168,7 @@ class GuidedConfig(FromParams):
     plate_small_line_px: float = _param("plates.small_line_px")
     plate_small_max_scale: float = _param("plates.small_max_scale")
     plate_small_min_transitions: int = _param("plates.small_min_transitions")
+    plate_small_text_aspect: float = _param("plates.small_text_aspect")
     # the guided plan's faces in two stages (``GuidedDetector``'s ``region_first`` given):
     # the int8 copy runs on the region canvases and the safety view; each local maximum of
     # its heat map scoring ``face_proposal_threshold`` is a candidate; one scoring
@@ -775,6 +776,8 @@ class GuidedDetector:
         for b in weak + strong:
             sb = band_scale(b, gray, s, c.plate_small_line_px, c.plate_small_max_scale,
                             c.plate_small_min_transitions)
+            if sb > s:  # an upscaled band: its crop around the plate's whole glyph row
+                b = plate_band(b, gray, c.plate_small_text_aspect, c.plate_line_min_px / s)
             # a band of the stricter pass only for a closer look: at the scan's scale the
             # weaker pass's band around it is searched already (``edge_lines``: both). The
             # line floor at the scan's scale, not the closer look's: a band that narrow
@@ -811,7 +814,8 @@ class GuidedDetector:
                         line[3] / ps, line[4])
                 if self.plate.plate_ok(rect, w):
                     cand.append((line, rect))
-            ok = self.plate.readable_plates(canvas, [ln[:5] for ln, _r in cand])
+            ok = self.plate.readable_plates(canvas, [ln[:5] for ln, _r in cand],
+                                            [r[3] for _ln, r in cand])
             for (line, rect), keep in zip(cand, ok, strict=True):
                 if keep:
                     out.append(Detection("plate", _unmap(self.plate.plate_box(rect), 1.0, 0, 0,

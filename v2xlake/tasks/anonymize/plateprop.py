@@ -14,7 +14,8 @@ per glyph stroke; a plate's 5-8 glyphs give 10-24): ``glyph_transitions``. The m
 (crossings of one Otsu threshold for the band along its three middle rows, at 8) missed a
 plate beside its car's dark body or grille, whose thin grey glyphs stayed on the plate's side
 of the threshold, and one whose glyphs sat off the band's middle. A glyph row split in two
-bands (at its hyphen or emblem) is one band again (``join_bands``). Bands over half
+bands (at its hyphen or emblem) is one band again (``join_bands``); a band over only part
+of the glyph row is grown to a plate's text width (``plate_band``). Bands over half
 ``line_px`` tall (large plates, legible at the scan's scale) keep the Otsu test. The reading
 (``plateread.py``) still decides what is a plate: this only decides where the detector looks
 closer.
@@ -118,21 +119,52 @@ def band_scale(band: Band, gray: np.ndarray, base: float, line_px: float, max_sc
     scale) ``line_px`` tall; real 40 px plates in 13-14 px bands were looked at x2 and
     missed. A taller band (a large plate's, legible already): the test and scale of before,
     ``otsu_transitions`` at least ``large_min_transitions`` and the band ``line_px`` tall
-    (plates_eu through the plan lost 2 of 108 when their crops changed)."""
+    (plates_eu through the plan lost 2 of 108 when their crops changed), unless its glyph
+    row (+2 px) is at most half of it: then the scale that makes the glyph row ``line_px``
+    tall (its floor 0.3 ``line_px``), if larger (real 40 px plates in 21-22 px bands with
+    the car's lamp or trim were looked at 1-1.3x and missed)."""
     bh = band[3] - band[1]
     if line_px <= 0 or bh * base >= line_px or base >= max_scale:
         return base
+    t = row_transitions(gray, band)
+    glyphs = bool(len(t)) and int(t[_middle(len(t), 0.6)].max()) >= min_transitions
     if 2 * bh > line_px:
         s = float(min(max_scale, line_px / max(bh, 1.0)))
         if s <= base or otsu_transitions(gray, band) < large_min_transitions:
-            return base
-        return s
-    t = row_transitions(gray, band)
-    if not len(t) or int(t[_middle(len(t), 0.6)].max()) < min_transitions:
+            s = base
+        if not glyphs:
+            return s
+        # a tall band whose glyph row is a few of its rows (a 40 px plate's 6 px glyphs in a
+        # 21-22 px band with the car's lamp or trim): scaled for its glyph row, not the band
+        gr = glyph_rows(t) + 2.0
+        if gr > 0.5 * bh:
+            return s
+        return float(max(s, min(max_scale, line_px / max(gr, 0.3 * line_px))))
+    if not glyphs:
         return base
     gh = min(bh, max(glyph_rows(t) + 2.0, 0.6 * bh))
     s = float(min(max_scale, line_px / max(gh, 1.0)))
     return s if s > base else base
+
+
+def plate_band(band: Band, gray: np.ndarray, text_aspect: float, below: float = np.inf) -> Band:
+    """A band of a glyph row grown, both sides evenly, to the width of a plate's text
+    (``text_aspect`` x its glyph height, ``glyph_rows`` + 1 px) when it is narrower: a small
+    plate's band is often only part of its glyph row (the rest touches the bumper's chrome or
+    is under the edge threshold), and the crop around that part cuts the plate's other
+    glyphs off (read as no plate, or not found). Only bands narrower than ``below`` (px;
+    the caller's floor for a line: a band that narrow was dropped, so no crop that found a
+    plate changes; growing every upscaled band added a third to the upscaled crops' pixels
+    of a street frame, over the plan's budget). ``text_aspect`` 0: the band as it is."""
+    if text_aspect <= 0 or band[2] - band[0] >= below:
+        return band
+    t = row_transitions(gray, band)
+    want = text_aspect * (glyph_rows(t) + 1.0)
+    w = band[2] - band[0]
+    if not len(t) or w >= want:
+        return band
+    g = 0.5 * (want - w)
+    return (max(0.0, band[0] - g), band[1], min(float(gray.shape[1]), band[2] + g), band[3])
 
 
 def join_bands(bands: list[Band], gap: float = 1.5, max_h: float = 14.0,

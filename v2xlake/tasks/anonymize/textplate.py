@@ -170,12 +170,15 @@ class TextPlateDetector:
         c = self.config
         return db_lines(self.prob_map(view), c.pixel_threshold, c.box_threshold, c.unclip_ratio)
 
-    def readable_plates(self, view: np.ndarray, lines: list[tuple[float, ...]]) -> list[bool]:
-        """Per text line of ``view`` (view pixels): does its reading look like a plate? (all
-        True without a reader; lines too small to read are not judged)."""
+    def readable_plates(self, view: np.ndarray, lines: list[tuple[float, ...]],
+                        frame_h: list[float] | None = None) -> list[bool]:
+        """Per text line of ``view`` (view pixels; ``frame_h``: their heights in the frame
+        when the view is scaled): does its reading look like a plate? (all True without a
+        reader; lines too small to read are not judged)."""
         if self.reader is None or not lines:
             return [True] * len(lines)
-        return [ok for ok, _why, _r in self.reader.judge(view, [ln[:5] for ln in lines])]
+        return [ok for ok, _why, _r in self.reader.judge(view, [ln[:5] for ln in lines],
+                                                         frame_h)]
 
     def plate_ok(self, rect: tuple[float, ...], frame_w: int) -> bool:
         """The plate geometry checks on one text line (original pixels)."""
