@@ -97,7 +97,8 @@ class Plates(Section):
     read_small_h: float = Field(
         10.5, ge=0, description="full-frame plan: a text line lower than this (px in the "
         "frame; a plate under ~38 px wide) is judged on a guess: its symbols read from a "
-        "confidence of 0.1 and no mean confidence asked; the digit, word, share, date and "
+        "confidence of 0.1, no mean confidence asked, and a reading without a digit "
+        "rejected only when read at read_min_conf (a word); the word, share, date and "
         "repeat rules still apply. Real 30 px plates pasted into real streets: the reading "
         "rejected 24 of 38 misses. 0: every line read as the large ones")
     proposal_scale: float = Field(

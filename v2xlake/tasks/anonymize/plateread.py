@@ -111,9 +111,10 @@ def plate_reading_ok(r: Reading, aspect: float, cfg: PlateReadConfig,
     side) wide and ``frame_h`` px high in the frame. A line lower than ``small_h`` (a plate
     ~30 px wide) is read with every symbol from ``small_char_conf`` and no mean confidence:
     real 30 px plates pasted into real streets were found by the detector and then rejected
-    by their reading 24 times in 38 misses ('14981' at 0.44, '8AT' at 0.22-0.27), while the
-    lettering around plates that small reads as confident words (CITROEN, NORTH, HOLT),
-    which the digit, word and share rules still reject."""
+    by their reading 24 times in 38 misses ('14981' at 0.44, '8AT' at 0.22-0.27, 'POKE'
+    at 0.44), while the lettering around plates that small reads as sure words (CITROEN,
+    NORTH, HOLT at 0.94-1.0): there a reading without a digit is rejected only when its
+    plate symbols reach ``min_conf``; the word, share, date and repeat rules still apply."""
     small = frame_h < cfg.small_h
     min_char_conf = cfg.small_char_conf if small else cfg.min_char_conf
     min_conf = 0.0 if small else cfg.min_conf
@@ -125,7 +126,10 @@ def plate_reading_ok(r: Reading, aspect: float, cfg: PlateReadConfig,
         return False, f"{n} plate symbols"
     if n > cfg.max_chars:
         return False, f"{n} plate symbols > {cfg.max_chars}"
-    if sum(ch.isdigit() for ch in text) < cfg.min_digits:
+    # a small line's reading without a digit is lettering only when it is read as surely as
+    # a plate must be (``min_conf``): a guess's digits are guesses too
+    if (sum(ch.isdigit() for ch in text) < cfg.min_digits
+            and not (small and float(np.mean(plate)) < cfg.min_conf)):
         return False, "no digit"
     if float(np.mean(plate)) < min_conf:
         return False, f"confidence {np.mean(plate):.2f}"
