@@ -23,6 +23,7 @@ from v2xlake.tasks.anonymize.plateprop import (
     edge_bands,
     glyph_transitions,
     join_bands,
+    keep_within,
     plate_band,
     row_transitions,
 )
@@ -130,6 +131,17 @@ def test_plate_band_grows_part_of_a_glyph_row_to_a_plate_s_text() -> None:
     assert edge[0] == 0.0  # clipped to the frame
 
 
+def test_keep_within_keeps_scan_scale_looks_then_the_most_glyph_like() -> None:
+    """Over budget: every look at the scan's scale (rank inf), then the closer looks by
+    glyph alternations, most first, while the total fits; one that does not fit is skipped,
+    a smaller one after it still taken."""
+    area = [40.0, 30.0, 20.0, 25.0, 10.0]
+    rank = [np.inf, 12.0, 20.0, 16.0, 10.0]
+    assert keep_within(area, rank, 100.0) == [True, False, True, True, True]
+    assert keep_within(area, rank, 40.0) == [True, False, False, False, False]
+    assert keep_within(area, rank, 1000.0) == [True] * 5
+
+
 def test_join_bands_joins_one_line_not_two() -> None:
     left, right = (100.0, 50.0, 126.0, 59.0), (135.0, 50.0, 153.0, 58.0)
     assert join_bands([left, right]) == [(100.0, 50.0, 153.0, 59.0)]  # 9 px apart, 8-9 tall
@@ -204,3 +216,30 @@ def test_small_real_plates_found_by_the_closer_look() -> None:
             found[name] += int(hit[0])
     print(f"40 px real plates in a real street: {found}")
     assert found["on"] >= 5 and found["off"] < found["on"], found
+
+
+@requires_real_data("plates_eu", "images/street_pjlab_sensorx2car_0.png")
+def test_three_cars_small_plates_in_one_real_frame() -> None:
+    """Three real cars' photos (plates 40 px wide) side by side along the lower edge of one
+    real 1392 x 512 street frame: their fronts make so many bands that the closer looks'
+    crops are over the plan's budget. All three plates found: the looks with the most glyph
+    alternations are kept within the budget (``keep_within``) beside the whole frame at its
+    own scale; before, only the whole frame was searched and 1 of 3 was found (each car
+    alone: found)."""
+    from v2xlake.tasks.anonymize.build import build_detector
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
+    from v2xlake.tasks.anonymize.evaluate import match, plates_eu
+
+    img = cv2.imread(str(REAL / "images" / "street_pjlab_sensorx2car_0.png"))
+    truth = []
+    for k, item in enumerate(plates_eu(REAL / "plates_eu")[1::9][:3]):
+        photo = cv2.imread(item.path)
+        (kind, (x0, y0, x1, y1)), = item.truth
+        s = 40.0 / (x1 - x0)
+        small = cv2.resize(photo, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+        sh, sw = small.shape[:2]
+        ox, oy = 10 + 270 * k, img.shape[0] - sh - 10
+        img[oy : oy + sh, ox : ox + sw] = small
+        truth.append((kind, (x0 * s + ox, y0 * s + oy, x1 * s + ox, y1 * s + oy)))
+    hit, _ = match(truth, build_detector(AnonymizeConfig())._plates_proposed(img), 0.3)
+    assert hit.all(), hit

@@ -202,7 +202,7 @@ def test_small_real_plates_read_on_a_guess() -> None:
     the plan's cost follows the frame's pixels), the full-frame plan: their lines are found
     but their readings are guesses (glyphs of 4-5 px). Judged as guesses (``small_h``) at
     least two more are kept than read as large lines (``small_h`` 0, before): measured 3
-    and 0; over the bench's 108 pasted 30 px plates 41 -> 48 with no new false plate."""
+    and 0; over the bench's 108 pasted 30 px plates 41 -> 47 with no new false plate."""
     from dataclasses import replace
 
     from v2xlake.tasks.anonymize.build import build_detector

@@ -39,7 +39,13 @@ from v2xlake.tasks.anonymize.detectors import (
 from v2xlake.tasks.anonymize.guide import Region
 from v2xlake.tasks.anonymize.params import FromParams, derived
 from v2xlake.tasks.anonymize.params import param as _param
-from v2xlake.tasks.anonymize.plateprop import band_scale, edge_bands, plate_band
+from v2xlake.tasks.anonymize.plateprop import (
+    band_scale,
+    edge_bands,
+    glyph_transitions,
+    keep_within,
+    plate_band,
+)
 from v2xlake.tasks.anonymize.textplate import TextPlateDetector
 from v2xlake.tasks.geometry import merge_until_stable
 
@@ -138,7 +144,9 @@ class GuidedConfig(FromParams):
     face_look_batch: int = 32
     face_look_margin: int = 0
     # plate crops covering more than this share of the frame: the plate pass runs over the
-    # whole frame instead (packing nearly every pixel into canvases costs more than that)
+    # whole frame at the scan's scale instead (packing nearly every pixel into canvases
+    # costs more than that), and the closer looks of the bands with the most glyph
+    # alternations are kept within the share (``plateprop.keep_within``)
     plate_proposal_max_share: float = 0.5
     plate_proposal_scale: float = _param("plates.proposal_scale")
     # text probability of a proposed line's pixels
@@ -787,6 +795,8 @@ class GuidedDetector:
             low = (b[3] - b[1]) * s * c.plate_small_max_scale < c.plate_small_line_px
             if (b[2] - b[0]) * s >= c.plate_line_min_px and (sb > s or (b in weak_set and not low)):
                 scaled.append((b, sb))
+        # the closer looks' priority when their crops are over budget (``keep_within``)
+        rank = [glyph_transitions(gray, b) if sb > s else np.inf for b, sb in scaled]
         items = []
         for (x0, y0, x1, y1), sb in scaled:
             # the pad is ``plate_proposal_pad_px`` at the scan's scale (the detector's context),
@@ -798,9 +808,18 @@ class GuidedDetector:
                           sb, 0.0, 0.0])
         pieces = [_crop_piece(k, x0, y0, x1, y1, sc, (lo, hi))
                   for k, x0, y0, x1, y1, sc, lo, hi in _merge_crops(items)]
-        if sum(p.out_w * p.out_h for p in pieces) > c.plate_proposal_max_share * w * h * s * s:
-            return self._plates_full(image, scan)
+        budget = c.plate_proposal_max_share * w * h * s * s
         out: list[Detection] = []
+        if sum(p.out_w * p.out_h for p in pieces) > budget:
+            # the whole frame at the scan's scale, and of the closer looks those of the most
+            # glyph-like bands within the budget (``keep_within``)
+            out = self._plates_full(image, scan)
+            closer = [(it, (it[3] - it[1]) * (it[4] - it[2]) * it[5] ** 2, r)
+                      for it, r in zip(items, rank, strict=True) if np.isfinite(r)]
+            kept = keep_within([a for _i, a, _r in closer], [r for _i, _a, r in closer], budget)
+            pieces = [_crop_piece(k, x0, y0, x1, y1, sc, (lo, hi))
+                      for k, x0, y0, x1, y1, sc, lo, hi in _merge_crops(
+                          [it for (it, _a, _r), k in zip(closer, kept, strict=True) if k])]
         for canvas, pcs, pos in mosaics(image, pieces, replace(c, pack_fit=True)):
             cand = []
             for line in self.plate.lines_view(canvas):
