@@ -102,3 +102,38 @@ def test_real_plates_in_a_real_streets_band_are_found() -> None:
         found[wd] = int(hit.sum())
     # measured: 5 and 4 of 6 (x1.6); searched at x1 (band_plate_px 20): 2 and 2
     assert found[40] >= 5 and found[30] >= 3, found
+
+
+def _glyph_row(gray: np.ndarray, x: int, y: int, w: int, h: int, step: int) -> None:
+    """A plate-like patch: a white rectangle ``w`` x ``h`` with dark vertical strokes every
+    ``step`` px (a row of glyphs as the edge bands see it)."""
+    gray[y : y + h, x : x + w] = 230
+    for i in range(x + 2, x + w - 2, step):
+        gray[y + 1 : y + h - 1, i : i + max(1, step // 2)] = 30
+
+
+def test_the_band_look_crops_only_small_lines_inside_the_band() -> None:
+    """The far band's closer look (``band_look_crops``): a 26 px glyph row in the band is cut
+    out at the scale that makes its edge band ``band_look_px`` wide (capped at
+    ``band_look_max_scale``), with context around it; a 120 px one (legible at the band's
+    own scale, the band pass saw it) and a small one below the band get no crop, nor does
+    anything with the look off."""
+    from dataclasses import replace
+
+    from v2xlake.tasks.anonymize.guided import band_look_crops
+
+    gray = np.full((1080, 1920), 100, np.uint8)
+    _glyph_row(gray, 500, 480, 26, 6, 3)
+    _glyph_row(gray, 1200, 470, 120, 16, 8)
+    _glyph_row(gray, 900, 800, 26, 6, 3)
+    cfg = GuidedConfig()
+    band = _band(1920.0)
+    crops = band_look_crops(gray, band, cfg)
+    assert len(crops) >= 1
+    for kind, x0, y0, x1, y1, s, lo, hi in crops:
+        assert kind == "plate" and (lo, hi) == (20.0, 62.0)
+        assert x0 < 500 and x1 > 526 and y0 < 480 and y1 > 486  # the small row, with context
+        assert x1 < 1200 and y1 < 600  # not the wide row, not the row below the band
+        assert 2.0 <= s <= cfg.band_look_max_scale
+    assert band_look_crops(gray, band, replace(cfg, band_look_px=0.0)) == []
+    assert band_look_crops(np.full((1080, 1920), 100, np.uint8), band, cfg) == []

@@ -390,10 +390,13 @@ def main() -> None:
         cv2.setNumThreads(1)
         band_plates([int(s) for s in args.lidar_seeds.split(",")],
                     n_plates=24 if args.quick else 60, variants={
-                        "default (band_plate_px 32)": AnonymizeConfig(),
-                        "band_plate_px 42": AnonymizeConfig(clusters={"band_plate_px": 42}),
-                        "band_plate_px 64 (x3.2, pieces side by side)": AnonymizeConfig(
-                            clusters={"band_plate_px": 64})})
+                        "default (band_plate_px 32, closer look band_look_px 80)":
+                            AnonymizeConfig(),
+                        "no closer look (band_look_px 0, before)": AnonymizeConfig(
+                            clusters={"band_look_px": 0}),
+                        "band_look_px 100": AnonymizeConfig(clusters={"band_look_px": 100}),
+                        "band_plate_px 64 (x3.2, pieces side by side), no closer look":
+                            AnonymizeConfig(clusters={"band_plate_px": 64, "band_look_px": 0})})
         return
     if args.clips:
         cv2.setNumThreads(1)

@@ -242,6 +242,15 @@ class Clusters(Section):
         "smallest plate (regions.plate_text_min_px) to this width: the simulator's 20-30 px "
         "plates in the narrow camera were all found from x1.5 (30 px); real plates need "
         "~80 px in the text detector's input (its cost grows with the square of the scale)")
+    band_look_px: float = Field(
+        80.0, ge=0, description="the far band's closer look: where the band (upscaled "
+        "x2) holds a band of glyph edges of a small text line's shape, that place is cut out "
+        "again at the scale that makes the edge band this wide (at most x4), when that is "
+        "more than 1.25x the band's own scale, and searched by the text detector in "
+        "canvases: the cost follows the far plates, not the band's area. Why: the band's "
+        "own scale (band_plate_px) suits the simulator's crisp plates, real 30 px plates "
+        "need ~90-120 px in the detector's input (tight crops of real plates_eu plates "
+        "pasted into the band: found at x2-x6 at 30 px, rarely at 20 px even at x5). 0: off")
     ground_isolated_m: float = Field(
         5.0, ge=0, description="a ground cell (2 m) with fewer than two occupied neighbours "
         "is a lone object's own returns (the road around it unseen): its ground is at most "
