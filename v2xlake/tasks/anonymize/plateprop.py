@@ -58,7 +58,15 @@ def row_transitions(gray: np.ndarray, band: Band, contrast: float = 0.1) -> np.n
     dead = contrast * float(hi - lo) + 2.0
     k = max(3, core.shape[0] | 1)
     local = core - cv2.blur(core, (k, 1), borderType=cv2.BORDER_REPLICATE)
-    return np.array([np.count_nonzero(np.diff(np.sign(r)[np.abs(r) > dead])) for r in local])
+    # per row: the sign of each pixel beyond the dead zone, a pixel within it keeping the
+    # last one (forward fill along the row); a change between two set states is one
+    # alternation (one array operation for the band, not one per row: every band of the
+    # frame is tested)
+    state = np.where(np.abs(local) > dead, np.sign(local), 0.0)
+    cols = np.arange(state.shape[1])
+    last = np.maximum.accumulate(np.where(state != 0, cols, 0), axis=1)
+    filled = np.take_along_axis(state, last, axis=1)
+    return np.count_nonzero((filled[:, 1:] != filled[:, :-1]) & (filled[:, :-1] != 0), axis=1)
 
 
 def _middle(n: int, share: float) -> slice:
