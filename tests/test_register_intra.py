@@ -121,7 +121,7 @@ def test_p64_qt_perturbed_manual_calibration() -> None:
     minimum from every start (within 2 cm / 0.2 deg of each other) and the manual
     calibration lies within 3 of its reported 1-sigma.
 
-    Measured (README): that minimum is 0.76 deg / 13.9 cm from the manual calibration (made
+    Measured (docs/registration.md): that minimum is 0.76 deg / 13.9 cm from the manual calibration (made
     rigid: the file's 3x3 carries a 1.1% scale, which, kept, put it 0.8 deg / 19.5 cm away),
     and this pair does not pin the extrinsic down to the issue's 2 cm / 0.2 deg: GICP on half
     of the QT64 scan moves 0.4-0.8 deg / 4-10 cm, point-to-plane ICP lands 0.1 deg / 2 cm
@@ -178,7 +178,7 @@ def test_p64_qt_offset_is_not_ours() -> None:
       car behind it): dropping every QT64 point within 3 m moves the minimum by 0.01 deg /
       0.8 cm;
     * ground vs structure: either alone lands 11.5-11.7 cm from the manual calibration too.
-    (Measured besides, README: deskewing both scans at any speed up to 4 m/s moves the
+    (Measured besides, docs/registration.md: deskewing both scans at any speed up to 4 m/s moves the
     minimum by up to 10 cm but never onto the manual calibration; the two scans' clocks are
     2.8 years apart, so their pairing in time cannot be checked.)"""
     from scipy.spatial import cKDTree

@@ -276,7 +276,7 @@ def blurred_share(box: Box, blurred: Sequence[tuple[int, int, int, int]],
 # ------------------------------------------------------------------ simulator ground truth
 # Sizes from which the default setting is *reliable* (recall >= 0.95 at IoU >= 0.3), measured
 # on the simulator's visible boxes at 640x360, 1920x1080 and 3840x2160 with the guided plan
-# (tests/test_anonymize_sim.py) and on real faces pasted into street frames (README.md).
+# (tests/test_anonymize_sim.py) and on real faces pasted into street frames (docs/anonymization.md).
 # Faces: box height; plates: box width, in pixels of the original frame.
 FACE_MIN_PX = 16  # guided plan, any frame size
 PLATE_MIN_PX = 20  # guided plan, any frame size
