@@ -193,7 +193,7 @@ def test_small_real_plates_found_by_the_closer_look() -> None:
     frames) fewer. The street frame alone gets no plate."""
     from v2xlake.tasks.anonymize.build import build_detector
     from v2xlake.tasks.anonymize.config import AnonymizeConfig
-    from v2xlake.tasks.anonymize.evaluate import match, plates_eu
+    from v2xlake.tasks.anonymize.evaluate import match, paste_plate_photo, plates_eu
 
     base = cv2.imread(str(REAL / "images" / "street_pjlab_sensorx2car_0.png"))
     eu = plates_eu(REAL / "plates_eu")[4::18][:6]
@@ -202,15 +202,8 @@ def test_small_real_plates_found_by_the_closer_look() -> None:
     assert not on._plates_proposed(base)
     found = {"on": 0, "off": 0}
     for k, item in enumerate(eu):
-        photo = cv2.imread(item.path)
-        (kind, (x0, y0, x1, y1)), = item.truth
-        s = 40.0 / (x1 - x0)
-        small = cv2.resize(photo, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
         img = base.copy()
-        sh, sw = small.shape[:2]
-        ox, oy = 100 + 190 * k, base.shape[0] - sh - 10
-        img[oy : oy + sh, ox : ox + sw] = small
-        truth = [(kind, (x0 * s + ox, y0 * s + oy, x1 * s + ox, y1 * s + oy))]
+        truth = [paste_plate_photo(img, item, 40.0, x=100 + 190 * k)]
         for name, det in (("on", on), ("off", off)):
             hit, _ = match(truth, det._plates_proposed(img), 0.3)
             found[name] += int(hit[0])
@@ -228,18 +221,11 @@ def test_three_cars_small_plates_in_one_real_frame() -> None:
     alone: found)."""
     from v2xlake.tasks.anonymize.build import build_detector
     from v2xlake.tasks.anonymize.config import AnonymizeConfig
-    from v2xlake.tasks.anonymize.evaluate import match, plates_eu
+    from v2xlake.tasks.anonymize.evaluate import match, paste_plate_photo, plates_eu
 
     img = cv2.imread(str(REAL / "images" / "street_pjlab_sensorx2car_0.png"))
     truth = []
     for k, item in enumerate(plates_eu(REAL / "plates_eu")[1::9][:3]):
-        photo = cv2.imread(item.path)
-        (kind, (x0, y0, x1, y1)), = item.truth
-        s = 40.0 / (x1 - x0)
-        small = cv2.resize(photo, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
-        sh, sw = small.shape[:2]
-        ox, oy = 10 + 270 * k, img.shape[0] - sh - 10
-        img[oy : oy + sh, ox : ox + sw] = small
-        truth.append((kind, (x0 * s + ox, y0 * s + oy, x1 * s + ox, y1 * s + oy)))
+        truth.append(paste_plate_photo(img, item, 40.0, x=10 + 270 * k))
     hit, _ = match(truth, build_detector(AnonymizeConfig())._plates_proposed(img), 0.3)
     assert hit.all(), hit

@@ -207,7 +207,7 @@ def test_small_real_plates_read_on_a_guess() -> None:
 
     from v2xlake.tasks.anonymize.build import build_detector
     from v2xlake.tasks.anonymize.config import AnonymizeConfig
-    from v2xlake.tasks.anonymize.evaluate import match, plates_eu
+    from v2xlake.tasks.anonymize.evaluate import match, paste_plate_photo, plates_eu
 
     street = cv2.imread(str(REAL / "images" / "street_pjlab_sensorx2car_0.png"))[256:, 464:928]
     det = build_detector(AnonymizeConfig())
@@ -216,15 +216,8 @@ def test_small_real_plates_read_on_a_guess() -> None:
     guess = reader.config
     found = {"guess": 0, "read": 0}
     for item in plates_eu(REAL / "plates_eu")[4::18][:6]:
-        photo = cv2.imread(item.path)
-        (kind, (x0, y0, x1, y1)), = item.truth
-        s = 30.0 / (x1 - x0)
-        small = cv2.resize(photo, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
         img = street.copy()
-        sh, sw = small.shape[:2]
-        ox, oy = (img.shape[1] - sw) // 2, img.shape[0] - sh - 10
-        img[oy : oy + sh, ox : ox + sw] = small
-        truth = [(kind, (x0 * s + ox, y0 * s + oy, x1 * s + ox, y1 * s + oy))]
+        truth = [paste_plate_photo(img, item, 30.0)]
         for name, cfg in (("guess", guess), ("read", replace(guess, small_h=0.0))):
             reader.config = cfg
             hit, _ = match(truth, det._plates_proposed(img), 0.3)

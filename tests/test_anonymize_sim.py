@@ -6,8 +6,8 @@ run_anonymize with the default (guided) plan -> the clean zone's anonymization_a
 matched against ``truth/boxes2d.parquet`` at IoU >= 0.3. The population is what a person
 could identify and what the stage documents as reliable: visible (``occluded`` false) faces
 from ``FACE_MIN_PX`` (16) px tall and plates from ``PLATE_MIN_PX`` (20) px wide; recall >= 0.95
-for each. Smaller objects are measured and reported (docs/anonymization.md) but not asserted. False blurs
-(detections overlapping no true face / plate, visible or not) stay under 0.5 per image.
+for each. Smaller objects are measured and reported (docs/anonymization.md) but not asserted.
+False blurs (detections overlapping no true face / plate, visible or not) stay under 0.5 per image.
 """
 
 from __future__ import annotations

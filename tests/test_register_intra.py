@@ -121,11 +121,11 @@ def test_p64_qt_perturbed_manual_calibration() -> None:
     minimum from every start (within 2 cm / 0.2 deg of each other) and the manual
     calibration lies within 3 of its reported 1-sigma.
 
-    Measured (docs/registration.md): that minimum is 0.76 deg / 13.9 cm from the manual calibration (made
-    rigid: the file's 3x3 carries a 1.1% scale, which, kept, put it 0.8 deg / 19.5 cm away),
-    and this pair does not pin the extrinsic down to the issue's 2 cm / 0.2 deg: GICP on half
-    of the QT64 scan moves 0.4-0.8 deg / 4-10 cm, point-to-plane ICP lands 0.1 deg / 2 cm
-    from GICP and 0.83 deg / 12 cm from the manual one, the reverse direction (QT64 as
+    Measured (docs/registration.md): that minimum is 0.76 deg / 13.9 cm from the manual
+    calibration (made rigid: the file's 3x3 carries a 1.1% scale, which, kept, put it 0.8 deg /
+    19.5 cm away), and this pair does not pin the extrinsic down to the issue's 2 cm / 0.2 deg:
+    GICP on half of the QT64 scan moves 0.4-0.8 deg / 4-10 cm, point-to-plane ICP lands 0.1 deg
+    / 2 cm from GICP and 0.83 deg / 12 cm from the manual one, the reverse direction (QT64 as
     primary) 0.73 deg / 11.8 cm from it. So the honest 1-sigma is ~0.6 deg / 6 cm and the
     default thresholds REFUSE the pair (half-scans disagree); looser ones accept it."""
     p64, qt, manual = _p64_qt()

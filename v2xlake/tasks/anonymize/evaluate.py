@@ -377,6 +377,25 @@ class LabelledImage:
     truth: tuple[tuple[str, Box], ...]
 
 
+def paste_plate_photo(img: np.ndarray, item: LabelledImage, width: float, x: int | None = None,
+                      bottom: int = 10) -> tuple[str, Box]:
+    """Paste the photo of a one-plate ``item`` shrunk (area-averaged, as optics would) so its
+    plate is ``width`` px wide, its lower edge ``bottom`` px above the image's and its left
+    edge at ``x`` (centred when None): how the tests put real plates at a given size into
+    real streets. Returns the pasted plate's kind and box."""
+    photo = cv2.imread(item.path)
+    if photo is None:
+        raise FileNotFoundError(item.path)
+    (kind, (x0, y0, x1, y1)), = item.truth
+    s = width / (x1 - x0)
+    small = cv2.resize(photo, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+    sh, sw = small.shape[:2]
+    ox = (img.shape[1] - sw) // 2 if x is None else x
+    oy = img.shape[0] - sh - bottom
+    img[oy : oy + sh, ox : ox + sw] = small
+    return kind, (x0 * s + ox, y0 * s + oy, x1 * s + ox, y1 * s + oy)
+
+
 def plates_eu(folder: str | os.PathLike[str]) -> list[LabelledImage]:
     """openalpr's ``endtoend/eu`` benchmark as found in ``folder``: ``NAME.txt`` holds
     ``file x y width height text`` for one plate of ``file`` (others may be unlabelled, so
