@@ -3,9 +3,9 @@
 Why: the face network is half of the guided plan's time (py-spy, #22). onnxruntime's static
 int8 quantization (QDQ, per-channel weights, unsigned activations, min-max ranges) runs
 CenterFace 2.6x faster on one AVX2 core (213 -> 81 ms on a 1024 x 512 view), with the recall
-measured before and after in ``tests/test_anonymize_quantized.py`` and the README (equal on
-pasted real faces and the 1080p simulated clip, lower for 16-24 px faces on the 4K clip: so
-``AnonymizeConfig.face_int8`` is off by default). PP-OCRv4's
+measured before and after in ``tests/test_anonymize_quantized.py`` and docs/anonymization.md
+(equal on pasted real faces and the 1080p simulated clip, lower for 16-24 px faces on the 4K clip:
+so ``AnonymizeConfig.face_int8`` is off by default). PP-OCRv4's
 DB detector gains nothing from the same treatment (199 -> 212 ms: its batch norms stay
 unfused), so it stays float.
 
