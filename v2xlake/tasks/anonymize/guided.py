@@ -369,6 +369,14 @@ def edge_pieces(regions: Sequence[Region], shape: tuple[int, ...], cfg: GuidedCo
     return out
 
 
+def band_region_scale(r: Region, cfg: GuidedConfig) -> float:
+    """The far band's own scale: the one that brings its smallest plate to
+    ``band_plate_px`` (within the plan's scale limits); its pieces are cut at it (at most),
+    and its closer looks are taken only where they see more than it."""
+    return float(np.clip(cfg.band_plate_px / max(r.expected_px, 1e-3), cfg.min_scale,
+                         cfg.max_upscale))
+
+
 def _band_pieces(r: Region, w: int, h: int, cfg: GuidedConfig) -> list[Piece]:
     """A far-band strip cut out at the scale that brings its smallest plate to
     ``band_plate_px``; a strip wider than ``max_piece_side`` at that scale in pieces side by
@@ -379,9 +387,7 @@ def _band_pieces(r: Region, w: int, h: int, cfg: GuidedConfig) -> list[Piece]:
     if fb is None:
         return []
     x0, y0, x1, y1 = fb
-    s = float(np.clip(cfg.band_plate_px / max(r.expected_px, 1e-3), cfg.min_scale,
-                      cfg.max_upscale))
-    s = min(s, cfg.max_piece_side / (y1 - y0))
+    s = min(band_region_scale(r, cfg), cfg.max_piece_side / (y1 - y0))
     expected = (r.expected_px, max(r.expected_px, r.expected_max_px))
     if (x1 - x0) * s <= cfg.max_piece_side:
         return [_crop_piece("plate", x0, y0, x1, y1, s, expected)]
@@ -539,8 +545,7 @@ def band_look_crops(gray: np.ndarray, r: Region, cfg: GuidedConfig) -> list[list
     fb = _frame_box(r.box, w, h)
     if fb is None or cfg.band_look_px <= 0:
         return []
-    band_s = float(np.clip(cfg.band_plate_px / max(r.expected_px, 1e-3), cfg.min_scale,
-                           cfg.max_upscale))
+    band_s = band_region_scale(r, cfg)
     lo, hi = r.expected_px, max(r.expected_px, r.expected_max_px)
     items: list[list] = []
     for x0, y0, x1, y1 in band_proposals(gray, fb, cfg):
