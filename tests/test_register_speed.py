@@ -135,7 +135,9 @@ def test_any_number_of_workers_gives_the_same_registrations(
 def test_three_agents_register_the_same_with_their_pairs_in_parallel(tmp_path: Path) -> None:
     """With several other agents each frame's cross pairs run side by side (the first on the
     calling thread, the others on a pool of their own): the registrations must be those of
-    one worker, where they run one after the other."""
+    one worker, where they run one after the other. The third agent is a stationary mast, so
+    its scan is prepared on frame 0 and reused by frames 1 and 2 (``stationary``), with any
+    number of workers; with ``reuse_frames: 1`` each frame has its own scan."""
     import shutil
 
     import tests.test_register_stage as rs
@@ -144,27 +146,67 @@ def test_three_agents_register_the_same_with_their_pairs_in_parallel(tmp_path: P
     from v2xlake.tasks.deskew.stage import run_deskew
     from v2xlake.tasks.register.stage import RegisterConfig, run_register
 
-    # a third agent on black's track with its own LiDAR mount and INS error
-    rs.EXTR["blue"] = lidar_pose(-0.5, -0.2, 2.0, pitch_deg=-0.3, height=1.7)
-    rs.BIAS["blue"] = lidar_pose(-0.1, 0.08, -0.3, height=0.03)
+    # a third agent: a roadside unit on a 4 m mast, its INS exact (surveyed)
+    rs.EXTR["mast"] = lidar_pose(0.0, 0.0, 0.0, pitch_deg=2.0, height=4.0)
+    rs.BIAS["mast"] = np.eye(4)
     try:
         lake = Lake(tmp_path / "base")
-        rs.write_clip(lake, ("red", "black", "blue"))
+        rs.write_clip(lake, ("red", "black", "mast"))
     finally:
-        del rs.EXTR["blue"], rs.BIAS["blue"]
+        del rs.EXTR["mast"], rs.BIAS["mast"]
     run_deskew(lake, rs.CLIP)
     rows = {}
-    for workers in (1, 2):
-        shutil.copytree(tmp_path / "base", tmp_path / str(workers))
-        lk = Lake(tmp_path / str(workers))
+    for workers, reuse in ((1, 5), (2, 5), (1, 1)):
+        shutil.copytree(tmp_path / "base", tmp_path / f"{workers}_{reuse}")
+        lk = Lake(tmp_path / f"{workers}_{reuse}")
         rep = run_register(lk, rs.CLIP, RegisterConfig.model_validate(
-            {"workers": workers, "write_bev": False}))
+            {"workers": workers, "write_bev": False, "stationary": {"reuse_frames": reuse}}))
         assert rep.metrics["n_pairs"] == 6
-        rows[workers] = (lk.read_table("clean", "registrations", clip_id=rs.CLIP)
-                         .sort_by([("agent_other", "ascending"), ("frame_idx", "ascending")])
-                         .to_pylist())
-    assert {r["agent_other"] for r in rows[1]} == {"black", "blue"}
-    assert rows[1] == rows[2]
+        rows[workers, reuse] = (lk.read_table("clean", "registrations", clip_id=rs.CLIP)
+                                .sort_by([("agent_other", "ascending"),
+                                          ("frame_idx", "ascending")]).to_pylist())
+    assert {r["agent_other"] for r in rows[1, 5]} == {"black", "mast"}
+    assert rows[1, 5] == rows[2, 5]
+
+    def mast_points(rr: list[dict[str, object]]) -> list[object]:
+        return [r["n_points_other"] for r in rr if r["agent_other"] == "mast"]
+    assert len(set(mast_points(rows[1, 5]))) == 1  # frame 0's scan stands for 1 and 2
+    assert len(set(mast_points(rows[1, 1]))) == 3  # each its own (ray noise differs)
+    # black moves: its GICP is what it was (the clip solve, shared with the mast, may move)
+    keys = ("gicp_tx", "gicp_ty", "gicp_tz", "gicp_qw", "fitness", "n_points_other")
+    assert [[r[k] for k in keys] for r in rows[1, 5] if r["agent_other"] == "black"] == \
+        [[r[k] for k in keys] for r in rows[1, 1] if r["agent_other"] == "black"]
+
+
+def test_a_stationary_track_is_what_its_poses_say() -> None:
+    from v2xlake.tasks.register.scans import is_stationary
+
+    n = 50
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    still = np.tile([10.0, -3.0, 4.0], (n, 1))
+    assert is_stationary(still, q, 0.02, 0.05)
+    sway = still.copy()
+    sway[n // 2, 1] += 0.03  # a mast swaying 3 cm
+    assert not is_stationary(sway, q, 0.02, 0.05) and is_stationary(sway, q, 0.04, 0.05)
+    turned = q.copy()
+    a = np.radians(0.1) / 2  # 0.1 deg about z
+    turned[-1] = [np.cos(a), 0.0, 0.0, np.sin(a)]
+    assert not is_stationary(still, turned, 0.02, 0.05) and is_stationary(still, turned, 0.02,
+                                                                            0.11)
+    drive = still + np.linspace(0, 5, n)[:, None] * [1.0, 0.0, 0.0]
+    assert not is_stationary(drive, q, 0.02, 0.05)
+    assert not is_stationary(np.zeros((0, 3)), np.zeros((0, 4)), 0.02, 0.05)
+
+
+def test_sample_pairs_are_read_from_the_dense_search() -> None:
+    from v2xlake.tasks.register.backends import sample_pairs
+
+    dense = np.array([0, 2, 3, 5, 8, 9])
+    sq = np.array([0.1, 4.0, 0.5, np.inf, 1.0, 0.2])
+    # 2: too far (2 m > 1 m), 5: none, 7: not a dense row, 8: exactly at the bound, 9: found
+    assert sample_pairs(np.array([2, 5, 7, 8, 9]), dense, sq, 1.0) == 2
+    assert sample_pairs(np.array([0, 3, 9, 11]), dense, sq, 1.0) == 3
+    assert sample_pairs(np.array([0, 3]), dense, None, 1.0) == 0
 
 
 def test_workers_default_to_this_process_cores_capped() -> None:

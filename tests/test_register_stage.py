@@ -46,7 +46,10 @@ def ego_motion(agent: str) -> Callable[[float], np.ndarray]:
 
     def black(t: float) -> np.ndarray:  # oncoming, 12-16 m ahead, turning slightly
         return lidar_pose(-12.0 - 8.0 * t, 1.75, 180.0 - 5.0 * t, roll_deg=0.5, height=0.0)
-    return red if agent == "red" else black
+
+    def mast(t: float) -> np.ndarray:  # a roadside unit on the kerb, 8-13 m ahead: stationary
+        return lidar_pose(-17.0, -4.5, 150.0, height=0.0)
+    return red if agent == "red" else mast if agent == "mast" else black
 
 
 EXTR = {"red": lidar_pose(0.6, 0.0, 1.0, height=1.9),

@@ -8,13 +8,24 @@ same frame pairs, one core.
 ``--coop``: the cooperative boulevard of issue #21 (``coop_config``, 64 x 1024 scans) and its
 variations (the other vehicle ahead / 5-50 m away, no turn, INS drift and noise, an INS step,
 another seed), each simulated once into ``--workdir``; per variation: pairs within 3 cm /
-0.1 deg, accepted, accepted outside it (must be 0), the register stage's time per frame pair
-and its share of the clip's processing time (ingest + anonymize + deskew timed again in the
-same run on the first variation of each duration and set of agents -- the roadside unit's
-clip has three agents' scans to process --, + register), and
-small_gicp.align called directly on the same deskewed scan pairs from eq. 1a (time, ratio,
-accuracy); the share is also given in CPU seconds of the process ("reg cpu", "cpu %"),
-which a machine shared with other jobs perturbs much less than wall time. Every stage runs
+0.1 deg, accepted, accepted outside it (must be 0), the register stage's time per frame pair,
+its share of the clip's processing time in two denominators, and small_gicp.align called
+directly on the same deskewed scan pairs from eq. 1a (time, ratio, accuracy). The shares:
+
+* ``share`` / ``cpu %`` (the figure of earlier rounds): register / (ingest + anonymize +
+  deskew + register), the stages before register and register itself;
+* ``pipe`` / ``pipe cpu`` (what issue #21 item 5 names, a clip's processing): register / every
+  stage of the pipeline (``registry.stage_names()``: ingest, qa, anonymize, deskew, register,
+  annotate, align). ingest, qa, anonymize and deskew are timed again in this run on a fresh
+  copy of the first variation of each duration and set of agents (the roadside unit's clip
+  has three agents' scans to process), annotate and align on that variation's lake right after
+  its timed register run (they read its registrations); the stages' cost depends on the
+  clip's length and scans, not on where the other vehicle drives, so the other variations of
+  the same duration and agents reuse them. The flow's own per-clip cost (Prefect flow and task
+  runs, 3-4.6 s per call in docs/scale.md, "fixed cost") is in neither denominator.
+
+Both are given in wall seconds and in CPU seconds of the process ("reg cpu"), which a machine
+shared with other jobs perturbs much less than wall time. Every stage runs
 once untimed on the first variation before anything is
 timed (``--no-warmup``: not). ``--cores N`` runs every stage on N cores (the register
 stage's ``workers`` is then N: the per-frame work on a thread pool), so the share compares
@@ -199,26 +210,39 @@ def coop(args: argparse.Namespace) -> None:
     import small_gicp
 
     from tests.fixtures.street import _m, coop_config, registration_errors
+    from v2xlake.schemas.registry import stage_names
     from v2xlake.storage.lake import Lake
+    from v2xlake.tasks.align.stage import run_align
+    from v2xlake.tasks.annotate.stage import run_annotate
     from v2xlake.tasks.anonymize import run_anonymize
     from v2xlake.tasks.deskew.stage import run_deskew
     from v2xlake.tasks.ingest import run_ingest
+    from v2xlake.tasks.qa.stage import run_qa
     from v2xlake.tasks.register.core import initial_transform_at
     from v2xlake.tasks.register.stage import RegisterConfig, read_agent_scans, run_register
     from v2xlake.tasks.simulate import simulate
 
     base = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench_coop"))
     names = [n for n in COOP_VARIATIONS if not args.only or any(o in n for o in args.only)]
+    timed = ("ingest", "qa", "anonymize", "deskew", "register", "annotate", "align")
+    if set(timed) != set(stage_names()):
+        raise SystemExit(f"the pipeline's stages are {stage_names()}, this bench times {timed}")
     print(f"cooperative boulevard, 64 x 1024 scans, {args.cores} core(s); workdir {base}")
+    print("share / cpu %: register / (ingest + anonymize + deskew + register), wall / CPU; "
+          "pipe / pipe cpu: register / every stage (" + " + ".join(timed) + ")")
     print(f"{'variation':34s} {'s':>3s} {'eq1a cm':>7s} {'<=3cm':>6s} {'acc':>4s} "
           f"{'wrong':>5s} {'med cm':>6s} {'reg s/pair':>10s} {'share':>6s} "
-          f"{'sg.align s':>10s} {'x ours':>6s} {'sg <=3cm':>8s} {'reg cpu':>7s} {'cpu %':>5s}")
+          f"{'sg.align s':>10s} {'x ours':>6s} {'sg <=3cm':>8s} {'reg cpu':>7s} {'cpu %':>5s} "
+          f"{'pipe':>5s} {'pipe cpu':>8s}")
     # keyed by (duration, agents): a third agent (the roadside unit) is a third agent's
     # scans to ingest, anonymize and deskew, as it is a second cross pair to register
     same_run: dict[tuple[float, tuple[str, ...]], dict[str, float]] = {}
     # the same in CPU seconds of this process: on a machine shared with other jobs the wall
     # times carry their load, the CPU times much less of it
     same_cpu: dict[tuple[float, tuple[str, ...]], float] = {}
+    # qa (before register), annotate and align (after it), wall and CPU, by the same key
+    rest: dict[tuple[float, tuple[str, ...]], dict[str, float]] = {}
+    rest_cpu: dict[tuple[float, tuple[str, ...]], dict[str, float]] = {}
     reg_cfg = RegisterConfig.model_validate({"write_bev": False,
                                              "gicp": {"backend": args.backend}})
     for secs in args.coop_seconds:
@@ -250,9 +274,12 @@ def coop(args: argparse.Namespace) -> None:
                 warm = Path(tempfile.mkdtemp(prefix="bench_coop_warmup"))
                 wl = Lake(warm / "lake")
                 run_ingest(wl, root / "clip")
+                run_qa(wl, cid)
                 run_anonymize(wl, cid)
                 run_deskew(wl, cid)
                 run_register(wl, cid, reg_cfg)
+                run_annotate(wl, cid)
+                run_align(wl, cid)
                 shutil.rmtree(warm, ignore_errors=True)
             key = (secs, tuple(over.get("agents", ())))
             if key not in same_run:
@@ -267,12 +294,17 @@ def coop(args: argparse.Namespace) -> None:
                 t = time.perf_counter()
                 run_ingest(lk, root / "clip")
                 t1 = time.perf_counter()
+                c1 = time.process_time()
+                run_qa(lk, cid)
+                t_qa, c_qa = time.perf_counter() - t1, time.process_time() - c1
+                t1 += t_qa
                 run_anonymize(lk, cid)
                 t2 = time.perf_counter()
                 run_deskew(lk, cid)
-                same_run[key] = {"ingest": t1 - t, "anonymize": t2 - t1,
+                same_run[key] = {"ingest": t1 - t - t_qa, "anonymize": t2 - t1,
                                  "deskew": time.perf_counter() - t2}
-                same_cpu[key] = time.process_time() - c0
+                same_cpu[key] = time.process_time() - c0 - c_qa
+                rest[key], rest_cpu[key] = {"qa": t_qa}, {"qa": c_qa}
                 shutil.rmtree(fresh, ignore_errors=True)
                 print(f"{'':38s}other stages this run, {secs:g} s clip"
                       + (f" ({', '.join(key[1])})" if key[1] else "") + ": " + ", ".join(
@@ -284,6 +316,16 @@ def coop(args: argparse.Namespace) -> None:
             rep = run_register(lake, cid, reg_cfg)
             t_reg = time.perf_counter() - t
             c_reg = time.process_time() - c0
+            if len(rest[key]) == 1:
+                # after register, on its output, as the flow runs them
+                for st, fn in (("annotate", run_annotate), ("align", run_align)):
+                    c0 = time.process_time()
+                    t = time.perf_counter()
+                    fn(lake, cid)
+                    rest[key][st] = time.perf_counter() - t
+                    rest_cpu[key][st] = time.process_time() - c0
+                print(f"{'':38s}qa, annotate, align this run: " + ", ".join(
+                    f"{k} {v:.2f} s ({rest_cpu[key][k]:.2f} cpu)" for k, v in rest[key].items()))
             errs = registration_errors(lake, clip_dir, cid)
             n = len(errs)
             within = sum(e.within() for e in errs)
@@ -293,6 +335,8 @@ def coop(args: argparse.Namespace) -> None:
             init = float(np.median([e.init_m for e in errs])) * 100
             share = t_reg / (t_reg + sum(times.values()))
             cpu_share = c_reg / (c_reg + same_cpu[key])
+            pipe = t_reg / (t_reg + sum(times.values()) + sum(rest[key].values()))
+            pipe_cpu = c_reg / (c_reg + same_cpu[key] + sum(rest_cpu[key].values()))
             # small_gicp.align as a user would call it, on the same deskewed pairs from eq. 1a
             ref = read_agent_scans(lake, cid, "red", None)
             oth = read_agent_scans(lake, cid, "black", None)
@@ -316,7 +360,8 @@ def coop(args: argparse.Namespace) -> None:
             print(f"{name:34s} {secs:3g} {init:7.1f} {within:3d}/{n:<3d} {acc:4d} {wrong:5d} "
                   f"{med:6.2f} {per_pair:10.3f} {share * 100:5.0f}% {np.median(d_t):10.3f} "
                   f"{per_pair / np.median(d_t):6.2f} {d_ok:4d}/{len(frames):<3d} "
-                  f"{c_reg:6.1f} {cpu_share * 100:4.0f}%")
+                  f"{c_reg:6.1f} {cpu_share * 100:4.0f}% {pipe * 100:4.0f}% "
+                  f"{pipe_cpu * 100:7.0f}%")
             notes = [x for x in rep.notes if x.startswith("calibration black")]
             if notes:
                 print(f"{'':38s}{notes[0][:110]}")

@@ -48,6 +48,9 @@ class Prepared:
     tree: Any  # backend search structure
     sample: np.ndarray | None = None  # as a source, only these rows are aligned and scored
     covisible_with: np.ndarray | None = None  # as a target: pairs kept where seen from here
+    # as a source (sparse backend): align every co-visible row at once, no sample pass first
+    # (the caller's copy of a cross pair's source: the previous frame's sample was short)
+    dense_first: bool = False
 
     def rows(self) -> np.ndarray:
         """The rows a source contributes: its sample, or every point."""
@@ -64,6 +67,9 @@ class AlignOutcome:
     # at the last linearisation (inf beyond the correspondence distance), where the backend
     # has it: the quality figures then need no search of their own
     sq_dist: np.ndarray | None = None
+    # sparse backend: whether the source's sample found (sample pass) or would have found
+    # (read from the dense alignment's last search) fewer than ``sample_min_pairs``
+    sample_short: bool = False
 
 
 class RegistrationBackend(Protocol):
@@ -259,6 +265,21 @@ class Open3dBackend:
         return _masked_prepare(self, pts, other_origin, min_keep)
 
 
+def sample_pairs(sample: np.ndarray, dense: np.ndarray, sq_dist: np.ndarray | None,
+                 max_correspondence_m: float) -> int:
+    """How many of the ``sample`` rows found a correspondence within
+    ``max_correspondence_m`` in a search of the ``dense`` rows (both ascending; ``sq_dist``:
+    one squared distance per dense row); a sample row that is not a dense row counts as none.
+    WHY: a pair aligned on every centroid without its sample pass still needs to know whether
+    that pass would have been short, to decide the next frame; the dense pass's last search
+    answers it without a search of its own."""
+    if sq_dist is None or len(sample) == 0 or len(dense) == 0:
+        return 0
+    pos = np.minimum(np.searchsorted(dense, sample), len(dense) - 1)
+    there = dense[pos] == sample
+    return int(np.count_nonzero(sq_dist[pos[there]] <= max_correspondence_m ** 2))
+
+
 class SparseGicpBackend(SmallGicpBackend):
     """GICP on a spread sample of the source with surfaces computed where they are used
     (:mod:`sparse`); its searches (nearest neighbour, k nearest, the quality figure) on a
@@ -283,15 +304,23 @@ class SparseGicpBackend(SmallGicpBackend):
         (:meth:`_fallback_rows`)."""
         p = self.params
         rows = source.rows()
+        if source.dense_first and source.sample is not None and p.sample_min_pairs > 0 \
+                and p.sample_fallback == "every":
+            dense = self._dense_rows(source)
+            out = self._align_rows(target, source, dense, init, dense=True)
+            short = sample_pairs(rows, dense, out.sq_dist,
+                                 p.max_correspondence_m) < p.sample_min_pairs
+            return AlignOutcome(out.T, out.converged, out.iterations, out.H, None, short)
         out = self._align_rows(target, source, rows, init)
         sq = out.sq_dist
-        if out.pairs < p.sample_min_pairs and source.sample is not None:
+        short = out.pairs < p.sample_min_pairs and source.sample is not None
+        if short:
             dense = self._fallback_rows(source, out.pairs, rows, out.sq_dist)
             if len(dense) > len(rows):
-                out = self._align_rows(target, source, dense, out.T)
+                out = self._align_rows(target, source, dense, out.T, dense=True)
                 sq = None  # aligned on other rows: the quality figures search again
         return AlignOutcome(out.T, out.converged, out.iterations, out.H,
-                            sq if p.reuse_last_search else None)
+                            sq if p.reuse_last_search else None, short)
 
     def _fallback_rows(self, source: Prepared, pairs: int, rows: np.ndarray | None = None,
                        sq_dist: np.ndarray | None = None) -> np.ndarray:
@@ -337,7 +366,7 @@ class SparseGicpBackend(SmallGicpBackend):
         return np.asarray(d2, dtype=np.float64)
 
     def _align_rows(self, target: Prepared, source: Prepared, rows: np.ndarray,
-                    init: np.ndarray) -> SparseOutcome:
+                    init: np.ndarray, dense: bool = False) -> SparseOutcome:
         from v2xlake.tasks.register.sparse import align_sparse
 
         p = self.params
@@ -348,7 +377,9 @@ class SparseGicpBackend(SmallGicpBackend):
                             num_neighbors=p.num_neighbors,
                             max_correspondence_m=p.max_correspondence_m,
                             max_iterations=p.max_iterations, num_threads=p.num_threads,
-                            t_covisible_with=target.covisible_with)
+                            t_covisible_with=target.covisible_with,
+                            translation_eps_m=(p.fallback_translation_eps_m if dense
+                                               else 1e-3))
 
     def _dense_rows(self, source: Prepared, rows: np.ndarray | None = None) -> np.ndarray:
         """``rows`` (default: every source centroid), less those the other LiDAR cannot see

@@ -65,6 +65,7 @@ class PairResult:
     seconds: float  # GICP + quality (preparation of the clouds not included)
     observability: float = float("nan")
     H: np.ndarray | None = None  # GICP information at T_refined (left perturbation, target)
+    sample_short: bool = False  # sparse backend: the source's sample found too few pairs
 
     @property
     def correction(self) -> np.ndarray:
@@ -158,7 +159,7 @@ def _attempt(backend: RegistrationBackend, target: Prepared, source: Prepared,
                   f"{limits.min_observability} (surfaces do not constrain every direction)")
     ok = reason == "ok"
     return PairResult(T_init, start, T, T if ok else T_init, fit, rmse, k, dm, ddeg, ok, reason,
-                      out.iterations, 0.0, obs, out.H)
+                      out.iterations, 0.0, obs, out.H, out.sample_short)
 
 
 def failed_pair(T_init: np.ndarray, reason: str, start: np.ndarray | None = None

@@ -155,6 +155,23 @@ class AgentScans:
         return T
 
 
+def is_stationary(xyz: np.ndarray, quat_wxyz: np.ndarray, max_motion_m: float,
+                  max_rotation_deg: float) -> bool:
+    """Whether a pose track stays put: every position within ``max_motion_m`` of the first
+    one and every attitude within ``max_rotation_deg`` of the first (unit quaternions, w
+    first). What the track says, never what the agent is called: a "roadside unit" on a
+    trailer or a swaying mast is not stationary."""
+    p = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    q = np.asarray(quat_wxyz, dtype=np.float64).reshape(-1, 4)
+    if len(p) == 0 or len(q) == 0:
+        return False
+    if float(np.max(np.linalg.norm(p - p[0], axis=1))) > max_motion_m:
+        return False
+    # angle between two unit quaternions: 2 acos(|<q, q0>|)
+    dot = np.clip(np.abs(q @ q[0]), 0.0, 1.0)
+    return float(np.degrees(2.0 * np.arccos(dot.min()))) <= max_rotation_deg
+
+
 def redeskew(xyz: np.ndarray, t_ns: np.ndarray, t_ref_ns: int, track: PoseTrack,
              T_used: np.ndarray, T_new: np.ndarray) -> np.ndarray:
     """A scan deskewed with extrinsic ``T_used`` as if deskewed with ``T_new``: deskew's own

@@ -19,9 +19,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +64,7 @@ from v2xlake.tasks.register.scans import (
     Body,
     StaticScans,
     boxes_per_frame,
+    is_stationary,
 )
 from v2xlake.tasks.register.solve import (
     ClipSolution,
@@ -669,6 +670,8 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     odo_work: list[tuple[str, int, int, np.ndarray, np.ndarray, Future[PairResult] | PairResult]
                    ] = []
     warm: dict[str, np.ndarray | None] = {o.agent: None for o in others}
+    # whether the agent's previous cross pair found too few sample correspondences
+    short: dict[str, bool] = {o.agent: False for o in others}
     out: list[_Pair] = []
     timing: dict[str, Any] = {"pair_s": [], "gicp_s": 0.0, "filter_s": 0.0, "odometry_s": 0.0,
                               "prepare_s": 0.0,
@@ -710,13 +713,48 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         i = frames[f]
         return i % cfg.odometry.every == 0 or (i - cfg.odometry.gap) % cfg.odometry.every == 0
 
-    def scan(agent: str, f: int, voxel: float) -> _Scan:
+    def own_scan(agent: str, f: int, voxel: float) -> _Scan:
         """The frame's static-scene voxels; prepared whole only when the agent's odometry
         uses this frame, since a cross pair prepares its co-visible part."""
         sc = filt[agent].filtered(f, voxel)
         odo_f = uses_odometry(agent, f)
         whole = prepare(sc.points)[0] if odo_f else None
         return _Scan(agent, f, sc.points, sc.counts, sc.ground_m, odo_f, whole, whole)
+
+    # a stationary agent's scans (cfg.stationary): one of every ``reuse_frames`` frames is
+    # read and prepared, with its grid and lazily filled surfaces, and stands for the frames
+    # after it up to the next; frame -> its anchor frame is fixed, so the results do not
+    # depend on the number of workers or the order the frames are prepared in
+    reuse = {a.agent: cfg.stationary.reuse_frames for a in (ref, *others)
+             if cfg.stationary.reuse_frames > 1 and is_stationary(
+                 a.track.xyz, a.track.quat_wxyz, cfg.stationary.max_motion_m,
+                 cfg.stationary.max_rotation_deg)}
+    ordered = {a: sorted(scans[a].frames) for a in reuse}
+    held: dict[str, OrderedDict[tuple[int, float], _Scan]] = {a: OrderedDict() for a in reuse}
+    held_lock = {a: threading.Lock() for a in reuse}
+
+    def scan(agent: str, f: int, voxel: float) -> _Scan:
+        """The frame's scan as GICP uses it (:func:`own_scan`; a stationary agent's frame
+        between two of its anchors: the anchor's, prepared once, and not an odometry frame:
+        its ground height is not measured again)."""
+        if agent not in reuse or f not in odo_frames[agent]:
+            return own_scan(agent, f, voxel)
+        i = odo_frames[agent][f]
+        anchor = ordered[agent][i - i % reuse[agent]]
+        if anchor != f and uses_odometry(agent, f):
+            return own_scan(agent, f, voxel)
+        with held_lock[agent]:
+            s = held[agent].get((anchor, voxel))
+            if s is None:
+                s = own_scan(agent, anchor, voxel)
+                if s.base is None:  # shared by the frames it stands for
+                    s.base = prepare(s.points)[0]
+                held[agent][(anchor, voxel)] = s
+                while len(held[agent]) > 2 + 2 * workers:
+                    held[agent].popitem(last=False)
+        if anchor == f:
+            return s
+        return replace(s, frame=f, ground_m=float("nan"), odometry=False, whole=None)
 
     def cross_cloud(s: _Scan, other_origin: np.ndarray, as_target: bool
                     ) -> tuple[Prepared | None, str]:
@@ -784,13 +822,16 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         odo_work.append((agent, g, f, M0, M1, pool.submit(odometry_gicp, *args)
                          if pool is not None else odometry_gicp(*args)))
 
-    def cross_gicp(w: _CrossWork, start: np.ndarray | None) -> PairResult:
-        """One cross pair's GICP from ``start`` (the agent's previous accepted correction)."""
+    def cross_gicp(w: _CrossWork, start: np.ndarray | None, dense: bool) -> PairResult:
+        """One cross pair's GICP from ``start`` (the agent's previous accepted correction);
+        ``dense``: every co-visible source centroid at once (the previous frame's sample was
+        short, ``gicp.dense_after_short_sample``)."""
         t = time.perf_counter()
         try:
             if w.target is None or w.source is None:
                 return failed_pair(w.T_init, w.why)
-            return refine(backend, w.target, w.source, w.T_init, limits, start)
+            source = replace(w.source, dense_first=True) if dense else w.source
+            return refine(backend, w.target, source, w.T_init, limits, start)
         finally:
             spent("gicp_s", time.perf_counter() - t)
 
@@ -805,12 +846,15 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         for w in work:
             keep(w.scan, pool)
         starts = [warm[w.other.agent] if cfg.gicp.warm_start else None for w in work]
+        dense = [short[w.other.agent] for w in work]
         jobs: list[Future[PairResult] | None] = [
-            cross_pool.submit(cross_gicp, w, st) if cross_pool is not None and i > 0 else None
-            for i, (w, st) in enumerate(zip(work, starts, strict=True))]
-        for w, st, job in zip(work, starts, jobs, strict=True):
+            cross_pool.submit(cross_gicp, w, st, d) if cross_pool is not None and i > 0
+            else None for i, (w, st, d) in enumerate(zip(work, starts, dense, strict=True))]
+        for w, st, d, job in zip(work, starts, dense, jobs, strict=True):
             o, fo = w.other, w.other_frame
-            res = cross_gicp(w, st) if job is None else job.result()
+            res = cross_gicp(w, st, d) if job is None else job.result()
+            if w.target is not None and w.source is not None:
+                short[o.agent] = cfg.gicp.dense_after_short_sample and res.sample_short
             if res.accepted and res.observability >= cfg.quality.min_observability:
                 warm[o.agent] = res.correction
             usable = res.accepted and res.H is not None and bool(np.isfinite(res.H).all())
