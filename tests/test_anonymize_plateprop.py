@@ -6,6 +6,8 @@ row of glyphs is searched at the scale that makes it legible to the text detecto
   band, the measure before, counted a handful);
 * ``join_bands`` / ``edge_bands`` join the halves of one glyph row, not bands of two rows;
 * ``band_scale`` upscales only low bands that hold glyphs, to ``line_px`` tall, capped;
+* ``edge_bands`` with ``max_stroke`` finds a glyph row that a lamp's long edge beside it
+  joins into a component too large for a line;
 * on real data: real plates (plates_eu photos shrunk to 40 px wide) pasted into a real
   street frame are found by the full-frame plan with the closer look, and fewer without it.
 """
@@ -24,8 +26,10 @@ from v2xlake.tasks.anonymize.plateprop import (
     glyph_transitions,
     join_bands,
     keep_within,
+    percentiles,
     plate_band,
     row_transitions,
+    short_strokes,
 )
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
@@ -167,6 +171,41 @@ def test_edge_bands_join_a_glyph_row_split_at_its_hyphen() -> None:
     assert len(halves) == 2
     whole = edge_bands(gx, 90.0, *geom)
     assert len(whole) == 1 and whole[0][0] <= 40 and whole[0][2] >= 116
+
+
+def test_percentiles_are_numpy_s() -> None:
+    """The partial-sort percentiles of ``row_transitions`` give ``np.percentile``'s values."""
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        a = rng.integers(0, 256, (int(rng.integers(1, 16)), int(rng.integers(1, 90))))
+        a = a.astype(np.float32) if rng.random() < 0.7 else np.round(a / 64.0) * 64.0
+        assert percentiles(a, (5.0, 95.0)) == list(np.percentile(a, (5, 95)))
+
+
+def test_a_glyph_row_beside_a_long_edge_is_a_band_without_the_long_edge() -> None:
+    """A row of 6 px strokes 6 px beside a slanted 30 px edge (a lamp's outline) and a 20 px
+    upright one (the plate holder's side): closed horizontally, all one component, too
+    large for a line, so no band of the row (as before); without the vertical edges longer
+    than 10 px, the glyph row's band. A stroke 10 px tall is kept at 11, one 20 px tall not."""
+    img = np.zeros((60, 200), np.uint8)
+    for x in range(60, 100, 4):
+        img[25:31, x : x + 2] = 255
+    for y in range(10, 40):  # slanted, one pixel every 4 rows
+        img[y, 50 - (y - 10) // 4 : 52 - (y - 10) // 4] = 255
+    img[18:38, 104:106] = 255
+    gx = cv2.convertScaleAbs(cv2.Sobel(img, cv2.CV_16S, 1, 0, ksize=3))
+    geom = ((5.0, 60.0), (12.0, 300.0), (1.3, 12.0), 0.35)
+    assert not any(b[0] >= 50 and b[2] <= 104 and b[3] - b[1] <= 12
+                   for b in edge_bands(gx, 90.0, *geom))
+    bands = edge_bands(gx, 90.0, *geom, max_stroke=10)
+    assert any(55 <= b[0] <= 62 and 97 <= b[2] <= 104 and b[1] >= 20 and b[3] <= 36
+               for b in bands), bands
+    upright = np.zeros((30, 20), np.uint8)
+    upright[5:15, 9] = 1
+    upright[5:25, 4] = 1
+    kept = short_strokes(upright, 11)
+    assert kept[5:15, 9].all() and not kept[:, 4].any()
+    assert (short_strokes(upright, 0) == upright).all()
 
 
 def test_band_scale_upscales_only_low_bands_of_glyphs() -> None:

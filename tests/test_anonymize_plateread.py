@@ -3,7 +3,8 @@
 * the judgement is a pure function of a reading: plates pass (EU, Czech / Slovak plates whose
   emblem reads as ':'), words, dates, times, repeated strokes and punctuation do not;
 * rendered on an image: a simulator-style plate is read and kept; lettering, a timestamp
-  watermark, a striped barrier and a lattice facade drawn the same way are dropped;
+  watermark, a striped barrier and a lattice facade drawn the same way are dropped; a
+  vanity plate without a digit is kept by its plate look, the same word as lettering not;
 * real photos: the labelled plates of ``plates_eu`` are kept natively (>= 0.95), and shrunk to
   40 px wide with the x2.5 full-frame fine pass (>= 0.95, 0.85 at x2); the real street and
   x2.5 pass finds 5.7 false plates per image on the real street images without reading; keep
@@ -117,6 +118,34 @@ def test_rendered_plate_kept_lettering_and_watermark_dropped(reader: PlateReader
     assert judged["plate"][0], judged["plate"]
     for k in ("lettering", "watermark", "brand"):
         assert not judged[k][0], (k, judged[k])
+
+
+def test_vanity_plate_kept_by_its_look_lettering_not(reader: PlateReader) -> None:
+    """A reading without a digit (GWAGEN) is a plate when its line looks like one: dark
+    glyphs on a white plate that ends with them, on a dark body (kept; dropped with
+    ``no_digit_look`` off, as before). The same word as lettering is dropped: white on a
+    green sign, dark on a white van that runs on around it, blue on a white sticker."""
+    from dataclasses import replace
+
+    img = np.full((560, 700, 3), 60, np.uint8)
+    lines = {}
+    cv2.rectangle(img, (30, 20), (330, 90), (235, 235, 235), -1)  # the plate
+    lines["plate"] = _line(img, "GWAGEN", (45, 75))
+    img[140:260, 0:380] = (40, 110, 20)  # a green road sign
+    lines["sign"] = _line(img, "GWAGEN", (45, 220), colour=(240, 240, 240))
+    img[280:420, :] = 235  # a white van's side
+    lines["van"] = _line(img, "GWAGEN", (45, 370))
+    cv2.rectangle(img, (30, 450), (330, 520), (235, 235, 235), -1)  # a sticker
+    lines["sticker"] = _line(img, "GWAGEN", (45, 505), colour=(160, 60, 20))
+    judged = dict(zip(lines, reader.judge(img, list(lines.values())), strict=True))
+    assert judged["plate"][0], judged["plate"]
+    for k in ("sign", "van", "sticker"):
+        assert not judged[k][0] and judged[k][2] is not None, (k, judged[k])
+    reader.config = replace(reader.config, no_digit_look=False)
+    try:
+        assert reader.judge(img, [lines["plate"]])[0][1] == "no digit"
+    finally:
+        reader.config = replace(reader.config, no_digit_look=True)
 
 
 def test_stripes_and_lattice_dropped(reader: PlateReader) -> None:

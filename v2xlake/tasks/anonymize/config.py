@@ -101,6 +101,12 @@ class Plates(Section):
         "rejected only when read at read_min_conf (a word); the word, share, date and "
         "repeat rules still apply. Real 30 px plates pasted into real streets: the reading "
         "rejected 24 of 38 misses. 0: every line read as the large ones")
+    read_no_digit_look: bool = Field(
+        True, description="a reading without a digit (a vanity plate: G-WAGEN; lettering: "
+        "NORTH, CRAFTER) is kept when its line looks like a plate (plateread.plate_look: dark "
+        "neutral glyphs on a bright neutral background that ends with them; ~3 in 4 real "
+        "plates with digits look so, the lettering read beside pasted real plates did not); "
+        "the other reading rules still apply. Off: every plate needs read_min_digits digits")
     proposal_scale: float = Field(
         0.25, gt=0, le=1, description="full-frame plan: the text pass that proposes plate "
         "crops runs on the frame shrunk by this (it proposes large plates; edge bands propose "
@@ -123,6 +129,21 @@ class Plates(Section):
         "and becomes one component too large for a text line; a plate's own glyph edges are "
         "the strongest around (saturated), so a stricter pass separates them. Real plates 40 "
         "px wide pasted into real street frames: covered by a band 47 -> 54 of 54. None: off")
+    edge_stroke_px: int = Field(
+        10, ge=0, description="full-frame plan: a third band pass at edge_threshold with the "
+        "vertical edges this long (px) or longer removed first (plateprop.short_strokes): a "
+        "low-contrast small plate's glyph edges are not the strongest around, and at "
+        "edge_threshold a lamp's outline or the body's edge beside it joins its glyph row into "
+        "a component too large for a line. A glyph stroke is at most a glyph tall (6-7 px on "
+        "a 40 px plate). 0: off")
+    edge_stroke_min_transitions: int = Field(
+        14, ge=0, description="full-frame plan: a band of the edge_stroke_px pass is kept only "
+        "when one row of its middle alternates dark / bright this often "
+        "(plateprop.glyph_transitions; 7 glyphs' edges). That pass's bands on the real "
+        "streets' foliage, gravel and grilles alternate 10-13 times (2.0-2.2 per frame; at 14: "
+        "0.0-0.1), real 40 px plates' 10-26 (39 / 42 at least 14); all its closer looks pushed "
+        "1 in 4 frames over the crop budget (the whole-frame scan then: +0.12 s per 1392 x 512 "
+        "frame, and its unread small lines as false plates)")
     small_line_px: float = Field(
         28.0, ge=0, description="full-frame plan: an edge band (a glyph row) lower than this "
         "(px) is cut out at the scale that makes it this tall (at most small_max_scale): the "

@@ -173,6 +173,11 @@ class GuidedConfig(FromParams):
     # when a middle row crosses its Otsu threshold ``plate_small_min_transitions`` times
     # (plateprop.py); ``plate_edge_strong``: the stricter second band pass (None: off)
     plate_edge_strong: float | None = _param("plates.edge_strong_threshold")
+    # a third pass at ``plate_edge_threshold`` without vertical edges this long (px;
+    # ``plateprop.short_strokes``): a low-contrast small plate's glyph row apart from the
+    # lamp or body edge beside it (0: off)
+    plate_edge_stroke_px: int = _param("plates.edge_stroke_px")
+    plate_edge_stroke_min_transitions: int = _param("plates.edge_stroke_min_transitions")
     plate_small_line_px: float = _param("plates.small_line_px")
     plate_small_max_scale: float = _param("plates.small_max_scale")
     plate_small_min_transitions: int = _param("plates.small_min_transitions")
@@ -498,17 +503,27 @@ def edge_band_sets(gray: np.ndarray, cfg: GuidedConfig
                    ) -> tuple[list[tuple[float, float, float, float]],
                               list[tuple[float, float, float, float]]]:
     """The bands of dense vertical edges of ``gray`` (x0, y0, x1, y1 px) at
-    ``plate_edge_threshold``, and those at the stricter ``plate_edge_strong`` (when set) not
-    among them: a small plate's glyph row often touches its car's grille or body edges at
-    the first and is one component too large for a line there (6 of 54 real 40 px plates),
-    while its own glyph edges are the strongest around."""
+    ``plate_edge_threshold``, and those not among them at the stricter ``plate_edge_strong``
+    (when set) and at ``plate_edge_threshold`` without vertical edges
+    ``plate_edge_stroke_px`` long (when > 0; only bands whose ``glyph_transitions`` reach
+    ``plate_edge_stroke_min_transitions``): a small plate's glyph row often touches its car's
+    grille or body edges at the first and is one component too large for a line there (6 of
+    54 real 40 px plates), while its own glyph edges are the strongest around; a
+    low-contrast plate's are not, and the long edge beside it goes instead."""
     gx = cv2.convertScaleAbs(cv2.Sobel(gray, cv2.CV_16S, 1, 0, ksize=3))
     geom = (cfg.plate_edge_h, cfg.plate_edge_w, cfg.plate_edge_aspect, cfg.plate_edge_fill)
     weak = edge_bands(gx, cfg.plate_edge_threshold, *geom)
-    if cfg.plate_edge_strong is None:
-        return weak, []
-    seen = set(weak)
-    return weak, [b for b in edge_bands(gx, cfg.plate_edge_strong, *geom) if b not in seen]
+    passes = [] if cfg.plate_edge_strong is None else [(cfg.plate_edge_strong, 0, 0)]
+    if cfg.plate_edge_stroke_px > 0:
+        passes.append((cfg.plate_edge_threshold, cfg.plate_edge_stroke_px,
+                       cfg.plate_edge_stroke_min_transitions))
+    seen, more = set(weak), []
+    for t, stroke, least in passes:
+        for b in edge_bands(gx, t, *geom, max_stroke=stroke):
+            if b not in seen and (not least or glyph_transitions(gray, b) >= least):
+                seen.add(b)
+                more.append(b)
+    return weak, more
 
 
 def band_proposals(gray: np.ndarray, box: tuple[int, int, int, int], cfg: GuidedConfig

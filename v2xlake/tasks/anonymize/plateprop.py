@@ -40,6 +40,24 @@ def band_pixels(gray: np.ndarray, band: Band) -> np.ndarray:
     return gray[y0:y1, x0:x1]
 
 
+def percentiles(a: np.ndarray, qs: tuple[float, ...]) -> list[float]:
+    """``np.percentile(a, qs)`` (linear interpolation, numpy's arithmetic: the same values)
+    from a partial sort: 8 instead of 160 us on a band, half the cost of ``row_transitions``,
+    which runs on every band of every frame (three band passes)."""
+    flat = a.ravel()
+    n = flat.size
+    pos = [q / 100.0 * (n - 1) for q in qs]
+    part = np.partition(flat, sorted({min(int(v) + d, n - 1) for v in pos for d in (0, 1)}))
+    out = []
+    for v in pos:
+        lo = int(v)
+        t = v - lo
+        x, y = float(part[lo]), float(part[min(lo + 1, n - 1)])
+        d = y - x
+        out.append(y - d * (1 - t) if t >= 0.5 else x + d * t)
+    return out
+
+
 def row_transitions(gray: np.ndarray, band: Band, contrast: float = 0.1) -> np.ndarray:
     """Dark / bright alternations along each row of the band (``gray``: the frame in grey
     levels, ``band``: x0, y0, x1, y1 px): a pixel is dark or bright when it differs from the
@@ -54,7 +72,7 @@ def row_transitions(gray: np.ndarray, band: Band, contrast: float = 0.1) -> np.n
     core = band_pixels(gray, band).astype(np.float32)
     if core.shape[0] < 1 or core.shape[1] < 2:
         return np.zeros(0, int)
-    lo, hi = np.percentile(core, (5, 95))
+    lo, hi = percentiles(core, (5.0, 95.0))
     dead = contrast * float(hi - lo) + 2.0
     k = max(3, core.shape[0] | 1)
     local = core - cv2.blur(core, (k, 1), borderType=cv2.BORDER_REPLICATE)
@@ -202,17 +220,54 @@ def join_bands(bands: list[Band], gap: float = 1.5, max_h: float = 14.0,
     return [(float(b[0]), float(b[1]), float(b[2]), float(b[3])) for b in out]
 
 
+def short_strokes(mask: np.ndarray, max_px: int) -> np.ndarray:
+    """``mask`` (edge pixels, uint8 0 / 1) without its long vertical edges: runs of
+    ``max_px`` rows or more, upright or slanted by up to one pixel per row, and the pixels
+    beside them. A glyph's strokes are at most a glyph tall; a lamp's outline, a pole, the
+    body's or the plate holder's side runs on. Closed horizontally, such an edge a few
+    pixels beside a small plate's glyph row joins it into a component far too large for a
+    line (a low-contrast plate's glyph row is not among the strongest edges around either,
+    so the stricter pass breaks it apart: real 40 px plates pasted into real streets, 4 of
+    53 held-out ones had no band). ``max_px`` 0: the mask as it is."""
+    if max_px <= 0:
+        return mask
+    row = np.ones((1, 3), np.uint8)
+    thick = cv2.dilate(mask, row)  # a slanted edge keeps an upright run of pixels
+    long_ = cv2.dilate(cv2.morphologyEx(thick, cv2.MORPH_OPEN,
+                                        np.ones((int(max_px), 1), np.uint8)), row)
+    return mask & (1 - long_)
+
+
+def component_stats(mask: np.ndarray) -> np.ndarray:
+    """``cv2.connectedComponentsWithStats`` of a binary mask (8-connected): its stats rows
+    (x, y, w, h, area; row 0 the background). Labelled in 16 bits, and in 32 only when a
+    mask has more than 65,535 components (OpenCV raises then): the same stats, at 8 instead
+    of 21 ms per 1920 x 1200 pass (the label image is most of the work), and the plan runs
+    three band passes per frame."""
+    try:
+        return cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_16U)[2]
+    except cv2.error:
+        return cv2.connectedComponentsWithStats(mask, connectivity=8)[2]
+
+
 def edge_bands(gx: np.ndarray, threshold: float, h_range: tuple[float, float],
                w_range: tuple[float, float], aspect: tuple[float, float], fill: float,
-               join_gap: float = 1.5) -> list[Band]:
+               join_gap: float = 1.5, max_stroke: int = 0) -> list[Band]:
     """Bands of dense vertical edges in ``gx`` (|Sobel x|, grey levels) at ``threshold``:
     edges closed horizontally (3 x 9) and opened (3 x 3), components of a text line's
     height, width, aspect (px) and ``fill`` of their box, those of one line joined
-    (``join_bands``, ``join_gap`` of their height apart at most; 0: not joined)."""
-    m0 = (gx >= threshold).astype(np.uint8)
+    (``join_bands``, ``join_gap`` of their height apart at most; 0: not joined).
+    ``max_stroke`` > 0: vertical edges of that many rows or more dropped first
+    (``short_strokes``), and only bands at most 2 px taller kept: what is left are strokes
+    lower than that, and a band taller than its glyphs and the closing's row each side is
+    rows of them stacked (foliage, gravel, a grille: on the real street frames 2 in 3 of
+    the bands this pass added, each a closer look, over the plan's crop budget)."""
+    m0 = short_strokes((gx >= threshold).astype(np.uint8), max_stroke)
+    if max_stroke > 0:
+        h_range = (h_range[0], min(h_range[1], max_stroke + 2.0))
     m1 = cv2.morphologyEx(m0, cv2.MORPH_CLOSE, np.ones((3, 9), np.uint8))
     m2 = cv2.morphologyEx(m1, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    _n, _lab, stats, _c = cv2.connectedComponentsWithStats(m2, connectivity=8)
+    stats = component_stats(m2)
     (hlo, hhi), (wlo, whi), (alo, ahi) = h_range, w_range, aspect
     bands = [(float(x), float(y), float(x + bw), float(y + bh))
              for x, y, bw, bh, area in stats[1:].tolist()
