@@ -10,7 +10,14 @@ from pydantic import BaseModel
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.anonymize import stage as stage_mod
 from v2xlake.tasks.anonymize.build import blur_config, build_detector
-from v2xlake.tasks.anonymize.carry import CARRIED, between, key_frames, new_regions
+from v2xlake.tasks.anonymize.carry import (
+    CARRIED,
+    between,
+    full_key_frames,
+    key_frames,
+    new_regions,
+    plate_windows,
+)
 from v2xlake.tasks.anonymize.config import NOT_PROVENANCE, AnonymizeConfig
 from v2xlake.tasks.anonymize.detectors import Detection
 from v2xlake.tasks.anonymize.guide import Region
@@ -309,3 +316,30 @@ def test_carrying_finds_what_detecting_every_frame_finds(tmp_path) -> None:
     (f0, p0, s0), (f1, p1, s1) = found["every"], found["carry"]
     assert f0 + p0 >= 20, found
     assert f1 >= f0 - 1 and p1 >= p0 - 1 and s1 >= s0 - 1, found
+
+
+def test_light_key_frames_search_plates_only_around_the_plates_found() -> None:
+    """Every second key frame is light: its full key frame is the one before it. On a light
+    key frame a vehicle face with a plate found by the full key frame is narrowed to the
+    rectified part around the carried plate; a face without one, and heads, stay whole."""
+    assert full_key_frames([True, False, True, False, True, True, False, True], 2) == [
+        0, -1, 0, -1, 4, 4, -1, 7]
+    assert full_key_frames([True, True, True], 1) == [0, 1, 2]
+
+    def car(x: float, inst: str) -> Region:
+        quad = ((x - 200, 500.0), (x + 200, 500.0), (x + 200, 700.0), (x - 200, 700.0))
+        return Region("plate", (x - 200, 500, x + 200, 700), 104.0, inst, quad, (2.0, 1.0),
+                      "rear", (x, 600.0))
+
+    before = [car(400, "car-1"), car(1200, "car-2"), _head(1700)]
+    here = [car(430, "car-1"), car(1230, "car-2"), _head(1730)]
+    plate = Detection("plate", (350.0, 620.0, 450.0, 650.0), 0.9, "ppocr")
+    out = plate_windows([plate], before, here, SHAPE)
+    assert out[1:] == here[1:]  # car-2 (no plate found) and the head: whole
+    sub = out[0]
+    assert sub.kind == "plate" and sub.quad is not None and sub.size_m is not None
+    # the plate moved with its face (+30 px), 0.4 m / 0.2 m of face around it (200 px / m)
+    assert sub.box == pytest.approx((300.0, 580.0, 560.0, 690.0))
+    assert sub.size_m == pytest.approx((1.3, 0.55))
+    # no plate found: every region as it is
+    assert plate_windows([], before, here, SHAPE) == here

@@ -53,6 +53,24 @@ def key_frames(t_ns: Sequence[int], interval_ns: int) -> list[bool]:
     return out
 
 
+def full_key_frames(is_key: Sequence[bool], every: int) -> list[int]:
+    """For each frame of one camera (time order), the position of its *full* key frame: the
+    first key frame and every ``every``-th one after it get the whole plan (the value is
+    their own position), the key frames between them are *light* (``plate_windows``; the
+    value is the last full key frame before them); frames that are not key frames get -1.
+    ``every`` <= 1: every key frame is full."""
+    out = [-1] * len(is_key)
+    last, k = -1, 0
+    for p, key in enumerate(is_key):
+        if not key:
+            continue
+        if every <= 1 or k % every == 0 or last < 0:
+            last = p
+        out[p] = last
+        k += 1
+    return out
+
+
 def _key(r: Region) -> tuple[str, str, str]:
     return (r.instance, r.kind, r.part)
 
@@ -217,6 +235,44 @@ def _sub_face(reg: Region, box: Box, w: int, h: int) -> Region | None:
         return None
     quad = tuple((float(u), float(v)) for u, v in q)
     return Region(reg.kind, bb, reg.expected_px, "", quad, (x1 - x0, y1 - y0), reg.part, None)
+
+
+def plate_windows(found: Sequence[Detection], key_regions: Sequence[Region] | None,
+                  regions: Sequence[Region], shape: tuple[int, ...]) -> list[Region]:
+    """The regions a *light* key frame gives the detector: ``regions`` as they are, except
+    a vehicle face on which the last full key frame (``found``, ``key_regions``) found a
+    plate: it is replaced by the rectified part around each plate carried here with the
+    face (``_sub_face``: the plate plus ``PLATE_PAD_M`` of body).
+
+    Why: on key frames the text detector over whole rectified vehicle faces (~480 x 256 px
+    each) was the largest single cost of the guided plan at 1080p, though a plate found
+    120 ms earlier sits at a known place of its face (it is fixed to the vehicle; the face
+    moves with its 3D box). A face without a plate there, a face cut by the frame edge
+    (its clipped box does not follow the vehicle), one new since the full key frame, and
+    every other region are searched as usual, so a plate that appears is still found."""
+    if not key_regions or not regions:
+        return list(regions)
+    h, w = shape[:2]
+    here = {_key(r): r for r in regions}
+    subs: dict[int, list[Region]] = {}
+    whole: set[int] = set()  # faces with a carried plate that maps nowhere: searched whole
+    for d in found:
+        if d.kind != "plate":
+            continue
+        r0 = _region_of(d, key_regions)
+        r1 = here.get(_key(r0)) if r0 is not None else None
+        if (r0 is None or r1 is None or r1.quad is None or r1.size_m is None
+                or _at_edge(r0, shape) or _at_edge(r1, shape)):
+            continue
+        sub = _sub_face(r1, _move(d.box, r0, r1), w, h)
+        if sub is None:
+            whole.add(id(r1))
+        else:
+            subs.setdefault(id(r1), []).append(sub)
+    out: list[Region] = []
+    for r in regions:
+        out += subs[id(r)] if id(r) in subs and id(r) not in whole else [r]
+    return out
 
 
 def _recheck(again: dict[tuple[str, ...], Region], reg: Region, box: Box, w: int, h: int

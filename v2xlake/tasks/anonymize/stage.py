@@ -421,7 +421,13 @@ def _anonymize_images(
 
     from v2xlake.tasks.anonymize.blur import blur_boxes
     from v2xlake.tasks.anonymize.build import blur_config, build_detector
-    from v2xlake.tasks.anonymize.carry import between, key_frames, new_regions
+    from v2xlake.tasks.anonymize.carry import (
+        between,
+        full_key_frames,
+        key_frames,
+        new_regions,
+        plate_windows,
+    )
     from v2xlake.tasks.anonymize.images import decode_image, to_bgr8
     from v2xlake.tasks.anonymize.temporal import fill_gaps
 
@@ -449,13 +455,22 @@ def _anonymize_images(
 
     full = cfg.clusters.full_frame and guide is not None and guide.source == "lidar clusters"
 
-    def detect(item: tuple[str, str, str, int]
+    def detect(item: tuple[str, str, str, int, int | None],
+               known: dict[int, list[Detection]] | None = None,
+               kregions: dict[int, list[Region] | None] | None = None
                ) -> tuple[np.ndarray, list[Detection], list[Region] | None]:
-        """A key frame: the whole plan."""
-        key, agent, sensor, stamp = item
+        """A key frame: the whole plan. A light key frame (``item``'s last field: the row of
+        the full key frame before it, whose detections ``known`` and regions ``kregions``
+        hold): the whole plan with its vehicle faces' plate search narrowed to where that
+        key frame found plates (``carry.plate_windows``). The frame's own regions are
+        returned either way (the frames between are carried with them)."""
+        key, agent, sensor, stamp, full_row = item
         img = decode(key, agent)
         regions = guide.regions(agent, sensor, stamp) if guide is not None else None
-        return img, detector.detect(to_bgr8(img), regions, full), regions
+        look = regions
+        if regions and full_row is not None and known is not None and kregions is not None:
+            look = plate_windows(known[full_row], kregions[full_row], regions, img.shape)
+        return img, detector.detect(to_bgr8(img), look, full), regions
 
     def carried(i: int, rows: list[int], is_key: list[bool], pos: dict[int, int],
                 known: dict[int, list[Detection]], kregions: dict[int, list[Region] | None]
@@ -510,6 +525,9 @@ def _anonymize_images(
             for rows in cams.values():
                 rows.sort(key=lambda i: (stamps[i], frames[i]))
                 is_key = key_frames([int(stamps[i]) for i in rows], key_ns)
+                # each key frame's full key frame: itself, or (a light key frame) the last
+                # full one before it
+                full_of = full_key_frames(is_key, cfg.carry.plate_full_every if key_ns else 1)
                 pos = {i: p for p, i in enumerate(rows)}
                 known: dict[int, list[Detection]] = {}
                 kregions: dict[int, list[Region] | None] = {}
@@ -526,13 +544,19 @@ def _anonymize_images(
                         stop += 1
                     span = rows[c0 : min(stop + 1, len(rows))]
                     todo = [i for i in span if is_key[pos[i]] and i not in known]
-                    items = [(keys[i], agent_col[i], sensors[i], int(stamps[i])) for i in todo]
                     images: dict[int, np.ndarray] = {}
-                    for i, (img, found, regs) in zip(todo, pool.map(detect, items), strict=True):
-                        known[i] = found  # every frame is detected once (chunk or look-ahead)
-                        kregions[i] = regs
-                        n_guided += regs is not None
-                        (images if i in chunk else ahead)[i] = img
+                    # the full key frames first: the light ones after them use their plates
+                    for light in (False, True):
+                        part = [i for i in todo if (full_of[pos[i]] != pos[i]) == light]
+                        items = [(keys[i], agent_col[i], sensors[i], int(stamps[i]),
+                                  rows[full_of[pos[i]]] if light else None) for i in part]
+                        job_k = functools.partial(detect, known=known, kregions=kregions)
+                        for i, (img, found, regs) in zip(part, list(pool.map(job_k, items)),
+                                                         strict=True):
+                            known[i] = found  # every frame is detected once (chunk or ahead)
+                            kregions[i] = regs
+                            n_guided += regs is not None
+                            (images if i in chunk else ahead)[i] = img
                     between_todo = [i for i in span[: end - c0 + 1] if i not in known]
                     job = functools.partial(carried, rows=rows, is_key=is_key, pos=pos,
                                             known=known, kregions=kregions)
