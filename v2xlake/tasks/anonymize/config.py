@@ -115,9 +115,10 @@ class Plates(Section):
     read_no_digit_look: bool = Field(
         True, description="a reading without a digit (a vanity plate: G-WAGEN; lettering: "
         "NORTH, CRAFTER) is kept when its line looks like a plate (plateread.plate_look: dark "
-        "neutral glyphs on a bright neutral background that ends with them; ~3 in 4 real "
-        "plates with digits look so, the lettering read beside pasted real plates did not); "
-        "the other reading rules still apply. Off: every plate needs read_min_digits digits")
+        "neutral glyphs on a bright neutral background that ends with them; 304 / 417 lines "
+        "of real plates with digits pasted into real streets look so, none of the 20 "
+        "lettering lines read without a digit beside them); the other reading rules still "
+        "apply. Off: every plate needs read_min_digits digits")
     proposal_scale: float = Field(
         0.25, gt=0, le=1, description="full-frame plan: the text pass that proposes plate "
         "crops runs on the frame shrunk by this (it proposes large plates; edge bands propose "
