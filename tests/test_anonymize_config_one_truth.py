@@ -47,7 +47,7 @@ def _old_copies(cfg: AnonymizeConfig) -> dict[str, Any]:
             box_threshold=p.box_threshold, min_aspect=p.min_aspect, max_aspect=p.max_aspect,
             max_tilt_deg=p.max_tilt_deg,
             read=PlateReadConfig(min_conf=p.read_min_conf, min_digits=p.read_min_digits,
-                                 small_h=p.read_small_h)
+                                 small_h=p.read_small_h, no_digit_look=p.read_no_digit_look)
             if p.read else None),
         "classic": ClassicPlateConfig(upscale=p.upscale),
         "guide": GuideConfig(margin_px=r.margin_px, margin_frac=r.margin_frac,
