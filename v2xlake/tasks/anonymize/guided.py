@@ -47,7 +47,7 @@ from v2xlake.tasks.anonymize.plateprop import (
     plate_band,
 )
 from v2xlake.tasks.anonymize.textplate import TextPlateDetector
-from v2xlake.tasks.geometry import merge_until_stable
+from v2xlake.tasks.geometry import iou_xyxy, merge_until_stable
 
 
 def plate_scan(faces: Faces, plates: Plates) -> ScanConfig:
@@ -143,6 +143,20 @@ class GuidedConfig(FromParams):
     # (3.65 vs 3.72 img/s/core, no faster)
     face_look_batch: int = 32
     face_look_margin: int = 0
+    # the full-frame plan's second look (``_relook``): a face the look scores from
+    # ``face_relook_min`` up to ``full_face_threshold`` (0: none), or one cut by its crop's
+    # edge, in a crop centred on it, the face brought to ``face_relook_target_px`` (at most
+    # x ``face_relook_max_scale``); a look box within ``face_cut_px`` (crop px) of an edge
+    # of its crop that is not the frame's is cut by the crop
+    face_relook_min: float = _param("faces.relook_min")
+    face_relook_target_px: float = _param("faces.relook_target_px")
+    face_relook_max_scale: float = _param("faces.relook_max_scale")
+    face_cut_px: float = 2.0
+    # the second look's context: this share of the face's side each side, at least so many
+    # frame px. (1.0, 0) found what the first look's (1.5, 24) finds (real faces of 16-32
+    # px pasted into the real streets, 207 / 216 and 104 / 108 either way) at ~0.4x its
+    # network pixels
+    face_relook_pad: tuple[float, float] = (1.0, 0.0)
     # plate crops covering more than this share of the frame: the plate pass runs over the
     # whole frame at the scan's scale instead (packing nearly every pixel into canvases
     # costs more than that), and the closer looks of the bands with the most glyph
@@ -265,11 +279,13 @@ class Piece:
 
 
 def _face_crop(c: GuidedConfig, box: Any, side: float, scale: float, size_px: float,
-               w: int, h: int) -> list[Any]:
+               w: int, h: int, pad: tuple[float, float] | None = None) -> list[Any]:
     """A crop item around a face candidate ``box`` of ``side`` pixels for the float look:
-    the face plus ``face_proposal_pad`` of its side (at least ``face_proposal_min_px``) on
-    every side, clipped to the ``w`` x ``h`` image, to be shown at ``scale``."""
-    r = 0.5 * side + max(c.face_proposal_pad * side, c.face_proposal_min_px)
+    the face plus ``face_proposal_pad`` of its side (at least ``face_proposal_min_px``; or
+    ``pad``: (share of the side, px at least)) on every side, clipped to the ``w`` x ``h``
+    image, to be shown at ``scale``."""
+    k, lo = pad or (c.face_proposal_pad, c.face_proposal_min_px)
+    r = 0.5 * side + max(k * side, lo)
     cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
     return ["face", max(0, int(cx - r)), max(0, int(cy - r)), min(w, int(np.ceil(cx + r))),
             min(h, int(np.ceil(cy + r))), scale, size_px, size_px]
@@ -776,9 +792,78 @@ class GuidedDetector:
                 continue
             s = float(np.clip(c.face_proposal_target_px / max(bh, 1.0), 1.0, max(fine, 1.0)))
             items.append(_face_crop(c, d.box, max(bw, bh), s, bh, w, h))
-        for box, sc in self._float_look(image, items, c.full_face_threshold, batch=True):
-            out.append(Detection("face", box, sc, self.face.name))
+        if c.face_look_batch <= 0:
+            for box, sc in self._float_look(image, items, c.full_face_threshold):
+                out.append(Detection("face", box, sc, self.face.name))
+            return out
+        lo = c.face_relook_min if c.face_relook_min > 0 else c.full_face_threshold
+        looked = self._look(self.face, image, self._pieces(items),
+                            min(lo, c.full_face_threshold))
+        out += [Detection("face", b, sc, self.face.name) for b, sc, cut in looked
+                if sc >= c.full_face_threshold and not cut]
+        if c.face_relook_min > 0:
+            out += self._relook(image, [(b, sc, cut) for b, sc, cut in looked
+                                        if cut or sc < c.full_face_threshold], out)
+        else:
+            out += [Detection("face", b, sc, self.face.name) for b, sc, cut in looked
+                    if sc >= c.full_face_threshold and cut]
         return out
+
+    def _relook(self, image: np.ndarray, doubtful: list[tuple[Box, float, bool]],
+                found: list[Detection]) -> list[Detection]:
+        """The second look of the full-frame plan's faces: each ``doubtful`` look box (score,
+        cut by its crop) that no face of ``found`` (uncut, scoring ``full_face_threshold``)
+        covers is cut out again, centred on it, at the scale that brings it to
+        ``face_relook_target_px`` (at most ``face_relook_max_scale``), and looked at by the
+        float network. A cut box scoring ``full_face_threshold`` is kept when the second
+        look finds nothing there.
+
+        Why: the first look brings small faces to at most x2 (26-32 px for 16 px faces),
+        where CenterFace's scores of real faces and of street clutter overlap (real faces
+        of 16-20 px pasted into the real street images: 0.17-0.39 for the faces x2 missed,
+        up to 0.39 for the streets' own candidates); at x4 those faces scored 0.33-0.83 and
+        no street candidate 0.2. Only the doubtful few pay for the larger crop (5 of the
+        streets' 97 candidates). A face cut by the edge of a neighbour's crop gets a box
+        around its visible part (a 48 px face blurred 76 % of it, beside its own whole
+        box of a lower score): centred, it is seen whole."""
+        c = self.config
+        h, w = image.shape[:2]
+        thr = c.full_face_threshold
+        have = np.array([d.box for d in found], float).reshape(-1, 4)
+        items, keep = [], []
+        for b, sc, cut in doubtful:
+            if sc < c.face_relook_min and not cut:
+                continue
+            bb = np.asarray(b, float)[None]
+            if len(have):
+                ix = np.maximum(0.0, np.minimum(bb[:, 2], have[:, 2])
+                                - np.maximum(bb[:, 0], have[:, 0]))
+                iy = np.maximum(0.0, np.minimum(bb[:, 3], have[:, 3])
+                                - np.maximum(bb[:, 1], have[:, 1]))
+                area = max((b[2] - b[0]) * (b[3] - b[1]), 1e-9)
+                if ((iou_xyxy(bb, have) >= 0.3) | (ix * iy / area >= 0.8)).any():
+                    continue  # a whole face scoring the threshold holds it already
+            bw, bh = b[2] - b[0], b[3] - b[1]
+            if cut and sc >= thr:
+                keep.append(Detection("face", b, sc, self.face.name if self.face else ""))
+            if bh >= c.face_accept_px:
+                continue  # a face that large is the native pass's to decide
+            s = float(np.clip(c.face_relook_target_px / max(bh, 1.0), 1.0,
+                              c.face_relook_max_scale))
+            items.append(_face_crop(c, b, max(bw, bh), s, bh, w, h, c.face_relook_pad))
+        if not items:
+            return keep
+        assert self.face is not None
+        again = [Detection("face", b, sc, self.face.name)
+                 for b, sc, _cut in self._look(self.face, image, self._pieces(items), thr)]
+        # a cut box the second look did not see again stays (it scored the threshold)
+        return again + [k for k in keep if not again or not (
+            iou_xyxy(np.array([k.box]), np.array([d.box for d in again])) > 0).any()]
+
+    @staticmethod
+    def _pieces(items: list[list[Any]]) -> list[Piece]:
+        return [_crop_piece(k, x0, y0, x1, y1, sc, (lo, hi))
+                for k, x0, y0, x1, y1, sc, lo, hi in _merge_crops(items)]
 
     def _float_look(self, image: np.ndarray, items: list[list[Any]], threshold: float,
                     batch: bool = False) -> list[tuple[Any, float]]:
@@ -789,10 +874,9 @@ class GuidedDetector:
         assert self.face is not None
         c = self.config
         h, w = image.shape[:2]
-        pieces = [_crop_piece(k, x0, y0, x1, y1, sc, (lo, hi))
-                  for k, x0, y0, x1, y1, sc, lo, hi in _merge_crops(items)]
+        pieces = self._pieces(items)
         if batch and c.face_look_batch > 0:
-            return self._look(self.face, image, pieces, threshold)
+            return [(b, sc) for b, sc, _cut in self._look(self.face, image, pieces, threshold)]
         found: list[tuple[Any, float]] = []
         for canvas, ps, pos in mosaics(image, pieces,
                                        replace(c, gap=c.face_proposal_gap, pack_fit=True)):
@@ -807,20 +891,22 @@ class GuidedDetector:
         return found
 
     def _look(self, net: CenterFaceDetector, image: np.ndarray, pieces: Sequence[Piece],
-              threshold: float) -> list[tuple[Box, float]]:
-        """(box in ``image`` pixels, score) of the faces ``net`` finds scoring ``threshold``
-        in the crop ``pieces``, each crop centred alone in a black tensor padded to a
+              threshold: float) -> list[tuple[Box, float, bool]]:
+        """(box in ``image`` pixels, score, cut) of the faces ``net`` finds scoring ``threshold`` in
+        the crop ``pieces`` (cut: the box reaches within ``face_cut_px`` of an edge of its
+        crop that is not the frame's), each crop centred alone in a black tensor padded to a
         multiple of 32 (at least ``face_look_margin`` px each side), crops of one padded
         shape in one batch. Alone: no neighbour's pixels are its context and no gaps are
         paid for (the canvases with their 32 px gaps held 1.47x the network pixels on the
-        real street images). Centred, not in a corner: the scores of 16-20 px faces
-        move with where a face sits on the network's 32 px grid; centred, the full-frame
-        plan found 101 of 108 real faces pasted into real streets (canvases 100, corner
-        97-101) with 2 false faces (canvases 4); 203 of 216 faces of 16-32 px at three
-        more positions (canvases 198), 6 false faces (canvases 16)."""
+        real street images). Centred, not in a corner: the scores of 16-20 px faces move
+        with where a face sits on the network's 32 px grid; centred, the full-frame plan
+        found 101 of 108 real faces pasted into real streets (canvases 100, corner 97-101)
+        with 2 false faces (canvases 4); 203 of 216 faces of 16-32 px at three more
+        positions (canvases 198), 6 false faces (canvases 16)."""
         c = self.config
         h, w = image.shape[:2]
-        out: list[tuple[Box, float]] = []
+        out: list[tuple[Box, float, bool]] = []
+        t = c.face_cut_px
         for (bw, bh), group in _batches(pieces, max(c.face_look_batch, 1), c.face_look_margin):
             views = []
             for p in group:
@@ -834,7 +920,12 @@ class GuidedDetector:
                     b = np.asarray(b, float) - [x, y, x, y]
                     # a box centred in the black margin is not this crop's face
                     if 0 <= (b[0] + b[2]) / 2 < p.out_w and 0 <= (b[1] + b[3]) / 2 < p.out_h:
-                        out.append((p.to_frame(b, w, h), float(sc)))
+                        assert p.crop is not None
+                        x0, y0, x1, y1, _s = p.crop
+                        cut = bool((b[0] <= t and x0 > 0) or (b[1] <= t and y0 > 0)
+                                   or (b[2] >= p.out_w - t and x1 < w)
+                                   or (b[3] >= p.out_h - t and y1 < h))
+                        out.append((p.to_frame(b, w, h), float(sc), cut))
         return out
 
     def _plates_proposed(self, image: np.ndarray) -> list[Detection]:
