@@ -76,7 +76,10 @@ def encode_image(img: np.ndarray, fmt: str, png_compression: int = 1, jpeg_quali
 
 
 def decode_image(data: bytes) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    """PNG (``pngcodec.decode_png``: its fast path where it applies) or any other format
+    OpenCV reads, as ``cv2.imdecode(..., IMREAD_UNCHANGED)`` gives it."""
+    img = (pngcodec.decode_png(data) if data.startswith(PNG_SIGNATURE)
+           else cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED))
     if img is None:
         raise ValueError("image could not be decoded")
     return img
