@@ -47,9 +47,32 @@ _PASSIVE = frozenset({b"tEXt", b"zTXt", b"iTXt", b"tIME", b"eXIf", b"iCCP", b"pH
 _UP = 2
 
 
-def _chunk(ctype: bytes, payload: bytes) -> bytes:
-    return (struct.pack(">I", len(payload)) + ctype + payload
-            + struct.pack(">I", zlib.crc32(ctype + payload) & 0xFFFFFFFF))
+def png_chunks(data: bytes) -> list[tuple[bytes, bytes]]:
+    """(type, payload) of every chunk up to IEND; raises ValueError on a malformed stream."""
+    if not data.startswith(PNG_SIGNATURE):
+        raise ValueError("not a PNG (bad signature)")
+    out = []
+    pos = len(PNG_SIGNATURE)
+    while pos + 8 <= len(data):
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        ctype = data[pos + 4 : pos + 8]
+        end = pos + 12 + length
+        if end > len(data):
+            raise ValueError(f"truncated PNG chunk {ctype!r}")
+        out.append((ctype, data[pos + 8 : pos + 8 + length]))
+        pos = end
+        if ctype == b"IEND":
+            break
+    return out
+
+
+def build_png(chunks: list[tuple[bytes, bytes]]) -> bytes:
+    """The PNG stream of ``chunks`` ((type, payload), in order), each with its CRC."""
+    parts = [PNG_SIGNATURE]
+    for ctype, payload in chunks:
+        crc = zlib.crc32(ctype + payload) & 0xFFFFFFFF
+        parts.append(struct.pack(">I", len(payload)) + ctype + payload + struct.pack(">I", crc))
+    return b"".join(parts)
 
 
 def encode_png(img: np.ndarray, level: int = 1) -> bytes:
@@ -84,7 +107,7 @@ def _encode_up(img: np.ndarray, level: int) -> bytes:
     np.subtract(rows[1:], rows[:-1], out=filt[1:, 1:])
     idat = _deflate.compress(filt, min(max(int(level), 0), 3))
     ihdr = struct.pack(">IIBBBBB", w, h, depth, _COLOR_TYPES[ch], 0, 0, 0)
-    return PNG_SIGNATURE + _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", idat) + _chunk(b"IEND", b"")
+    return build_png([(b"IHDR", ihdr), (b"IDAT", idat), (b"IEND", b"")])
 
 
 def decode_png(data: bytes) -> np.ndarray | None:
@@ -100,23 +123,17 @@ def decode_png(data: bytes) -> np.ndarray | None:
 def _decode_up(data: bytes) -> np.ndarray | None:
     """The fast path: 8 / 16-bit grey, RGB or RGBA, not interlaced, every row filtered with
     UP or not at all (what ``encode_png`` writes); None for anything else."""
-    if not data.startswith(PNG_SIGNATURE):
+    try:
+        chunks = png_chunks(data)
+    except ValueError:
         return None
-    pos, idat, ihdr = len(PNG_SIGNATURE), [], b""
-    while pos + 8 <= len(data):
-        (n,) = struct.unpack(">I", data[pos : pos + 4])
-        ctype = data[pos + 4 : pos + 8]
-        payload = data[pos + 8 : pos + 8 + n]
-        if len(payload) < n:
-            return None
-        pos += 12 + n
+    idat, ihdr = [], b""
+    for ctype, payload in chunks:
         if ctype == b"IHDR":
             ihdr = payload
         elif ctype == b"IDAT":
             idat.append(payload)
-        elif ctype == b"IEND":
-            break
-        elif ctype not in _PASSIVE:
+        elif ctype != b"IEND" and ctype not in _PASSIVE:
             return None
     if len(ihdr) != 13 or not idat:
         return None

@@ -91,6 +91,20 @@ class ScanPass:
     tiles: tuple[tuple[int, int, int, int], ...]
 
 
+def overlapping(rows: np.ndarray, boxes: np.ndarray, iou: float = 0.3,
+                contain: float = 0.8) -> np.ndarray:
+    """(len(rows), len(boxes)) booleans: box j overlaps row box i by IoU ``iou`` or more, or
+    holds ``contain`` or more of its area: the test by which ``nms`` drops a box (xyxy)."""
+    rows = np.asarray(rows, np.float64).reshape(-1, 4)
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)
+    area = np.maximum((rows[:, 2] - rows[:, 0]) * (rows[:, 3] - rows[:, 1]), 1e-9)
+    ix = np.maximum(0.0, np.minimum(rows[:, None, 2], boxes[None, :, 2])
+                    - np.maximum(rows[:, None, 0], boxes[None, :, 0]))
+    iy = np.maximum(0.0, np.minimum(rows[:, None, 3], boxes[None, :, 3])
+                    - np.maximum(rows[:, None, 1], boxes[None, :, 1]))
+    return (iou_xyxy(rows, boxes) >= iou) | (ix * iy / area[:, None] >= contain)
+
+
 def nms(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8) -> list[Detection]:
     """Greedy NMS per kind; also drops a box mostly contained in a better one (tile seams).
 
@@ -104,16 +118,10 @@ def nms(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8) -> li
             out.extend(ds)
             continue
         b = np.array([d.box for d in ds], np.float64).reshape(-1, 4)
-        area = np.maximum((b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1]), 1e-9)
         kept: list[int] = []
         for lo in range(0, len(ds), _NMS_BLOCK):
             rows = b[lo : lo + _NMS_BLOCK]
-            ov = iou_xyxy(rows, b) >= iou
-            ix = np.maximum(0.0, np.minimum(rows[:, None, 2], b[None, :, 2])
-                            - np.maximum(rows[:, None, 0], b[None, :, 0]))
-            iy = np.maximum(0.0, np.minimum(rows[:, None, 3], b[None, :, 3])
-                            - np.maximum(rows[:, None, 1], b[None, :, 1]))
-            ov |= ix * iy / area[lo : lo + _NMS_BLOCK, None] >= contain
+            ov = overlapping(rows, b, iou, contain)
             for r in range(len(rows)):
                 if not kept or not ov[r, kept].any():
                     kept.append(lo + r)

@@ -35,6 +35,7 @@ from v2xlake.tasks.anonymize.detectors import (
     face_scan,
     iter_views,
     nms,
+    overlapping,
 )
 from v2xlake.tasks.anonymize.guide import Region
 from v2xlake.tasks.anonymize.params import FromParams, derived
@@ -834,15 +835,8 @@ class GuidedDetector:
         for b, sc, cut in doubtful:
             if sc < c.face_relook_min and not cut:
                 continue
-            bb = np.asarray(b, float)[None]
-            if len(have):
-                ix = np.maximum(0.0, np.minimum(bb[:, 2], have[:, 2])
-                                - np.maximum(bb[:, 0], have[:, 0]))
-                iy = np.maximum(0.0, np.minimum(bb[:, 3], have[:, 3])
-                                - np.maximum(bb[:, 1], have[:, 1]))
-                area = max((b[2] - b[0]) * (b[3] - b[1]), 1e-9)
-                if ((iou_xyxy(bb, have) >= 0.3) | (ix * iy / area >= 0.8)).any():
-                    continue  # a whole face scoring the threshold holds it already
+            if len(have) and overlapping(np.asarray(b, float), have).any():
+                continue  # a whole face scoring the threshold holds it already (as in nms)
             bw, bh = b[2] - b[0], b[3] - b[1]
             if cut and sc >= thr:
                 keep.append(Detection("face", b, sc, self.face.name if self.face else ""))

@@ -3,13 +3,12 @@
 The output PNG carries only the chunks needed to decode it (IHDR, PLTE, tRNS, IDAT, IEND):
 text chunks, EXIF, timestamps (tIME), ICC profiles and any private chunk a camera driver may
 have written are dropped, because any of them can hold a time, a place or a serial number.
-PNG chunks are parsed here directly (no imaging library decides what to keep).
+PNG chunks are parsed directly (``pngcodec.png_chunks``: no imaging library decides what to
+keep).
 """
 
 from __future__ import annotations
 
-import struct
-import zlib
 from dataclasses import dataclass
 
 import cv2
@@ -18,37 +17,10 @@ import numpy as np
 from v2xlake.tasks import pngcodec
 from v2xlake.tasks.anonymize.blur import BlurConfig, blur_boxes
 from v2xlake.tasks.anonymize.detectors import Detection, Detector
+from v2xlake.tasks.pngcodec import PNG_SIGNATURE, build_png, png_chunks
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 CRITICAL_CHUNKS = frozenset({b"IHDR", b"PLTE", b"tRNS", b"IDAT", b"IEND"})
 METADATA_CHUNKS = frozenset({b"tEXt", b"zTXt", b"iTXt", b"eXIf", b"tIME", b"iCCP"})
-
-
-def png_chunks(data: bytes) -> list[tuple[bytes, bytes]]:
-    """(type, payload) of every chunk; raises ValueError on a malformed stream."""
-    if not data.startswith(PNG_SIGNATURE):
-        raise ValueError("not a PNG (bad signature)")
-    out = []
-    pos = len(PNG_SIGNATURE)
-    while pos + 8 <= len(data):
-        (length,) = struct.unpack(">I", data[pos : pos + 4])
-        ctype = data[pos + 4 : pos + 8]
-        end = pos + 12 + length
-        if end > len(data):
-            raise ValueError(f"truncated PNG chunk {ctype!r}")
-        out.append((ctype, data[pos + 8 : pos + 8 + length]))
-        pos = end
-        if ctype == b"IEND":
-            break
-    return out
-
-
-def build_png(chunks: list[tuple[bytes, bytes]]) -> bytes:
-    parts = [PNG_SIGNATURE]
-    for ctype, payload in chunks:
-        crc = zlib.crc32(ctype + payload) & 0xFFFFFFFF
-        parts.append(struct.pack(">I", len(payload)) + ctype + payload + struct.pack(">I", crc))
-    return b"".join(parts)
 
 
 def strip_png_metadata(data: bytes) -> bytes:

@@ -17,9 +17,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from v2xlake.tasks.pngcodec import encode_png
+from v2xlake.tasks.pngcodec import PNG_SIGNATURE, encode_png
 
-PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 JPEG_MAGIC = b"\xff\xd8\xff"
 # JPEG start-of-frame markers (baseline, progressive, lossless, arithmetic): carry the size
 _SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
@@ -39,7 +38,7 @@ _RAW: dict[str, tuple[str, int, int | None]] = {
 
 def png_size(data: bytes) -> tuple[int, int]:
     """(width, height) from the PNG IHDR chunk, without decoding pixels."""
-    if not data.startswith(PNG_MAGIC) or data[12:16] != b"IHDR":
+    if not data.startswith(PNG_SIGNATURE) or data[12:16] != b"IHDR":
         raise ValueError("not a PNG stream")
     w, h = struct.unpack(">II", data[16:24])
     return int(w), int(h)
@@ -79,7 +78,7 @@ def compressed_image(msg: Any, level: int = 1) -> tuple[bytes, int, int]:
     (their headers must give a size; the stages that need pixels decode them), anything
     else decoded and stored as PNG."""
     data = bytes(np.asarray(msg.data, dtype=np.uint8).tobytes())
-    if data.startswith(PNG_MAGIC):
+    if data.startswith(PNG_SIGNATURE):
         w, h = png_size(data)
         return data, w, h
     if data.startswith(JPEG_MAGIC):
@@ -91,7 +90,7 @@ def compressed_image(msg: Any, level: int = 1) -> tuple[bytes, int, int]:
 def compressed_to_png(msg: Any, level: int = 1) -> tuple[bytes, int, int]:
     """Decode any compressed frame and re-encode it as PNG (PNG input is kept as is)."""
     data = bytes(np.asarray(msg.data, dtype=np.uint8).tobytes())
-    if data.startswith(PNG_MAGIC):
+    if data.startswith(PNG_SIGNATURE):
         w, h = png_size(data)
         return data, w, h
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)

@@ -378,8 +378,8 @@ class SparseGicpBackend(SmallGicpBackend):
                             max_correspondence_m=p.max_correspondence_m,
                             max_iterations=p.max_iterations, num_threads=p.num_threads,
                             t_covisible_with=target.covisible_with,
-                            translation_eps_m=(p.fallback_translation_eps_m if dense
-                                               else 1e-3))
+                            **({"translation_eps_m": p.fallback_translation_eps_m}
+                               if dense else {}))
 
     def _dense_rows(self, source: Prepared, rows: np.ndarray | None = None) -> np.ndarray:
         """``rows`` (default: every source centroid), less those the other LiDAR cannot see
