@@ -45,8 +45,9 @@ def test_grid_searches_are_exact(cell: float) -> None:
 
 def test_bounded_search_skips_only_what_cannot_match() -> None:
     """``nearest_bounded`` on a source moving step by step (as in GICP iterations) gives the
-    plain bounded search's answer every time, while skipping queries that found nothing."""
-    from v2xlake.tasks.register.voxel import _grid_nn_bounded
+    plain bounded search's answer every time, while skipping queries that found nothing
+    (and, given hold / slack, queries that cannot have a new nearest point)."""
+    from v2xlake.tasks.register.voxel import _grid_nn_bounded, _grid_nn_held
 
     rng = np.random.default_rng(7)
     pts = np.concatenate([
@@ -56,7 +57,9 @@ def test_bounded_search_skips_only_what_cannot_match() -> None:
                           rng.uniform(-25, 25, (400, 3))])
     g = VoxelGrid(pts, 1.0)
     anchor, lb = np.zeros((len(src), 3)), np.zeros(len(src))
-    skipped = 0
+    held_state = (np.zeros((len(src), 3)), np.zeros(len(src)),
+                  np.full(len(src), -1, dtype=np.int64), np.zeros(len(src)))
+    skipped = held_skipped = 0
     for it in range(12):
         # shrinking steps, as GICP's, with one large jump that must invalidate bounds
         step = 0.6 if it == 6 else 0.2 / (it + 1)
@@ -71,7 +74,22 @@ def test_bounded_search_skips_only_what_cannot_match() -> None:
         assert np.array_equal(anchor, a0) and np.array_equal(lb, l0)
         assert (lb[want_i >= 0] == 0).all() and (lb[want_i < 0] > 1.0).all()
         skipped += sk
+        # with hold / slack: the queries that found a point keep it while they move less
+        # than half its gap to the next one; the answers are still the plain search's
+        a0, l0, h0, s0 = held_state[0].copy(), *(x.copy() for x in held_state[1:])
+        i, d2, sk = _grid_nn_held(g._keys, g._cells, g._start, g._order, g._sp, g._lo,
+                                  g._hi, g.inv_cell, src, 1.0, a0, l0, h0, s0)
+        assert np.array_equal(i, want_i) and np.array_equal(d2, want_d)
+        got_i, got_d = g.nearest_bounded(src, 1.0, *held_state)
+        assert np.array_equal(got_i, want_i) and np.array_equal(got_d, want_d)
+        assert np.array_equal(held_state[2], h0) and np.array_equal(held_state[3], s0)
+        found = want_i >= 0
+        assert np.array_equal(g._order[held_state[2][found]], want_i[found])
+        assert (held_state[2][~found] == -1).all()
+        held_skipped += sk
     assert skipped > 1000  # the bounds do skip searches (400 far queries x 11 iterations)
+    # and the held nearest points skip the near queries' searches in the small steps too
+    assert held_skipped > skipped + 500
 
 
 def test_voxel_table_growth_and_sample_are_first_seen() -> None:

@@ -204,13 +204,16 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
     converged, iterations, used = False, 0, 0
     max_d2 = max_correspondence_m**2
     d2: np.ndarray | None = None
-    # the lower bounds of the points without correspondence (VoxelGrid.nearest_bounded)
+    # the lower bounds of the points without correspondence, the nearest point and its
+    # margin of those with one (VoxelGrid.nearest_bounded: a point that moved less than its
+    # margin keeps its nearest point without a search)
     anchor, lb = np.zeros((len(sp), 3)), np.zeros(len(sp))
+    hold, slack = np.full(len(sp), -1, dtype=np.int64), np.zeros(len(sp))
     while iterations < max_iterations:
         iterations += 1
         q = sp @ T[:3, :3].T + T[:3, 3]
         if isinstance(t_tree, VoxelGrid):
-            nn, d2 = t_tree.nearest_bounded(q, max_correspondence_m, anchor, lb)
+            nn, d2 = t_tree.nearest_bounded(q, max_correspondence_m, anchor, lb, hold, slack)
         else:
             nn, d2 = t_tree.batch_nearest_neighbor_search(  # type: ignore[attr-defined]
                 q, num_threads=num_threads, max_dist_m=max_correspondence_m)

@@ -424,6 +424,99 @@ def _grid_nn_bounded(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, ord
     return out_i, out_d, skipped
 
 
+
+@njit(cache=True, nogil=True)
+def _grid_nn_held(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.ndarray,
+                  sp: np.ndarray, lo: np.ndarray, hi: np.ndarray, inv_cell: float,
+                  q: np.ndarray, max_d2: float, anchor: np.ndarray, lb: np.ndarray,
+                  hold: np.ndarray, slack: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`_grid_nn_bounded` that also skips the search of a query that found something:
+    a search finds its nearest point ``j`` (distance ``d1``) and a lower bound ``d2`` on the
+    distance of every other point (its second nearest within ``sqrt(max_d2)``, else that
+    bound), and records ``j`` (``hold``, a position in the grid's order), half the gap
+    ``(d2 - d1) / 2`` (``slack``) and where it was (``anchor``). While the query stays
+    within ``slack`` of its anchor, ``j`` is still its unique nearest point (every other
+    point is farther than ``d2 - move > d1 + move``, triangle inequality), so only ``j``'s
+    distance is computed, as the search computes it. A miss records its lower bound (``lb``)
+    as :func:`_grid_nn_bounded` does. Results are the plain search's; also returns the
+    number of queries not searched."""
+    nq = q.shape[0]
+    out_i = np.full(nq, -1, dtype=np.int64)
+    out_d = np.full(nq, np.inf)
+    shift = np.uint64(64 - int(np.log2(len(keys))))
+    cell = 1.0 / inv_cell
+    max_d = np.sqrt(max_d2)
+    skipped = 0
+    for t in range(nq):
+        x, y, z = q[t, 0], q[t, 1], q[t, 2]
+        if lb[t] > 0.0 or hold[t] >= 0:
+            ax, ay, az = x - anchor[t, 0], y - anchor[t, 1], z - anchor[t, 2]
+            move = np.sqrt(ax * ax + ay * ay + az * az)
+            # the margins cover rounding in the bounds and in the move (~1e-15 relative)
+            if lb[t] > 0.0:
+                if lb[t] - move > max_d * (1.0 + 1e-9) + 1e-9:
+                    skipped += 1
+                    continue
+            elif move < slack[t]:
+                j = hold[t]
+                dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 < max_d2:
+                    out_i[t] = order[j]
+                    out_d[t] = d2
+                skipped += 1
+                continue
+        cx, cy, cz = _cell_of(x, y, z, inv_cell)
+        m0 = _face_margin(x, y, z, inv_cell) * cell
+        b0, b1 = max_d2, max_d2  # the two nearest (squared), within the bound
+        i0 = -1
+        low = np.inf  # a miss: lower bound on every squared distance (all are >= max_d2)
+        s = 0
+        while True:
+            if s > 0:
+                lbs = (s - 1) * cell + m0
+                if lbs * lbs > b1:
+                    low = min(low, lbs * lbs)
+                    break
+            for ix in range(max(cx - s, lo[0]), min(cx + s, hi[0]) + 1):
+                for iy in range(max(cy - s, lo[1]), min(cy + s, hi[1]) + 1):
+                    za, zb, zs = _shell_z(ix, iy, cx, cy, cz, s, max(cz - s, lo[2]),
+                                          min(cz + s, hi[2]))
+                    for iz in range(za, zb + 1, zs):
+                        if s > 0:
+                            cd = _cell_d2(x, y, z, ix, iy, iz, cell)
+                            if cd > b1:
+                                low = min(low, cd)
+                                continue
+                        c = _probe(keys, cells, shift, ix, iy, iz)
+                        if c < 0:
+                            continue
+                        for j in range(start[c], start[c + 1]):
+                            dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
+                            d2 = dx * dx + dy * dy + dz * dz
+                            if d2 < b0:
+                                b1 = b0
+                                b0, i0 = d2, j
+                            elif d2 < b1:
+                                b1 = d2
+                            else:
+                                low = min(low, d2)
+            if _covered(cx, cy, cz, s, lo, hi):
+                break
+            s += 1
+        anchor[t, 0], anchor[t, 1], anchor[t, 2] = x, y, z
+        if i0 >= 0:
+            out_i[t] = order[i0]
+            out_d[t] = b0
+            lb[t] = 0.0
+            hold[t] = i0
+            slack[t] = 0.5 * (np.sqrt(b1) - np.sqrt(b0)) * (1.0 - 1e-9) - 1e-9
+        else:
+            lb[t] = np.sqrt(low)  # inf: an empty cloud around it, nothing anywhere
+            hold[t] = -1
+    return out_i, out_d, skipped
+
+
 @njit(cache=True, nogil=True)
 def first_per_cell(pts: np.ndarray, inv_cell: float) -> np.ndarray:
     """Index of the first point of each occupied cell, in input order (so ascending): one
@@ -490,7 +583,8 @@ class VoxelGrid:
         return i[:, 0], d2[:, 0]
 
     def nearest_bounded(self, q: np.ndarray, max_dist_m: float, anchor: np.ndarray,
-                        lb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                        lb: np.ndarray, hold: np.ndarray | None = None,
+                        slack: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`batch_nearest_neighbor_search` within ``max_dist_m`` for a query set
         searched again and again as it moves a little (a GICP source, iteration after
         iteration): ``anchor`` (N, 3) and ``lb`` (N,) float64, zeros at first, carry from
@@ -504,6 +598,13 @@ class VoxelGrid:
             return np.full(len(qq), -1, dtype=np.int64), np.full(len(qq), np.inf)
         if anchor.shape != qq.shape or lb.shape != (len(qq),):
             raise ValueError("anchor / lb must be (N, 3) / (N,) for N queries")
+        if hold is not None and slack is not None:
+            if hold.shape != (len(qq),) or slack.shape != (len(qq),):
+                raise ValueError("hold / slack must be (N,) for N queries")
+            i, d2, _ = _grid_nn_held(self._keys, self._cells, self._start, self._order,
+                                     self._sp, self._lo, self._hi, self.inv_cell, qq,
+                                     float(max_dist_m) ** 2, anchor, lb, hold, slack)
+            return i, d2
         i, d2, _ = _grid_nn_bounded(self._keys, self._cells, self._start, self._order,
                                     self._sp, self._lo, self._hi, self.inv_cell, qq,
                                     float(max_dist_m) ** 2, anchor, lb)
