@@ -854,7 +854,9 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
             o, fo = w.other, w.other_frame
             res = cross_gicp(w, st, d) if job is None else job.result()
             if w.target is not None and w.source is not None:
-                short[o.agent] = cfg.gicp.dense_after_short_sample and res.sample_short
+                short[o.agent] = res.sample_short and (
+                    cfg.gicp.dense_after_short_sample
+                    or (o.agent in reuse and cfg.stationary.dense_after_short_sample))
             if res.accepted and res.observability >= cfg.quality.min_observability:
                 warm[o.agent] = res.correction
             usable = res.accepted and res.H is not None and bool(np.isfinite(res.H).all())
