@@ -385,18 +385,18 @@ def main() -> None:
     ap.add_argument("--band-plates", action="store_true",
                     help="only: real plates pasted into the far band of LiDAR-only clips "
                     "(seeds: --lidar-seeds)")
+    ap.add_argument("--plates-half", default="all", choices=("all", "even", "odd"),
+                    help="with --band-plates: which plates_eu photos are pasted (even: "
+                    "eu[::2], the half thresholds were set on; odd: eu[1::2], held out)")
     args = ap.parse_args()
     if args.band_plates:
         cv2.setNumThreads(1)
         band_plates([int(s) for s in args.lidar_seeds.split(",")],
-                    n_plates=24 if args.quick else 60, variants={
-                        "default (band_plate_px 32, closer look band_look_px 80)":
+                    n_plates=24 if args.quick else 60, half=args.plates_half, variants={
+                        "default (band_plate_px 32, closer look 80, plate blobs to 44 px)":
                             AnonymizeConfig(),
-                        "no closer look (band_look_px 0, before)": AnonymizeConfig(
-                            clusters={"band_look_px": 0}),
-                        "band_look_px 100": AnonymizeConfig(clusters={"band_look_px": 100}),
-                        "band_plate_px 64 (x3.2, pieces side by side), no closer look":
-                            AnonymizeConfig(clusters={"band_plate_px": 64, "band_look_px": 0})})
+                        "no plate-blob test (band_blob_max_px 0, before)": AnonymizeConfig(
+                            clusters={"band_blob_max_px": 0})})
         return
     if args.clips:
         cv2.setNumThreads(1)
@@ -605,7 +605,8 @@ def speed(quick: bool) -> None:
 
 # -------------------------------------------------------------------- far band, real plates
 def band_plates(seeds: list[int], widths: tuple[int, ...] = (20, 30, 40), per_frame: int = 4,
-                n_plates: int = 60, variants: dict[str, AnonymizeConfig] | None = None) -> None:
+                n_plates: int = 60, variants: dict[str, AnonymizeConfig] | None = None,
+                half: str = "all") -> None:
     """Real plates in the far band of a LiDAR-only clip (issue #22: plates >= 20 px found
     >= 0.95 with guidance from LiDAR clusters only). For each seed a simulated clip (1080p,
     the narrow camera, 5 Hz, annotations deleted) gives frames with their LiDAR-cluster
@@ -618,13 +619,15 @@ def band_plates(seeds: list[int], widths: tuple[int, ...] = (20, 30, 40), per_fr
     on the real street frames (the simulator's streets hold no sign or facade text). The
     plates sit at rows of the band's middle half whatever their width (a real 20 px plate,
     ~90 m away, is near the horizon): it measures the detector at the band's scale, not
-    the band's geometry."""
+    the band's geometry. ``half``: all plates_eu photos, or ``even`` (``eu[::2]``, the half
+    the band's thresholds were set on) or ``odd`` (``eu[1::2]``, held out)."""
     from v2xlake.tasks.anonymize.evaluate import match, plates_eu
 
     if not (REAL / "plates_eu").is_dir():
         print("\nfar band: real plates (plates_eu) absent, skipped")
         return
     eu = plates_eu(REAL / "plates_eu")
+    eu = {"all": eu, "even": eu[::2], "odd": eu[1::2]}[half]
     variants = variants or {"default": AnonymizeConfig()}
     dets_by = {name: build_detector(cfg) for name, cfg in variants.items()}
     res: dict[str, dict[int, list[bool]]] = {n: {} for n in variants}

@@ -289,6 +289,13 @@ class Clusters(Section):
         "2.01 -> 2.38 CPU s per narrow-camera frame, band false plates on the real street "
         "frames 0.33 both; clips (0.3 s) plates 502 -> 503 / 503, faces 149 / 152 both, "
         "false blurs unchanged, 0-6 % fewer img/s/core. 0: off")
+    band_blob_max_px: float = Field(
+        44.0, ge=0, description="the far band's plate-blob test (guided.band_plate_blobs): "
+        "bright rectangles of a plate's shape from regions.plate_text_min_px x 0.75 to this "
+        "width (px) whose middle holds glyph texture are blurred as plates, not read. Why: "
+        "a real 20-25 px plate is ~20 x 4 px, its glyphs blurred into the plate; the text "
+        "detector barely responds to it at any affordable scale (nor OpenCV's plate "
+        "cascades: 10-17 of 96 at x3-x4). 0: off")
     ground_isolated_m: float = Field(
         5.0, ge=0, description="a ground cell (2 m) with fewer than two occupied neighbours "
         "is a lone object's own returns (the road around it unseen): its ground is at most "

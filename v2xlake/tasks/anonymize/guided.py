@@ -224,6 +224,21 @@ class GuidedConfig(FromParams):
     band_look_pad: float = 1.0
     band_edge_scale: float = 2.0
     band_edge_thresholds: tuple[float, ...] = (60.0, 90.0, 200.0)
+    # the far band's plate-blob test (``band_plate_blobs``; ``band_blob_max_px`` 0: off):
+    # in the band upscaled ``band_blob_scale``, pixels ``band_blob_thresholds`` grey levels
+    # brighter than their surroundings (a box of 2.2 x 0.7 the largest blob) form
+    # rectangles; one of a plate's width and shape (aspect ``band_blob_aspect``) filling
+    # ``band_blob_min_fill`` of its box, ``band_blob_min_contrast`` brighter than the rows
+    # above and below it, whose middle changes by ``band_blob_min_glyph`` grey levels per px
+    # on average along its rows (glyphs), is a plate; at most ``band_blob_max`` per band
+    band_blob_max_px: float = _param("clusters.band_blob_max_px")
+    band_blob_scale: float = 2.0
+    band_blob_thresholds: tuple[float, ...] = (12.0, 20.0, 30.0, 45.0)
+    band_blob_aspect: tuple[float, float] = (2.4, 7.5)
+    band_blob_min_fill: float = 0.6
+    band_blob_min_contrast: float = 25.0
+    band_blob_min_glyph: float = 5.5
+    band_blob_max: int = 12
 
 
 @dataclass(frozen=True, eq=False)
@@ -514,6 +529,7 @@ def _piece_of(box: np.ndarray, pieces: Sequence[Piece], pos: Sequence[tuple[int,
 
 
 BLOB = "plate-blob"
+BAND_BLOB = "band-plate-blob"
 
 
 def edge_band_sets(gray: np.ndarray, cfg: GuidedConfig
@@ -590,6 +606,59 @@ def band_look_crops(gray: np.ndarray, r: Region, cfg: GuidedConfig) -> list[list
                       min(w, int(np.ceil(x1 + px))), min(h, int(np.ceil(y1 + py))),
                       float(s), lo, hi])
     return items
+
+
+def band_plate_blobs(bgr: np.ndarray, box: tuple[int, int, int, int], min_px: float,
+                     cfg: GuidedConfig) -> list[tuple[tuple[float, float, float, float], float]]:
+    """Plates of the far band ``box`` (x0, y0, x1, y1 frame px) too small for text: bright
+    rectangles of a plate's shape, ``0.75 * min_px`` to ``band_blob_max_px`` wide, brighter
+    than the rows above and below them, with glyph texture in their middle rows; (frame
+    box, score), the most textured first, overlaps dropped, at most ``band_blob_max``.
+    Why: a real 20-25 px plate is ~20 x 4 px; its glyphs blur into the plate, the text
+    detector barely responds to it even at x3-x5 and OpenCV's plate cascades find 10-17 of
+    96 at x3-x4, but the plate stays a light, textured rectangle on a darker car (real
+    plates_eu plates shrunk into the band, half of the set: 41 / 96 at 20 px, 66 / 96 at
+    25 px, none on the real street frames' band rows). Not a reader: a light, textured
+    sign or window of plate size is blurred too (a few hundred pixels each)."""
+    if cfg.band_blob_max_px <= 0:
+        return []
+    x0, y0, x1, y1 = box
+    s = cfg.band_blob_scale
+    wlo, whi = 0.75 * min_px * s, cfg.band_blob_max_px * s
+    if x1 - x0 < 2 or y1 - y0 < 2 or whi < wlo:
+        return []
+    up = cv2.resize(bgr[y0:y1, x0:x1], None, fx=s, fy=s, interpolation=cv2.INTER_LINEAR)
+    g = (cv2.cvtColor(up, cv2.COLOR_BGR2GRAY) if up.ndim == 3 else up).astype(np.float32)
+    along = np.abs(np.diff(g, axis=1))
+    diff = g - cv2.blur(g, (int(2.2 * whi) | 1, int(0.7 * whi) | 1))
+    alo, ahi = cfg.band_blob_aspect
+    found: list[tuple[float, tuple[float, float, float, float]]] = []
+    for t in cfg.band_blob_thresholds:
+        n, lab, st, _c = cv2.connectedComponentsWithStats((diff > t).astype(np.uint8),
+                                                          connectivity=4)
+        for i in range(1, n):
+            x, y, w, h, area = (int(v) for v in st[i])
+            if not (wlo <= w <= whi and alo <= w / h <= ahi and h >= 2 * s
+                    and area >= cfg.band_blob_min_fill * w * h):
+                continue
+            mid = along[y + h // 4 : y + h - h // 4, x + w // 10 : x + w - w // 10 - 1]
+            glyph = float(mid.mean()) if mid.size else 0.0
+            if glyph < cfg.band_blob_min_glyph:
+                continue
+            rows = np.concatenate([g[max(0, y - h) : y, x : x + w].ravel(),
+                                   g[y + h : y + 2 * h, x : x + w].ravel()])
+            inside = g[y : y + h, x : x + w][lab[y : y + h, x : x + w] == i]
+            if not rows.size or inside.mean() - np.median(rows) < cfg.band_blob_min_contrast:
+                continue
+            found.append((glyph, (x / s + x0, y / s + y0, (x + w) / s + x0, (y + h) / s + y0)))
+    found.sort(key=lambda f: -f[0])
+    out: list[tuple[tuple[float, float, float, float], float]] = []
+    for glyph, b in found:
+        if len(out) >= cfg.band_blob_max:
+            break
+        if not out or iou_xyxy(np.array([b]), np.array([o for o, _sc in out])).max() < 0.2:
+            out.append((b, float(np.clip(glyph / 40.0, 0.05, 0.5))))
+    return out
 
 
 def edge_lines(image: np.ndarray, cfg: GuidedConfig) -> list[tuple[float, float, float, float]]:
@@ -686,7 +755,8 @@ class GuidedDetector:
             f":ft{c.face_threshold:g}/{c.full_face_threshold:g}"
             f":safe{c.safety_face_max_side}/{c.safety_plate_max_side}:blob{c.blob_below_px:g}"
             + (":edge-heads" if c.edge_heads else "")
-            + (f":band-look{c.band_look_px:g}" if c.band_look_px > 0 else ""))
+            + (f":band-look{c.band_look_px:g}" if c.band_look_px > 0 else "")
+            + (f":band-blob{c.band_blob_max_px:g}" if c.band_blob_max_px > 0 else ""))
         if region_first is not None and face is not None:
             self.version += (f"|region-first@{region_first.version}"
                              f":f{c.face_proposal_threshold:g}/{c.face_first_accept:g}")
@@ -787,7 +857,7 @@ class GuidedDetector:
             bw, bh = d.box[2] - d.box[0], d.box[3] - d.box[1]
             if bh < c.face_proposal_min_h:
                 continue  # a face that small identifies no one: not worth a crop
-            if bh >= c.face_accept_px:  # at its own scale already: the first pass decides
+            if bh * s0 >= c.face_accept_px:  # at its own scale already: the first pass decides
                 if d.score >= c.full_face_threshold:
                     out.append(Detection("face", d.box, d.score, self.face.name))
                 continue
@@ -1056,6 +1126,12 @@ class GuidedDetector:
             for r in regions:
                 if r.part == "band":
                     dets += self._band_look(image, r)
+        if self.plate is not None and c.band_blob_max_px > 0:
+            for r in regions:
+                bbox = _frame_box(r.box, w, h) if r.part == "band" else None
+                if bbox is not None:
+                    dets += [Detection("plate", pb, sc, BAND_BLOB)
+                             for pb, sc in band_plate_blobs(image, bbox, r.expected_px, c)]
         if self.plate is not None and c.blob_below_px > 0:
             for p in pieces:
                 if p.kind != "plate" or p.ppm <= 0:
