@@ -295,7 +295,7 @@ class Clusters(Section):
         "width (px) whose middle holds glyph texture are blurred as plates, not read. Why: "
         "a real 20-25 px plate is ~20 x 4 px, its glyphs blurred into the plate; the text "
         "detector barely responds to it at any affordable scale (nor OpenCV's plate "
-        "cascades: 10-17 of 96 at x3-x4). 0: off")
+        "cascades: 8-10 of 96 at x3-x3.9). 0: off")
     ground_isolated_m: float = Field(
         5.0, ge=0, description="a ground cell (2 m) with fewer than two occupied neighbours "
         "is a lone object's own returns (the road around it unseen): its ground is at most "
