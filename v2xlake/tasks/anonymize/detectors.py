@@ -602,6 +602,30 @@ class CenterFaceDetector:
         return nms(dets, self.config.nms_iou)
 
 
+def shrunk(image: np.ndarray, scale: float) -> np.ndarray:
+    """``image`` resized by ``scale`` (area interpolation, at least 32 px a side); itself at 1."""
+    if scale == 1.0:
+        return image
+    h, w = image.shape[:2]
+    return cv2.resize(image, (max(32, round(w * scale)), max(32, round(h * scale))),
+                      interpolation=cv2.INTER_AREA)
+
+
+def peak_boxes(maps: tuple[np.ndarray, np.ndarray, np.ndarray], vw: int, vh: int, w: int,
+               h: int, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """CenterFace boxes (N, 4) xyxy in the pixels of a ``w`` x ``h`` frame and scores (N,)
+    of the heat map's local maxima (3 x 3) scoring ``threshold``, from the maps of a
+    ``vw`` x ``vh`` view of the whole frame (the frame resized). One candidate per local
+    maximum: a face lights up a few cells, and NMS over every cell above a low threshold is
+    quadratic in thousands of cells."""
+    heat, scale, offset = maps
+    peaks = np.where(heat >= cv2.dilate(heat, np.ones((3, 3), np.uint8)), heat, 0.0)
+    boxes, scores = CenterFaceDetector.decode((peaks, scale, offset), vw, vh, threshold)
+    if (vw, vh) != (w, h):
+        boxes = np.clip(boxes * np.array([w / vw, h / vh, w / vw, h / vh]), 0, [w, h, w, h])
+    return boxes, scores
+
+
 # ------------------------------------------------------------------------------- plates
 @dataclass(frozen=True)
 class HaarPlateConfig:
