@@ -46,8 +46,8 @@ def test_grid_searches_are_exact(cell: float) -> None:
 def test_bounded_search_skips_only_what_cannot_match() -> None:
     """``nearest_bounded`` on a source moving step by step (as in GICP iterations) gives the
     plain bounded search's answer every time, while skipping queries that found nothing
-    (and, given hold / slack, queries that cannot have a new nearest point)."""
-    from v2xlake.tasks.register.voxel import _grid_nn_bounded, _grid_nn_held
+    and queries that cannot have a new nearest point."""
+    from v2xlake.tasks.register.voxel import _grid_nn_held
 
     rng = np.random.default_rng(7)
     pts = np.concatenate([
@@ -56,40 +56,41 @@ def test_bounded_search_skips_only_what_cannot_match() -> None:
     src = np.concatenate([pts[::5] + rng.normal(0, 0.3, (len(pts[::5]), 3)),
                           rng.uniform(-25, 25, (400, 3))])
     g = VoxelGrid(pts, 1.0)
-    anchor, lb = np.zeros((len(src), 3)), np.zeros(len(src))
-    held_state = (np.zeros((len(src), 3)), np.zeros(len(src)),
-                  np.full(len(src), -1, dtype=np.int64), np.zeros(len(src)))
-    skipped = held_skipped = 0
+    state = (np.zeros((len(src), 3)), np.zeros(len(src)),
+             np.full(len(src), -1, dtype=np.int64), np.zeros(len(src)))
+    # the same with the held points forgotten before every call: the misses' bounds alone
+    misses = (np.zeros((len(src), 3)), np.zeros(len(src)),
+              np.full(len(src), -1, dtype=np.int64), np.zeros(len(src)))
+    skipped = skipped_misses = 0
     for it in range(12):
         # shrinking steps, as GICP's, with one large jump that must invalidate bounds
         step = 0.6 if it == 6 else 0.2 / (it + 1)
         src = src + rng.normal(0, step, 3)
         want_i, want_d = g.batch_nearest_neighbor_search(src, max_dist_m=1.0)
-        a0, l0 = anchor.copy(), lb.copy()
-        i, d2, sk = _grid_nn_bounded(g._keys, g._cells, g._start, g._order, g._sp, g._lo,
-                                     g._hi, g.inv_cell, src, 1.0, a0, l0)
-        assert np.array_equal(i, want_i) and np.array_equal(d2, want_d)
-        got_i, got_d = g.nearest_bounded(src, 1.0, anchor, lb)
-        assert np.array_equal(got_i, want_i) and np.array_equal(got_d, want_d)
-        assert np.array_equal(anchor, a0) and np.array_equal(lb, l0)
-        assert (lb[want_i >= 0] == 0).all() and (lb[want_i < 0] > 1.0).all()
-        skipped += sk
-        # with hold / slack: the queries that found a point keep it while they move less
-        # than half its gap to the next one; the answers are still the plain search's
-        a0, l0, h0, s0 = held_state[0].copy(), *(x.copy() for x in held_state[1:])
+        a0, l0, h0, s0 = (x.copy() for x in state)
         i, d2, sk = _grid_nn_held(g._keys, g._cells, g._start, g._order, g._sp, g._lo,
                                   g._hi, g.inv_cell, src, 1.0, a0, l0, h0, s0)
         assert np.array_equal(i, want_i) and np.array_equal(d2, want_d)
-        got_i, got_d = g.nearest_bounded(src, 1.0, *held_state)
+        got_i, got_d = g.nearest_bounded(src, 1.0, *state)
         assert np.array_equal(got_i, want_i) and np.array_equal(got_d, want_d)
-        assert np.array_equal(held_state[2], h0) and np.array_equal(held_state[3], s0)
+        for x, y in zip(state, (a0, l0, h0, s0), strict=True):
+            assert np.array_equal(x, y)
         found = want_i >= 0
-        assert np.array_equal(g._order[held_state[2][found]], want_i[found])
-        assert (held_state[2][~found] == -1).all()
-        held_skipped += sk
-    assert skipped > 1000  # the bounds do skip searches (400 far queries x 11 iterations)
-    # and the held nearest points skip the near queries' searches in the small steps too
-    assert held_skipped > skipped + 500
+        lb, hold = state[1], state[2]
+        assert (lb[found] == 0).all() and (lb[~found] > 1.0).all()
+        assert np.array_equal(g._order[hold[found]], want_i[found])
+        assert (hold[~found] == -1).all()
+        skipped += sk
+        misses[2][:] = -1
+        i, d2, sk = _grid_nn_held(g._keys, g._cells, g._start, g._order, g._sp, g._lo,
+                                  g._hi, g.inv_cell, src, 1.0, *misses)
+        assert np.array_equal(i, want_i) and np.array_equal(d2, want_d)
+        skipped_misses += sk
+    # the bounds skip the far misses' searches (400 far queries x 11 iterations), and the
+    # held nearest points the near queries' searches in the small steps too
+    assert skipped_misses > 1000 and skipped > skipped_misses + 500
+    with pytest.raises(ValueError):
+        g.nearest_bounded(src, 1.0, *state[:3], np.zeros(3))
 
 
 def test_voxel_table_growth_and_sample_are_first_seen() -> None:

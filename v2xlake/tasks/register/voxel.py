@@ -329,117 +329,23 @@ def _grid_knn(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.
 
 
 @njit(cache=True, nogil=True)
-def _grid_nn_bounded(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.ndarray,
-                     sp: np.ndarray, lo: np.ndarray, hi: np.ndarray, inv_cell: float,
-                     q: np.ndarray, max_d2: float, anchor: np.ndarray, lb: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray, int]:
-    """:func:`_grid_knn` with k = 1 for a query set that moves a little between calls (the
-    source of a GICP iteration). A query that finds nothing within ``sqrt(max_d2)`` records
-    a lower bound on its distance to the cloud (``lb``) and where it was (``anchor``); while
-    the query stays close enough to its anchor that ``lb`` minus the move still exceeds the
-    search radius, it cannot find anything either and is not searched (triangle
-    inequality). ``lb`` 0: no bound. Results are those of the plain search; also returns the
-    number of queries skipped."""
-    nq = q.shape[0]
-    out_i = np.full(nq, -1, dtype=np.int64)
-    out_d = np.full(nq, np.inf)
-    shift = np.uint64(64 - int(np.log2(len(keys))))
-    cell = 1.0 / inv_cell
-    max_d = np.sqrt(max_d2)
-    skipped = 0
-    for t in range(nq):
-        x, y, z = q[t, 0], q[t, 1], q[t, 2]
-        if lb[t] > 0.0:
-            ax, ay, az = x - anchor[t, 0], y - anchor[t, 1], z - anchor[t, 2]
-            # the margin covers rounding in lb and in the move (both ~1e-15 relative)
-            if lb[t] - np.sqrt(ax * ax + ay * ay + az * az) > max_d * (1.0 + 1e-9) + 1e-9:
-                skipped += 1
-                continue
-        cx, cy, cz = _cell_of(x, y, z, inv_cell)
-        m0 = _face_margin(x, y, z, inv_cell) * cell
-        bd = max_d2
-        bi = -1
-        low = np.inf  # lower bound on every squared distance not below bd
-        s = 0
-        while True:
-            if s > 0:
-                lbs = (s - 1) * cell + m0
-                if lbs * lbs > bd:
-                    low = min(low, lbs * lbs)
-                    break
-            if s == 1 and bd < cell * cell:
-                # something found within a cell: only the neighbours its ball reaches (the
-                # same cells in the same order as below, the rest would be skipped there)
-                r = np.sqrt(bd) * (1.0 + 1e-9) + 1e-12
-                x0, x1 = _cell_of(x - r, y - r, z - r, inv_cell), _cell_of(x + r, y + r, z + r,
-                                                                             inv_cell)
-                for ix in range(max(cx - 1, x0[0]), min(cx + 1, x1[0]) + 1):
-                    for iy in range(max(cy - 1, x0[1]), min(cy + 1, x1[1]) + 1):
-                        for iz in range(max(cz - 1, x0[2]), min(cz + 1, x1[2]) + 1):
-                            if ix == cx and iy == cy and iz == cz:
-                                continue
-                            if _cell_d2(x, y, z, ix, iy, iz, cell) > bd:
-                                continue
-                            c = _probe(keys, cells, shift, ix, iy, iz)
-                            if c < 0:
-                                continue
-                            for j in range(start[c], start[c + 1]):
-                                dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
-                                d2 = dx * dx + dy * dy + dz * dz
-                                if d2 < bd:
-                                    bd, bi = d2, j
-                low = min(low, bd)  # a miss here (search radius under a cell): no slack
-                s = 2  # the shell-2 test above ends it: the ball lies within shell 1
-                continue
-            for ix in range(max(cx - s, lo[0]), min(cx + s, hi[0]) + 1):
-                for iy in range(max(cy - s, lo[1]), min(cy + s, hi[1]) + 1):
-                    za, zb, zs = _shell_z(ix, iy, cx, cy, cz, s, max(cz - s, lo[2]),
-                                          min(cz + s, hi[2]))
-                    for iz in range(za, zb + 1, zs):
-                        if s > 0:
-                            cd = _cell_d2(x, y, z, ix, iy, iz, cell)
-                            if cd > bd:
-                                low = min(low, cd)
-                                continue
-                        c = _probe(keys, cells, shift, ix, iy, iz)
-                        if c < 0:
-                            continue
-                        for j in range(start[c], start[c + 1]):
-                            dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
-                            d2 = dx * dx + dy * dy + dz * dz
-                            if d2 < bd:
-                                bd, bi = d2, j
-                            else:
-                                low = min(low, d2)
-            if _covered(cx, cy, cz, s, lo, hi):
-                break
-            s += 1
-        if bi >= 0:
-            out_i[t] = order[bi]
-            out_d[t] = bd
-            lb[t] = 0.0
-        else:
-            lb[t] = np.sqrt(low)  # inf: an empty cloud around it, nothing anywhere
-            anchor[t, 0], anchor[t, 1], anchor[t, 2] = x, y, z
-    return out_i, out_d, skipped
-
-
-
-@njit(cache=True, nogil=True)
 def _grid_nn_held(keys: np.ndarray, cells: np.ndarray, start: np.ndarray, order: np.ndarray,
                   sp: np.ndarray, lo: np.ndarray, hi: np.ndarray, inv_cell: float,
                   q: np.ndarray, max_d2: float, anchor: np.ndarray, lb: np.ndarray,
                   hold: np.ndarray, slack: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """:func:`_grid_nn_bounded` that also skips the search of a query that found something:
-    a search finds its nearest point ``j`` (distance ``d1``) and a lower bound ``d2`` on the
-    distance of every other point (its second nearest within ``sqrt(max_d2)``, else that
-    bound), and records ``j`` (``hold``, a position in the grid's order), half the gap
-    ``(d2 - d1) / 2`` (``slack``) and where it was (``anchor``). While the query stays
-    within ``slack`` of its anchor, ``j`` is still its unique nearest point (every other
-    point is farther than ``d2 - move > d1 + move``, triangle inequality), so only ``j``'s
-    distance is computed, as the search computes it. A miss records its lower bound (``lb``)
-    as :func:`_grid_nn_bounded` does. Results are the plain search's; also returns the
-    number of queries not searched."""
+    """:func:`_grid_knn` with k = 1 for a query set that moves a little between calls (the
+    source of a GICP iteration), skipping the searches that cannot change their answer
+    (triangle inequality). A query that finds nothing within ``sqrt(max_d2)`` records a
+    lower bound on its distance to the cloud (``lb``) and where it was (``anchor``): while
+    ``lb`` minus its move still exceeds the search radius it cannot find anything and is
+    not searched. A query that finds its nearest point ``j`` (distance ``d1``) also gets a
+    lower bound ``d2`` on every other point's distance (its second nearest within
+    ``sqrt(max_d2)``, else that bound) and records ``j`` (``hold``, a position in the
+    grid's order) and half the gap ``(d2 - d1) / 2`` (``slack``): while it stays within
+    ``slack`` of its anchor, ``j`` is still its unique nearest point (every other point is
+    farther than ``d2 - move > d1 + move``), so only ``j``'s distance is computed, as the
+    search computes it. ``lb`` 0 and ``hold`` -1: no bound. Results are the plain search's;
+    also returns the number of queries not searched."""
     nq = q.shape[0]
     out_i = np.full(nq, -1, dtype=np.int64)
     out_d = np.full(nq, np.inf)
@@ -583,31 +489,27 @@ class VoxelGrid:
         return i[:, 0], d2[:, 0]
 
     def nearest_bounded(self, q: np.ndarray, max_dist_m: float, anchor: np.ndarray,
-                        lb: np.ndarray, hold: np.ndarray | None = None,
-                        slack: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                        lb: np.ndarray, hold: np.ndarray, slack: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`batch_nearest_neighbor_search` within ``max_dist_m`` for a query set
         searched again and again as it moves a little (a GICP source, iteration after
-        iteration): ``anchor`` (N, 3) and ``lb`` (N,) float64, zeros at first, carry from
-        one call to the next a lower bound on the distance of the queries that found
-        nothing, so those that cannot find anything now are not searched. WHY: a far pair
-        (a roadside unit 70 m away) aligns thousands of centroids that have no
-        correspondence, each searching its 27 cells in every iteration. The results are
-        the plain search's."""
+        iteration): ``anchor`` (N, 3), ``lb`` (N,) and ``slack`` (N,) float64, zeros at
+        first, and ``hold`` (N,) int64, -1 at first, carry from one call to the next what
+        makes a search unnecessary (:func:`_grid_nn_held`). WHY: a far pair (a roadside
+        unit 70 m away) aligns thousands of centroids that have no correspondence, each
+        searching its 27 cells in every iteration, and in GICP's last iterations the
+        source barely moves, so most nearest points cannot change. The results are the
+        plain search's."""
         qq = self._q(q)
         if self.n == 0:
             return np.full(len(qq), -1, dtype=np.int64), np.full(len(qq), np.inf)
-        if anchor.shape != qq.shape or lb.shape != (len(qq),):
-            raise ValueError("anchor / lb must be (N, 3) / (N,) for N queries")
-        if hold is not None and slack is not None:
-            if hold.shape != (len(qq),) or slack.shape != (len(qq),):
-                raise ValueError("hold / slack must be (N,) for N queries")
-            i, d2, _ = _grid_nn_held(self._keys, self._cells, self._start, self._order,
-                                     self._sp, self._lo, self._hi, self.inv_cell, qq,
-                                     float(max_dist_m) ** 2, anchor, lb, hold, slack)
-            return i, d2
-        i, d2, _ = _grid_nn_bounded(self._keys, self._cells, self._start, self._order,
-                                    self._sp, self._lo, self._hi, self.inv_cell, qq,
-                                    float(max_dist_m) ** 2, anchor, lb)
+        if (anchor.shape != qq.shape or lb.shape != (len(qq),) or hold.shape != (len(qq),)
+                or slack.shape != (len(qq),)):
+            raise ValueError("anchor / lb / hold / slack must be (N, 3) / (N,) / (N,) / (N,) "
+                             "for N queries")
+        i, d2, _ = _grid_nn_held(self._keys, self._cells, self._start, self._order,
+                                 self._sp, self._lo, self._hi, self.inv_cell, qq,
+                                 float(max_dist_m) ** 2, anchor, lb, hold, slack)
         return i, d2
 
     def batch_knn_search(self, q: np.ndarray, k: int, num_threads: int = 1
