@@ -1032,8 +1032,7 @@ class GuidedDetector:
         c = self.config
         h, w = image.shape[:2]
         ps0 = c.plate_proposal_scale
-        small = cv2.resize(image, (max(32, round(w * ps0)), max(32, round(h * ps0))),
-                           interpolation=cv2.INTER_AREA)
+        small = shrunk(image, ps0)
         sx, sy = w / small.shape[1], h / small.shape[0]
         mask = (self.plate.prob_map(small) > c.plate_proposal_threshold).astype(np.uint8)
         _n, _lab, stats, _cent = cv2.connectedComponentsWithStats(mask, connectivity=8)
