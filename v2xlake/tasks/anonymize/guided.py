@@ -809,10 +809,8 @@ class GuidedDetector:
         if first is None:
             return self.face.detect_view(view)
         vh, vw = view.shape[:2]
-        heat, scl, off = first.maps(view)
-        peaks = np.where(heat >= cv2.dilate(heat, np.ones((3, 3), np.uint8)), heat, 0.0)
-        boxes, scores = first.decode((peaks, scl, off), vw, vh,
-                                     min(c.face_proposal_threshold, threshold))
+        boxes, scores = peak_boxes(first.maps(view), vw, vh, vw, vh,
+                                   min(c.face_proposal_threshold, threshold))
         out_b: list[np.ndarray] = []
         out_s: list[float] = []
         items = []
