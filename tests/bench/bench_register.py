@@ -4,6 +4,7 @@ same frame pairs, one core.
     python tests/bench/bench_register.py [--frames 10] [--voxel 0.3] [--beams 128 --cols 2048]
     python tests/bench/bench_register.py --street [--seconds 16 --turn-at 13] [--workdir DIR]
     python tests/bench/bench_register.py --coop [--coop-seconds 3 10] [--workdir DIR] [--cores 2]
+                                         [--plots]
 
 ``--coop``: the cooperative boulevard of issue #21 (``coop_config``, 64 x 1024 scans) and its
 variations (the other vehicle ahead / 5-50 m away, no turn, INS drift and noise, an INS step,
@@ -23,6 +24,8 @@ directly on the same deskewed scan pairs from eq. 1a (time, ratio, accuracy). Th
   clip's length and scans, not on where the other vehicle drives, so the other variations of
   the same duration and agents reuse them. The flow's own per-clip cost (Prefect flow and task
   runs, 3-4.6 s per call in docs/scale.md, "fixed cost") is in neither denominator.
+  The register stage is timed without its two PNGs (``write_bev``, on by default), as in
+  earlier rounds; ``--plots`` times it as it runs by default, with them.
 
 Both are given in wall seconds and in CPU seconds of the process ("reg cpu"), which a machine
 shared with other jobs perturbs much less than wall time. Every stage runs
@@ -243,8 +246,12 @@ def coop(args: argparse.Namespace) -> None:
     # qa (before register), annotate and align (after it), wall and CPU, by the same key
     rest: dict[tuple[float, tuple[str, ...]], dict[str, float]] = {}
     rest_cpu: dict[tuple[float, tuple[str, ...]], dict[str, float]] = {}
-    reg_cfg = RegisterConfig.model_validate({"write_bev": False,
+    # --plots: the stage as it runs by default, rendering its BEV and timeline PNGs (on the
+    # roadside unit's 3 s clip ~1 s of its CPU before this round's fixed margins, ~0.6 s
+    # after); without it, as earlier rounds timed it, the registration alone
+    reg_cfg = RegisterConfig.model_validate({"write_bev": args.plots,
                                              "gicp": {"backend": args.backend}})
+    print("register stage " + ("with" if args.plots else "without") + " its PNGs (--plots)")
     for secs in args.coop_seconds:
         for name in names:
             over = dict(COOP_VARIATIONS[name])
@@ -387,6 +394,9 @@ def main() -> None:
     ap.add_argument("--cores", type=int, default=1,
                     help="--coop: run on this many cores (the register stage's workers too)")
     ap.add_argument("--only", nargs="*", default=None, help="variations whose name contains")
+    ap.add_argument("--plots", action="store_true",
+                    help="--coop: time the register stage with its BEV and timeline PNGs "
+                    "(write_bev, the stage's default)")
     ap.add_argument("--no-warmup", dest="warmup", action="store_false",
                     help="--coop: time the first variation cold (numba cache loading included)")
     ap.add_argument("--street", action="store_true", help="the hard street of issue #13")

@@ -37,6 +37,10 @@ def render_registration_bev(ref_xyz: np.ndarray, other_xyz: np.ndarray, T_init: 
     ref = _thin(ref_xyz, max_points)
     oth = _thin(other_xyz, max_points, seed=1)
     fig, axes = plt.subplots(1, 2, figsize=(12, 6), dpi=110, sharex=True, sharey=True)
+    # fixed margins (inches on this fixed-size figure) for the tick labels, axis labels and
+    # titles, instead of tight_layout (see figure_png)
+    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.09, top=0.86 if title else 0.9,
+                        wspace=0.05)
     for ax, T, name in ((axes[0], T_init, "initial (eq. 1a)"), (axes[1], T_refined,
                                                                   "GICP refined (eq. 1b)")):
         moved = apply(T, oth)
@@ -65,11 +69,13 @@ def render_registration_bev(ref_xyz: np.ndarray, other_xyz: np.ndarray, T_init: 
 
 
 def figure_png(fig: Any, path: str | Path | None = None) -> bytes:
-    """The figure laid out and rendered as PNG bytes (also written to ``path`` if given),
-    then closed: the register stage stores the bytes in the lake, the CLI writes a file."""
+    """The figure rendered as PNG bytes (also written to ``path`` if given), then closed: the
+    register stage stores the bytes in the lake, the CLI writes a file. The figures set
+    their margins themselves: ``tight_layout`` measured every tick label and title first, a
+    third of the rendering (0.1 of 0.35 s for this BEV, 0.26 of 0.95 s for a two-agent
+    timeline, one core), and the register stage renders both for every clip."""
     import matplotlib.pyplot as plt
 
-    fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     plt.close(fig)

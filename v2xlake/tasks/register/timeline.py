@@ -121,4 +121,9 @@ def render_registration_timeline(rows: list[dict[str, Any]], calibration: list[d
     text = (title + "\n" if title else "") + \
         "\n".join(textwrap.wrap(f"extrinsics: {cal}", 140) if cal else [])
     fig.suptitle(text, fontsize=10)
+    # fixed margins in inches (the figure is 11 in per agent by 12 in): tick and axis labels
+    # on the left, the title's lines on top, the strip's legend below (see figure_png)
+    w, lines = 11.0 * max(len(others), 1), text.count("\n") + 1
+    fig.subplots_adjust(left=0.75 / w, right=1 - 0.15 / w, bottom=0.95 / 12,
+                        top=1 - (0.5 + 0.17 * lines) / 12, wspace=0.85 / 10.5, hspace=0.3)
     return figure_png(fig, path)
