@@ -186,6 +186,22 @@ class Plates(Section):
         "many glyph heights (a plate's text: EU 7 glyphs ~5.6, US ~3) is widened, both sides "
         "evenly, to it before its crop is cut (plateprop.plate_band): a small plate's band is "
         "often only part of its glyph row and its crop cut the other glyphs off. 0: off")
+    dark_frame_median: float = Field(
+        48.0, ge=0, le=256, description="full-frame plan: a frame whose median grey level is "
+        "under this is dark (night, a tunnel, an underexposed camera) and its plate pass "
+        "sees it lifted (plateprop.lift_dark): the edge threshold and the text detector are "
+        "made for daylight contrast, and a plate at a third of the light has glyph edges of "
+        "30-60 grey levels. Real plates_eu plates 45-90 px pasted into the real street frames "
+        "darkened to x0.3 / x0.5: 22 / 37 -> 43 / 43 of 43 found; frames at their own light "
+        "(medians 55-93) are not lifted and cost the same. 0: never lifted")
+    dark_ref: float = Field(
+        96.0, gt=0, le=255, description="full-frame plan, dark frames: every pixel is scaled "
+        "by dark_ref / the mean grey level around it (31 x 31 px), between 1 and "
+        "dark_gain_max: dark places are brought to this level, bright ones (street lights, "
+        "lit plates) stay as they are")
+    dark_gain_max: float = Field(
+        4.0, ge=1, description="full-frame plan, dark frames: the largest lift (noise grows "
+        "with it)")
 
 
 class Regions(Section):

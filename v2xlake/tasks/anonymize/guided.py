@@ -46,7 +46,9 @@ from v2xlake.tasks.anonymize.plateprop import (
     band_scale,
     edge_bands,
     glyph_transitions,
+    is_dark,
     keep_within,
+    lift_dark,
     plate_band,
 )
 from v2xlake.tasks.anonymize.textplate import TextPlateDetector
@@ -205,6 +207,10 @@ class GuidedConfig(FromParams):
     plate_small_max_scale: float = _param("plates.small_max_scale")
     plate_small_min_transitions: int = _param("plates.small_min_transitions")
     plate_small_text_aspect: float = _param("plates.small_text_aspect")
+    # dark frames (median grey under ``plate_dark_frame_median``) lifted for the plate pass
+    plate_dark_frame_median: float = _param("plates.dark_frame_median")
+    plate_dark_ref: float = _param("plates.dark_ref")
+    plate_dark_gain_max: float = _param("plates.dark_gain_max")
     # the guided plan's faces in two stages (``GuidedDetector``'s ``region_first`` given):
     # the int8 copy runs on the region canvases and the safety view; each local maximum of
     # its heat map scoring ``face_proposal_threshold`` is a candidate; one scoring
@@ -1028,6 +1034,8 @@ class GuidedDetector:
         plates 40 px wide pasted into real street frames 19 -> 49 of 54 found."""
         assert self.plate is not None
         c = self.config
+        if is_dark(image, c.plate_dark_frame_median):
+            image = lift_dark(image, c.plate_dark_ref, c.plate_dark_gain_max)
         h, w = image.shape[:2]
         ps0 = c.plate_proposal_scale
         small = shrunk(image, ps0)

@@ -293,3 +293,29 @@ def keep_within(area: list[float], rank: list[float], budget: float) -> list[boo
             keep[i] = True
             total += area[i]
     return keep
+
+
+def is_dark(image: np.ndarray, median_below: float) -> bool:
+    """Is the frame dark: its median grey level (every 4th pixel, each way) under
+    ``median_below`` (0: never)? Why the median: a night frame's street lights and lit
+    plates are bright, but few; the mean follows them, the median follows the street."""
+    if median_below <= 0:
+        return False
+    small = np.ascontiguousarray(image[::4, ::4])
+    gray = small if small.ndim == 2 else cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
+    return float(np.median(gray)) < median_below
+
+
+def lift_dark(image: np.ndarray, ref: float, gain_max: float, window: int = 31) -> np.ndarray:
+    """The frame lifted locally: each pixel (all channels) scaled by ``ref`` / the mean grey
+    level of the ``window`` x ``window`` px around it, clipped to [1, ``gain_max``]. Why local
+    and not a global gamma: in a night frame the plate under a street light is bright and the
+    one in the shadow is dark; one gain for both either saturates the first or leaves the
+    second under the edge threshold. Bright places (a mean at ``ref`` or above) keep their
+    pixels; the gain varies with the blurred mean, so it adds no edges of its own."""
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    mean = cv2.blur(gray, (window, window)).astype(np.float32)
+    gain = np.clip(ref / np.maximum(mean, 1.0), 1.0, gain_max)
+    if image.ndim == 3:
+        gain = gain[..., None]
+    return np.clip(image.astype(np.float32) * gain, 0, 255).astype(np.uint8)
