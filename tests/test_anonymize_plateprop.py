@@ -252,7 +252,7 @@ def test_small_real_plates_found_by_the_closer_look() -> None:
             hit, _ = match(truth, det._plates_proposed(img), 0.3)
             found[name] += int(hit[0])
     print(f"40 px real plates in a real street: {found}")
-    assert found["on"] == 4 and found["off"] < found["on"], found
+    assert found["on"] >= 5 and found["off"] < found["on"], found
 
 
 @requires_real_data("plates_eu", "images/street_pjlab_sensorx2car_0.png")
