@@ -33,7 +33,7 @@ from v2xlake.storage import manifest
 
 REPO = Path(__file__).resolve().parents[1]
 EMPTY_HASH = "e3b0c44298fc1c14"  # sha256 of no bytes, first 16 hex digits
-DATA_SUFFIXES = {".msg", ".yaml", ".yml", ".json", ".png", ".onnx"}
+DATA_SUFFIXES = {".msg", ".yaml", ".yml", ".json", ".png", ".onnx", ".npz"}
 SKIP_DIRS = {".git", ".venv", "build", "dist", "__pycache__", ".mypy_cache", ".pytest_cache",
              ".ruff_cache", "out", "lake", "demo-lake", ".v2xlake"}
 

@@ -388,15 +388,20 @@ def main() -> None:
     ap.add_argument("--plates-half", default="all", choices=("all", "even", "odd"),
                     help="with --band-plates: which plates_eu photos are pasted (even: "
                     "eu[::2], the half thresholds were set on; odd: eu[1::2], held out)")
+    ap.add_argument("--band-learned", default="",
+                    help="with --band-plates: also the far band's learned small-plate scorer "
+                    "at these clusters.band_learned_score thresholds (comma-separated)")
     args = ap.parse_args()
     if args.band_plates:
         cv2.setNumThreads(1)
+        variants = {"default": AnonymizeConfig()}
+        for v in args.band_learned.split(","):
+            if v:
+                variants[f"learned scorer at {v} (clusters.band_learned_score)"] = \
+                    AnonymizeConfig(clusters={"band_learned_score": float(v)})
         band_plates([int(s) for s in args.lidar_seeds.split(",")],
-                    n_plates=24 if args.quick else 60, half=args.plates_half, variants={
-                        "default (band_plate_px 32, closer look 80, plate blobs to 44 px)":
-                            AnonymizeConfig(),
-                        "no plate-blob test (band_blob_max_px 0, before)": AnonymizeConfig(
-                            clusters={"band_blob_max_px": 0})})
+                    n_plates=24 if args.quick else 60, half=args.plates_half,
+                    variants=variants)
         return
     if args.clips:
         cv2.setNumThreads(1)

@@ -25,6 +25,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from v2xlake.tasks.anonymize import bandplate
+from v2xlake.tasks.anonymize.bandplate import band_plate_scores
 from v2xlake.tasks.anonymize.config import Faces, Plates
 from v2xlake.tasks.anonymize.detectors import (
     Box,
@@ -255,6 +257,12 @@ class GuidedConfig(FromParams):
     band_blob_min_glyph: float = 4.0
     band_blob_glyph_ratio: float = 1.2
     band_blob_max: int = 12
+    # the far band's learned small-plate scorer (``bandplate.band_plate_scores``;
+    # ``band_learned_score`` 0: off): windows scoring at least that, at most
+    # ``band_learned_max`` per band (the highest, overlaps dropped)
+    band_learned_score: float = _param("clusters.band_learned_score")
+    band_learned_max: int = 12
+    band_learned_glyph_ratio: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -546,6 +554,7 @@ def _piece_of(box: np.ndarray, pieces: Sequence[Piece], pos: Sequence[tuple[int,
 
 BLOB = "plate-blob"
 BAND_BLOB = "band-plate-blob"
+BAND_LEARNED = "band-plate-learned"
 
 
 def edge_band_sets(gray: np.ndarray, cfg: GuidedConfig
@@ -686,6 +695,41 @@ def band_plate_blobs(bgr: np.ndarray, box: tuple[int, int, int, int], min_px: fl
         if not out or iou_xyxy(np.array([b]), np.array([o for o, _sc in out])).max() < 0.2:
             out.append((b, float(np.clip(glyph / 40.0, 0.05, 0.5))))
     return out
+
+
+def band_learned_widths(min_px: float) -> tuple[float, ...]:
+    """The plate widths (frame px) the learned scorer looks for in a band whose smallest
+    plate is ``min_px`` wide: ``bandplate.WIDTHS`` (trained +-15 % around each) scaled to
+    it; wider plates are the text detector's (real 30-40 px plates 31 / 30 of 32 there)."""
+    return tuple(wd * min_px / bandplate.WIDTHS[0] for wd in bandplate.WIDTHS)
+
+
+def band_learned_plates(gray: np.ndarray, box: tuple[int, int, int, int], min_px: float,
+                        cfg: GuidedConfig
+                        ) -> list[tuple[tuple[float, float, float, float], float]]:
+    """Plates of the far band ``box`` (x0, y0, x1, y1 frame px) by the learned scorer
+    (``bandplate.band_plate_scores`` at ``band_learned_score``), each also holding glyph
+    texture (``bandplate.glyph_texture``: at least ``band_blob_min_glyph`` grey levels per px
+    along its middle rows, ``band_learned_glyph_ratio`` x the rows above and below). Why
+    the texture test: the classifier, trained on synthetic plates only, also takes a curb's
+    edge or a bumper's highlight for a dark-rimmed rectangle; a 20 px plate's glyphs still
+    change along its rows (real 20 px plates pasted into the band, the bench's half:
+    24 % of the classifier's hits fail it)."""
+    if cfg.band_learned_score <= 0:
+        return []
+
+    def textured(b: tuple[float, float, float, float]) -> bool:
+        glyph, ratio = bandplate.glyph_texture(gray, b)
+        return glyph >= cfg.band_blob_min_glyph and ratio >= cfg.band_learned_glyph_ratio
+
+    return band_plate_scores(gray, box, band_learned_widths(min_px), cfg.band_learned_score,
+                             cfg.band_learned_max, accept=textured)
+
+
+def band_learned_conf(score: float, cfg: GuidedConfig) -> float:
+    """A detection score (0.05-0.5, as the plate-blob test's) for a learned-scorer score:
+    its threshold maps to 0.05, 10 above it to 0.5."""
+    return float(np.clip(0.05 + 0.045 * (score - cfg.band_learned_score), 0.05, 0.5))
 
 
 def edge_lines(image: np.ndarray, cfg: GuidedConfig) -> list[tuple[float, float, float, float]]:
@@ -1164,6 +1208,13 @@ class GuidedDetector:
                 if bbox is not None:
                     dets += [Detection("plate", pb, sc, BAND_BLOB)
                              for pb, sc in band_plate_blobs(image, bbox, r.expected_px, c)]
+        if self.plate is not None and c.band_learned_score > 0:
+            for r in regions:
+                bbox = _frame_box(r.box, w, h) if r.part == "band" else None
+                if bbox is not None:
+                    dets += [Detection("plate", pb, band_learned_conf(sc, c), BAND_LEARNED)
+                             for pb, sc in band_learned_plates(_gray(image), bbox,
+                                                               r.expected_px, c)]
         if self.plate is not None and c.blob_below_px > 0:
             for p in pieces:
                 if p.kind != "plate" or p.ppm <= 0:

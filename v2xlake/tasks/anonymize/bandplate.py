@@ -1,0 +1,198 @@
+"""A small learned scorer for plates too small for text (the far band's 18-32 px plates).
+
+Why: a real 20 px plate is about 20 x 4 px; its glyphs blur into the plate, the text detector
+barely responds to it, and the band's plate-blob test (``guided.band_plate_blobs``) needs it
+brighter than its car, which a plate on a white or silver car is not (there it is a grey,
+textured rectangle with a dark rim), nor one whose light area joins a chrome bumper. A linear
+classifier on oriented-gradient and local-contrast cells of a window around a plate sees both
+the rim and the texture, whatever the body's colour.
+
+The classifier is trained only on synthetic plates (EU-style 520 x 112 mm plates with random
+characters in DejaVu Sans, on rendered car rears) and on negatives from photos that ship with
+scikit-image and matplotlib (``scripts/train_band_plates.py`` makes ``bandplate.npz`` beside
+this module, deterministically); real plate photos are never its training data.
+
+Scoring is dense and linear: the band is rescaled so a plate of one width in the pyramid is
+``PLATE_PX`` wide, cell features are computed once on a grid of ``STRIDE`` px, and the
+window score at every grid point is a sum of correlations, one per feature channel (no
+window is cut out).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import lru_cache
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from v2xlake.tasks.geometry import iou_xyxy
+
+CELL = 4  # px at the canonical scale
+STRIDE = 2  # grid step (px at the canonical scale)
+WIN_CELLS = (5, 12)  # rows, columns of cells in a window
+PLATE_PX = 32.0  # the plate's width in a window (canonical px)
+PLATE_ASPECT = 520.0 / 112.0
+BINS = 9
+CHANNELS = BINS + 1  # orientation bins + local contrast
+WIDTHS = (20.0, 26.5)  # plate widths scored (frame px), each +-15 % in training
+WEIGHTS = Path(__file__).with_name("bandplate.npz")
+
+
+def window_px() -> tuple[int, int]:
+    """A window's height and width in canonical px."""
+    return WIN_CELLS[0] * CELL, WIN_CELLS[1] * CELL
+
+
+def plate_in_window() -> tuple[float, float, float, float]:
+    """Where a plate sits in a window (x0, y0, x1, y1 canonical px): centred."""
+    wh, ww = window_px()
+    ph = PLATE_PX / PLATE_ASPECT
+    return ((ww - PLATE_PX) / 2, (wh - ph) / 2, (ww + PLATE_PX) / 2, (wh + ph) / 2)
+
+
+def cell_features(gray: np.ndarray) -> np.ndarray:
+    """Cell features of a grey image (canonical scale) on a grid of ``STRIDE`` px: for the
+    ``CELL`` x ``CELL`` cell whose corner is at each grid point, the square roots of its
+    gradient magnitudes per unsigned orientation bin (soft-binned), each pixel's magnitude
+    divided by the gradient energy of the 12 x 12 px around it (so a plate on a dim car
+    scores as one on a bright car), and its mean grey level against the 24 x 24 px around it
+    in that area's standard deviations. Shape (rows, cols, ``CHANNELS``), float32."""
+    g = gray.astype(np.float32)
+    h, w = g.shape
+    rows, cols = (h - CELL) // STRIDE + 1, (w - CELL) // STRIDE + 1
+    out = np.empty((max(rows, 0), max(cols, 0), CHANNELS), np.float32)
+    if rows <= 0 or cols <= 0:
+        return out
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=1)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=1)
+    mag, ang = cv2.cartToPolar(gx, gy, angleInDegrees=True)
+    energy = cv2.boxFilter(mag * mag, -1, (12, 12))
+    mag /= np.sqrt(energy + 16.0)
+    ang = np.where(ang >= 180.0, ang - 180.0, ang) * (BINS / 180.0) - 0.5
+    lo = np.floor(ang)
+    frac = ang - lo
+    lo_i = lo.astype(np.int64) % BINS
+    hi_i = (lo_i + 1) % BINS
+    # histograms of 2 x 2 px blocks (two bincounts), then each 4 x 4 cell at a 2 px step
+    # is the sum of its four blocks
+    h2, w2 = rows + 1, cols + 1
+    sid = ((np.arange(2 * h2) // 2)[:, None] * w2 + (np.arange(2 * w2) // 2)[None, :]) * BINS
+    m = mag[: 2 * h2, : 2 * w2]
+    f = frac[: 2 * h2, : 2 * w2]
+    n = h2 * w2 * BINS
+    hist = (np.bincount((sid + lo_i[: 2 * h2, : 2 * w2]).ravel(), (m * (1 - f)).ravel(), n)
+            + np.bincount((sid + hi_i[: 2 * h2, : 2 * w2]).ravel(), (m * f).ravel(), n))
+    sub = hist.reshape(h2, w2, BINS).astype(np.float32)
+    out[..., :BINS] = np.sqrt(sub[:-1, :-1] + sub[1:, :-1] + sub[:-1, 1:] + sub[1:, 1:])
+    a = 0  # boxFilter's anchor: the cell [p, p + CELL) lands at p
+    mean = cv2.boxFilter(g, -1, (24, 24))
+    sq = cv2.boxFilter(g * g, -1, (24, 24))
+    z = (g - mean) / (np.sqrt(np.maximum(sq - mean * mean, 0)) + 8.0)
+    zc = cv2.boxFilter(z, -1, (CELL, CELL), anchor=(a, a), borderType=cv2.BORDER_REPLICATE)
+    out[..., BINS] = np.clip(zc[: rows * STRIDE : STRIDE, : cols * STRIDE : STRIDE], -3, 3)
+    return out
+
+
+def window_features(gray: np.ndarray) -> np.ndarray:
+    """The feature vector of one window-sized grey image (canonical scale): its cells, one
+    every ``CELL`` px, flattened (rows, columns, channels)."""
+    f = cell_features(gray)
+    step = CELL // STRIDE
+    r, c = WIN_CELLS
+    return f[: r * step : step, : c * step : step].reshape(-1)
+
+
+def score_map(feats: np.ndarray, w: np.ndarray, bias: float) -> np.ndarray:
+    """The linear score of the window whose top-left corner is at each grid point of
+    ``feats`` (``cell_features``); ``w`` shaped (rows, cols, ``CHANNELS``) of cells."""
+    step = CELL // STRIDE
+    r, c = WIN_CELLS
+    hs, ws = feats.shape[0] - (r - 1) * step, feats.shape[1] - (c - 1) * step
+    if hs <= 0 or ws <= 0:
+        return np.zeros((0, 0), np.float32)
+    # per channel, one correlation with the window's weights spread out to the grid (the
+    # cells of a window are ``step`` grid points apart); anchored at the kernel's corner
+    kern = np.zeros(((r - 1) * step + 1, (c - 1) * step + 1), np.float32)
+    out = np.full((hs, ws), bias, np.float32)
+    for ch in range(feats.shape[2]):
+        kern[::step, ::step] = w[..., ch]
+        full = cv2.filter2D(np.ascontiguousarray(feats[..., ch]), -1, kern, anchor=(0, 0),
+                            borderType=cv2.BORDER_CONSTANT)
+        out += full[:hs, :ws]
+    return out
+
+
+@lru_cache(maxsize=4)
+def load_weights(path: str = str(WEIGHTS)) -> tuple[np.ndarray, float]:
+    """The shipped classifier: cell weights (rows, cols, ``CHANNELS``) and bias."""
+    with np.load(path) as z:
+        return z["w"].astype(np.float32).reshape(*WIN_CELLS, CHANNELS), float(z["b"])
+
+
+def band_plate_scores(gray: np.ndarray, box: tuple[int, int, int, int],
+                      widths: tuple[float, ...], threshold: float, keep: int,
+                      weights: tuple[np.ndarray, float] | None = None,
+                      accept: Callable[[tuple[float, float, float, float]], bool] | None = None
+                      ) -> list[tuple[tuple[float, float, float, float], float]]:
+    """Plates ``widths`` px wide (frame px) whose centre lies in the band ``box`` (x0, y0,
+    x1, y1) of the grey frame, by the shipped linear classifier: for each width the band
+    (with a window's height of rows above and below) is rescaled so that width is
+    ``PLATE_PX``, scored densely, and windows scoring ``threshold`` or more become plate
+    boxes (frame px, the window's plate); those ``accept`` takes (all when None), overlaps
+    (IoU >= 0.2) keeping the highest, at most ``keep``. Returns (box, score)."""
+    w, b = weights if weights is not None else load_weights()
+    x0, y0, x1, y1 = box
+    wh, ww = window_px()
+    px0, py0, px1, py1 = plate_in_window()
+    found: list[tuple[float, tuple[float, float, float, float]]] = []
+    for width in widths:
+        s = PLATE_PX / width
+        pad_y, pad_x = int(np.ceil(wh / s)), int(np.ceil(ww / (2 * s)))
+        ya, yb = max(0, y0 - pad_y), min(gray.shape[0], y1 + pad_y)
+        xa, xb = max(0, x0 - pad_x), min(gray.shape[1], x1 + pad_x)
+        if yb - ya < 2 or xb - xa < 2:
+            continue
+        up = cv2.resize(gray[ya:yb, xa:xb], None, fx=s, fy=s, interpolation=cv2.INTER_LINEAR)
+        sc = score_map(cell_features(up), w, b)
+        ii, jj = np.nonzero(sc >= threshold)
+        for i, j in zip(ii.tolist(), jj.tolist(), strict=True):
+            fx0, fy0 = (j * STRIDE + px0) / s + xa, (i * STRIDE + py0) / s + ya
+            fx1, fy1 = (j * STRIDE + px1) / s + xa, (i * STRIDE + py1) / s + ya
+            if y0 <= (fy0 + fy1) / 2 < y1 and x0 <= (fx0 + fx1) / 2 < x1:
+                found.append((float(sc[i, j]), (fx0, fy0, fx1, fy1)))
+    found.sort(key=lambda f: -f[0])
+    out: list[tuple[tuple[float, float, float, float], float]] = []
+    for score, bx in found[: 50 * max(keep, 1)]:
+        if len(out) >= keep:
+            break
+        if out and iou_xyxy(np.array([bx]), np.array([o for o, _s in out])).max() >= 0.2:
+            continue
+        if accept is None or accept(bx):
+            out.append((bx, score))
+    return out
+
+
+def glyph_texture(gray: np.ndarray, box: tuple[float, float, float, float], scale: float = 2.0
+                  ) -> tuple[float, float]:
+    """How much the grey level of a small plate box (frame px) changes along its middle
+    rows (grey levels per px, the box upscaled ``scale``: its glyphs, even blurred), and
+    that against the rows as tall as it above and below (+3 for noise). A plate's glyphs
+    change more than the body around it; a curb's edge, a lit wall or a bumper's highlight
+    that the classifier takes for a rimmed rectangle do not."""
+    x0, y0 = int(np.floor(box[0])), int(np.floor(box[1]))
+    x1, y1 = int(np.ceil(box[2])), int(np.ceil(box[3]))
+    h = y1 - y0
+    ya, yb = max(0, y0 - h), min(gray.shape[0], y1 + h)
+    x0, x1 = max(0, x0), min(gray.shape[1], x1)
+    if h < 1 or x1 - x0 < 3 or yb <= ya:
+        return 0.0, 0.0
+    up = cv2.resize(gray[ya:yb, x0:x1], None, fx=scale, fy=scale,
+                    interpolation=cv2.INTER_LINEAR).astype(np.float32)
+    along = np.abs(np.diff(up, axis=1))
+    o, hh, ww = int((y0 - ya) * scale), int(h * scale), up.shape[1]
+    mid = along[o + hh // 4 : o + hh - hh // 4, ww // 10 : ww - ww // 10 - 1]
+    near = np.concatenate([along[max(0, o - hh) : o].ravel(), along[o + hh : o + 2 * hh].ravel()])
+    glyph = float(mid.mean()) if mid.size else 0.0
+    return glyph, glyph / (float(near.mean()) + 3.0) if near.size else glyph / 3.0
