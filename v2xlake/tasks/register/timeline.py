@@ -124,6 +124,6 @@ def render_registration_timeline(rows: list[dict[str, Any]], calibration: list[d
     # fixed margins in inches (the figure is 11 in per agent by 12 in): tick and axis labels
     # on the left, the title's lines on top, the strip's legend below (see figure_png)
     w, lines = 11.0 * max(len(others), 1), text.count("\n") + 1
-    fig.subplots_adjust(left=0.75 / w, right=1 - 0.15 / w, bottom=0.95 / 12,
-                        top=1 - (0.5 + 0.17 * lines) / 12, wspace=0.85 / 10.5, hspace=0.3)
+    fig.subplots_adjust(left=0.75 / w, right=1 - 0.15 / w, bottom=1.0 / 12,
+                        top=1 - (0.6 + 0.18 * lines) / 12, wspace=0.85 / 10.5, hspace=0.3)
     return figure_png(fig, path)
