@@ -12,7 +12,9 @@ row of glyphs is searched at the scale that makes it legible to the text detecto
   street frame are found by the full-frame plan with the closer look, and fewer without it;
 * ``is_dark`` / ``lift_dark``: a dark frame's plate pass sees it lifted locally (bright places
   kept, no edges added), which finds real plates in a real street frame at a third of its
-  light; the real street frames at their own light are not dark.
+  light; the real street frames at their own light are not dark;
+* ``plates.edge_cut_min_aspect``: a text line reaching the frame's edge may be a plate cut by
+  it, held to a lower aspect: real plates cut in half by a real frame's edge are found more.
 """
 
 from __future__ import annotations
@@ -315,3 +317,43 @@ def test_real_plates_in_a_dark_real_frame_found_when_lifted() -> None:
             found[name] += int(hit[0])
     print(f"60 px real plates in a real street at 0.3 of its light: {found}")
     assert found["on"] == 4 and found["off"] < found["on"], found
+
+
+def test_a_line_at_the_frame_edge_may_be_a_cut_plate() -> None:
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
+    from v2xlake.tasks.anonymize.textplate import TextPlateConfig, TextPlateDetector
+
+    det = TextPlateDetector(TextPlateConfig.of(AnonymizeConfig()))
+    half = (24.0, 14.0, 0.0)  # long, short, tilt: half an EU plate's text line
+    assert not det.plate_ok((700.0, 100.0, *half), 1392)  # inside the frame: too short
+    assert det.plate_ok((1381.0, 100.0, *half), 1392) and det.plate_ok((11.0, 100.0, *half), 1392)
+    assert not det.plate_ok((1381.0, 100.0, 12.0, 14.0, 0.0), 1392)  # under 1: a glyph or two
+    off = TextPlateDetector(TextPlateConfig.of(AnonymizeConfig(plates={"edge_cut_min_aspect": 2})))
+    assert not off.plate_ok((1381.0, 100.0, *half), 1392)
+
+
+@requires_real_data("plates_eu", "images/street_pjlab_sensorx2car_0.png")
+def test_real_plates_cut_by_the_frame_edge() -> None:
+    """Real plates 60 px wide pasted so the frame's right or left edge cuts them in half (a
+    car leaving the view), in a real 1392 x 512 street frame: the default plan finds more
+    of them than with the cut-plate aspect off (the reading decides either way)."""
+    from v2xlake.tasks.anonymize.build import build_detector
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
+    from v2xlake.tasks.anonymize.evaluate import match, paste_plate_photo, plates_eu
+
+    base = cv2.imread(str(REAL / "images" / "street_pjlab_sensorx2car_0.png"))
+    on = build_detector(AnonymizeConfig())
+    off = build_detector(AnonymizeConfig(plates={"edge_cut_min_aspect": 2.0}))
+    found = {"on": 0, "off": 0}
+    for k, item in enumerate(plates_eu(REAL / "plates_eu")[::6][:8]):
+        (_kind, (x0, _y0, x1, _y1)), = item.truth
+        s = 60.0 / (x1 - x0)
+        mid = 0.5 * (x0 + x1) * s  # the plate's middle, px from the shrunk photo's left edge
+        img = base.copy()
+        x = base.shape[1] - int(mid) if k % 2 == 0 else -int(mid)
+        truth = [paste_plate_photo(img, item, 60.0, x=x)]
+        for name, det in (("on", on), ("off", off)):
+            hit, _ = match(truth, det._plates_proposed(img), 0.3)
+            found[name] += int(hit[0])
+    print(f"60 px real plates cut in half by a real frame's edge: {found}")
+    assert found["on"] > found["off"], found

@@ -382,7 +382,8 @@ def paste_plate_photo(img: np.ndarray, item: LabelledImage, width: float, x: int
     """Paste the photo of a one-plate ``item`` shrunk (area-averaged, as optics would) so its
     plate is ``width`` px wide, its lower edge ``bottom`` px above the image's and its left
     edge at ``x`` (centred when None): how the tests put real plates at a given size into
-    real streets. Returns the pasted plate's kind and box."""
+    real streets. A photo reaching past the image's left or right edge is cut by it (a car
+    leaving the frame). Returns the pasted plate's kind and its box within the image."""
     photo = cv2.imread(item.path)
     if photo is None:
         raise FileNotFoundError(item.path)
@@ -392,8 +393,10 @@ def paste_plate_photo(img: np.ndarray, item: LabelledImage, width: float, x: int
     sh, sw = small.shape[:2]
     ox = (img.shape[1] - sw) // 2 if x is None else x
     oy = img.shape[0] - sh - bottom
-    img[oy : oy + sh, ox : ox + sw] = small
-    return kind, (x0 * s + ox, y0 * s + oy, x1 * s + ox, y1 * s + oy)
+    xa, xb = max(0, ox), min(img.shape[1], ox + sw)
+    img[oy : oy + sh, xa:xb] = small[:, xa - ox : xb - ox]
+    return kind, (max(0.0, x0 * s + ox), y0 * s + oy, min(float(img.shape[1]), x1 * s + ox),
+                  y1 * s + oy)
 
 
 def plates_eu(folder: str | os.PathLike[str]) -> list[LabelledImage]:

@@ -71,6 +71,10 @@ class TextPlateConfig(FromParams):
     min_aspect: float = param("plates.min_aspect")
     max_aspect: float = param("plates.max_aspect")
     max_tilt_deg: float = param("plates.max_tilt_deg")
+    # a line reaching the frame's left or right edge (within ``edge_cut_px``) may be a plate
+    # cut by it: its aspect need only reach ``edge_cut_min_aspect``
+    edge_cut_min_aspect: float = param("plates.edge_cut_min_aspect")
+    edge_cut_px: float = 2.0
     max_w_frac: float = 1.0
     # the plate estimated from its text line
     plate_grow_x: float = 0.0
@@ -181,13 +185,22 @@ class TextPlateDetector:
                                                          frame_h)]
 
     def plate_ok(self, rect: tuple[float, ...], frame_w: int) -> bool:
-        """The plate geometry checks on one text line (original pixels)."""
+        """The plate geometry checks on one text line (original pixels). A line reaching the
+        frame's left or right edge is held to ``edge_cut_min_aspect`` instead of
+        ``min_aspect``: a plate cut by the edge shows part of its text, and its line is as
+        tall as a whole one but shorter (half an EU plate: aspect ~2 -> ~1)."""
         c = self.config
-        _cx, _cy, a, b, ang = rect[:5]
+        cx, _cy, a, b, ang = rect[:5]
+        lo = c.min_aspect
+        if c.edge_cut_min_aspect < lo:
+            t = np.deg2rad(ang)
+            hw = 0.5 * (a * abs(np.cos(t)) + b * abs(np.sin(t)))
+            if cx - hw <= c.edge_cut_px or cx + hw >= frame_w - c.edge_cut_px:
+                lo = c.edge_cut_min_aspect
         return (
             b >= c.min_h
             and a >= c.min_w
-            and c.min_aspect <= a / max(b, 1e-6) <= c.max_aspect
+            and lo <= a / max(b, 1e-6) <= c.max_aspect
             and abs(ang) <= c.max_tilt_deg
             and a <= c.max_w_frac * frame_w
         )
