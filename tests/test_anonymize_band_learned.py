@@ -18,6 +18,7 @@ from v2xlake.tasks.anonymize.guided import (
     GuidedConfig,
     band_learned_plates,
     band_plate_blobs,
+    inside_larger,
 )
 from v2xlake.tasks.geometry import iou_xyxy
 
@@ -86,19 +87,38 @@ def test_a_plate_on_a_white_car_is_found_where_the_blob_test_sees_none() -> None
     assert band_learned_plates(gray, band, 20.0, replace(on, band_learned_score=0.0)) == []
 
 
-@requires_real_data("images/street_pjlab_sensorx2car_0.png",
+@requires_real_data("images/labels.json", "images/street_pjlab_sensorx2car_0.png",
                     "images/street_pjlab_sensorx2car_1.png",
                     "images/street_plate_small_pjlab_0.png")
 def test_real_street_band_rows_hold_no_learned_plate() -> None:
-    """The band rows (0.4-0.6 of the frame) of the three real street frames, scored at the
-    default threshold (or 12 when off): no learned plate off their labelled plates."""
+    """The band rows (0.4-0.6 of the frame) of the three real street frames, at the default
+    threshold (12 when off): at most one learned plate off their labelled plates in all
+    (the guard: the band's false plates stay under 0.5 per street frame)."""
+    from v2xlake.tasks.anonymize.evaluate import street_images
+
     cfg = GuidedConfig()
-    thr = cfg.band_learned_score or 12.0
-    n = 0
-    for name in ("street_pjlab_sensorx2car_0.png", "street_pjlab_sensorx2car_1.png",
-                 "street_plate_small_pjlab_0.png"):
-        g = cv2.imread(str(SHARED_REAL / "images" / name), cv2.IMREAD_GRAYSCALE)
+    on = replace(cfg, band_learned_score=cfg.band_learned_score or 12.0)
+    items = street_images(SHARED_REAL / "images")
+    assert len(items) == 3
+    false = 0
+    for item in items:
+        g = cv2.imread(item.path, cv2.IMREAD_GRAYSCALE)
         h, w = g.shape
-        n += len(band_learned_plates(g, (0, int(0.4 * h), w, int(0.6 * h)), 20.0,
-                                     replace(cfg, band_learned_score=thr)))
-    assert n <= 1
+        found = [b for b, _s in band_learned_plates(g, (0, int(0.4 * h), w, int(0.6 * h)),
+                                                     20.0, on)]
+        truth = [t[1] for t in item.truth if t[0] == "plate"]
+        if found and truth:
+            false += int((iou_xyxy(np.array(found), np.array(truth)).max(axis=1) < 0.3).sum())
+        else:
+            false += len(found)
+    assert false <= 1
+
+
+def test_a_part_of_a_larger_plate_is_not_a_plate_of_its_own() -> None:
+    """A learned 20 x 4 px box inside an 80 x 18 px plate the text detector found is
+    dropped (it blurs nothing more, and counted as a false blur); beside it, or inside a
+    box of its own size (the blob test's), it stays."""
+    big = (100.0, 100.0, 180.0, 118.0)
+    assert inside_larger((110.0, 106.0, 130.0, 110.0), [big])
+    assert not inside_larger((200.0, 106.0, 220.0, 110.0), [big])
+    assert not inside_larger((110.0, 106.0, 130.0, 110.0), [(109.0, 105.0, 131.0, 111.0)])
