@@ -340,7 +340,7 @@ class Clusters(Section):
         "LiDAR-only clips (seeds 0-3, 32 per width), 0 -> 12: 20 px 18 -> 21 (eu[::2]) and "
         "18 -> 24 (eu[1::2], held out) of 32, 30 / 40 px unchanged or +1, band false plates "
         "on the real street frames 0.33 both, +0.5 CPU s per narrow-camera frame; off by "
-        "default: on the LiDAR-only 1080p clip (seed 0) it cost 0.73 -> 0.58 img/s/core. "
+        "default: on the LiDAR-only 1080p clip (seed 0) it cost 0.73 -> 0.58-0.64 img/s/core. "
         "0: off")
     ground_isolated_m: float = Field(
         5.0, ge=0, description="a ground cell (2 m) with fewer than two occupied neighbours "
