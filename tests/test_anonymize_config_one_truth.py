@@ -35,7 +35,8 @@ OLD_FACE_SCAN = ScanConfig(max_side=1920, fine_scale=2.0, tile=2048, tile_overla
 
 def _old_copies(cfg: AnonymizeConfig) -> dict[str, Any]:
     """What build.py built by hand before the settings named their parameters (its code
-    then, verbatim but for the names; GuidedConfig's own hand copy went earlier, 72dd621)."""
+    then, verbatim but for the names, plus the plate parameter added since,
+    ``edge_cut_min_aspect``; GuidedConfig's own hand copy went earlier, 72dd621)."""
     f, p, r, b, c = cfg.faces, cfg.plates, cfg.regions, cfg.blur, cfg.clusters
     scan = ScanConfig(max_side=f.max_side, fine_scale=f.fine_scale, tile=f.tile,
                       tile_overlap=f.tile_overlap, upscale_min_side=f.upscale_min_side)
@@ -45,7 +46,7 @@ def _old_copies(cfg: AnonymizeConfig) -> dict[str, Any]:
         "first": FaceConfig(threshold=f.proposal_threshold, quantized=True, scan=OLD_FACE_SCAN),
         "plate": TextPlateConfig(
             box_threshold=p.box_threshold, min_aspect=p.min_aspect, max_aspect=p.max_aspect,
-            max_tilt_deg=p.max_tilt_deg,
+            max_tilt_deg=p.max_tilt_deg, edge_cut_min_aspect=p.edge_cut_min_aspect,
             read=PlateReadConfig(min_conf=p.read_min_conf, min_digits=p.read_min_digits,
                                  small_h=p.read_small_h, no_digit_look=p.read_no_digit_look)
             if p.read else None),
