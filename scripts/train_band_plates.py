@@ -16,7 +16,9 @@ minutes on one core). Training data that may ship with the repository only:
   those photos (hard negatives).
 
 Real plate photos (plates_eu) and the real street frames are test data: never used here.
-The classifier is an L2-regularised logistic regression on ``bandplate.window_features``.
+The classifier is an L2-regularised logistic regression on ``bandplate.window_at`` of
+``bandplate.cell_features``. Deterministic: seed 0, and every maths library on one thread
+(a multithreaded BLAS sums in an order that depends on its thread count).
 """
 
 from __future__ import annotations
@@ -30,8 +32,10 @@ import matplotlib
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 from scipy.optimize import minimize
+from threadpoolctl import threadpool_limits
 
 from v2xlake.tasks.anonymize import bandplate as bp
+from v2xlake.tasks.anonymize.plateprop import to_gray
 
 CHARS = "ABCDEFGHJKLMNPRSTUVWXYZ0123456789"
 FONT = os.path.join(matplotlib.get_data_path(), "fonts", "ttf", "DejaVuSans-Bold.ttf")
@@ -72,7 +76,6 @@ def render_plate(rng: np.random.Generator, wpx: int = 156) -> np.ndarray:
         f = ImageFont.truetype(FONT, fs)
     d.text(((x0 + x1) / 2, hpx / 2), text, fill=dark, font=f, anchor="mm")
     out = np.asarray(img)[:, :, ::-1].copy()
-    # a condensed font on real plates: squeeze the glyph area a little sometimes
     return out
 
 
@@ -171,10 +174,6 @@ def finish(img: np.ndarray, rng: np.random.Generator, scale: float) -> np.ndarra
     return np.clip(f, 0, 255).astype(np.uint8)
 
 
-def to_gray(img: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
-
-
 def window_at(native: np.ndarray, cx: float, cy: float, width: float) -> np.ndarray | None:
     """The feature vector of the window whose plate (``width`` native px) is centred at (cx,
     cy) native px, the patch brought to the canonical scale as the band is (linear)."""
@@ -187,9 +186,8 @@ def window_at(native: np.ndarray, cx: float, cy: float, width: float) -> np.ndar
             y0 + wh + 2 * MARGIN > up.shape[0]:
         return None
     f = bp.cell_features(up[y0 : y0 + wh + 2 * MARGIN, x0 : x0 + ww + 2 * MARGIN])
-    o, step = MARGIN // bp.STRIDE, bp.CELL // bp.STRIDE
-    r, c = bp.WIN_CELLS
-    return f[o : o + r * step : step, o : o + c * step : step].reshape(-1)
+    o = MARGIN // bp.STRIDE
+    return bp.window_at(f, o, o)
 
 
 def car_sample(rng: np.random.Generator, with_plate: bool
@@ -213,12 +211,15 @@ def car_sample(rng: np.random.Generator, with_plate: bool
     return out, ((px0 + pw / 2) * scale, (py0 + ph / 2) * scale, pw * scale)
 
 
-def photos() -> list[np.ndarray]:
-    """Photos that ship with scikit-image and matplotlib (BGR or grey uint8)."""
+def photos() -> tuple[list[np.ndarray], list[str]]:
+    """Photos that ship with scikit-image and matplotlib (BGR or grey uint8), and their names.
+    A scikit-image fetcher that needs the network is skipped; the names used are printed and
+    stored with the weights, so a run on another scikit-image shows what it trained on."""
     import skimage
     import skimage.data as sd
 
-    out = []
+    out: list[np.ndarray] = []
+    names: list[str] = []
     for name in ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry", "brick",
                  "grass", "gravel", "camera", "page", "text", "coins", "horse", "moon",
                  "hubble_deep_field", "retina", "clock", "logo", "cell", "microaneurysms"):
@@ -229,15 +230,17 @@ def photos() -> list[np.ndarray]:
         if im.ndim == 3:
             im = cv2.cvtColor(np.ascontiguousarray(im[..., :3]), cv2.COLOR_RGB2BGR)
         out.append(np.ascontiguousarray(im.astype(np.uint8)))
+        names.append(name)
     d = Path(skimage.__file__).parent / "data"
-    for f in ("motorcycle_left.png", "motorcycle_right.png", "chessboard_RGB.png",
-              "color.png", "clock_motion.png"):
-        if (d / f).exists():
-            out.append(cv2.imread(str(d / f)))
-    gh = Path(matplotlib.get_data_path()) / "sample_data" / "grace_hopper.jpg"
-    if gh.exists():
-        out.append(cv2.imread(str(gh)))
-    return [p for p in out if p is not None]
+    files = [d / f for f in ("motorcycle_left.png", "motorcycle_right.png",
+                             "chessboard_RGB.png", "color.png", "clock_motion.png")]
+    files.append(Path(matplotlib.get_data_path()) / "sample_data" / "grace_hopper.jpg")
+    for path in files:
+        im = cv2.imread(str(path)) if path.exists() else None
+        if im is not None:
+            out.append(im)
+            names.append(path.name)
+    return out, names
 
 
 def photo_windows(rng: np.random.Generator, ims: list[np.ndarray], n: int) -> list[np.ndarray]:
@@ -267,8 +270,6 @@ def hard_negatives(w: np.ndarray, b: float, ims: list[np.ndarray], per: int,
     as the band is scored), ``per`` per photo and width."""
     out = []
     wr = w.reshape(*bp.WIN_CELLS, bp.CHANNELS).astype(np.float32)
-    step = bp.CELL // bp.STRIDE
-    r, c = bp.WIN_CELLS
     for im in ims:
         for sc in (0.25, 0.5, 1.0):
             small = to_gray(cv2.resize(im, None, fx=sc, fy=sc, interpolation=cv2.INTER_AREA))
@@ -290,7 +291,7 @@ def hard_negatives(w: np.ndarray, b: float, ims: list[np.ndarray], per: int,
                     if any(abs(i - a) < 4 and abs(j - bb) < 8 for a, bb in taken):
                         continue
                     taken.append((i, j))
-                    out.append(f[i : i + r * step : step, j : j + c * step : step].reshape(-1))
+                    out.append(bp.window_at(f, i, j))
                     if len(taken) >= per:
                         break
     return out
@@ -328,7 +329,8 @@ def main() -> None:
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     cv2.setNumThreads(1)
-    pos, neg = [], []
+    pos: list[np.ndarray] = []
+    neg: list[np.ndarray] = []
 
     def off_window(img: np.ndarray, cx: float, cy: float, wd: float, plate: bool
                    ) -> np.ndarray | None:
@@ -362,7 +364,8 @@ def main() -> None:
         v = off_window(img, cx, cy, wd, False)
         if v is not None:
             neg.append(v)
-    ims = photos()
+    ims, names = photos()
+    print(f"photos ({len(names)}): {', '.join(names)}")
     neg += photo_windows(rng, ims, args.n_neg - len(neg))
     x = np.array(pos + neg, np.float32)
     y = np.r_[np.ones(len(pos)), np.zeros(len(neg))]
@@ -377,9 +380,11 @@ def main() -> None:
     t = x @ w + b
     print(f"round 2: +{len(hard)} hard negatives; training accuracy positives "
           f"{(t[y == 1] > 0).mean():.3f}, negatives {(t[y == 0] <= 0).mean():.3f}")
-    np.savez_compressed(args.out, w=w.astype(np.float32), b=np.float32(b))
+    np.savez_compressed(args.out, w=w.astype(np.float32), b=np.float32(b),
+                        photos=np.array(names))
     print(f"wrote {args.out} ({args.out.stat().st_size} bytes)")
 
 
 if __name__ == "__main__":
-    main()
+    with threadpool_limits(limits=1):  # the weights must not depend on the core count
+        main()

@@ -2,7 +2,7 @@
 plate on a white car (a grey, dark-rimmed, textured rectangle no brighter than its body,
 which the plate-blob test cannot see) is found; flat and brick-textured bands are not; the
 shipped weights are small and load from the package; the real street frames' band rows hold
-no learned plate.
+at most one learned plate off their labelled plates.
 """
 
 from __future__ import annotations
@@ -57,9 +57,8 @@ def test_score_map_is_the_windows_linear_score() -> None:
     f = bp.cell_features(g)
     w = rng.normal(size=(*bp.WIN_CELLS, bp.CHANNELS)).astype(np.float32)
     m = bp.score_map(f, w, 0.5)
-    step = bp.CELL // bp.STRIDE
     for i, j in ((0, 0), (5, 9), (m.shape[0] - 1, m.shape[1] - 1)):
-        v = f[i : i + bp.WIN_CELLS[0] * step : step, j : j + bp.WIN_CELLS[1] * step : step]
+        v = bp.window_at(f, i, j)
         assert m[i, j] == np.float32(v.ravel() @ w.ravel() + 0.5) or abs(
             m[i, j] - (v.ravel() @ w.ravel() + 0.5)) < 1e-3
 
@@ -79,18 +78,18 @@ def test_a_plate_on_a_white_car_is_found_where_the_blob_test_sees_none() -> None
     m = iou_xyxy(np.array(truth, float), np.array([b for b, _s in found]))
     assert (m >= 0.3).any(axis=1).all(), found
     assert (m.max(axis=0) >= 0.1).all(), found  # nothing off the plates
+    assert band_learned_plates(gray, band, 20.0, replace(on, band_learned_score=0.0)) == []
     # a flat band and a band of brick texture hold none
     brick = np.tile(np.kron(np.array([[1, 1, 1, 0], [1, 0, 1, 1]], np.uint8),
                             np.ones((6, 8), np.uint8)) * 60 + 80, (20, 60))[:200, :1920]
     gray[400:600] = brick
     assert band_learned_plates(gray, band, 20.0, on) == []
-    assert band_learned_plates(gray, band, 20.0, replace(on, band_learned_score=0.0)) == []
 
 
 @requires_real_data("images/labels.json", "images/street_pjlab_sensorx2car_0.png",
                     "images/street_pjlab_sensorx2car_1.png",
                     "images/street_plate_small_pjlab_0.png")
-def test_real_street_band_rows_hold_no_learned_plate() -> None:
+def test_real_street_band_rows_hold_at_most_one_learned_plate() -> None:
     """The band rows (0.4-0.6 of the frame) of the three real street frames, at the default
     threshold (12 when off): at most one learned plate off their labelled plates in all
     (the guard: the band's false plates stay under 0.5 per street frame)."""
@@ -103,6 +102,7 @@ def test_real_street_band_rows_hold_no_learned_plate() -> None:
     false = 0
     for item in items:
         g = cv2.imread(item.path, cv2.IMREAD_GRAYSCALE)
+        assert g is not None, item.path
         h, w = g.shape
         found = [b for b, _s in band_learned_plates(g, (0, int(0.4 * h), w, int(0.6 * h)),
                                                      20.0, on)]

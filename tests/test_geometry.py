@@ -12,6 +12,7 @@ from v2xlake.tasks.geometry import (
     apply,
     compose,
     count_points_in_boxes,
+    greedy_boxes,
     invert,
     iou_xyxy,
     matrix_to_quat,
@@ -176,3 +177,15 @@ def test_merge_until_stable_merges_in_order_until_nothing_merges() -> None:
     assert merge_until_stable([], union) == []
     # a rule that merges nothing returns the items as they were
     assert merge_until_stable([(0, 1), (0, 1)], lambda a, b: None) == [(0, 1), (0, 1)]
+
+
+def test_greedy_boxes_keeps_the_best_apart_within_the_cap() -> None:
+    scored = [(0.5, (0.0, 0.0, 10.0, 4.0)), (0.9, (1.0, 0.0, 11.0, 4.0)),
+              (0.7, (50.0, 0.0, 60.0, 4.0)), (0.6, (100.0, 0.0, 110.0, 4.0))]
+    assert greedy_boxes(scored, 5) == [((1.0, 0.0, 11.0, 4.0), 0.9),
+                                       ((50.0, 0.0, 60.0, 4.0), 0.7),
+                                       ((100.0, 0.0, 110.0, 4.0), 0.6)]
+    assert [s for _b, s in greedy_boxes(scored, 2)] == [0.9, 0.7]
+    assert [s for _b, s in greedy_boxes(scored, 5, accept=lambda b: b[0] > 20)] == [0.7, 0.6]
+    assert [s for _b, s in greedy_boxes(scored, 5, candidates=2)] == [0.9, 0.7]
+    assert greedy_boxes([], 3) == []

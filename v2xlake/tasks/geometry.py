@@ -202,6 +202,26 @@ def iou_xyxy(a: np.ndarray, b: np.ndarray, *, paired: bool = False) -> np.ndarra
 _Item = TypeVar("_Item")
 
 
+def greedy_boxes(scored: Sequence[tuple[float, tuple[float, float, float, float]]], keep: int,
+                 iou: float = 0.2, accept: Callable[[tuple[float, float, float, float]], bool]
+                 | None = None, candidates: int | None = None
+                 ) -> list[tuple[tuple[float, float, float, float], float]]:
+    """(box, score) of the highest-scoring boxes (xyxy) of ``scored`` (score, box), each kept
+    unless it overlaps one kept before by ``iou`` or more or ``accept`` refuses it, at most
+    ``keep``; only the best ``candidates`` are looked at (None: all). Why not ``nms``: the
+    small-plate tests need a cap on what is kept and looked at, not a suppression per kind."""
+    order = sorted(scored, key=lambda f: -f[0])[:candidates]
+    out: list[tuple[tuple[float, float, float, float], float]] = []
+    for score, box in order:
+        if len(out) >= keep:
+            break
+        if out and iou_xyxy(np.array([box]), np.array([o for o, _s in out])).max() >= iou:
+            continue
+        if accept is None or accept(box):
+            out.append((box, score))
+    return out
+
+
 def merge_until_stable(items: Sequence[_Item], union: Callable[[_Item, _Item], _Item | None]
                        ) -> list[_Item]:
     """``items`` merged pairwise until no pair merges: the first pair (i < j, in order) whose

@@ -27,7 +27,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from v2xlake.tasks.geometry import iou_xyxy
+from v2xlake.tasks.anonymize.plateprop import row_texture
+from v2xlake.tasks.geometry import greedy_boxes
 
 CELL = 4  # px at the canonical scale
 STRIDE = 2  # grid step (px at the canonical scale)
@@ -95,13 +96,13 @@ def cell_features(gray: np.ndarray) -> np.ndarray:
     return out
 
 
-def window_features(gray: np.ndarray) -> np.ndarray:
-    """The feature vector of one window-sized grey image (canonical scale): its cells, one
-    every ``CELL`` px, flattened (rows, columns, channels)."""
-    f = cell_features(gray)
+def window_at(feats: np.ndarray, i: int = 0, j: int = 0) -> np.ndarray:
+    """The feature vector of the window whose top-left corner is grid point (``i``, ``j``) of
+    ``feats`` (``cell_features``): its cells, one every ``CELL`` px, flattened (rows,
+    columns, channels). What ``score_map`` scores there, and what training fits."""
     step = CELL // STRIDE
     r, c = WIN_CELLS
-    return f[: r * step : step, : c * step : step].reshape(-1)
+    return feats[i : i + r * step : step, j : j + c * step : step].reshape(-1)
 
 
 def score_map(feats: np.ndarray, w: np.ndarray, bias: float) -> np.ndarray:
@@ -162,16 +163,7 @@ def band_plate_scores(gray: np.ndarray, box: tuple[int, int, int, int],
             fx1, fy1 = (j * STRIDE + px1) / s + xa, (i * STRIDE + py1) / s + ya
             if y0 <= (fy0 + fy1) / 2 < y1 and x0 <= (fx0 + fx1) / 2 < x1:
                 found.append((float(sc[i, j]), (fx0, fy0, fx1, fy1)))
-    found.sort(key=lambda f: -f[0])
-    out: list[tuple[tuple[float, float, float, float], float]] = []
-    for score, bx in found[: 50 * max(keep, 1)]:
-        if len(out) >= keep:
-            break
-        if out and iou_xyxy(np.array([bx]), np.array([o for o, _s in out])).max() >= 0.2:
-            continue
-        if accept is None or accept(bx):
-            out.append((bx, score))
-    return out
+    return greedy_boxes(found, keep, accept=accept, candidates=50 * max(keep, 1))
 
 
 def glyph_texture(gray: np.ndarray, box: tuple[float, float, float, float], scale: float = 2.0
@@ -183,6 +175,7 @@ def glyph_texture(gray: np.ndarray, box: tuple[float, float, float, float], scal
     that the classifier takes for a rimmed rectangle do not."""
     x0, y0 = int(np.floor(box[0])), int(np.floor(box[1]))
     x1, y1 = int(np.ceil(box[2])), int(np.ceil(box[3]))
+    y0, y1 = max(0, y0), min(gray.shape[0], y1)  # a box over the frame's top or bottom edge
     h = y1 - y0
     ya, yb = max(0, y0 - h), min(gray.shape[0], y1 + h)
     x0, x1 = max(0, x0), min(gray.shape[1], x1)
@@ -191,8 +184,5 @@ def glyph_texture(gray: np.ndarray, box: tuple[float, float, float, float], scal
     up = cv2.resize(gray[ya:yb, x0:x1], None, fx=scale, fy=scale,
                     interpolation=cv2.INTER_LINEAR).astype(np.float32)
     along = np.abs(np.diff(up, axis=1))
-    o, hh, ww = int((y0 - ya) * scale), int(h * scale), up.shape[1]
-    mid = along[o + hh // 4 : o + hh - hh // 4, ww // 10 : ww - ww // 10 - 1]
-    near = np.concatenate([along[max(0, o - hh) : o].ravel(), along[o + hh : o + 2 * hh].ravel()])
-    glyph = float(mid.mean()) if mid.size else 0.0
-    return glyph, glyph / (float(near.mean()) + 3.0) if near.size else glyph / 3.0
+    glyph, near = row_texture(along, 0, int((y0 - ya) * scale), up.shape[1], int(h * scale))
+    return glyph, glyph / ((near or 0.0) + 3.0)

@@ -203,12 +203,16 @@ class Plates(Section):
         "(medians 55-93) are not lifted and cost the same. 0: never lifted")
     dark_ref: float = Field(
         96.0, gt=0, le=255, description="full-frame plan, dark frames: every pixel is scaled "
-        "by dark_ref / the mean grey level around it (31 x 31 px), between 1 and "
+        "by dark_ref / the mean grey level around it (dark_window_px square), between 1 and "
         "dark_gain_max: dark places are brought to this level, bright ones (street lights, "
         "lit plates) stay as they are")
     dark_gain_max: float = Field(
         4.0, ge=1, description="full-frame plan, dark frames: the largest lift (noise grows "
         "with it)")
+    dark_window_px: int = Field(
+        31, ge=3, description="full-frame plan, dark frames: the side of the square whose mean "
+        "grey level a pixel's lift is set by; a few plate heights at the plates sought "
+        "(measured on 1392 x 512 and 1920 x 1200 frames; larger for 4K)")
 
 
 class Regions(Section):
@@ -339,7 +343,7 @@ class Clusters(Section):
         "test (band_blob_max_px). Real plates_eu plates pasted into the band of simulated "
         "LiDAR-only clips (seeds 0-3, 32 per width), 0 -> 12: 20 px 18 -> 21 (eu[::2]) and "
         "18 -> 24 (eu[1::2], held out) of 32, 30 / 40 px unchanged or +1, band false plates "
-        "on the real street frames 0.33 both, +0.5 CPU s per narrow-camera frame; off by "
+        "on the real street frames 0.33 both, +0.35-0.5 CPU s per narrow-camera frame; off by "
         "default: on the LiDAR-only 1080p clip (seed 0) it cost 0.73 -> 0.58-0.64 img/s/core. "
         "0: off")
     ground_isolated_m: float = Field(

@@ -52,9 +52,11 @@ from v2xlake.tasks.anonymize.plateprop import (
     keep_within,
     lift_dark,
     plate_band,
+    row_texture,
+    to_gray,
 )
 from v2xlake.tasks.anonymize.textplate import TextPlateDetector
-from v2xlake.tasks.geometry import iou_xyxy, merge_until_stable
+from v2xlake.tasks.geometry import greedy_boxes, iou_xyxy, merge_until_stable
 
 
 def plate_scan(faces: Faces, plates: Plates) -> ScanConfig:
@@ -213,6 +215,7 @@ class GuidedConfig(FromParams):
     plate_dark_frame_median: float = _param("plates.dark_frame_median")
     plate_dark_ref: float = _param("plates.dark_ref")
     plate_dark_gain_max: float = _param("plates.dark_gain_max")
+    plate_dark_window_px: int = _param("plates.dark_window_px")
     # the guided plan's faces in two stages (``GuidedDetector``'s ``region_first`` given):
     # the int8 copy runs on the region canvases and the safety view; each local maximum of
     # its heat map scoring ``face_proposal_threshold`` is a candidate; one scoring
@@ -671,13 +674,10 @@ def band_plate_blobs(bgr: np.ndarray, box: tuple[int, int, int, int], min_px: fl
             if not (wlo <= w <= whi and alo <= w / h <= ahi and h >= 2 * s
                     and area >= cfg.band_blob_min_fill * w * h):
                 continue
-            mid = along[y + h // 4 : y + h - h // 4, x + w // 10 : x + w - w // 10 - 1]
-            glyph = float(mid.mean()) if mid.size else 0.0
+            glyph, near = row_texture(along, x, y, w, h)
             if glyph < cfg.band_blob_min_glyph:
                 continue
-            near = np.concatenate([along[max(0, y - h) : y, x : x + w - 1].ravel(),
-                                   along[y + h : y + 2 * h, x : x + w - 1].ravel()])
-            if near.size and glyph < cfg.band_blob_glyph_ratio * (float(near.mean()) + 3.0):
+            if near is not None and glyph < cfg.band_blob_glyph_ratio * (near + 3.0):
                 continue
             rows = np.concatenate([g[max(0, y - h) : y, x : x + w].ravel(),
                                    g[y + h : y + 2 * h, x : x + w].ravel()])
@@ -687,14 +687,8 @@ def band_plate_blobs(bgr: np.ndarray, box: tuple[int, int, int, int], min_px: fl
             if not y0 <= (y + h / 2) / s + ya < y1:
                 continue  # centred in the context rows, not in the band
             found.append((glyph, (x / s + x0, y / s + ya, (x + w) / s + x0, (y + h) / s + ya)))
-    found.sort(key=lambda f: -f[0])
-    out: list[tuple[tuple[float, float, float, float], float]] = []
-    for glyph, b in found:
-        if len(out) >= cfg.band_blob_max:
-            break
-        if not out or iou_xyxy(np.array([b]), np.array([o for o, _sc in out])).max() < 0.2:
-            out.append((b, float(np.clip(glyph / 40.0, 0.05, 0.5))))
-    return out
+    return [(b, float(np.clip(glyph / 40.0, 0.05, 0.5)))
+            for b, glyph in greedy_boxes(found, cfg.band_blob_max)]
 
 
 def band_learned_widths(min_px: float) -> tuple[float, ...]:
@@ -733,14 +727,12 @@ def inside_larger(box: tuple[float, float, float, float], others: Sequence[Any],
     on part of a larger, legible plate (its glyph row is a textured, rimmed rectangle at
     that scale); the text detector's box already covers it, and the part alone counted as
     a false blur on simulated LiDAR-only clips (0.02 -> 0.37 per image)."""
+    if not others:
+        return False
     a = max((box[2] - box[0]) * (box[3] - box[1]), 1e-6)
-    for o in others:
-        ix = min(box[2], o[2]) - max(box[0], o[0])
-        iy = min(box[3], o[3]) - max(box[1], o[1])
-        if ix > 0 and iy > 0 and ix * iy >= share * a and \
-                (o[2] - o[0]) * (o[3] - o[1]) >= ratio * a:
-            return True
-    return False
+    o = np.asarray([tuple(b) for b in others], np.float64).reshape(-1, 4)
+    held = overlapping(np.asarray(box, np.float64), o, iou=np.inf, contain=share)[0]
+    return bool((held & ((o[:, 2] - o[:, 0]) * (o[:, 3] - o[:, 1]) >= ratio * a)).any())
 
 
 def band_learned_conf(score: float, cfg: GuidedConfig) -> float:
@@ -754,13 +746,8 @@ def edge_lines(image: np.ndarray, cfg: GuidedConfig) -> list[tuple[float, float,
     (glyph strokes) of a line's size and shape, both passes of :func:`edge_band_sets`. A
     cheap proposal (~20 ms at 1080p), not a detector: facades and foliage pass it too, the
     text detector decides in the crops."""
-    weak, strong = edge_band_sets(_gray(image), cfg)
+    weak, strong = edge_band_sets(to_gray(image), cfg)
     return weak + strong
-
-
-def _gray(image: np.ndarray) -> np.ndarray:
-    """The frame in grey levels (BGR or already grey)."""
-    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
 
 
 def plate_sized(box: tuple[float, float, float, float], expected_px: float,
@@ -1096,7 +1083,8 @@ class GuidedDetector:
         assert self.plate is not None
         c = self.config
         if is_dark(image, c.plate_dark_frame_median):
-            image = lift_dark(image, c.plate_dark_ref, c.plate_dark_gain_max)
+            image = lift_dark(image, c.plate_dark_ref, c.plate_dark_gain_max,
+                              c.plate_dark_window_px)
         h, w = image.shape[:2]
         ps0 = c.plate_proposal_scale
         small = shrunk(image, ps0)
@@ -1110,7 +1098,7 @@ class GuidedDetector:
         # (box, scale): the text pass's lines at the scan's scale; an edge band at the scale
         # that makes its glyphs legible when they look like a row of glyphs (plateprop.py)
         scaled = [(b, s) for b in boxes]
-        gray = _gray(image)
+        gray = to_gray(image)
         weak, strong = edge_band_sets(gray, c)
         weak_set = set(weak)
         for b in weak + strong:
@@ -1225,14 +1213,6 @@ class GuidedDetector:
                 if bbox is not None:
                     dets += [Detection("plate", pb, sc, BAND_BLOB)
                              for pb, sc in band_plate_blobs(image, bbox, r.expected_px, c)]
-        if self.plate is not None and c.band_learned_score > 0:
-            for r in regions:
-                bbox = _frame_box(r.box, w, h) if r.part == "band" else None
-                if bbox is not None:
-                    found = band_learned_plates(_gray(image), bbox, r.expected_px, c)
-                    larger = [d.box for d in dets if d.kind == "plate"]
-                    dets += [Detection("plate", pb, band_learned_conf(sc, c), BAND_LEARNED)
-                             for pb, sc in found if not inside_larger(pb, larger)]
         if self.plate is not None and c.blob_below_px > 0:
             for p in pieces:
                 if p.kind != "plate" or p.ppm <= 0:
@@ -1251,6 +1231,17 @@ class GuidedDetector:
                     big = (fb[2] - fb[0]) * (fb[3] - fb[1]) > c.blob_cut_max_share * w * h
                     if plate_sized(fb, p.expected[1], c) and (small or not big):
                         dets.append(Detection("plate", fb, score, BLOB))
+        if self.plate is not None and c.band_learned_score > 0:
+            # last: a learned box inside a larger plate any other pass found here is a part
+            # of that plate (the carried frames get in_regions alone, without ``detect``)
+            gray = to_gray(image)
+            larger = [d.box for d in dets if d.kind == "plate"]
+            for r in regions:
+                bbox = _frame_box(r.box, w, h) if r.part == "band" else None
+                if bbox is not None:
+                    dets += [Detection("plate", pb, band_learned_conf(sc, c), BAND_LEARNED)
+                             for pb, sc in band_learned_plates(gray, bbox, r.expected_px, c)
+                             if not inside_larger(pb, larger)]
         return dets
 
     def _band_look(self, image: np.ndarray, r: Region) -> list[Detection]:
@@ -1268,7 +1259,7 @@ class GuidedDetector:
         h, w = image.shape[:2]
         pieces = [_crop_piece(k, x0, y0, x1, y1, sc, (a, b))
                   for k, x0, y0, x1, y1, sc, a, b in _merge_crops(
-                      band_look_crops(_gray(image), r, c))]
+                      band_look_crops(to_gray(image), r, c))]
         out: list[Detection] = []
         for canvas, ps, pos in mosaics(image, pieces, replace(c, pack_fit=True)):
             out += self._in_canvas("plate", self.plate, canvas, ps, pos, w, h)
@@ -1305,20 +1296,22 @@ class GuidedDetector:
                 if i is None:
                     continue
                 p = ps[i]
+                # the line's box in the frame: is it cut by the frame's edge? (canvas
+                # coordinates say nothing of where the frame ends)
+                fb = p.to_frame(np.asarray(b, float) - [pos[i][0], pos[i][1]] * 2, w, h)
                 if p.ppm > 0:  # rectified: the text line's size in metres
                     long_m, short_m = line[2] / p.ppm, line[3] / p.ppm
-                    fb = p.to_frame(np.asarray(b, float) - [pos[i][0], pos[i][1]] * 2, w, h)
                     if min(fb[0], fb[1], w - fb[2], h - fb[3]) <= 2:  # cut by the frame edge
                         ok = short_m <= c.plate_text_h_max_m and long_m <= c.plate_text_m[1]
                     else:
                         ok = (c.plate_text_m[0] <= long_m <= c.plate_text_m[1]
                               and short_m <= c.plate_text_h_max_m
-                              and det.plate_ok(line[:5], 10**9))
+                              and det.plate_ok(line[:5], 10**9, at_edge=False))
                 else:
                     s = p.crop[4] if p.crop else 1.0
                     rect = (line[0] / s, line[1] / s, line[2] / s, line[3] / s, line[4])
                     lo, hi = c.plate_size_range
-                    ok = det.plate_ok(rect, w) and (
+                    ok = det.plate_ok(rect, w, at_edge=min(fb[0], w - fb[2]) <= 2) and (
                         lo * p.expected[0] <= rect[2] <= hi * p.expected[1])
                 if ok:
                     found.append((b, float(line[5]), i))

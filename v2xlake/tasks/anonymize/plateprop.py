@@ -295,15 +295,18 @@ def keep_within(area: list[float], rank: list[float], budget: float) -> list[boo
     return keep
 
 
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """The frame in grey levels (BGR or already grey)."""
+    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+
+
 def is_dark(image: np.ndarray, median_below: float) -> bool:
     """Is the frame dark: its median grey level (every 4th pixel, each way) under
     ``median_below`` (0: never)? Why the median: a night frame's street lights and lit
     plates are bright, but few; the mean follows them, the median follows the street."""
     if median_below <= 0:
         return False
-    small = np.ascontiguousarray(image[::4, ::4])
-    gray = small if small.ndim == 2 else cv2.cvtColor(small, cv2.COLOR_BGR2GRAY)
-    return float(np.median(gray)) < median_below
+    return float(np.median(to_gray(np.ascontiguousarray(image[::4, ::4])))) < median_below
 
 
 def lift_dark(image: np.ndarray, ref: float, gain_max: float, window: int = 31) -> np.ndarray:
@@ -313,9 +316,20 @@ def lift_dark(image: np.ndarray, ref: float, gain_max: float, window: int = 31) 
     one in the shadow is dark; one gain for both either saturates the first or leaves the
     second under the edge threshold. Bright places (a mean at ``ref`` or above) keep their
     pixels; the gain varies with the blurred mean, so it adds no edges of its own."""
-    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    mean = cv2.blur(gray, (window, window)).astype(np.float32)
+    mean = cv2.blur(to_gray(image), (window, window)).astype(np.float32)
     gain = np.clip(ref / np.maximum(mean, 1.0), 1.0, gain_max)
     if image.ndim == 3:
         gain = gain[..., None]
     return np.clip(image.astype(np.float32) * gain, 0, 255).astype(np.uint8)
+
+
+def row_texture(along: np.ndarray, x: int, y: int, w: int, h: int) -> tuple[float, float | None]:
+    """Of a small plate box (x, y, w, h px) on ``along`` (|grey level change| along the rows
+    of an upscaled band): the mean change over its middle half of rows and middle 80 % of
+    columns (its glyphs, even blurred), and over the rows as tall as it above and below (the
+    body around it; None where there are none). A plate's glyphs change more than its
+    car's body; a curb's edge or a bumper's highlight does not."""
+    mid = along[y + h // 4 : y + h - h // 4, x + w // 10 : x + w - w // 10 - 1]
+    near = np.concatenate([along[max(0, y - h) : y, x : x + w - 1].ravel(),
+                           along[y + h : y + 2 * h, x : x + w - 1].ravel()])
+    return (float(mid.mean()) if mid.size else 0.0), (float(near.mean()) if near.size else None)

@@ -184,18 +184,23 @@ class TextPlateDetector:
         return [ok for ok, _why, _r in self.reader.judge(view, [ln[:5] for ln in lines],
                                                          frame_h)]
 
-    def plate_ok(self, rect: tuple[float, ...], frame_w: int) -> bool:
-        """The plate geometry checks on one text line (original pixels). A line reaching the
-        frame's left or right edge is held to ``edge_cut_min_aspect`` instead of
-        ``min_aspect``: a plate cut by the edge shows part of its text, and its line is as
-        tall as a whole one but shorter (half an EU plate: aspect ~2 -> ~1)."""
+    def plate_ok(self, rect: tuple[float, ...], frame_w: int,
+                 at_edge: bool | None = None) -> bool:
+        """The plate geometry checks on one text line. A line reaching the frame's left or
+        right edge is held to ``edge_cut_min_aspect`` instead of ``min_aspect``: a plate cut
+        by the edge shows part of its text, as tall as a whole plate's line but shorter (real
+        plates cut in half: about 1.6-2, whole EU lines ~4.5). ``at_edge``: whether the
+        line reaches the edge, as the caller knows it; None: told by ``rect``, which must then
+        be in frame pixels (a canvas's coordinates say nothing of where the frame ends)."""
         c = self.config
         cx, _cy, a, b, ang = rect[:5]
         lo = c.min_aspect
         if c.edge_cut_min_aspect < lo:
-            t = np.deg2rad(ang)
-            hw = 0.5 * (a * abs(np.cos(t)) + b * abs(np.sin(t)))
-            if cx - hw <= c.edge_cut_px or cx + hw >= frame_w - c.edge_cut_px:
+            if at_edge is None:
+                t = np.deg2rad(ang)
+                hw = 0.5 * (a * abs(np.cos(t)) + b * abs(np.sin(t)))
+                at_edge = cx - hw <= c.edge_cut_px or cx + hw >= frame_w - c.edge_cut_px
+            if at_edge:
                 lo = c.edge_cut_min_aspect
         return (
             b >= c.min_h
