@@ -11,7 +11,9 @@ object; everything else is pure (arrays and images in, arrays out):
 - ``guided.py`` (the guided scan plan, its safety pass and the full-frame plan),
   ``detectors.py`` (CenterFace, the classic and Haar plate detectors, scans in tiles),
   ``textplate.py`` (PP-OCR text lines as plates), ``plateread.py`` (reading a candidate),
-  ``plateprop.py`` (the scale to search a small plate's edge band at);
+  ``plateprop.py`` (the scale to search a small plate's edge band at, dark frames lifted),
+  ``bandplate.py`` (the far band's optional learned small-plate scorer, its weights in
+  ``bandplate.npz``);
 - ``carry.py`` (key frames, detections carried between them), ``temporal.py`` (gaps filled);
 - ``blur.py`` (irreversible blur), ``images.py`` (decode, encode, metadata stripped),
   ``timespace.py`` (relative time, local ENU);
