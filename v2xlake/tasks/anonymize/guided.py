@@ -1331,9 +1331,11 @@ class GuidedDetector:
         if regions is None:
             return self.full_frame(image)
         safety = self.full_frame(image) if full_safety else self.safety(image)
-        dets = self.in_regions(image, regions) + safety
-        if self.config.band_learned_score > 0:  # parts of larger plates found otherwise
-            larger = [d.box for d in dets if d.kind == "plate" and d.detector != BAND_LEARNED]
+        dets = self.in_regions(image, regions)
+        if self.config.band_learned_score > 0:
+            # learned boxes inside a larger plate of the safety pass are parts of it
+            # (``in_regions`` held them against its own plates already)
+            larger = [d.box for d in safety if d.kind == "plate"]
             dets = [d for d in dets
                     if d.detector != BAND_LEARNED or not inside_larger(d.box, larger)]
-        return nms(dets, 0.3)
+        return nms(dets + safety, 0.3)

@@ -99,6 +99,14 @@ def _rect_of(contour: np.ndarray) -> tuple[float, float, float, float, float]:
     return float(cx), float(cy), float(a), float(b), float(ang)
 
 
+def _half_extents(a: float, b: float, ang: float) -> tuple[float, float]:
+    """Half the width and height of the axis-aligned box around a rectangle ``a`` x ``b``
+    tilted ``ang`` degrees: where a text line reaches in the frame."""
+    t = np.deg2rad(ang)
+    return (0.5 * (a * abs(np.cos(t)) + b * abs(np.sin(t))),
+            0.5 * (a * abs(np.sin(t)) + b * abs(np.cos(t))))
+
+
 def db_lines(
     prob: np.ndarray, pixel_threshold: float, box_threshold: float, unclip_ratio: float
 ) -> list[tuple[float, float, float, float, float, float]]:
@@ -197,8 +205,7 @@ class TextPlateDetector:
         lo = c.min_aspect
         if c.edge_cut_min_aspect < lo:
             if at_edge is None:
-                t = np.deg2rad(ang)
-                hw = 0.5 * (a * abs(np.cos(t)) + b * abs(np.sin(t)))
+                hw, _hh = _half_extents(a, b, ang)
                 at_edge = cx - hw <= c.edge_cut_px or cx + hw >= frame_w - c.edge_cut_px
             if at_edge:
                 lo = c.edge_cut_min_aspect
@@ -214,10 +221,7 @@ class TextPlateDetector:
         """Axis-aligned box of the plate around a text line (grown by the plate margins)."""
         c = self.config
         cx, cy, a, b, ang = rect[:5]
-        a2, b2 = a * (1 + 2 * c.plate_grow_x), b * (1 + 2 * c.plate_grow_y)
-        t = np.deg2rad(ang)
-        hw = 0.5 * (a2 * abs(np.cos(t)) + b2 * abs(np.sin(t)))
-        hh = 0.5 * (a2 * abs(np.sin(t)) + b2 * abs(np.cos(t)))
+        hw, hh = _half_extents(a * (1 + 2 * c.plate_grow_x), b * (1 + 2 * c.plate_grow_y), ang)
         return np.array([cx - hw, cy - hh, cx + hw, cy + hh])
 
     def detect(self, image_bgr: np.ndarray) -> list[Detection]:
