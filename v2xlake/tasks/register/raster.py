@@ -1,0 +1,411 @@
+"""A small raster plotter for the register stage's two PNGs (the BEV and the timeline).
+
+Why not matplotlib: the stage renders both pictures for every clip, and matplotlib spent
+0.3-0.45 s of one core on the BEV (scatter of 120k points) and 0.4-1.2 s on the timeline
+(ten axes' ticks, grid lines and labels), a fixed cost as large as registering a whole 3 s
+clip. Here a picture is a NumPy RGB array: points are counted into pixels
+(``splat``, one ``bincount`` per layer), lines, markers and bands are drawn anti-aliased by
+OpenCV into views of the array (a view clips to its panel), text is drawn last by Pillow with
+FreeType (DejaVu Sans, matplotlib's font, when matplotlib's data is installed) and the PNG is
+written by ``pngcodec`` (rows filtered with UP, ISA-L deflate).
+
+Coordinates: pixels, x to the right, y down; a ``Panel`` maps data coordinates into its box.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from v2xlake.tasks.pngcodec import encode_png
+
+Color = tuple[int, int, int]
+_SHIFT = 4  # OpenCV's fractional bits: coordinates are drawn to 1/16 px
+_ONE = 1 << _SHIFT
+MINUS = "\u2212"
+
+
+def rgb(hex_colour: str) -> Color:
+    """``#rrggbb`` as an (r, g, b) tuple."""
+    h = hex_colour.lstrip("#")
+    return int(h[0:2], 16), int(h[2:4], 16), int(h[4:6], 16)
+
+
+@cache
+def _font_path() -> str | None:
+    """matplotlib's DejaVu Sans (the font the pictures had) found without importing
+    matplotlib (0.6 s); None: Pillow's own font."""
+    spec = importlib.util.find_spec("matplotlib")
+    if spec is None or spec.origin is None:
+        return None
+    p = Path(spec.origin).parent / "mpl-data" / "fonts" / "ttf" / "DejaVuSans.ttf"
+    return str(p) if p.exists() else None
+
+
+@cache
+def font(px: int) -> Any:
+    """A FreeType font ``px`` pixels high (em size)."""
+    from PIL import ImageFont
+
+    path = _font_path()
+    if path is not None:
+        return ImageFont.truetype(path, px)
+    return ImageFont.load_default(size=px)
+
+
+def text_width(s: str, px: int) -> float:
+    """Advance width of ``s`` in pixels at ``px``."""
+    return float(font(px).getlength(s))
+
+
+def nice_ticks(lo: float, hi: float, max_ticks: int = 8) -> np.ndarray:
+    """Round tick values inside [lo, hi]: the smallest step of 1, 2, 2.5 or 5 x 10^k giving
+    at most ``max_ticks`` ticks (matplotlib's default locator picks from the same steps)."""
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+        return np.array([lo]) if math.isfinite(lo) else np.zeros(0)
+    raw = (hi - lo) / max(max_ticks - 1, 1)
+    mag = 10.0 ** math.floor(math.log10(raw))
+    step = next(m * mag for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * mag >= raw * (1 - 1e-9))
+    first = math.ceil(lo / step - 1e-9)
+    last = math.floor(hi / step + 1e-9)
+    return np.arange(first, last + 1) * step
+
+
+def tick_labels(ticks: np.ndarray) -> list[str]:
+    """Labels with as many decimals as the step needs (0.25 steps: two), minus signs as
+    U+2212 and no "-0"."""
+    if len(ticks) < 2:
+        dec = 0 if len(ticks) == 0 or float(ticks[0]).is_integer() else 2
+    else:
+        step = abs(float(ticks[1] - ticks[0]))
+        dec = 0
+        while dec < 6 and abs(step * 10**dec - round(step * 10**dec)) > 1e-6 * 10**dec:
+            dec += 1
+    out = []
+    for v in ticks:
+        s = f"{float(v):.{dec}f}"
+        if float(s) == 0.0:
+            s = s.lstrip("-")
+        out.append(s.replace("-", MINUS))
+    return out
+
+
+def limits(values: list[np.ndarray], margin: float = 0.05) -> tuple[float, float]:
+    """Data limits of the finite values with ``margin`` of the range on each side
+    (matplotlib's default view margins); a flat or empty range gets +-1 or +-5 %."""
+    v = np.concatenate([np.ravel(np.asarray(x, dtype=np.float64)) for x in values]) \
+        if values else np.zeros(0)
+    v = v[np.isfinite(v)]
+    if not len(v):
+        return -1.0, 1.0
+    lo, hi = float(v.min()), float(v.max())
+    if hi - lo <= 1e-12 * max(abs(lo), abs(hi), 1e-300):
+        d = abs(lo) * 0.05 if lo else 1.0
+        return lo - d, hi + d
+    d = (hi - lo) * margin
+    return lo - d, hi + d
+
+
+def splat(img: np.ndarray, col: np.ndarray, row: np.ndarray, color: Color,
+          alpha: float) -> None:
+    """Points at pixel (``col``, ``row``) (floats, truncated to their pixel) composited onto
+    ``img`` (H, W, 3 uint8) in place: a pixel hit by n points of this colour gets opacity
+    1 - (1 - alpha)^n, as n overlapping markers of opacity ``alpha`` would. Points outside
+    the image are dropped."""
+    h, w = img.shape[:2]
+    c = np.floor(col).astype(np.int64)
+    r = np.floor(row).astype(np.int64)
+    ok = (c >= 0) & (c < w) & (r >= 0) & (r < h)
+    if not ok.any():
+        return
+    n = np.bincount(r[ok] * w + c[ok], minlength=h * w).reshape(h, w)
+    hit = n > 0
+    a = 1.0 - (1.0 - alpha) ** n[hit]
+    px = img[hit].astype(np.float32)
+    px += (np.asarray(color, np.float32)[None, :] - px) * a[:, None].astype(np.float32)
+    img[hit] = np.clip(np.rint(px), 0, 255).astype(np.uint8)
+
+
+def _fixed(pts: np.ndarray) -> np.ndarray:
+    return np.rint(np.asarray(pts, np.float64) * _ONE).astype(np.int32).reshape(-1, 1, 2)
+
+
+@dataclass
+class _Text:
+    x: float
+    y: float
+    s: str
+    px: int
+    color: Color
+    anchor: str
+    rotate: bool
+
+
+@dataclass
+class Canvas:
+    """A white RGB picture of ``width`` x ``height`` pixels; ``png`` draws the queued text
+    and encodes it."""
+
+    width: int
+    height: int
+    img: np.ndarray = field(init=False)
+    texts: list[_Text] = field(default_factory=list, init=False)
+
+    def __post_init__(self) -> None:
+        self.img = np.full((self.height, self.width, 3), 255, np.uint8)
+
+    def text(self, x: float, y: float, s: str, px: int, *, color: Color = (0, 0, 0),
+             anchor: str = "mm", rotate: bool = False) -> None:
+        """Queue ``s`` at (x, y) with Pillow's ``anchor`` (e.g. "mm" centre, "rm" right
+        middle, "mt" middle top); ``rotate``: turned 90 degrees counter-clockwise, anchored
+        at its centre."""
+        if s:
+            self.texts.append(_Text(x, y, s, px, color, anchor, rotate))
+
+    def rect(self, x0: float, y0: float, x1: float, y1: float, color: Color, *,
+             fill: Color | None = None, width: int = 1) -> None:
+        """An axis-aligned rectangle's outline (and its fill)."""
+        a, b = round(x0), round(y0)
+        c, d = round(x1), round(y1)
+        if fill is not None:
+            self.img[max(b, 0):max(d, 0), max(a, 0):max(c, 0)] = fill
+        cv2.rectangle(self.img, (a, b), (c, d), color, width, cv2.LINE_8)
+
+    def polyline(self, pts: np.ndarray, color: Color, width: float = 1.0) -> None:
+        """An anti-aliased polyline through (x, y) pixel points; breaks at non-finite ones."""
+        _polyline(self.img, (0.0, 0.0), np.asarray(pts, np.float64), color, width)
+
+    def marker(self, x: float, y: float, kind: str, size: float, color: Color) -> None:
+        """One filled marker of ``size`` pixels: "o" disc, "^" triangle, "|" vertical bar."""
+        _marker(self.img, x, y, kind, size, color)
+
+    def png(self, path: str | Path | None = None) -> bytes:
+        """The picture with its text as PNG bytes (also written to ``path`` if given)."""
+        from PIL import Image, ImageDraw
+
+        im = Image.fromarray(self.img, "RGB")
+        draw = ImageDraw.Draw(im)
+        for t in self.texts:
+            f = font(t.px)
+            if not t.rotate:
+                draw.text((t.x, t.y), t.s, fill=t.color, font=f, anchor=t.anchor)
+                continue
+            box = draw.textbbox((0, 0), t.s, font=f, anchor="lt")
+            tile = Image.new("L", (int(box[2]) + 2, int(box[3]) + 2), 0)
+            ImageDraw.Draw(tile).text((1, 1), t.s, fill=255, font=f, anchor="lt")
+            tile = tile.rotate(90, expand=True)
+            im.paste(Image.new("RGB", tile.size, t.color),
+                     (round(t.x - tile.size[0] / 2), round(t.y - tile.size[1] / 2)),
+                     tile)
+        data = encode_png(cv2.cvtColor(np.asarray(im), cv2.COLOR_RGB2BGR))
+        if path is not None:
+            Path(path).write_bytes(data)
+        return data
+
+
+def _polyline(img: np.ndarray, origin: tuple[float, float], pts: np.ndarray, color: Color,
+              width: float) -> None:
+    """Segments between consecutive finite points, drawn into ``img`` (a view: clipped)."""
+    if len(pts) < 2:
+        return
+    ok = np.isfinite(pts).all(axis=1)
+    p = pts - np.asarray(origin)[None, :]
+    runs: list[np.ndarray] = []
+    start = None
+    for i, good in enumerate([*ok.tolist(), False]):
+        if good and start is None:
+            start = i
+        elif not good and start is not None:
+            if i - start >= 2:
+                runs.append(_fixed(p[start:i]))
+            start = None
+    if runs:
+        cv2.polylines(img, runs, False, color, max(round(width), 1), cv2.LINE_AA, _SHIFT)
+
+
+def _marker(img: np.ndarray, x: float, y: float, kind: str, size: float,
+            color: Color) -> None:
+    if not (math.isfinite(x) and math.isfinite(y)):
+        return
+    if kind == "o":
+        cv2.circle(img, (round(x * _ONE), round(y * _ONE)),
+                   round(size / 2 * _ONE), color, -1, cv2.LINE_AA, _SHIFT)
+    elif kind == "^":
+        r = size / 2
+        tri = np.array([[x, y - r], [x + r * 0.866, y + r / 2], [x - r * 0.866, y + r / 2]])
+        cv2.fillPoly(img, [_fixed(tri)], color, cv2.LINE_AA, _SHIFT)
+    elif kind == "|":
+        cv2.line(img, (round(x * _ONE), round((y - size / 2) * _ONE)),
+                 (round(x * _ONE), round((y + size / 2) * _ONE)), color, 2,
+                 cv2.LINE_AA, _SHIFT)
+    else:
+        raise ValueError(f"unknown marker {kind!r}")
+
+
+@dataclass
+class Panel:
+    """An axes box (pixels, right / bottom exclusive) showing ``xlim`` x ``ylim``."""
+
+    canvas: Canvas
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+    xlim: tuple[float, float]
+    ylim: tuple[float, float]
+    # (x ticks, y ticks, x labels shown, y labels shown, label size), set by ``axes``
+    ticks: tuple[np.ndarray, np.ndarray, bool, bool, int] | None = None
+
+    @property
+    def view(self) -> np.ndarray:
+        """The panel's pixels (a view of the canvas): drawing into it clips to the box."""
+        return self.canvas.img[self.y0:self.y1, self.x0:self.x1]
+
+    def px(self, x: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Canvas pixel coordinates of data points."""
+        x = np.asarray(x, np.float64)
+        y = np.asarray(y, np.float64)
+        sx = (self.x1 - self.x0) / (self.xlim[1] - self.xlim[0])
+        sy = (self.y1 - self.y0) / (self.ylim[1] - self.ylim[0])
+        return self.x0 + (x - self.xlim[0]) * sx, self.y1 - (y - self.ylim[0]) * sy
+
+    def points(self, x: np.ndarray, y: np.ndarray, color: Color, alpha: float) -> None:
+        """Many small points counted into pixels (``splat``)."""
+        cx, cy = self.px(x, y)
+        splat(self.view, cx - self.x0, cy - self.y0, color, alpha)
+
+    def line(self, x: Any, y: Any, color: Color, width: float = 1.0) -> None:
+        cx, cy = self.px(x, y)
+        _polyline(self.view, (self.x0, self.y0), np.stack([cx, cy], axis=1), color, width)
+
+    def hline(self, y: float, color: Color, width: float = 1.0) -> None:
+        self.line(self.xlim, (y, y), color, width)
+
+    def markers(self, x: Any, y: Any, kind: str, size: float, color: Color) -> None:
+        cx, cy = self.px(x, y)
+        for a, b in zip(np.atleast_1d(cx).tolist(), np.atleast_1d(cy).tolist(), strict=True):
+            _marker(self.view, a - self.x0, b - self.y0, kind, size, color)
+
+    def band(self, x: np.ndarray, lo: np.ndarray, hi: np.ndarray, color: Color,
+             alpha: float) -> None:
+        """The area between ``lo`` and ``hi`` over ``x`` (fill_between), anti-aliased edges,
+        composited with opacity ``alpha``; columns with non-finite bounds split the band."""
+        ok = np.isfinite(x) & np.isfinite(lo) & np.isfinite(hi)
+        mask = np.zeros(self.view.shape[:2], np.uint8)
+        start = None
+        for i, good in enumerate([*ok.tolist(), False]):
+            if good and start is None:
+                start = i
+            elif not good and start is not None:
+                if i - start >= 2:
+                    xs = np.concatenate([x[start:i], x[start:i][::-1]])
+                    ys = np.concatenate([hi[start:i], lo[start:i][::-1]])
+                    cx, cy = self.px(xs, ys)
+                    poly = np.stack([cx - self.x0, cy - self.y0], axis=1)
+                    cv2.fillPoly(mask, [_fixed(poly)], 255, cv2.LINE_AA, _SHIFT)
+                start = None
+        rows = np.flatnonzero(mask.any(axis=1))
+        if not len(rows):
+            return
+        cols = np.flatnonzero(mask.any(axis=0))
+        sl = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        v = self.view[sl]
+        a = mask[sl].astype(np.float32)[:, :, None] * np.float32(alpha / 255.0)
+        px = v.astype(np.float32)
+        v[...] = np.rint(px + (np.asarray(color, np.float32) - px) * a).astype(np.uint8)
+
+    def axes(self, *, xticks: np.ndarray | None = None, yticks: np.ndarray | None = None,
+             xlabels: bool = True, ylabels: bool = True, grid: bool = False,
+             tick_px: int = 14) -> None:
+        """Grid (under the data: call first), then call ``frame`` after the data."""
+        xt = nice_ticks(*self.xlim) if xticks is None else xticks
+        yt = nice_ticks(*self.ylim, max_ticks=6) if yticks is None else yticks
+        self.ticks = (xt, yt, xlabels, ylabels, tick_px)
+        if grid:
+            g = (235, 235, 235)
+            for v in xt:
+                cx = self._col(v)
+                cv2.line(self.canvas.img, (cx, self.y0), (cx, self.y1 - 1), g, 1)
+            for v in yt:
+                cy = self._row(v)
+                cv2.line(self.canvas.img, (self.x0, cy), (self.x1 - 1, cy), g, 1)
+
+    def _col(self, x: float) -> int:
+        return round(float(self.px(x, 0.0)[0]))
+
+    def _row(self, y: float) -> int:
+        return round(float(self.px(0.0, y)[1]))
+
+    def frame(self) -> None:
+        """The box, its outward ticks and their labels (as set by ``axes``)."""
+        if self.ticks is None:
+            self.axes()
+        assert self.ticks is not None
+        xt, yt, xlabels, ylabels, tick_px = self.ticks
+        c = self.canvas
+        k = (0, 0, 0)
+        cv2.rectangle(c.img, (self.x0 - 1, self.y0 - 1), (self.x1, self.y1), k, 1)
+        for v, s in zip(xt, tick_labels(xt), strict=True):
+            cx = self._col(v)
+            cv2.line(c.img, (cx, self.y1), (cx, self.y1 + 4), k, 1)
+            if xlabels:
+                c.text(cx, self.y1 + 6, s, tick_px, anchor="mt")
+        for v, s in zip(yt, tick_labels(yt), strict=True):
+            cy = self._row(v)
+            cv2.line(c.img, (self.x0 - 5, cy), (self.x0 - 1, cy), k, 1)
+            if ylabels:
+                c.text(self.x0 - 8, cy, s, tick_px, anchor="rm")
+
+    def ylabel(self, s: str, px: int) -> None:
+        """``s`` turned upright, left of the y tick labels."""
+        if self.ticks is None:
+            self.axes()
+        assert self.ticks is not None
+        _, yt, _, shown, tick_px = self.ticks
+        w = max((text_width(x, tick_px) for x in tick_labels(yt)), default=0.0) if shown else 0
+        self.canvas.text(self.x0 - 8 - w - 4 - px * 0.6, (self.y0 + self.y1) / 2, s, px,
+                         rotate=True)
+
+    def legend(self, entries: list[tuple[str, str, Color]], px: int, *,
+               where: str = "upper right", ncol: int = 1,
+               at: tuple[float, float] | None = None) -> None:
+        """A framed legend of (kind, label, colour) entries, kind "line", "dot", "patch"
+        (a light square) or "|"; ``where`` "upper right" inside the panel, or ``at`` a canvas
+        point (the legend's top centre)."""
+        if not entries:
+            return
+        c = self.canvas
+        ncol = max(min(ncol, len(entries)), 1)
+        pad, sw, gap, row = px * 0.5, px * 2.0, px * 0.6, px * 1.45
+        widths = [sw + gap + text_width(s, px) for _, s, _ in entries]
+        nrow = math.ceil(len(entries) / ncol)
+        colw = [max(widths[i::ncol]) for i in range(ncol)]
+        w = sum(colw) + pad * (ncol + 1)
+        h = nrow * row + pad
+        if at is not None:
+            x0, y0 = at[0] - w / 2, at[1]
+        else:
+            x0, y0 = self.x1 - w - px * 0.5, self.y0 + px * 0.5
+        c.rect(x0, y0, x0 + w, y0 + h, (204, 204, 204), fill=(255, 255, 255))
+        for i, (kind, label, col) in enumerate(entries):
+            r, j = divmod(i, ncol)
+            ex = x0 + pad + sum(colw[:j]) + pad * j
+            ey = y0 + pad / 2 + r * row + row / 2
+            if kind == "line":
+                _polyline(c.img, (0.0, 0.0), np.array([[ex, ey], [ex + sw, ey]]), col, 1.5)
+            elif kind == "hline":
+                _polyline(c.img, (0.0, 0.0), np.array([[ex, ey], [ex + sw, ey]]), col, 1.0)
+            elif kind == "dot":
+                _marker(c.img, ex + sw / 2, ey, "o", px * 0.45, col)
+            elif kind == "patch":
+                c.rect(ex, ey - px * 0.35, ex + sw, ey + px * 0.35, col, fill=col)
+            elif kind == "|":
+                _marker(c.img, ex + sw / 2, ey, "|", row * 0.9, col)
+            c.text(ex + sw + gap, ey, label, px, anchor="lm")
