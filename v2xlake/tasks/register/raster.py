@@ -120,17 +120,18 @@ def splat(img: np.ndarray, col: np.ndarray, row: np.ndarray, color: Color,
     1 - (1 - alpha)^n, as n overlapping markers of opacity ``alpha`` would. Points outside
     the image are dropped."""
     h, w = img.shape[:2]
-    c = np.floor(col).astype(np.int64)
-    r = np.floor(row).astype(np.int64)
-    ok = (c >= 0) & (c < w) & (r >= 0) & (r < h)
+    ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
     if not ok.any():
         return
-    n = np.bincount(r[ok] * w + c[ok], minlength=h * w).reshape(h, w)
-    hit = n > 0
-    a = 1.0 - (1.0 - alpha) ** n[hit]
-    px = img[hit].astype(np.float32)
-    px += (np.asarray(color, np.float32)[None, :] - px) * a[:, None].astype(np.float32)
-    img[hit] = np.clip(np.rint(px), 0, 255).astype(np.uint8)
+    n = np.bincount(row[ok].astype(np.int64) * w + col[ok].astype(np.int64), minlength=h * w)
+    at = np.flatnonzero(n)
+    rr, cc = np.divmod(at, w)
+    # the opacity of n points, by table (beyond 255 points a pixel is opaque anyway)
+    opacity = (1.0 - (1.0 - alpha) ** np.arange(256)).astype(np.float32)
+    a = opacity[np.minimum(n[at], 255)][:, None]
+    px = img[rr, cc].astype(np.float32)
+    px += (np.asarray(color, np.float32)[None, :] - px) * a
+    img[rr, cc] = np.clip(np.rint(px), 0, 255).astype(np.uint8)
 
 
 def _fixed(pts: np.ndarray) -> np.ndarray:
@@ -188,26 +189,46 @@ class Canvas:
 
     def png(self, path: str | Path | None = None) -> bytes:
         """The picture with its text as PNG bytes (also written to ``path`` if given)."""
-        from PIL import Image, ImageDraw
-
-        im = Image.fromarray(self.img, "RGB")
-        draw = ImageDraw.Draw(im)
         for t in self.texts:
-            f = font(t.px)
-            if not t.rotate:
-                draw.text((t.x, t.y), t.s, fill=t.color, font=f, anchor=t.anchor)
-                continue
-            box = draw.textbbox((0, 0), t.s, font=f, anchor="lt")
-            tile = Image.new("L", (int(box[2]) + 2, int(box[3]) + 2), 0)
-            ImageDraw.Draw(tile).text((1, 1), t.s, fill=255, font=f, anchor="lt")
-            tile = tile.rotate(90, expand=True)
-            im.paste(Image.new("RGB", tile.size, t.color),
-                     (round(t.x - tile.size[0] / 2), round(t.y - tile.size[1] / 2)),
-                     tile)
-        data = encode_png(cv2.cvtColor(np.asarray(im), cv2.COLOR_RGB2BGR))
+            mask, x0, y0 = _text_mask(t)
+            _ink(self.img, mask, x0, y0, t.color)
+        data = encode_png(cv2.cvtColor(self.img, cv2.COLOR_RGB2BGR))
         if path is not None:
             Path(path).write_bytes(data)
         return data
+
+
+def _text_mask(t: _Text) -> tuple[np.ndarray, int, int]:
+    """The text's coverage (uint8, FreeType anti-aliased) and where its top left goes. Each
+    string is drawn into its own small image: converting the whole picture to Pillow and
+    back cost more than the text (20 ms of a 2200 x 1200 timeline)."""
+    from PIL import Image, ImageDraw
+
+    f = font(t.px)
+    if t.rotate:
+        box = f.getbbox(t.s, anchor="lt")
+        tile = Image.new("L", (int(box[2]) + 2, int(box[3]) + 2), 0)
+        ImageDraw.Draw(tile).text((1, 1), t.s, fill=255, font=f, anchor="lt")
+        m = np.rot90(np.asarray(tile))  # counter-clockwise, reading upwards
+        return m, round(t.x - m.shape[1] / 2), round(t.y - m.shape[0] / 2)
+    left, top, right, bottom = (int(v) for v in f.getbbox(t.s, anchor=t.anchor))
+    tile = Image.new("L", (right - left + 1, bottom - top + 1), 0)
+    ImageDraw.Draw(tile).text((-left, -top), t.s, fill=255, font=f, anchor=t.anchor)
+    return np.asarray(tile), round(t.x) + left, round(t.y) + top
+
+
+def _ink(img: np.ndarray, mask: np.ndarray, x0: int, y0: int, color: Color) -> None:
+    """``color`` laid onto ``img`` with coverage ``mask`` (uint8) at (x0, y0), clipped."""
+    h, w = img.shape[:2]
+    a0, b0 = max(x0, 0), max(y0, 0)
+    a1, b1 = min(x0 + mask.shape[1], w), min(y0 + mask.shape[0], h)
+    if a1 <= a0 or b1 <= b0:
+        return
+    v = img[b0:b1, a0:a1]
+    wgt = mask[b0 - y0:b1 - y0, a0 - x0:a1 - x0].astype(np.float32) * np.float32(1 / 255)
+    ink = np.empty_like(v)
+    ink[:] = color
+    v[...] = cv2.blendLinear(v, ink, 1.0 - wgt, wgt)
 
 
 def _polyline(img: np.ndarray, origin: tuple[float, float], pts: np.ndarray, color: Color,
@@ -317,9 +338,10 @@ class Panel:
         cols = np.flatnonzero(mask.any(axis=0))
         sl = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
         v = self.view[sl]
-        a = mask[sl].astype(np.float32)[:, :, None] * np.float32(alpha / 255.0)
-        px = v.astype(np.float32)
-        v[...] = np.rint(px + (np.asarray(color, np.float32) - px) * a).astype(np.uint8)
+        w = mask[sl].astype(np.float32) * np.float32(alpha / 255.0)
+        ink = np.empty_like(v)
+        ink[:] = color
+        v[...] = cv2.blendLinear(v, ink, 1.0 - w, w)  # v (1 - w) + colour w, rounded
 
     def axes(self, *, xticks: np.ndarray | None = None, yticks: np.ndarray | None = None,
              xlabels: bool = True, ylabels: bool = True, grid: bool = False,
