@@ -135,6 +135,7 @@ def splat(img: np.ndarray, col: np.ndarray, row: np.ndarray, color: Color,
 
 
 def _fixed(pts: np.ndarray) -> np.ndarray:
+    """Pixel points as OpenCV's fixed-point (N, 1, 2) int32 at ``_SHIFT`` fractional bits."""
     return np.rint(np.asarray(pts, np.float64) * _ONE).astype(np.int32).reshape(-1, 1, 2)
 
 
@@ -178,14 +179,6 @@ class Canvas:
         if fill is not None:
             self.img[max(b, 0):max(d, 0), max(a, 0):max(c, 0)] = fill
         cv2.rectangle(self.img, (a, b), (c, d), color, width, cv2.LINE_8)
-
-    def polyline(self, pts: np.ndarray, color: Color, width: float = 1.0) -> None:
-        """An anti-aliased polyline through (x, y) pixel points; breaks at non-finite ones."""
-        _polyline(self.img, (0.0, 0.0), np.asarray(pts, np.float64), color, width)
-
-    def marker(self, x: float, y: float, kind: str, size: float, color: Color) -> None:
-        """One filled marker of ``size`` pixels: "o" disc, "^" triangle, "|" vertical bar."""
-        _marker(self.img, x, y, kind, size, color)
 
     def png(self, path: str | Path | None = None) -> bytes:
         """The picture with its text as PNG bytes (also written to ``path`` if given)."""
@@ -253,6 +246,8 @@ def _polyline(img: np.ndarray, origin: tuple[float, float], pts: np.ndarray, col
 
 def _marker(img: np.ndarray, x: float, y: float, kind: str, size: float,
             color: Color) -> None:
+    """One filled, anti-aliased marker of ``size`` pixels centred at (x, y) in ``img``: "o"
+    disc, "^" triangle, "|" vertical bar (the timeline's decision strip)."""
     if not (math.isfinite(x) and math.isfinite(y)):
         return
     if kind == "o":
