@@ -27,7 +27,9 @@ The numeric core, on arrays and records:
   recordings' calibration and point files (benchmarks and tests).
 - ``calibration.py``: the text of ``v2xlake calibration`` (published vs refined, per frame).
 - ``bev.py`` and ``timeline.py``: the bird's-eye view of one frame (Fig. 5) and the clip's
-  registration over time, as PNG (bytes, or a file the caller names).
+  registration over time, as PNG (bytes, or a file the caller names), drawn by
+  ``raster.py``: a small raster plotter (points counted into pixels, OpenCV lines, FreeType
+  text), because matplotlib cost as much as registering a 3 s clip.
 """
 
 from __future__ import annotations
