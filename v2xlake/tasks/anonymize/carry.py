@@ -24,6 +24,7 @@ frames.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import cv2
@@ -343,3 +344,116 @@ def between(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
     out = [Detection(d.kind, _grow(d.box, 0.0, w, h), d.score, d.detector) for d in out]
     return [d for d in out if d.box[2] - d.box[0] >= 1 and d.box[3] - d.box[1] >= 1], list(
         again.values())
+
+
+def _fits(d: Detection, r: Region, within: float = 2.0) -> bool:
+    """Whether region ``r`` expects an object of the detection's size (within ``within``
+    x): a region searched at its own scale finds it again (2x), a region of its object
+    moves with it (4x: a face behind a car's window is smaller than the region expects;
+    a close car's window region covering the frame, 16x larger, is not its object)."""
+    size = d.box[3] - d.box[1] if d.kind == "face" else d.box[2] - d.box[0]
+    return 1 / within <= size / max(r.expected_px, 1e-6) <= within
+
+
+def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
+                    after: tuple[Sequence[Detection], Sequence[Region] | None, int],
+                    regions: Sequence[Region] | None, t_ns: int, grow: float,
+                    window: float, shape: tuple[int, ...], fresh: Sequence[Region] = ()
+                    ) -> tuple[list[Detection], list[Region], list[tuple[Region, Detection]]]:
+    """``between`` for regions from LiDAR cluster tracks: the carried detections of a frame
+    at ``t_ns``, the regions to search here, and fallbacks: (searched window, detection)
+    pairs, the detection kept when the search of its window finds nothing of its kind.
+
+    Why not ``between``: a cluster's box is refitted from each scan's few returns, so its
+    projected part jumps by up to a metre between scans (a plate carried with it landed
+    20-120 px off on the simulated 1080p clip), and a frame's regions come from the scan
+    nearest in time, not moved to its time. So a detection is never moved with a region
+    here; the track only pairs a key frame's detection with the other key frame's (the
+    first one moved by its track's region from one key frame to the other, then the
+    nearest of its kind within its size, else the nearest to where it was) and a pair is
+    interpolated between the boxes the detector found (100 ms apart at 30 Hz: near
+    linear). A detection whose region is
+    searched afresh here (``fresh``: its track is new here) at its scale is left to that
+    search; one in a region of another scale (a small face inside a close car's window
+    region that covers the frame) is not. One without a partner is searched for here in a
+    window ``window`` x its larger side around it (and around where its track's region
+    puts it) on each side, at its own scale (not its region's: a small face the full-frame
+    pass found inside a car's window region is not found by that region's search): a face
+    crossing the narrow camera moved 90 px between key frames, a face behind a passing
+    car's window 45 px a frame; a plate in the far band's rows by the band's own search
+    (its scale and checks) over the window's columns (a 30 px band plate the window
+    missed at its own scale). Only a detection touching the frame
+    edge (an object leaving the view: its cut part scores low) is kept, grown by ``grow``
+    per key-frame interval, when that search finds nothing and its key frame is the nearer
+    one; inside the frame a detection the search does not confirm is dropped (kept,
+    moving ones were false blurs: 0.7 per image)."""
+    (d0, r0, t0), (d1, r1, t1) = before, after
+    h, w = shape[:2]
+    a = min(max((t_ns - t0) / max(t1 - t0, 1), 0.0), 1.0)
+    here = {_key(r): r for r in regions or ()}
+    again_keys = {_key(r) for r in fresh}
+    band = next((r for r in regions or () if r.part == "band"), None)
+    in_b = {_key(r): r for r in r1 or ()}
+
+    def side(dets: Sequence[Detection], rk: Sequence[Region] | None
+             ) -> list[tuple[Detection, Region | None, Region | None]]:
+        out = []
+        for d in dets:
+            r = _region_of(d, rk) if rk else None
+            if r is not None and _key(r) in again_keys and _fits(d, r):
+                continue  # its region is searched afresh here, at its scale
+            out.append((d, r, here.get(_key(r)) if r is not None else None))
+        return out
+
+    c0, c1 = side(d0, r0), side(d1, r1)
+    # the key frame before's detections as the key frame after would see them (for pairing)
+    pred = [(Detection(p.kind, _move(p.box, r, in_b[_key(r)]), p.score, p.detector)
+             if r is not None and _key(r) in in_b else p, None) for p, r, _ in c0]
+    cand = [(q, None) for q, _, _ in c1]
+    used: set[int] = set()
+    out: list[Detection] = []
+    again: dict[tuple[str, ...], Region] = {}
+    fallback: list[tuple[Region, Detection]] = []
+
+    def lost(d: Detection, rk: Region | None, reg: Region | None, k: float) -> None:
+        keep = Detection(d.kind, _grow(d.box, grow * k, w, h), d.score, CARRIED)
+        bw, bh = d.box[2] - d.box[0], d.box[3] - d.box[1]
+        boxes = [d.box]
+        if rk is not None and reg is not None and _fits(d, rk, 4.0):
+            boxes.append(_move(d.box, rk, reg))  # where its track's region puts it
+        m = window * max(bw, bh)  # a plate moves as far up or down as sideways
+        x0, y0 = min(b[0] for b in boxes) - m, min(b[1] for b in boxes) - m
+        x1, y1 = max(b[2] for b in boxes) + m, max(b[3] for b in boxes) + m
+        win = (max(0.0, x0), max(0.0, y0), min(float(w), x1), min(float(h), y1))
+        if win[2] - win[0] < 2 or win[3] - win[1] < 2:
+            return
+        cy = (d.box[1] + d.box[3]) / 2
+        if band is not None and d.kind == "plate" and band.box[1] <= cy <= band.box[3]:
+            # a far plate: the band's own search (its scale, its checks) over the window's
+            # columns; at the plate's own scale a 30 px band plate was not found again
+            r = dataclasses.replace(band, box=(win[0], band.box[1], win[2], band.box[3]))
+        else:
+            r = Region(d.kind, win, float(bh if d.kind == "face" else bw), "", None, None,
+                       "head" if d.kind == "face" else "", None)
+        again.setdefault(("window", d.kind, "", *(f"{v:.0f}" for v in win)), r)
+        if k <= 0.5 and (d.box[0] <= 1 or d.box[1] <= 1 or d.box[2] >= w - 1
+                         or d.box[3] >= h - 1):
+            fallback.append((r, keep))  # leaving the view: its cut part may score low
+
+    for k, (p, rk, reg) in enumerate(c0):
+        j = _match(pred[k][0], cand, used)
+        if j is None and pred[k][0] is not p:
+            j = _match(p, cand, used)  # the region jumped, the object did not
+        if j is not None:
+            used.add(j)
+            q = c1[j][0]
+            box = tuple(float((1 - a) * u + a * v) for u, v in zip(p.box, q.box, strict=True))
+            out.append(Detection(p.kind, box, min(p.score, q.score), CARRIED))  # type: ignore[arg-type]
+        else:
+            lost(p, rk, reg, a)
+    for j, (q, rk, reg) in enumerate(c1):
+        if j not in used:
+            lost(q, rk, reg, 1 - a)
+    out = [Detection(d.kind, _grow(d.box, 0.0, w, h), d.score, d.detector) for d in out]
+    return ([d for d in out if d.box[2] - d.box[0] >= 1 and d.box[3] - d.box[1] >= 1],
+            list(again.values()), fallback)

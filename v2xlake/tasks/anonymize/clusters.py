@@ -378,3 +378,78 @@ def yaw_quat(yaw: np.ndarray) -> np.ndarray:
     """Unit quaternions (w, x, y, z) of rotations about z."""
     y = np.asarray(yaw, float) / 2
     return np.stack([np.cos(y), np.zeros_like(y), np.zeros_like(y), np.sin(y)], 1)
+
+
+def track_ids(t_ns: np.ndarray, centre: np.ndarray, size: np.ndarray, yaw: np.ndarray,
+              category: np.ndarray, gate_m: float, max_gap_ns: int) -> np.ndarray:
+    """One track number per box of one LiDAR's scans (boxes of a scan share ``t_ns``; world
+    coordinates, so the ego motion is already taken out): each scan's boxes are matched to
+    the tracks alive at the previous scans (seen at most ``max_gap_ns`` ago), one to one
+    (Hungarian), within ``gate_m`` of where each track's velocity puts it now, of the same
+    category; an unmatched box starts a track.
+
+    Why: the anonymizer carries a key frame's detections to the frames between key frames
+    with their region, and only a region whose (instance, part) both neighbouring key frames
+    hold can carry (``carry.py``); clusters numbered per scan have no such identity, so every
+    frame of a clip without annotations was detected in full. The cost adds the footprint's
+    size and yaw (mod 180°) differences to the distance: a short object is returned in both
+    orientations at one centre (``_object``), and each copy keeps its own track. A wrong
+    match costs little: carried boxes of the two key frames must agree, or the region is
+    searched again (``carry.between``)."""
+    from scipy.optimize import linear_sum_assignment
+
+    n = len(t_ns)
+    out = np.full(n, -1, np.int64)
+    if n == 0:
+        return out
+    t = np.asarray(t_ns, np.int64)
+    c = np.asarray(centre, float)[:, :2]
+    wl = np.sort(np.asarray(size, float)[:, :2], axis=1)
+    yw = np.asarray(yaw, float)
+    cat = np.asarray(category).astype(str)
+    # alive tracks: last centre, velocity, time, footprint, yaw, category
+    tr_c = np.zeros((0, 2))
+    tr_v = np.zeros((0, 2))
+    tr_t = np.zeros(0, np.int64)
+    tr_wl = np.zeros((0, 2))
+    tr_y = np.zeros(0)
+    tr_cat = np.zeros(0, cat.dtype)
+    tr_id = np.zeros(0, np.int64)
+    nxt = 0
+    for ts in np.unique(t):
+        idx = np.flatnonzero(t == ts)
+        alive = (ts - tr_t) <= max_gap_ns
+        tr_c, tr_v, tr_t, tr_wl = tr_c[alive], tr_v[alive], tr_t[alive], tr_wl[alive]
+        tr_y, tr_cat, tr_id = tr_y[alive], tr_cat[alive], tr_id[alive]
+        dt = (ts - tr_t) * 1e-9
+        pred = tr_c + tr_v * dt[:, None]
+        match = np.full(len(idx), -1)
+        if len(tr_id):
+            d = np.hypot(*(c[idx, None, :] - pred[None, :, :]).transpose(2, 0, 1))
+            dy = np.abs((yw[idx, None] - tr_y[None, :] + np.pi / 2) % np.pi - np.pi / 2)
+            ds = np.abs(wl[idx, None, :] - tr_wl[None, :, :]).sum(2)
+            ok = d <= gate_m
+            # a sparse object's class flips between scans (person-sized slivers of a car):
+            # another class costs more, but may continue the track
+            cost = np.where(ok, d + ds + dy + (cat[idx, None] != tr_cat[None, :]), 1e6)
+            rows, cols = linear_sum_assignment(cost)
+            keep = ok[rows, cols]
+            match[rows[keep]] = cols[keep]
+        for k, i in enumerate(idx):
+            j = match[k]
+            if j >= 0:
+                v = (c[i] - tr_c[j]) / max(dt[j], 1e-3)
+                tr_v[j] = v if np.hypot(*tr_v[j]) == 0 else 0.5 * (v + tr_v[j])
+                tr_c[j], tr_t[j], tr_wl[j], tr_y[j] = c[i], ts, wl[i], yw[i]
+                out[i] = tr_id[j]
+            else:
+                out[i] = nxt
+                tr_c = np.vstack([tr_c, c[i]])
+                tr_v = np.vstack([tr_v, np.zeros(2)])
+                tr_t = np.append(tr_t, ts)
+                tr_wl = np.vstack([tr_wl, wl[i]])
+                tr_y = np.append(tr_y, yw[i])
+                tr_cat = np.append(tr_cat, cat[i])
+                tr_id = np.append(tr_id, nxt)
+                nxt += 1
+    return out

@@ -272,6 +272,34 @@ class Clusters(Section):
         "detections are carried in place; on the 1080p 30 Hz simulated clip without "
         "annotations carrying lost faces >= 16 px 33/38 -> 21/38 and plates 118 -> 113 of "
         "165 (2.2x faster)")
+    track_gate_m: float = Field(
+        3.0, ge=0, description="a LiDAR's clusters get one identity per object across its "
+        "scans (clusters.track_ids): a box continues the track whose velocity puts it within "
+        "this distance (m; a car at 20 m/s moves 2 m in a 10 Hz scan's time before its "
+        "track has a velocity, and a sparse cluster's centre jumps by a metre as its "
+        "returns change), so the frames between key frames (clusters.carry) pair a key "
+        "frame's detections with the other's and search only regions new to both. On the "
+        "simulated LiDAR-only clip (seed 0) 2 m left 50 % of the carried frames' face "
+        "region area new, 3 m 32 %, 4 m 32 %; 0: numbered per scan (no identity)")
+    carry_window: float = Field(
+        2.0, ge=0, description="between key frames, a key-frame detection of a LiDAR-only "
+        "clip without a partner in the other key frame is searched for here in a window "
+        "this many times its larger side around it (and around where its track's region "
+        "puts it) on each side, at its own scale (a face crossing the narrow camera moves "
+        "30 px a frame); when that finds nothing, only one touching the frame edge (leaving "
+        "the view) stays blurred where it was (carry.between_tracked)")
+    carry_safety: bool = Field(
+        True, description="frames of a LiDAR-only clip between key frames also get the "
+        "shrunk safety pass (safety.*): a close vehicle crossing the view moves its plate "
+        "100+ px a frame, farther than the search around its key-frame box reaches")
+    carry_band: bool = Field(
+        False, description="frames of a LiDAR-only clip between key frames search the far "
+        "band (clusters.band_from_m) only over the columns around a key frame's plate that "
+        "the other key frame did not find again, instead of whole in every frame (the "
+        "band's plates, 30-60 m away, are paired and interpolated like any other)")
+    track_gap_ms: float = Field(
+        250.0, ge=0, description="a cluster track not seen for this long ends (a far walker "
+        "gets LiDAR returns in some sweeps only)")
     gap_deg: float = Field(
         1.5, ge=0, description="points of one object further apart than the 0.2 m grid are "
         "joined when their gap, seen from the LiDAR, is at most this angle (its azimuth "

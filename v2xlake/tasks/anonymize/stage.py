@@ -319,7 +319,7 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
     world, for clips without annotations; None when the clip has annotations (or no LiDAR,
     or no poses)."""
     from v2xlake.tasks.anonymize.build import cluster_config
-    from v2xlake.tasks.anonymize.clusters import cluster_boxes, yaw_quat
+    from v2xlake.tasks.anonymize.clusters import cluster_boxes, track_ids, yaw_quat
     from v2xlake.tasks.anonymize.guide import WorldBoxes, world_boxes_from_sensor
     from v2xlake.tasks.motion import deskew_points
 
@@ -343,7 +343,7 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
         track = PoseTrack.create(samples.t_ns, samples.xyz, samples.quat_wxyz)
         sensors = calibrations(calib.filter(pc.equal(calib.column("agent_id"), agent)),
                                clip_id, agent)
-        parts = []
+        parts: dict[str, list[WorldBoxes]] = {}
         for g in iter_row_groups(lake, path,
                                  columns=["sensor", "frame_idx", "t_ns", "x", "y", "z"]):
             if g.num_rows == 0:
@@ -367,12 +367,25 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
             if not len(c):
                 continue
             m = len(c)
-            parts.append(world_boxes_from_sensor(
+            parts.setdefault(sensor, []).append(world_boxes_from_sensor(
                 np.full(m, t_rel, np.int64), np.broadcast_to(track.matrices(t_rel)[0], (m, 4, 4)),
                 c, size, yaw_quat(yaw), np.zeros((m, 3)), cat,
                 np.array([f"lidar:{agent}:{sensor}:{fidx}:{k}" for k in range(m)])))
-        if parts:
-            out[agent] = WorldBoxes.concat(parts)
+        tracked = []
+        for sensor, ps in parts.items():
+            b = WorldBoxes.concat(ps)
+            if cfg.clusters.track_gate_m > 0:
+                # one identity per object across scans (``track_ids``): the frames between
+                # key frames carry detections with it (``carry.py``)
+                w, z = b.quat[:, 0], b.quat[:, 3]
+                ids = track_ids(b.t_ns, b.center, b.size, 2 * np.arctan2(z, w), b.category,
+                                cfg.clusters.track_gate_m,
+                                int(cfg.clusters.track_gap_ms * 1e6))
+                b = dataclasses.replace(
+                    b, instance=np.array([f"lidar:{agent}:{sensor}:t{k}" for k in ids]))
+            tracked.append(b)
+        if tracked:
+            out[agent] = WorldBoxes.concat(tracked)
     return out or None
 
 
@@ -423,6 +436,7 @@ def _anonymize_images(
     from v2xlake.tasks.anonymize.build import blur_config, build_detector
     from v2xlake.tasks.anonymize.carry import (
         between,
+        between_tracked,
         full_key_frames,
         key_frames,
         new_regions,
@@ -485,11 +499,31 @@ def _anonymize_images(
                    if guide is not None else None)
         fresh = (new_regions(regions, kregions[a], kregions[b], img.shape,
                              cfg.carry.min_face_px, (known[a], known[b])) if regions else [])
-        found, again = between((known[a], kregions[a], int(stamps[a])),
-                               (known[b], kregions[b], int(stamps[b])), regions,
-                               int(stamps[i]), cfg.carry.grow, img.shape, fresh)
-        if fresh or again:
-            found += detector.in_regions(to_bgr8(img), [*fresh, *again])
+        if tracked and cfg.clusters.carry_band and kregions[a] and kregions[b]:
+            # the far band is the camera's own rows, not an object: the key frames' band
+            # plates are paired and interpolated like any other (a far plate moves little)
+            fresh = [r for r in fresh if r.part != "band"
+                     or not any(q.part == "band" for q in kregions[a] or ())
+                     or not any(q.part == "band" for q in kregions[b] or ())]
+        if tracked:
+            found, again, fallback = between_tracked(
+                (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
+                regions, int(stamps[i]), cfg.carry.grow, cfg.clusters.carry_window, img.shape,
+                fresh)
+        else:
+            (found, again), fallback = between(
+                (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
+                regions, int(stamps[i]), cfg.carry.grow, img.shape, fresh), []
+        safe = tracked and cfg.clusters.carry_safety
+        if fresh or again or safe:
+            bgr = to_bgr8(img)
+            seen = detector.in_regions(bgr, [*fresh, *again]) if fresh or again else []
+            if safe:
+                seen += detector.safety(bgr)
+            # a carried detection whose search here found nothing of its kind stays
+            found += seen + [d for r, d in fallback if not any(
+                q.kind == d.kind and r.box[0] <= (q.box[0] + q.box[2]) / 2 <= r.box[2]
+                and r.box[1] <= (q.box[1] + q.box[3]) / 2 <= r.box[3] for q in seen)]
         return img, found, regions
 
     def finish(img: np.ndarray, key: str, dets: list[Detection]) -> tuple[str, str]:
@@ -503,8 +537,12 @@ def _anonymize_images(
     workers = cfg.work.workers if cfg.work.workers > 0 else available_cores()
     gap_ns = int(cfg.temporal.max_gap_ms * 1e6)
     key_ns = int(cfg.carry.key_interval_ms * 1e6)
-    if guide is not None and guide.source == "lidar clusters" and not cfg.clusters.carry:
-        key_ns = 0  # every frame in full (see carry_lidar_clusters)
+    clustered = guide is not None and guide.source == "lidar clusters"
+    if clustered and not cfg.clusters.carry:
+        key_ns = 0  # every frame in full (clusters.carry)
+    # regions of LiDAR cluster tracks: carried between key frames as their own detections
+    # paired by track and interpolated (``carry.between_tracked``)
+    tracked = clustered and cfg.clusters.track_gate_m > 0
     with ThreadPoolExecutor(max_workers=workers) as pool:
         for agent, name, table in tables:
             keys = table.column("blob").to_pylist()
