@@ -70,3 +70,34 @@ def test_a_plate_leaving_the_view_is_kept_when_its_search_fails() -> None:
     assert len(again) == 2 and len(fallback) == 1
     region, kept = fallback[0]
     assert kept.box[2] == 1920.0 and region.box[0] < 1867.0
+
+
+def test_faces_of_two_tracks_are_not_interpolated_into_one() -> None:
+    """Two walkers 30 px a frame apart in time: walker A at 1351 px in the key frame
+    before (its head region: track t1), walker B at 1352 px in the key frame after (track
+    t2). They are not paired (an interpolated box would sit at 1351 px while A is at 1383
+    px): each is searched for around it. A pair of one track that moved more than its size
+    is checked in a window around the interpolated box, which is kept only as a fallback."""
+    def head(inst: str, x: float) -> Region:
+        return Region("face", (x - 40, 480.0, x + 60, 560.0), 10.0, inst, None, None, "head",
+                      (x + 5, 520.0))
+
+    a = Detection("face", (1351.0, 517.0, 1358.0, 527.0), 0.5, "centerface")
+    b = Detection("face", (1352.0, 513.0, 1364.0, 527.0), 0.68, "centerface")
+    ra, rb = head("lidar:a:L:t1", 1351), head("lidar:a:L:t2", 1352)
+    # both walkers are seen in both scans (B 90 px behind A before, A 110 px ahead after)
+    before, after = [ra, head("lidar:a:L:t2", 1261)], [head("lidar:a:L:t1", 1461), rb]
+    found, again, _ = between_tracked(([a], before, 0), ([b], after, 100 * MS), [ra, rb],
+                                      33 * MS, 0.5, 2.0, SHAPE)
+    assert not found and len(again) == 2
+    # a track that broke between the key frames (t1 gone after) does not block the pair
+    found, again, _ = between_tracked(([a], [ra], 0), ([b], [rb], 100 * MS), [ra, rb],
+                                      33 * MS, 0.5, 2.0, SHAPE)
+    assert len(found) == 1 and not again
+    # one track, 60 px between key frames: the interpolated box is a fallback of a window
+    c = Detection("face", (1411.0, 517.0, 1418.0, 527.0), 0.6, "centerface")
+    rc = head("lidar:a:L:t1", 1411)
+    found, again, fallback = between_tracked(([a], [ra], 0), ([c], [rc], 100 * MS), [ra],
+                                             50 * MS, 0.5, 2.0, SHAPE)
+    assert not found and len(again) == 1 and len(fallback) == 1
+    assert abs(fallback[0][1].box[0] - 1381.0) < 1e-6

@@ -355,6 +355,11 @@ def _fits(d: Detection, r: Region, within: float = 2.0) -> bool:
     return 1 / within <= size / max(r.expected_px, 1e-6) <= within
 
 
+def _lidar(instance: str) -> str:
+    """The LiDAR that numbered a cluster track (``lidar:<agent>:<sensor>:t<k>``)."""
+    return instance.rsplit(":", 1)[0]
+
+
 def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
                     after: tuple[Sequence[Detection], Sequence[Region] | None, int],
                     regions: Sequence[Region] | None, t_ns: int, grow: float,
@@ -370,23 +375,27 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     nearest in time, not moved to its time. So a detection is never moved with a region
     here; the track only pairs a key frame's detection with the other key frame's (the
     first one moved by its track's region from one key frame to the other, then the
-    nearest of its kind within its size, else the nearest to where it was) and a pair is
+    nearest of its kind within its size, else the nearest to where it was; never two
+    detections in regions of two tracks of one LiDAR that go on in the other key frame)
+    and a pair is
     interpolated between the boxes the detector found (100 ms apart at 30 Hz: near
-    linear). A detection whose region is
-    searched afresh here (``fresh``: its track is new here) at its scale is left to that
-    search; one in a region of another scale (a small face inside a close car's window
-    region that covers the frame) is not. One without a partner is searched for here in a
-    window ``window`` x its larger side around it (and around where its track's region
-    puts it) on each side, at its own scale (not its region's: a small face the full-frame
-    pass found inside a car's window region is not found by that region's search): a face
-    crossing the narrow camera moved 90 px between key frames, a face behind a passing
-    car's window 45 px a frame; a plate in the far band's rows by the band's own search
-    (its scale and checks) over the window's columns (a 30 px band plate the window
-    missed at its own scale). Only a detection touching the frame
-    edge (an object leaving the view: its cut part scores low) is kept, grown by ``grow``
-    per key-frame interval, when that search finds nothing and its key frame is the nearer
-    one; inside the frame a detection the search does not confirm is dropped (kept,
-    moving ones were false blurs: 0.7 per image)."""
+    linear). A pair that moved more than its size is checked in a window around the
+    interpolated box, which stays only where that search finds nothing (a small face 60
+    px a frame was interpolated 10 px off). A detection whose region is searched afresh
+    here (``fresh``: its track is new here) at its scale is left to that search; one in
+    a region of another scale (a small face inside a close car's window region that
+    covers the frame) is not. One without a
+    partner is searched for here in a window ``window`` x its larger side around it (and
+    around where its track's region puts it) on each side, at its own scale (not its
+    region's: a small face the full-frame pass found inside a car's window region is not
+    found by that region's search): a face crossing the narrow camera moved 90 px between
+    key frames, a face behind a passing car's window 45 px a frame; a plate in the far
+    band's rows by the band's own search (its scale and checks) over the window's columns
+    (a 30 px band plate the window missed at its own scale). Only a detection touching
+    the frame edge (an object leaving the view: its cut part scores low) is kept, grown by
+    ``grow`` per key-frame interval, when that search finds nothing; inside the frame a
+    detection the search does not confirm is dropped (kept, moving ones were false blurs:
+    0.7 per image)."""
     (d0, r0, t0), (d1, r1, t1) = before, after
     h, w = shape[:2]
     a = min(max((t_ns - t0) / max(t1 - t0, 1), 0.0), 1.0)
@@ -415,17 +424,17 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     again: dict[tuple[str, ...], Region] = {}
     fallback: list[tuple[Region, Detection]] = []
 
-    def lost(d: Detection, rk: Region | None, reg: Region | None, k: float) -> None:
-        keep = Detection(d.kind, _grow(d.box, grow * k, w, h), d.score, CARRIED)
+    def look(d: Detection, boxes: list[Box], keep: Detection | None) -> None:
+        """Search a window around ``boxes`` at the size of ``d``; ``keep`` stays where
+        that search finds nothing of its kind."""
         bw, bh = d.box[2] - d.box[0], d.box[3] - d.box[1]
-        boxes = [d.box]
-        if rk is not None and reg is not None and _fits(d, rk, 4.0):
-            boxes.append(_move(d.box, rk, reg))  # where its track's region puts it
         m = window * max(bw, bh)  # a plate moves as far up or down as sideways
         x0, y0 = min(b[0] for b in boxes) - m, min(b[1] for b in boxes) - m
         x1, y1 = max(b[2] for b in boxes) + m, max(b[3] for b in boxes) + m
         win = (max(0.0, x0), max(0.0, y0), min(float(w), x1), min(float(h), y1))
         if win[2] - win[0] < 2 or win[3] - win[1] < 2:
+            if keep is not None:
+                out.append(keep)
             return
         cy = (d.box[1] + d.box[3]) / 2
         if band is not None and d.kind == "plate" and band.box[1] <= cy <= band.box[3]:
@@ -436,21 +445,47 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
             r = Region(d.kind, win, float(bh if d.kind == "face" else bw), "", None, None,
                        "head" if d.kind == "face" else "", None)
         again.setdefault(("window", d.kind, "", *(f"{v:.0f}" for v in win)), r)
-        if k <= 0.5 and (d.box[0] <= 1 or d.box[1] <= 1 or d.box[2] >= w - 1
-                         or d.box[3] >= h - 1):
-            fallback.append((r, keep))  # leaving the view: its cut part may score low
+        if keep is not None:
+            fallback.append((r, keep))
 
+    def lost(d: Detection, rk: Region | None, reg: Region | None, k: float) -> None:
+        boxes = [d.box]
+        if rk is not None and reg is not None and _fits(d, rk, 4.0):
+            boxes.append(_move(d.box, rk, reg))  # where its track's region puts it
+        edge = d.box[0] <= 1 or d.box[1] <= 1 or d.box[2] >= w - 1 or d.box[3] >= h - 1
+        # leaving the view: its cut part may score low
+        look(d, boxes, Detection(d.kind, _grow(d.box, grow * k, w, h), d.score, CARRIED)
+             if edge else None)
+
+    def track(r: Region | None) -> tuple[str, str, str] | None:
+        return _key(r) if r is not None and r.instance and r.part != "band" else None
+
+    keys_a = {track(r) for r in r0 or ()} - {None}
+    keys_b = {track(r) for r in r1 or ()} - {None}
     for k, (p, rk, reg) in enumerate(c0):
-        j = _match(pred[k][0], cand, used)
+        # two tracks' detections are not one object's, where both tracks are one LiDAR's
+        # (another agent's LiDAR numbers the same car its own way) and go on in the other
+        # key frame (a track that broke between them says nothing)
+        tp = track(rk)
+        other = {j for j, (_q, rq, _) in enumerate(c1)
+                 if tp is not None and (tq := track(rq)) is not None and tp != tq
+                 and (tp in keys_b or tq in keys_a) and _lidar(tp[0]) == _lidar(tq[0])}
+        j = _match(pred[k][0], cand, used | other)
         if j is None and pred[k][0] is not p:
-            j = _match(p, cand, used)  # the region jumped, the object did not
-        if j is not None:
-            used.add(j)
-            q = c1[j][0]
-            box = tuple(float((1 - a) * u + a * v) for u, v in zip(p.box, q.box, strict=True))
-            out.append(Detection(p.kind, box, min(p.score, q.score), CARRIED))  # type: ignore[arg-type]
-        else:
+            j = _match(p, cand, used | other)  # the region jumped, the object did not
+        if j is None:
             lost(p, rk, reg, a)
+            continue
+        used.add(j)
+        q = c1[j][0]
+        box = tuple(float((1 - a) * u + a * v) for u, v in zip(p.box, q.box, strict=True))
+        d = Detection(p.kind, box, min(p.score, q.score), CARRIED)  # type: ignore[arg-type]
+        size = max(p.box[2] - p.box[0], p.box[3] - p.box[1])
+        if np.hypot(q.box[0] + q.box[2] - p.box[0] - p.box[2],
+                    q.box[1] + q.box[3] - p.box[1] - p.box[3]) / 2 > size:
+            look(d, [d.box], d)  # fast: the interpolated box checked where it went
+        else:
+            out.append(d)
     for j, (q, rk, reg) in enumerate(c1):
         if j not in used:
             lost(q, rk, reg, 1 - a)
