@@ -224,22 +224,20 @@ def _ink(img: np.ndarray, mask: np.ndarray, x0: int, y0: int, color: Color) -> N
     v[...] = cv2.blendLinear(v, ink, 1.0 - wgt, wgt)
 
 
+def _runs(ok: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) of each run of at least two consecutive True values: the pieces a line
+    or band is drawn in (a non-finite value splits it, as in matplotlib)."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True) if b - a >= 2]
+
+
 def _polyline(img: np.ndarray, origin: tuple[float, float], pts: np.ndarray, color: Color,
               width: float) -> None:
     """Segments between consecutive finite points, drawn into ``img`` (a view: clipped)."""
     if len(pts) < 2:
         return
-    ok = np.isfinite(pts).all(axis=1)
     p = pts - np.asarray(origin)[None, :]
-    runs: list[np.ndarray] = []
-    start = None
-    for i, good in enumerate([*ok.tolist(), False]):
-        if good and start is None:
-            start = i
-        elif not good and start is not None:
-            if i - start >= 2:
-                runs.append(_fixed(p[start:i]))
-            start = None
+    runs = [_fixed(p[a:b]) for a, b in _runs(np.isfinite(pts).all(axis=1))]
     if runs:
         cv2.polylines(img, runs, False, color, max(round(width), 1), cv2.LINE_AA, _SHIFT)
 
@@ -315,18 +313,12 @@ class Panel:
         composited with opacity ``alpha``; columns with non-finite bounds split the band."""
         ok = np.isfinite(x) & np.isfinite(lo) & np.isfinite(hi)
         mask = np.zeros(self.view.shape[:2], np.uint8)
-        start = None
-        for i, good in enumerate([*ok.tolist(), False]):
-            if good and start is None:
-                start = i
-            elif not good and start is not None:
-                if i - start >= 2:
-                    xs = np.concatenate([x[start:i], x[start:i][::-1]])
-                    ys = np.concatenate([hi[start:i], lo[start:i][::-1]])
-                    cx, cy = self.px(xs, ys)
-                    poly = np.stack([cx - self.x0, cy - self.y0], axis=1)
-                    cv2.fillPoly(mask, [_fixed(poly)], 255, cv2.LINE_AA, _SHIFT)
-                start = None
+        for a, b in _runs(ok):
+            xs = np.concatenate([x[a:b], x[a:b][::-1]])
+            ys = np.concatenate([hi[a:b], lo[a:b][::-1]])
+            cx, cy = self.px(xs, ys)
+            poly = np.stack([cx - self.x0, cy - self.y0], axis=1)
+            cv2.fillPoly(mask, [_fixed(poly)], 255, cv2.LINE_AA, _SHIFT)
         rows = np.flatnonzero(mask.any(axis=1))
         if not len(rows):
             return
