@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from v2xlake.tasks.anonymize.carry import between_tracked
+from v2xlake.tasks.anonymize.carry import between_tracked, unconfirmed
 from v2xlake.tasks.anonymize.clusters import track_ids
 from v2xlake.tasks.anonymize.detectors import Detection
 from v2xlake.tasks.anonymize.guide import Region
@@ -70,6 +70,13 @@ def test_a_plate_leaving_the_view_is_kept_when_its_search_fails() -> None:
     assert len(again) == 2 and len(fallback) == 1
     region, kept = fallback[0]
     assert kept.box[2] == 1920.0 and region.box[0] < 1867.0
+    # the window's search decides: a plate found there replaces the carried box, a face
+    # found there does not, nothing found keeps it
+    cx = (region.box[0] + region.box[2]) / 2
+    found = Detection("plate", (cx - 10, 690.0, cx + 10, 700.0), 0.7, "text")
+    face = Detection("face", found.box, 0.7, "face")
+    assert unconfirmed(fallback, [found]) == []
+    assert unconfirmed(fallback, [face]) == [kept] == unconfirmed(fallback, [])
 
 
 def test_faces_of_two_tracks_are_not_interpolated_into_one() -> None:

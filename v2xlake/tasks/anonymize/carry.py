@@ -492,3 +492,13 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     out = [Detection(d.kind, _grow(d.box, 0.0, w, h), d.score, d.detector) for d in out]
     return ([d for d in out if d.box[2] - d.box[0] >= 1 and d.box[3] - d.box[1] >= 1],
             list(again.values()), fallback)
+
+
+def unconfirmed(fallback: Sequence[tuple[Region, Detection]],
+                seen: Sequence[Detection]) -> list[Detection]:
+    """The fallbacks of ``between_tracked`` whose searched window holds no centre of a
+    detection of their kind found here: the carried box stays (a face or plate the window
+    search missed is still blurred where it was)."""
+    return [d for r, d in fallback if not any(
+        q.kind == d.kind and r.box[0] <= (q.box[0] + q.box[2]) / 2 <= r.box[2]
+        and r.box[1] <= (q.box[1] + q.box[3]) / 2 <= r.box[3] for q in seen)]

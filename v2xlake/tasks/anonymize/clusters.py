@@ -385,7 +385,7 @@ def track_ids(t_ns: np.ndarray, centre: np.ndarray, size: np.ndarray, yaw: np.nd
     """One track number per box of one LiDAR's scans (boxes of a scan share ``t_ns``; world
     coordinates, so the ego motion is already taken out): each scan's boxes are matched to
     the tracks alive at the previous scans (seen at most ``max_gap_ns`` ago), one to one
-    (Hungarian), within ``gate_m`` of where each track's velocity puts it now, of the same
+    (Hungarian), within ``gate_m`` of where each track's velocity puts it now, preferring its
     category; an unmatched box starts a track.
 
     Why: the anonymizer carries a key frame's detections to the frames between key frames

@@ -92,7 +92,8 @@ class ClipGuide:
 
     def _at(self, b: WorldBoxes, t: int, agent: str = "") -> WorldBoxes:
         """Boxes at time ``t``: annotated instances moved by their velocity; LiDAR clusters
-        (no identity across scans, no velocity) from the one scan nearest in time, plus the
+        (no velocity; their track numbers, ``clusters.track_ids``, let carrying pair them) from
+        the one scan nearest in time, plus the
         person boxes of the scans within ``person_hold_ns``. Why persons: far away a sparse
         LiDAR puts its few returns on a walker in some sweeps only (4, 0, 4 returns in three
         sweeps of a simulated pedestrian 32 m away), and the frames nearest an empty sweep

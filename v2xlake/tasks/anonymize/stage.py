@@ -441,6 +441,7 @@ def _anonymize_images(
         key_frames,
         new_regions,
         plate_windows,
+        unconfirmed,
     )
     from v2xlake.tasks.anonymize.images import decode_image, to_bgr8
     from v2xlake.tasks.anonymize.temporal import fill_gaps
@@ -515,16 +516,13 @@ def _anonymize_images(
                 (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
                 regions, int(stamps[i]), cfg.carry.grow, img.shape, fresh), []
         safe = tracked and cfg.clusters.carry_safety
+        seen: list[Detection] = []
         if fresh or again or safe:
             bgr = to_bgr8(img)
             seen = detector.in_regions(bgr, [*fresh, *again]) if fresh or again else []
             if safe:
                 seen += detector.safety(bgr)
-            # a carried detection whose search here found nothing of its kind stays
-            found += seen + [d for r, d in fallback if not any(
-                q.kind == d.kind and r.box[0] <= (q.box[0] + q.box[2]) / 2 <= r.box[2]
-                and r.box[1] <= (q.box[1] + q.box[3]) / 2 <= r.box[3] for q in seen)]
-        return img, found, regions
+        return img, found + seen + unconfirmed(fallback, seen), regions
 
     def finish(img: np.ndarray, key: str, dets: list[Detection]) -> tuple[str, str]:
         out = img.copy()
