@@ -279,11 +279,11 @@ class Clusters(Section):
         "false blurs +0.04-0.16 per image (one seed -0.07). Not the default while it loses "
         "plates the full plan finds")
     track_gate_m: float = Field(
-        3.0, ge=0, description="a LiDAR's clusters get one identity per object across its "
-        "scans (clusters.track_ids): a box continues the track whose velocity puts it within "
-        "this distance (m; a car at 20 m/s moves 2 m in a 10 Hz scan's time before its "
-        "track has a velocity, and a sparse cluster's centre jumps by a metre as its "
-        "returns change), so the frames between key frames (clusters.carry) pair a key "
+        3.0, ge=0, description="with clusters.carry, a LiDAR's clusters get one identity "
+        "per object across its scans (clusters.track_ids): a box continues the track whose "
+        "velocity puts it within this distance (m; a car at 20 m/s moves 2 m in a 10 Hz "
+        "scan's time before its track has a velocity, and a sparse cluster's centre jumps "
+        "by a metre as its returns change), so the frames between key frames pair a key "
         "frame's detections with the other's and search only regions new to both. On the "
         "simulated LiDAR-only clip (seed 0) 2 m left 50 % of the carried frames' face "
         "region area new, 3 m 32 %, 4 m 32 %; 0: numbered per scan (no identity)")

@@ -374,9 +374,10 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
         tracked = []
         for sensor, ps in parts.items():
             b = WorldBoxes.concat(ps)
-            if cfg.clusters.track_gate_m > 0:
+            if cfg.clusters.carry and cfg.clusters.track_gate_m > 0:
                 # one identity per object across scans (``track_ids``): the frames between
-                # key frames carry detections with it (``carry.py``)
+                # key frames carry detections with it (``carry.py``); without carrying every
+                # frame is detected in full and the tracks would serve nothing
                 w, z = b.quat[:, 0], b.quat[:, 3]
                 ids = track_ids(b.t_ns, b.center, b.size, 2 * np.arctan2(z, w), b.category,
                                 cfg.clusters.track_gate_m,
@@ -540,7 +541,7 @@ def _anonymize_images(
         key_ns = 0  # every frame in full (clusters.carry)
     # regions of LiDAR cluster tracks: carried between key frames as their own detections
     # paired by track and interpolated (``carry.between_tracked``)
-    tracked = clustered and cfg.clusters.track_gate_m > 0
+    tracked = clustered and cfg.clusters.carry and cfg.clusters.track_gate_m > 0
     with ThreadPoolExecutor(max_workers=workers) as pool:
         for agent, name, table in tables:
             keys = table.column("blob").to_pylist()

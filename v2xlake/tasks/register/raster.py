@@ -217,8 +217,13 @@ def _ink(img: np.ndarray, mask: np.ndarray, x0: int, y0: int, color: Color) -> N
     a1, b1 = min(x0 + mask.shape[1], w), min(y0 + mask.shape[0], h)
     if a1 <= a0 or b1 <= b0:
         return
-    v = img[b0:b1, a0:a1]
-    wgt = mask[b0 - y0:b1 - y0, a0 - x0:a1 - x0].astype(np.float32) * np.float32(1 / 255)
+    _blend(img[b0:b1, a0:a1], mask[b0 - y0:b1 - y0, a0 - x0:a1 - x0], 1.0, color)
+
+
+def _blend(v: np.ndarray, mask: np.ndarray, alpha: float, color: Color) -> None:
+    """``color`` composited onto the pixels ``v`` (a view, in place) with opacity ``alpha``
+    times the coverage ``mask`` (uint8, 255 full): v (1 - w) + colour w, rounded."""
+    wgt = mask.astype(np.float32) * np.float32(alpha / 255.0)
     ink = np.empty_like(v)
     ink[:] = color
     v[...] = cv2.blendLinear(v, ink, 1.0 - wgt, wgt)
@@ -324,11 +329,7 @@ class Panel:
             return
         cols = np.flatnonzero(mask.any(axis=0))
         sl = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-        v = self.view[sl]
-        w = mask[sl].astype(np.float32) * np.float32(alpha / 255.0)
-        ink = np.empty_like(v)
-        ink[:] = color
-        v[...] = cv2.blendLinear(v, ink, 1.0 - w, w)  # v (1 - w) + colour w, rounded
+        _blend(self.view[sl], mask[sl], alpha, color)
 
     def axes(self, *, xticks: np.ndarray | None = None, yticks: np.ndarray | None = None,
              xlabels: bool = True, ylabels: bool = True, grid: bool = False,
