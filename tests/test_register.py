@@ -303,6 +303,30 @@ def test_sparse_aligns_every_centroid_when_the_sample_finds_few_pairs() -> None:
     np.testing.assert_allclose(fallback.H, dense.H, rtol=0.05, atol=1e-6 * np.abs(dense.H).max())
 
 
+def test_sparse_source_carries_its_own_stopping_rule() -> None:
+    """A source's ``translation_eps_m`` / ``max_iterations`` (a stationary agent's pairs,
+    ``stationary.*``) replace the backend's for that pair only: a coarser step stops no later
+    and lands within a few of its millimetres, the cap is kept, and None changes nothing."""
+    from dataclasses import replace
+
+    c = drive("turning", 1, beams=48, cols=720)[0]
+    be = make_backend("sparse", GicpSection(voxel_m=0.4, source_voxel_m=0.4))
+    target, source = be.prepare(c.ref), be.prepare(c.other, as_target=False)
+    rows = source.rows()
+    plain = be._align_rows(target, source, rows, c.T_init)  # type: ignore[attr-defined]
+    same = be._align_rows(target, replace(source, translation_eps_m=None,  # type: ignore[attr-defined]
+                                          max_iterations=None), rows, c.T_init)
+    np.testing.assert_array_equal(same.T, plain.T)
+    assert plain.iterations > 2
+    coarse = be._align_rows(target, replace(source, translation_eps_m=0.05),  # type: ignore[attr-defined]
+                            rows, c.T_init)
+    assert coarse.converged and coarse.iterations < plain.iterations
+    assert transform_delta(coarse.T, plain.T)[0] < 0.05
+    capped = be._align_rows(target, replace(source, max_iterations=2),  # type: ignore[attr-defined]
+                            rows, c.T_init)
+    assert capped.iterations == 2 and not capped.converged
+
+
 def _fallback_vs_every(c: Any, params: GicpSection) -> tuple[float, float]:
     """Rotation / translation between a pair refined with ``params``' fallback and with the
     ``every``-centroid fallback (both must be accepted)."""

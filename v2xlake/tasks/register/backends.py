@@ -51,6 +51,11 @@ class Prepared:
     # as a source (sparse backend): align every co-visible row at once, no sample pass first
     # (the caller's copy of a cross pair's source: the previous frame's sample was short)
     dense_first: bool = False
+    # as a source (sparse backend): this pair's GICP stopping rule where it is not the
+    # backend's (a stationary agent's pairs, ``stationary.translation_eps_m`` /
+    # ``stationary.max_iterations``); None: the backend's settings
+    translation_eps_m: float | None = None
+    max_iterations: int | None = None
 
     def rows(self) -> np.ndarray:
         """The rows a source contributes: its sample, or every point."""
@@ -372,14 +377,16 @@ class SparseGicpBackend(SmallGicpBackend):
         p = self.params
         surf = source.handle
         surf.ensure(source.points, source.tree, rows, p.num_neighbors, p.num_threads)
+        eps = (source.translation_eps_m if source.translation_eps_m is not None
+               else p.fallback_translation_eps_m if dense else None)
         return align_sparse(target.points, target.tree, target.handle, source.points[rows],
                             surf.normals[rows], surf.ratio[rows], init,
                             num_neighbors=p.num_neighbors,
                             max_correspondence_m=p.max_correspondence_m,
-                            max_iterations=p.max_iterations, num_threads=p.num_threads,
+                            max_iterations=source.max_iterations or p.max_iterations,
+                            num_threads=p.num_threads,
                             t_covisible_with=target.covisible_with,
-                            **({"translation_eps_m": p.fallback_translation_eps_m}
-                               if dense else {}))
+                            **({"translation_eps_m": eps} if eps is not None else {}))
 
     def _dense_rows(self, source: Prepared, rows: np.ndarray | None = None) -> np.ndarray:
         """``rows`` (default: every source centroid), less those the other LiDAR cannot see

@@ -206,6 +206,29 @@ class StationarySection(Section):
         "51 accepted, median 2.53 -> 2.52 cm; 3 s: 13 -> 16 of 30 within, median 3.48 -> "
         "2.93 cm, black's median 0.98 -> 1.00 cm. The gicp-wide setting failed on a moving "
         "far pair (black 50 m ahead), which this one leaves alone")
+    translation_eps_m: float | None = Field(
+        0.003, gt=0, description="a stationary agent's cross pairs stop GICP when the "
+        "translation step is below this (and the rotation step below 0.1 deg); None: as "
+        "every other pair (gicp.fallback_translation_eps_m, 1 mm). WHY: a roadside unit "
+        "40-70 m away is aligned on every co-visible centroid and slides along its weak "
+        "direction (translation observability 0.01-0.02) in steps shrinking by about a fifth "
+        "per iteration; the last millimetres say nothing the clip solve does not already "
+        "discount there. Roadside unit 10 s: its GICP iterations 740 -> 512, rsu 55 -> 59 of "
+        "100 within 3 cm / 0.1 deg, 51 accepted, median 2.52 -> 2.30 cm; 3 s: 240 -> 192, "
+        "16 of 30 within either way, median 2.93 -> 2.87 cm; black unchanged in counts. "
+        "gicp.fallback_translation_eps_m at 3 mm for every pair failed the bar on a moving "
+        "far pair (black 50 m behind), which this one leaves alone")
+    max_iterations: int | None = Field(
+        None, ge=1, description="a stationary agent's cross pairs: GICP iterations at most; "
+        "None: gicp.max_iterations. 10 (with translation_eps_m 3 mm): roadside unit 3 s "
+        "iterations 192 -> 111, rsu 17 of 30 within, median 2.83 cm; 10 s 512 -> 412, 59 of "
+        "100, 2.30 cm; but 15 gave 15 of 30 at 3 s: too thin a margin for a default")
+    warm_any_observability: bool = Field(
+        False, description="a stationary agent's next frame starts from this frame's "
+        "accepted correction whatever its translation observability (else only at "
+        "quality.min_observability or more, as every other agent). Not the default: a "
+        "roadside unit's pairs (observability 0.01-0.02) then start where the previous frame "
+        "slid to; 3 s clip: rsu 16 -> 11 of 30 within, median 2.93 -> 4.17 cm")
 
 
 class SolveSection(Section):

@@ -725,10 +725,10 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     # read and prepared, with its grid and lazily filled surfaces, and stands for the frames
     # after it up to the next; frame -> its anchor frame is fixed, so the results do not
     # depend on the number of workers or the order the frames are prepared in
-    reuse = {a.agent: cfg.stationary.reuse_frames for a in (ref, *others)
-             if cfg.stationary.reuse_frames > 1 and is_stationary(
-                 a.track.xyz, a.track.quat_wxyz, cfg.stationary.max_motion_m,
-                 cfg.stationary.max_rotation_deg)}
+    still = {a.agent for a in (ref, *others) if is_stationary(
+        a.track.xyz, a.track.quat_wxyz, cfg.stationary.max_motion_m,
+        cfg.stationary.max_rotation_deg)}
+    reuse = {a: cfg.stationary.reuse_frames for a in still if cfg.stationary.reuse_frames > 1}
     ordered = {a: sorted(scans[a].frames) for a in reuse}
     held: dict[str, OrderedDict[tuple[int, float], _Scan]] = {a: OrderedDict() for a in reuse}
     held_lock = {a: threading.Lock() for a in reuse}
@@ -831,6 +831,10 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
             if w.target is None or w.source is None:
                 return failed_pair(w.T_init, w.why)
             source = replace(w.source, dense_first=True) if dense else w.source
+            if w.other.agent in still and (cfg.stationary.translation_eps_m is not None
+                                           or cfg.stationary.max_iterations is not None):
+                source = replace(source, translation_eps_m=cfg.stationary.translation_eps_m,
+                                 max_iterations=cfg.stationary.max_iterations)
             return refine(backend, w.target, source, w.T_init, limits, start)
         finally:
             spent("gicp_s", time.perf_counter() - t)
@@ -857,7 +861,8 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                 short[o.agent] = res.sample_short and (
                     cfg.gicp.dense_after_short_sample
                     or (o.agent in reuse and cfg.stationary.dense_after_short_sample))
-            if res.accepted and res.observability >= cfg.quality.min_observability:
+            if res.accepted and (res.observability >= cfg.quality.min_observability or (
+                    o.agent in still and cfg.stationary.warm_any_observability)):
                 warm[o.agent] = res.correction
             usable = res.accepted and res.H is not None and bool(np.isfinite(res.H).all())
             meas = CrossMeasurement(f, o.agent, secs(ref.agent, f), M(ref.agent, f),
