@@ -70,13 +70,41 @@ def test_a_plate_leaving_the_view_is_kept_when_its_search_fails() -> None:
     assert len(again) == 2 and len(fallback) == 1
     region, kept = fallback[0]
     assert kept.box[2] == 1920.0 and region.box[0] < 1867.0
-    # the window's search decides: a plate found there replaces the carried box, a face
-    # found there does not, nothing found keeps it
+    # the window's search decides: a plate of its size found there replaces the carried
+    # box; a face found there, a piece of a plate under half its size, or nothing keeps it
     cx = (region.box[0] + region.box[2]) / 2
-    found = Detection("plate", (cx - 10, 690.0, cx + 10, 700.0), 0.7, "text")
+    found = Detection("plate", (cx - 20, 690.0, cx + 20, 700.0), 0.7, "text")
     face = Detection("face", found.box, 0.7, "face")
+    piece = Detection("plate", (cx - 10, 690.0, cx + 10, 700.0), 0.7, "text")
     assert unconfirmed(fallback, [found]) == []
     assert unconfirmed(fallback, [face]) == [kept] == unconfirmed(fallback, [])
+    assert unconfirmed(fallback, [piece]) == [kept]
+
+
+def test_a_plate_leaving_the_view_between_key_frames_stays_blurred() -> None:
+    """A plate leaving the narrow camera at 45 px a frame (the simulated seed-1 clip): at
+    1662-1771 px in one key frame, 1785-1906 px in the next (inside the frame, touching no
+    edge), gone in the one after. Two frames later its 34-43 px still in view lie at
+    1877-1920 px: the image velocity of the two key frames before puts it there, cut by
+    the frame edge, and it is kept when its window search finds nothing. Without the
+    earlier key frame nothing is kept (the old behaviour: not blurred at all); a plate
+    that moves on inside the frame is not kept either (searched, as before)."""
+    earlier = ([Detection("plate", (1662.0, 671.0, 1771.0, 695.0), 0.92, "text"),
+                Detection("plate", (900.0, 600.0, 980.0, 616.0), 0.9, "text")], [], 0)
+    before = ([Detection("plate", (1785.0, 712.0, 1906.0, 737.0), 0.91, "text"),
+               Detection("plate", (910.0, 600.0, 990.0, 616.0), 0.9, "text")], [],
+              100 * MS)
+    after: tuple[list[Detection], list[Region], int] = ([], [], 200 * MS)
+    t = 167 * MS
+    _f, again, fallback = between_tracked(before, after, [], t, 0.5, 2.0, SHAPE, (), earlier)
+    assert len(again) == 2 and len(fallback) == 1
+    region, kept = fallback[0]
+    assert kept.box[0] <= 1877.0 and kept.box[2] == 1920.0
+    assert kept.box[1] <= 741.0 and kept.box[3] >= 760.0
+    assert region.box[0] <= kept.box[0] and region.box[2] == 1920.0
+    assert unconfirmed(fallback, []) == [kept]
+    _f, _again, fallback = between_tracked(before, after, [], t, 0.5, 2.0, SHAPE)
+    assert not fallback
 
 
 def test_faces_of_two_tracks_are_not_interpolated_into_one() -> None:

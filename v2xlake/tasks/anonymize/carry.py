@@ -363,7 +363,9 @@ def _lidar(instance: str) -> str:
 def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
                     after: tuple[Sequence[Detection], Sequence[Region] | None, int],
                     regions: Sequence[Region] | None, t_ns: int, grow: float,
-                    window: float, shape: tuple[int, ...], fresh: Sequence[Region] = ()
+                    window: float, shape: tuple[int, ...], fresh: Sequence[Region] = (),
+                    earlier: tuple[Sequence[Detection], Sequence[Region] | None, int] | None
+                    = None
                     ) -> tuple[list[Detection], list[Region], list[tuple[Region, Detection]]]:
     """``between`` for regions from LiDAR cluster tracks: the carried detections of a frame
     at ``t_ns``, the regions to search here, and fallbacks: (searched window, detection)
@@ -395,7 +397,17 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     the frame edge (an object leaving the view: its cut part scores low) is kept, grown by
     ``grow`` per key-frame interval, when that search finds nothing; inside the frame a
     detection the search does not confirm is dropped (kept, moving ones were false blurs:
-    0.7 per image)."""
+    0.7 per image).
+
+    ``earlier``: the key frame before ``before`` (detections, regions, time), or None. A
+    detection of ``before`` without a partner in ``after`` that has one in ``earlier``
+    (the nearest of its kind and size within ``window`` x its size) moves on at the image
+    velocity of that pair (``_ahead``); where that puts it across the frame edge here (it
+    left the view before ``after``), the part still in view is kept when its window
+    search finds nothing: a plate leaving the narrow camera at 45 px a frame was inside
+    the frame on one key frame and gone on the next, and its cut part 34 px in view was
+    found neither by its window search at its own scale (121 px) nor by the edge rule (it
+    touched no edge on the key frame)."""
     (d0, r0, t0), (d1, r1, t1) = before, after
     h, w = shape[:2]
     a = min(max((t_ns - t0) / max(t1 - t0, 1), 0.0), 1.0)
@@ -448,14 +460,21 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         if keep is not None:
             fallback.append((r, keep))
 
-    def lost(d: Detection, rk: Region | None, reg: Region | None, k: float) -> None:
+    def lost(d: Detection, rk: Region | None, reg: Region | None, k: float,
+             ahead: Box | None = None) -> None:
         boxes = [d.box]
         if rk is not None and reg is not None and _fits(d, rk, 4.0):
             boxes.append(_move(d.box, rk, reg))  # where its track's region puts it
         edge = d.box[0] <= 1 or d.box[1] <= 1 or d.box[2] >= w - 1 or d.box[3] >= h - 1
-        # leaving the view: its cut part may score low
-        look(d, boxes, Detection(d.kind, _grow(d.box, grow * k, w, h), d.score, CARRIED)
-             if edge else None)
+        keep = (Detection(d.kind, _grow(d.box, grow * k, w, h), d.score, CARRIED)
+                if edge else None)  # leaving the view: its cut part may score low
+        if ahead is not None:
+            cut = _grow(ahead, 0.0, w, h)
+            if cut[2] - cut[0] >= 1 and cut[3] - cut[1] >= 1:
+                boxes.append(cut)
+                if cut != ahead:  # on its way out of the view: the part still in it
+                    keep = Detection(d.kind, _grow(cut, grow * k, w, h), d.score, CARRIED)
+        look(d, boxes, keep)
 
     def track(r: Region | None) -> tuple[str, str, str] | None:
         return _key(r) if r is not None and r.instance and r.part != "band" else None
@@ -474,7 +493,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         if j is None and pred[k][0] is not p:
             j = _match(p, cand, used | other)  # the region jumped, the object did not
         if j is None:
-            lost(p, rk, reg, a)
+            lost(p, rk, reg, a, _ahead(p, earlier, t0, t_ns, window) if earlier else None)
             continue
         used.add(j)
         q = c1[j][0]
@@ -494,11 +513,45 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
             list(again.values()), fallback)
 
 
+def _ahead(d: Detection, earlier: tuple[Sequence[Detection], Sequence[Region] | None, int],
+           t0: int, t_ns: int, window: float) -> Box | None:
+    """Where ``d`` (found at ``t0``) is at ``t_ns`` if it goes on as it came: its partner
+    in the ``earlier`` key frame (the nearest detection of its kind, within 2x its size
+    and ``window`` x its larger side, as far as a window search looks) gives each corner's
+    image velocity (a plate leaving the view also grows and drops as it nears); None
+    without a partner. Unclipped: the caller tells a box across the frame edge by it."""
+    dets, _regions, te = earlier
+    if te >= t0:
+        return None
+    ps = _size(d)
+    cx, cy = (d.box[0] + d.box[2]) / 2, (d.box[1] + d.box[3]) / 2
+    best, best_d = None, np.inf
+    for e in dets:
+        es = _size(e)
+        dist = float(np.hypot((e.box[0] + e.box[2]) / 2 - cx, (e.box[1] + e.box[3]) / 2 - cy))
+        if (e.kind == d.kind and max(ps, es) <= 2 * min(ps, es) and dist <= window * ps
+                and dist < best_d):
+            best, best_d = e, dist
+    if best is None:
+        return None
+    k = (t_ns - t0) / (t0 - te)
+    return tuple(float(u + k * (u - v)) for u, v in zip(d.box, best.box, strict=True))  # type: ignore[return-value]
+
+
+def _size(d: Detection) -> float:
+    """A detection's larger side (the size ``_match`` pairs by)."""
+    return max(d.box[2] - d.box[0], d.box[3] - d.box[1], 1e-6)
+
+
 def unconfirmed(fallback: Sequence[tuple[Region, Detection]],
                 seen: Sequence[Detection]) -> list[Detection]:
     """The fallbacks of ``between_tracked`` whose searched window holds no centre of a
-    detection of their kind found here: the carried box stays (a face or plate the window
-    search missed is still blurred where it was)."""
+    detection of their kind and size (within 2x, as ``_match`` pairs) found here: the
+    carried box stays (a face or plate the window search missed is still blurred where it
+    was). A smaller find does not confirm it: a 24 px plate's window search found a 9 px
+    piece of its text line, and the plate was half blurred; the carried box and the piece
+    are both kept."""
     return [d for r, d in fallback if not any(
         q.kind == d.kind and r.box[0] <= (q.box[0] + q.box[2]) / 2 <= r.box[2]
-        and r.box[1] <= (q.box[1] + q.box[3]) / 2 <= r.box[3] for q in seen)]
+        and r.box[1] <= (q.box[1] + q.box[3]) / 2 <= r.box[3]
+        and max(_size(q), _size(d)) <= 2 * min(_size(q), _size(d)) for q in seen)]

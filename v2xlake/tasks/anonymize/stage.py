@@ -508,10 +508,13 @@ def _anonymize_images(
                      or not any(q.part == "band" for q in kregions[a] or ())
                      or not any(q.part == "band" for q in kregions[b] or ())]
         if tracked:
+            # the key frame before ``a``: its detections give an image velocity to those of
+            # ``a`` that ``b`` lacks (``carry._ahead``: one leaving the view)
+            e = next((rows[q] for q in range(pos[a] - 1, -1, -1) if is_key[q]), None)
             found, again, fallback = between_tracked(
                 (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
                 regions, int(stamps[i]), cfg.carry.grow, cfg.clusters.carry_window, img.shape,
-                fresh)
+                fresh, (known[e], kregions[e], int(stamps[e])) if e is not None else None)
         else:
             (found, again), fallback = between(
                 (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
