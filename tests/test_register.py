@@ -325,6 +325,18 @@ def test_sparse_source_carries_its_own_stopping_rule() -> None:
     capped = be._align_rows(target, replace(source, max_iterations=2),  # type: ignore[attr-defined]
                             rows, c.T_init)
     assert capped.iterations == 2 and not capped.converged
+    # a dense pass on a spread sample's co-visible rows (and the sample's): fewer rows than
+    # every centroid, more than the sample, the same place within a few millimetres
+    from v2xlake.tasks.register.sparse import spread_sample
+
+    sampled = replace(source, dense_first=True, dense_cell_m=0.6)
+    assert len(rows) < len(np.union1d(spread_sample(source.points, 0.6), rows)) \
+        < len(source.points)
+    every, thin = be.align(target, replace(source, dense_first=True), c.T_init), \
+        be.align(target, sampled, c.T_init)
+    assert transform_delta(every.T, thin.T)[0] < 5e-3
+    assert every.H is not None and thin.H is not None
+    assert np.trace(thin.H[3:, 3:]) < 0.9 * np.trace(every.H[3:, 3:])  # fewer rows aligned
 
 
 def _fallback_vs_every(c: Any, params: GicpSection) -> tuple[float, float]:

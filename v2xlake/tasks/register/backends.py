@@ -56,6 +56,9 @@ class Prepared:
     # ``stationary.max_iterations``); None: the backend's settings
     translation_eps_m: float | None = None
     max_iterations: int | None = None
+    # as a source (sparse backend): its dense pass (``dense_first``) aligns the co-visible
+    # rows of a spread sample at this cell (and the sample's) instead of every one
+    dense_cell_m: float | None = None
 
     def rows(self) -> np.ndarray:
         """The rows a source contributes: its sample, or every point."""
@@ -311,7 +314,13 @@ class SparseGicpBackend(SmallGicpBackend):
         rows = source.rows()
         if source.dense_first and source.sample is not None and p.sample_min_pairs > 0 \
                 and p.sample_fallback == "every":
-            dense = self._dense_rows(source)
+            if source.dense_cell_m is None:
+                dense = self._dense_rows(source)
+            else:
+                from v2xlake.tasks.register.sparse import spread_sample
+
+                dense = self._dense_rows(source, np.union1d(
+                    spread_sample(source.points, source.dense_cell_m), rows))
             out = self._align_rows(target, source, dense, init, dense=True)
             short = sample_pairs(rows, dense, out.sq_dist,
                                  p.max_correspondence_m) < p.sample_min_pairs

@@ -831,10 +831,10 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
             if w.target is None or w.source is None:
                 return failed_pair(w.T_init, w.why)
             source = replace(w.source, dense_first=True) if dense else w.source
-            if w.other.agent in still and (cfg.stationary.translation_eps_m is not None
-                                           or cfg.stationary.max_iterations is not None):
+            if w.other.agent in still:
                 source = replace(source, translation_eps_m=cfg.stationary.translation_eps_m,
-                                 max_iterations=cfg.stationary.max_iterations)
+                                 max_iterations=cfg.stationary.max_iterations,
+                                 dense_cell_m=cfg.stationary.dense_cell_m)
             return refine(backend, w.target, source, w.T_init, limits, start)
         finally:
             spent("gicp_s", time.perf_counter() - t)
