@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from v2xlake.tasks.anonymize.carry import between_tracked, unconfirmed
+from v2xlake.tasks.anonymize.carry import between_tracked, merge_overlapping, unconfirmed
 from v2xlake.tasks.anonymize.clusters import track_ids
 from v2xlake.tasks.anonymize.detectors import Detection
 from v2xlake.tasks.anonymize.guide import Region
@@ -136,3 +136,19 @@ def test_faces_of_two_tracks_are_not_interpolated_into_one() -> None:
                                              50 * MS, 0.5, 2.0, SHAPE)
     assert not found and len(again) == 1 and len(fallback) == 1
     assert abs(fallback[0][1].box[0] - 1381.0) < 1e-6
+
+
+def test_overlapping_finds_of_one_face_become_their_union() -> None:
+    """A carried frame's overlapping windows find one 16 px face (GT 180-200 x 523-539)
+    several times, each box a pixel off: one box is kept, the union of those that overlap
+    it (the best scoring one alone was under IoU 0.3 of the face); a face elsewhere and a
+    plate on the same pixels stay their own."""
+    faces = [Detection("face", (185.2, 527.5, 194.3, 537.7), 0.36, "cf"),
+             Detection("face", (183.3, 527.9, 191.4, 537.2), 0.21, "cf"),
+             Detection("face", (185.8, 528.9, 195.1, 539.3), 0.23, "cf"),
+             Detection("face", (400.0, 500.0, 410.0, 510.0), 0.3, "cf")]
+    plate = Detection("plate", (185.0, 527.0, 195.0, 538.0), 0.9, "text")
+    out = merge_overlapping([*faces, plate])
+    assert len(out) == 3 and plate in out and faces[3] in out
+    one = next(d for d in out if d.kind == "face" and d.box[0] < 300)
+    assert one.box == (183.3, 527.5, 195.1, 539.3) and one.score == 0.36

@@ -440,6 +440,7 @@ def _anonymize_images(
         between_tracked,
         full_key_frames,
         key_frames,
+        merge_overlapping,
         new_regions,
         plate_windows,
         unconfirmed,
@@ -526,6 +527,10 @@ def _anonymize_images(
             seen = detector.in_regions(bgr, [*fresh, *again]) if fresh or again else []
             if safe:
                 seen += detector.safety(bgr)
+            if tracked:
+                # the windows of one object's detections overlap (found before and after,
+                # moved by its track): one box per object, the union of its finds
+                seen = merge_overlapping(seen, 0.3)
         return img, found + seen + unconfirmed(fallback, seen), regions
 
     def finish(img: np.ndarray, key: str, dets: list[Detection]) -> tuple[str, str]:
