@@ -190,6 +190,43 @@ def test_each_image_is_decoded_once(tmp_path, monkeypatch) -> None:
     assert rep.metrics["n_images"] >= 5 and len(calls) == rep.metrics["n_images"]
 
 
+def test_a_lidar_only_clip_is_carried_by_cluster_track(tmp_path, monkeypatch) -> None:
+    """Regions from LiDAR clusters (here the fixture's annotated boxes, given the clusters'
+    source: the fixture's scans hold no objects) are carried by default
+    (``clusters.carry``): the frames between key frames go through
+    ``carry.between_tracked``, those after the second key frame with the key frame before
+    that (the image velocity of a detection leaving the view); ``clusters.carry`` false
+    (every frame in full) is named by the provenance."""
+    import dataclasses
+
+    from v2xlake.tasks.anonymize import carry as carry_mod
+
+    calls: list[bool] = []
+    real = carry_mod.between_tracked
+
+    def spy(*a: object, **k: object) -> object:
+        calls.append(len(a) > 8 and a[8] is not None)
+        return real(*a, **k)  # type: ignore[arg-type]
+
+    build = stage_mod.build_guide
+    monkeypatch.setattr(carry_mod, "between_tracked", spy)
+    monkeypatch.setattr(stage_mod, "build_guide", lambda *a, **k: dataclasses.replace(
+        build(*a, **k), source="lidar clusters"))
+    lk = Lake(tmp_path / "lake")
+    build_raw_clip(lk, n_images=7)  # 30 Hz: key frames 0, 3 and 6
+    # (without the safety passes, full-frame on key frames and shrunk between them, which
+    # the scheduling does not depend on: with them the test took twice as long)
+    cheap = {"full_frame": False, "carry_safety": False}
+    rep = run_anonymize(lk, CLIP, AnonymizeConfig(work={"workers": 1}, clusters=cheap))
+    assert "anonymize: regions from lidar clusters" in rep.notes
+    assert rep.metrics["n_images"] == 14
+    assert len(calls) == 8 and calls.count(True) == 4, calls  # 2 agents x frames 1-2, 4-5
+    # every frame in full stays one setting away, and the provenance tells the two apart
+    off = AnonymizeConfig(clusters={"carry": False})
+    assert "clusters.carry=True" in AnonymizeConfig().provenance("d")
+    assert "clusters.carry=False" in off.provenance("d")
+
+
 def test_the_provenance_names_every_setting_that_changes_what_is_blurred() -> None:
     base = AnonymizeConfig()
     det = build_detector(base)

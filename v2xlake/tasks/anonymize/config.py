@@ -267,17 +267,17 @@ class Clusters(Section):
         True, description="regions from LiDAR clusters miss more than annotated ones (merged "
         "or partial objects): the full-frame plan is then their safety pass")
     carry: bool = Field(
-        False, description="key frames and carried detections (carry.key_interval_ms) also "
+        True, description="key frames and carried detections (carry.key_interval_ms) also "
         "when the regions come from LiDAR clusters: the frames between key frames pair the "
         "key frames' detections by cluster track (clusters.track_gate_m) and interpolate "
         "them, search regions new to both key frames, a window around each unpaired "
-        "detection and the shrunk safety pass (carry.between_tracked). Simulated 1080p 30 Hz "
-        "LiDAR-only clips, seeds 0-3 (0.3 and 0.5 s), against every frame in full (off, the "
-        "default): 1.45-1.85x the img/s/core, faces >= 16 px 397 / 401 (off: 396), plates "
-        ">= 20 px 1357 / 1361 (off: 1361; lost: three plates leaving the view at the frame "
-        "edge, two of them still blurred but under IoU 0.3, and half of a 24 px plate), "
-        "false blurs +0.04-0.16 per image (one seed -0.07). Not the default while it loses "
-        "plates the full plan finds")
+        "detection and the shrunk safety pass, and keep the part still in view of one "
+        "leaving the view (carry.between_tracked). Simulated 1080p 30 Hz LiDAR-only clips, "
+        "seeds 0-3 (0.3 and 0.5 s), against every frame in full (false, the default "
+        "before): 1.42-1.78x the img/s/core, faces >= 16 px 396 -> 398 / 401, plates >= "
+        "20 px 1361 -> 1360 / 1361 (the one: a 20 x 4 px plate wholly blurred, its merged "
+        "box at IoU 0.27), false blurs -0.09 to +0.12 per image. false: every frame of a "
+        "LiDAR-only clip detected in full")
     track_gate_m: float = Field(
         3.0, ge=0, description="with clusters.carry, a LiDAR's clusters get one identity "
         "per object across its scans (clusters.track_ids): a box continues the track whose "
@@ -292,8 +292,9 @@ class Clusters(Section):
         "clip without a partner in the other key frame is searched for here in a window "
         "this many times its larger side around it (and around where its track's region "
         "puts it) on each side, at its own scale (a face crossing the narrow camera moves "
-        "30 px a frame); when that finds nothing, only one touching the frame edge (leaving "
-        "the view) stays blurred where it was (carry.between_tracked)")
+        "30 px a frame); when that finds nothing of its kind and size, only one leaving the "
+        "view stays blurred: touching the frame edge, or carried across it by its image "
+        "velocity from the key frame before (carry.between_tracked)")
     carry_safety: bool = Field(
         True, description="frames of a LiDAR-only clip between key frames also get the "
         "shrunk safety pass (safety.*): a close vehicle crossing the view moves its plate "
