@@ -530,7 +530,7 @@ def _anonymize_images(
             if tracked:
                 # the windows of one object's detections overlap (found before and after,
                 # moved by its track): one box per object, the union of its finds
-                seen = merge_overlapping(seen, 0.3)
+                seen = merge_overlapping(seen)
         return img, found + seen + unconfirmed(fallback, seen), regions
 
     def finish(img: np.ndarray, key: str, dets: list[Detection]) -> tuple[str, str]:
