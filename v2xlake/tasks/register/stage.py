@@ -575,6 +575,13 @@ def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None)
     return report
 
 
+def _stationary(cfg: RegisterConfig, agents: list[AgentScans]) -> set[str]:
+    """The agents that do not move during the clip (``cfg.stationary``)."""
+    return {a.agent for a in agents if is_stationary(
+        a.track.xyz, a.track.quat_wxyz, cfg.stationary.max_motion_m,
+        cfg.stationary.max_rotation_deg)}
+
+
 def _solve(cfg: RegisterConfig, agents: list[AgentScans], measured: list[_Pair],
            odo: list[OdoMeasurement], ground: dict[str, tuple[float, float]],
            steps: list[tuple[str, float]]) -> tuple[ClipSolution, ClipSolution]:
@@ -593,12 +600,13 @@ def _solve(cfg: RegisterConfig, agents: list[AgentScans], measured: list[_Pair],
     names = [a.agent for a in agents]
     extr = {a.agent: a.T_ego_lidar for a in agents}
     cross = [p.measurement for p in measured]
+    still = _stationary(cfg, agents)
     ext = solve_clip(names, agents[0].agent, extr, cross, odo, cfg.solve, ground,
-                     steps)
+                     steps, still)
     if not cfg.solve.relative or (not odo and not ground):
         return ext, ext
     rel = solve_clip(names, agents[0].agent, extr, cross, [], cfg.solve, None,
-                     steps)
+                     steps, still)
     return rel, ext
 
 
@@ -725,9 +733,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     # read and prepared, with its grid and lazily filled surfaces, and stands for the frames
     # after it up to the next; frame -> its anchor frame is fixed, so the results do not
     # depend on the number of workers or the order the frames are prepared in
-    still = {a.agent for a in (ref, *others) if is_stationary(
-        a.track.xyz, a.track.quat_wxyz, cfg.stationary.max_motion_m,
-        cfg.stationary.max_rotation_deg)}
+    still = _stationary(cfg, [ref, *others])
     reuse = {a: cfg.stationary.reuse_frames for a in still if cfg.stationary.reuse_frames > 1}
     ordered = {a: sorted(scans[a].frames) for a in reuse}
     held: dict[str, OrderedDict[tuple[int, float], _Scan]] = {a: OrderedDict() for a in reuse}
