@@ -30,7 +30,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from v2xlake.tasks.anonymize.detectors import Box, Detection
+from v2xlake.tasks.anonymize.detectors import Box, Detection, by_kind
 from v2xlake.tasks.anonymize.guide import Region
 from v2xlake.tasks.geometry import iou_xyxy
 
@@ -570,12 +570,7 @@ def merge_overlapping(dets: Sequence[Detection], iou: float = 0.3) -> list[Detec
     scoring one alone was 1 px narrower than the face (IoU 0.29, 75 % of its box blurred);
     their union covers what each found."""
     out: list[Detection] = []
-    for kind in sorted({d.kind for d in dets}):
-        ds = sorted((d for d in dets if d.kind == kind), key=lambda d: -d.score)
-        if len(ds) < 2:
-            out.extend(ds)
-            continue
-        b = np.array([d.box for d in ds], np.float64).reshape(-1, 4)
+    for ds, b in by_kind(dets, out):
         ov = iou_xyxy(b, b) >= iou
         free = np.ones(len(ds), bool)
         for i, d in enumerate(ds):
@@ -584,7 +579,7 @@ def merge_overlapping(dets: Sequence[Detection], iou: float = 0.3) -> list[Detec
             g = free & ov[i]
             free &= ~g
             u = b[g]
-            out.append(Detection(kind, (float(u[:, 0].min()), float(u[:, 1].min()),
+            out.append(Detection(d.kind, (float(u[:, 0].min()), float(u[:, 1].min()),
                                         float(u[:, 2].max()), float(u[:, 3].max())),
                                  d.score, d.detector))
     return out

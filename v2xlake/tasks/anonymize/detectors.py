@@ -105,6 +105,19 @@ def overlapping(rows: np.ndarray, boxes: np.ndarray, iou: float = 0.3,
     return (iou_xyxy(rows, boxes) >= iou) | (ix * iy / area[:, None] >= contain)
 
 
+def by_kind(dets: Sequence[Detection], out: list[Detection]
+            ) -> Iterator[tuple[list[Detection], np.ndarray]]:
+    """Each kind's detections best score first, with their boxes (k, 4), for a greedy walk
+    (``nms``, ``carry.merge_overlapping``); a kind with one detection has nothing to walk
+    and goes to ``out`` as it is."""
+    for kind in sorted({d.kind for d in dets}):
+        ds = sorted((d for d in dets if d.kind == kind), key=lambda d: -d.score)
+        if len(ds) < 2:
+            out.extend(ds)
+            continue
+        yield ds, np.array([d.box for d in ds], np.float64).reshape(-1, 4)
+
+
 def nms(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8) -> list[Detection]:
     """Greedy NMS per kind; also drops a box mostly contained in a better one (tile seams).
 
@@ -112,12 +125,7 @@ def nms(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8) -> li
     walk reads them: the full-frame plan's first face pass proposes hundreds of boxes, and a
     pairwise Python loop spent ~0.15 s per 1392 x 512 street image here (same decisions)."""
     out: list[Detection] = []
-    for kind in sorted({d.kind for d in dets}):
-        ds = sorted((d for d in dets if d.kind == kind), key=lambda d: -d.score)
-        if len(ds) < 2:
-            out.extend(ds)
-            continue
-        b = np.array([d.box for d in ds], np.float64).reshape(-1, 4)
+    for ds, b in by_kind(dets, out):
         kept: list[int] = []
         for lo in range(0, len(ds), _NMS_BLOCK):
             rows = b[lo : lo + _NMS_BLOCK]
