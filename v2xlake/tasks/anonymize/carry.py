@@ -185,19 +185,21 @@ def carry(dets: Sequence[Detection], key_regions: Sequence[Region] | None,
     return out
 
 
-def _match(p: Detection, cands: Sequence[tuple[Detection, Region | None]], used: set[int]
-           ) -> int | None:
-    """The nearest unused candidate of the same kind and similar size within its size."""
+def _match(p: Detection, cands: Sequence[tuple[Detection, Region | None]], used: set[int],
+           reach: float | None = None) -> int | None:
+    """The nearest unused candidate of the same kind and similar size (within 2x) within
+    its size, or within ``reach`` pixels when given."""
     px, py = (p.box[0] + p.box[2]) / 2, (p.box[1] + p.box[3]) / 2
-    ps = max(p.box[2] - p.box[0], p.box[3] - p.box[1], 1e-6)
+    ps = _size(p)
     best, best_d = None, np.inf
     for k, (q, _) in enumerate(cands):
         if k in used or q.kind != p.kind:
             continue
         qx, qy = (q.box[0] + q.box[2]) / 2, (q.box[1] + q.box[3]) / 2
-        qs = max(q.box[2] - q.box[0], q.box[3] - q.box[1], 1e-6)
+        qs = _size(q)
         d = float(np.hypot(qx - px, qy - py))
-        if max(ps, qs) <= 2 * min(ps, qs) and d <= max(ps, qs) and d < best_d:
+        if (max(ps, qs) <= 2 * min(ps, qs) and d <= (max(ps, qs) if reach is None else reach)
+                and d < best_d):
             best, best_d = k, d
     return best
 
@@ -524,19 +526,11 @@ def _ahead(d: Detection, earlier: tuple[Sequence[Detection], Sequence[Region] | 
     dets, _regions, te = earlier
     if te >= t0:
         return None
-    ps = _size(d)
-    cx, cy = (d.box[0] + d.box[2]) / 2, (d.box[1] + d.box[3]) / 2
-    best, best_d = None, np.inf
-    for e in dets:
-        es = _size(e)
-        dist = float(np.hypot((e.box[0] + e.box[2]) / 2 - cx, (e.box[1] + e.box[3]) / 2 - cy))
-        if (e.kind == d.kind and max(ps, es) <= 2 * min(ps, es) and dist <= window * ps
-                and dist < best_d):
-            best, best_d = e, dist
-    if best is None:
+    j = _match(d, [(e, None) for e in dets], set(), window * _size(d))
+    if j is None:
         return None
     k = (t_ns - t0) / (t0 - te)
-    return tuple(float(u + k * (u - v)) for u, v in zip(d.box, best.box, strict=True))  # type: ignore[return-value]
+    return tuple(float(u + k * (u - v)) for u, v in zip(d.box, dets[j].box, strict=True))  # type: ignore[return-value]
 
 
 def _size(d: Detection) -> float:
