@@ -195,11 +195,15 @@ def test_a_lidar_only_clip_is_carried_by_cluster_track(tmp_path, monkeypatch) ->
     source: the fixture's scans hold no objects) are carried by default
     (``clusters.carry``): the frames between key frames go through
     ``carry.between_tracked``, those after the second key frame with the key frame before
-    that (the image velocity of a detection leaving the view); ``clusters.carry`` false
-    (every frame in full) is named by the provenance."""
+    that (the image velocity of a detection leaving the view); with
+    ``clusters.full_frame_every`` 2 the key frames between two with the full-frame plan get
+    the shrunk safety pass and ``carry.key_windows`` around the key frame before's finds;
+    ``clusters.carry`` false (every frame in full) is named by the provenance."""
     import dataclasses
 
     from v2xlake.tasks.anonymize import carry as carry_mod
+    from v2xlake.tasks.anonymize.context import ClipGuide
+    from v2xlake.tasks.anonymize.guided import GuidedDetector
 
     calls: list[bool] = []
     real = carry_mod.between_tracked
@@ -208,19 +212,40 @@ def test_a_lidar_only_clip_is_carried_by_cluster_track(tmp_path, monkeypatch) ->
         calls.append(len(a) > 8 and a[8] is not None)
         return real(*a, **k)  # type: ignore[arg-type]
 
+    windows: list[tuple[int, bool]] = []  # (stamp of the key frame before, one before that)
+    real_w = carry_mod.key_windows
+
+    def spy_w(*a: object, **k: object) -> object:
+        windows.append((a[0][2], a[1] is not None))  # type: ignore[index]
+        return real_w(*a, **k)  # type: ignore[arg-type]
+
+    plans: list[str] = []  # the safety passes, stubbed: the scheduling does not depend on
+    # what they find (run for real, the full-frame plan made the test twice as long)
+    monkeypatch.setattr(GuidedDetector, "full_frame", lambda self, img: plans.append("full")
+                        or [])
+    monkeypatch.setattr(GuidedDetector, "safety", lambda self, img: plans.append("shrunk")
+                        or [])
     build = stage_mod.build_guide
     monkeypatch.setattr(carry_mod, "between_tracked", spy)
+    monkeypatch.setattr(carry_mod, "key_windows", spy_w)
+    # the fixture's boxes project into no image: every frame guided by no region (a frame
+    # without guidance gets the full-frame plan whatever the key frame)
+    regions = ClipGuide.regions
+    monkeypatch.setattr(ClipGuide, "regions", lambda self, *a: regions(self, *a) or [])
     monkeypatch.setattr(stage_mod, "build_guide", lambda *a, **k: dataclasses.replace(
         build(*a, **k), source="lidar clusters"))
     lk = Lake(tmp_path / "lake")
     build_raw_clip(lk, n_images=7)  # 30 Hz: key frames 0, 3 and 6
-    # (without the safety passes, full-frame on key frames and shrunk between them, which
-    # the scheduling does not depend on: with them the test took twice as long)
-    cheap = {"full_frame": False, "carry_safety": False}
-    rep = run_anonymize(lk, CLIP, AnonymizeConfig(work={"workers": 1}, clusters=cheap))
+    # every 2nd key frame of a camera with the full-frame plan (clusters.full_frame_every):
+    # 0 and 6; 3 gets the shrunk safety pass and windows around key frame 0's detections
+    light = {"carry_safety": False, "full_frame_every": 2}
+    rep = run_anonymize(lk, CLIP, AnonymizeConfig(work={"workers": 1}, clusters=light))
     assert "anonymize: regions from lidar clusters" in rep.notes
     assert rep.metrics["n_images"] == 14
     assert len(calls) == 8 and calls.count(True) == 4, calls  # 2 agents x frames 1-2, 4-5
+    assert plans.count("full") == 4 and plans.count("shrunk") == 2, plans
+    t0 = sorted({t for t, _ in windows})
+    assert len(windows) == 2 and len(t0) == 1 and not any(e for _, e in windows), windows
     # every frame in full stays one setting away, and the provenance tells the two apart
     off = AnonymizeConfig(clusters={"carry": False})
     assert "clusters.carry=True" in AnonymizeConfig().provenance("d")

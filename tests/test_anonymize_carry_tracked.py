@@ -5,7 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from v2xlake.tasks.anonymize.carry import between_tracked, merge_overlapping, unconfirmed
+from v2xlake.tasks.anonymize.carry import (
+    between_tracked,
+    key_windows,
+    merge_overlapping,
+    unconfirmed,
+)
 from v2xlake.tasks.anonymize.clusters import track_ids
 from v2xlake.tasks.anonymize.detectors import Detection
 from v2xlake.tasks.anonymize.guide import Region
@@ -152,3 +157,38 @@ def test_overlapping_finds_of_one_face_become_their_union() -> None:
     assert len(out) == 3 and plate in out and faces[3] in out
     one = next(d for d in out if d.kind == "face" and d.box[0] < 300)
     assert one.box == (183.3, 527.5, 195.1, 539.3) and one.score == 0.36
+
+
+def test_a_key_frame_without_the_full_frame_plan_searches_where_the_last_one_found() -> None:
+    """``clusters.full_frame_every``: a LiDAR-only key frame without the full-frame plan
+    gets a window around each detection of the key frame before that no region here
+    searches at its scale: a face no cluster region covers (found by the full-frame plan),
+    around where it was and where its image velocity from the key frame before that puts
+    it (38 px in 100 ms: the window reaches 2 x its 20 px beyond either); none for a plate in its
+    track's vehicle-face region, which is searched here, nor for a far-band plate (the band
+    is searched whole on every key frame)."""
+    face_e = Detection("face", (168.0, 404.0, 186.0, 424.0), 0.7, "centerface")
+    face = Detection("face", (130.0, 404.0, 148.0, 424.0), 0.73, "centerface")
+    quad = ((800.0, 600.0), (1000.0, 600.0), (1000.0, 700.0), (800.0, 700.0))
+    car = Region("plate", (800.0, 600.0, 1000.0, 700.0), 60.0, "lidar:a:L:t3", quad,
+                 (1.8, 0.9), "rear", None)
+    car_here = Region("plate", (810.0, 600.0, 1010.0, 700.0), 60.0, "lidar:a:L:t3", quad,
+                      (1.8, 0.9), "rear", None)
+    band = Region("plate", (0.0, 500.0, 1920.0, 560.0), 20.0, "band", part="band",
+                  expected_max_px=40.0)
+    plate = Detection("plate", (870.0, 660.0, 930.0, 675.0), 0.9, "text")
+    far = Detection("plate", (300.0, 520.0, 325.0, 528.0), 0.6, "band")
+    earlier = ([face_e], [car, band], 0)
+    before = ([face, plate, far], [car, band], 100 * MS)
+    wins = key_windows(before, earlier, [car_here, band], 200 * MS, 2.0, SHAPE)
+    assert len(wins) == 1, wins
+    (r,) = wins
+    assert r.kind == "face" and r.part == "head" and 15 <= r.expected_px <= 25
+    assert r.box[0] <= 55.0 and r.box[2] >= 188.0  # where it was and where it went (92-110)
+    assert r.box[1] <= 404.0 and r.box[3] >= 424.0
+    # without the key frame before that: around where it was only (the old full-frame
+    # plan's find left to this key frame's own search)
+    (r,) = key_windows(before, None, [car_here, band], 200 * MS, 2.0, SHAPE)
+    assert r.box[0] >= 85.0
+    # the vehicle's region gone here (its track ended): its plate is searched for too
+    assert len(key_windows(before, earlier, [band], 200 * MS, 2.0, SHAPE)) == 2

@@ -266,6 +266,13 @@ class Clusters(Section):
     full_frame: bool = Field(
         True, description="regions from LiDAR clusters miss more than annotated ones (merged "
         "or partial objects): the full-frame plan is then their safety pass")
+    full_frame_every: int = Field(
+        1, ge=1, description="with clusters.full_frame and clusters.carry, every this "
+        "many-th key frame of a camera (the first included) keeps the full-frame plan as "
+        "its safety pass; the key frames between get the guided plan's shrunk safety pass "
+        "(safety.*) and a window (clusters.carry_window) around each detection of the key "
+        "frame before that no region here searches at its scale, moved on at its image "
+        "velocity (carry.key_windows). 1: every key frame")
     carry: bool = Field(
         True, description="key frames and carried detections (carry.key_interval_ms) also "
         "when the regions come from LiDAR clusters: the frames between key frames pair the "

@@ -440,6 +440,7 @@ def _anonymize_images(
         between_tracked,
         full_key_frames,
         key_frames,
+        key_windows,
         merge_overlapping,
         new_regions,
         plate_windows,
@@ -472,22 +473,33 @@ def _anonymize_images(
 
     full = cfg.clusters.full_frame and guide is not None and guide.source == "lidar clusters"
 
-    def detect(item: tuple[str, str, str, int, int | None],
+    def detect(item: tuple[str, str, str, int, int | None,
+                           tuple[tuple[int, int], tuple[int, int] | None] | None],
                known: dict[int, list[Detection]] | None = None,
                kregions: dict[int, list[Region] | None] | None = None
                ) -> tuple[np.ndarray, list[Detection], list[Region] | None]:
-        """A key frame: the whole plan. A light key frame (``item``'s last field: the row of
+        """A key frame: the whole plan. A light key frame (``item``'s fifth field: the row of
         the full key frame before it, whose detections ``known`` and regions ``kregions``
         hold): the whole plan with its vehicle faces' plate search narrowed to where that
-        key frame found plates (``carry.plate_windows``). The frame's own regions are
-        returned either way (the frames between are carried with them)."""
-        key, agent, sensor, stamp, full_row = item
+        key frame found plates (``carry.plate_windows``). A LiDAR-only key frame without
+        the full-frame plan (the last field: (row, stamp) of the key frame before it and of
+        the one before that, ``clusters.full_frame_every``): the guided plan with the
+        shrunk safety pass and windows around the key frame before's detections
+        (``carry.key_windows``). The frame's own regions are returned either way (the
+        frames between are carried with them)."""
+        key, agent, sensor, stamp, full_row, prev = item
         img = decode(key, agent)
         regions = guide.regions(agent, sensor, stamp) if guide is not None else None
         look = regions
         if regions and full_row is not None and known is not None and kregions is not None:
             look = plate_windows(known[full_row], kregions[full_row], regions, img.shape)
-        return img, detector.detect(to_bgr8(img), look, full), regions
+        if prev is None or look is None or known is None or kregions is None:
+            return img, detector.detect(to_bgr8(img), look, full), regions
+        (b, tb), e = prev
+        windows = key_windows((known[b], kregions[b], tb),
+                              (known[e[0]], kregions[e[0]], e[1]) if e is not None else None,
+                              regions, stamp, cfg.clusters.carry_window, img.shape)
+        return img, detector.detect(to_bgr8(img), [*look, *windows], False), regions
 
     def carried(i: int, rows: list[int], is_key: list[bool], pos: dict[int, int],
                 known: dict[int, list[Detection]], kregions: dict[int, list[Region] | None]
@@ -573,6 +585,25 @@ def _anonymize_images(
                 # each key frame's full key frame: itself, or (a light key frame) the last
                 # full one before it
                 full_of = full_key_frames(is_key, cfg.carry.plate_full_every if key_ns else 1)
+                # LiDAR-only: the key frames with the full-frame plan (the others search
+                # windows around the key frame before's detections: ``carry.key_windows``)
+                plan_of = full_key_frames(is_key, cfg.clusters.full_frame_every
+                                          if tracked and full else 1)
+                kpos = [p for p, k in enumerate(is_key) if k]
+                kprev = {q: kpos[j - 1] for j, q in enumerate(kpos) if j > 0}
+                # per key frame (row): the key frames (rows) whose detections it uses, and
+                # for one without the full-frame plan (row, stamp) of the key frame before
+                # it and of the one before that
+                uses: dict[int, list[int]] = {}
+                prev_of: dict[int, tuple[tuple[int, int], tuple[int, int] | None]] = {}
+                for p in kpos:
+                    uses[rows[p]] = [rows[full_of[p]]] if full_of[p] != p else []
+                    if plan_of[p] != p:
+                        q = kprev[p]
+                        e = kprev.get(q)
+                        prev_of[rows[p]] = ((rows[q], int(stamps[rows[q]])), (
+                            (rows[e], int(stamps[rows[e]])) if e is not None else None))
+                        uses[rows[p]] += [rows[q]] + ([rows[e]] if e is not None else [])
                 pos = {i: p for p, i in enumerate(rows)}
                 known: dict[int, list[Detection]] = {}
                 kregions: dict[int, list[Region] | None] = {}
@@ -590,11 +621,17 @@ def _anonymize_images(
                     span = rows[c0 : min(stop + 1, len(rows))]
                     todo = [i for i in span if is_key[pos[i]] and i not in known]
                     images: dict[int, np.ndarray] = {}
-                    # the full key frames first: the light ones after them use their plates
-                    for light in (False, True):
-                        part = [i for i in todo if (full_of[pos[i]] != pos[i]) == light]
+
+                    # in waves: a key frame once the key frames it uses are done (the full
+                    # key frames first, the light ones after them use their plates)
+                    while todo:
+                        part = [i for i in todo if all(j in known for j in uses[i])]
+                        assert part, "a key frame waits for one after it"
+                        todo = [i for i in todo if i not in part]
                         items = [(keys[i], agent_col[i], sensors[i], int(stamps[i]),
-                                  rows[full_of[pos[i]]] if light else None) for i in part]
+                                  rows[full_of[pos[i]]] if full_of[pos[i]] != pos[i] else None,
+                                  prev_of.get(i))
+                                 for i in part]
                         job_k = functools.partial(detect, known=known, kregions=kregions)
                         for i, (img, found, regs) in zip(part, list(pool.map(job_k, items)),
                                                          strict=True):
