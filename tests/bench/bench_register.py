@@ -202,6 +202,10 @@ COOP_VARIATIONS: dict[str, dict[str, Any]] = {
     "behind 5 m, no turn": {"coop_gap_m": -5.0, "turn_rate_radps": 0.0},
     # a third agent: a roadside unit on a mast 70 m ahead, facing back (its row: "+ rsu")
     "with a roadside unit": {"agents": ["red", "black", "rsu"]},
+    # the same at seed 2: its rsu pair's GICP is 2-9 cm off along the street, one sign, for
+    # 2.6 s while the reference passes the unit at 12-39 m (10 s clip), which seed 1 never
+    # shows; the clip solve once accepted 28 of those frames (docs/registration.md, 2026-11-27)
+    "seed 2, with a roadside unit": {"seed": 2, "agents": ["red", "black", "rsu"]},
 }
 
 
