@@ -192,3 +192,19 @@ def test_a_key_frame_without_the_full_frame_plan_searches_where_the_last_one_fou
     assert r.box[0] >= 85.0
     # the vehicle's region gone here (its track ended): its plate is searched for too
     assert len(key_windows(before, earlier, [band], 200 * MS, 2.0, SHAPE)) == 2
+
+
+def test_a_key_frame_window_reaches_a_face_crossing_the_view() -> None:
+    """``clusters.key_window_mps``: the first key frame after one with the full-frame plan
+    has no key frame before that to give a velocity; a 22 px face crossing the narrow
+    camera (the simulated seed-0 clip) was at 130-148 px there and at 43-62 px 100 ms
+    later, 4 face heights away: a window of 2 heights around it missed it (found by the
+    full-frame plan of every frame, not blurred here). At 15 m/s across the view the
+    window reaches it; without the speed it does not."""
+    face = Detection("face", (130.0, 404.0, 148.0, 426.0), 0.73, "centerface")
+    before = ([face], [], 0)
+    (slow,) = key_windows(before, None, [], 100 * MS, 2.0, SHAPE)
+    (fast,) = key_windows(before, None, [], 100 * MS, 2.0, SHAPE, 15.0)
+    assert slow.box[0] > 62.0 and fast.box[0] <= 43.0
+    assert fast.box[1] == slow.box[1] and fast.box[3] == slow.box[3]  # sideways only
+    assert fast.expected_px == slow.expected_px  # at the face's own scale

@@ -507,7 +507,8 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
 def key_windows(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
                 earlier: tuple[Sequence[Detection], Sequence[Region] | None, int] | None,
                 regions: Sequence[Region] | None, t_ns: int, window: float,
-                shape: tuple[int, ...]) -> list[Region]:
+                shape: tuple[int, ...], speed_mps: float = 0.0,
+                size_m: tuple[float, float] = (0.23, 0.52)) -> list[Region]:
     """The searches a key frame of a LiDAR-only clip gets *instead of* the full-frame plan
     (``clusters.full_frame_every``): a window (``_window``: ``window`` x its larger side on
     each side, at its own size) around each detection of the key frame before (``before``:
@@ -523,8 +524,15 @@ def key_windows(before: tuple[Sequence[Detection], Sequence[Region] | None, int]
     regions miss objects (merged, partial or missing clusters), and it is most of a key
     frame's time. What it found that no region covers is still where the key frame before
     found it, a few pixels further: the windows find it again at its own scale, and the
-    key frames that keep the full-frame plan find what is new."""
+    key frames that keep the full-frame plan find what is new.
+
+    ``speed_mps``: the window also reaches as far sideways as an object crossing the view
+    at this speed moves in the time since the key frame before (at its depth, from its
+    size: ``size_m`` a face's height, a plate's width): a 22 px face crossing the narrow
+    camera moved 87 px (4 sizes) in 100 ms, beyond a window of 2 sizes, and without a
+    key frame before that no velocity put it there."""
     d0, r0, t0 = before
+    dt = max(t_ns - t0, 0) / 1e9
     h, w = shape[:2]
     here = {_key(r): r for r in regions or ()}
     band = next((r for r in regions or () if r.part == "band"), None)
@@ -538,6 +546,11 @@ def key_windows(before: tuple[Sequence[Detection], Sequence[Region] | None, int]
                 and not _at_edge(reg, shape)):
             continue  # its track's region is searched here at its scale
         boxes = [d.box]
+        if speed_mps > 0:
+            px = d.box[3] - d.box[1] if d.kind == "face" else d.box[2] - d.box[0]
+            m = speed_mps * dt * px / (size_m[0] if d.kind == "face" else size_m[1])
+            boxes += [(d.box[0] - m, d.box[1], d.box[2] - m, d.box[3]),
+                      (d.box[0] + m, d.box[1], d.box[2] + m, d.box[3])]
         if rk is not None and reg is not None and _fits(d, rk, 4.0):
             boxes.append(_move(d.box, rk, reg))
         ahead = _ahead(d, earlier, t0, t_ns, window) if earlier is not None else None

@@ -273,6 +273,12 @@ class Clusters(Section):
         "(safety.*) and a window (clusters.carry_window) around each detection of the key "
         "frame before that no region here searches at its scale, moved on at its image "
         "velocity (carry.key_windows). 1: every key frame")
+    key_window_mps: float = Field(
+        0.0, ge=0, description="with clusters.full_frame_every > 1, a key frame's window "
+        "around a find of the key frame before also reaches as far sideways as an object "
+        "crossing the view at this speed (m/s, relative to the camera) moves in between, "
+        "at the find's depth (from its size): a 22 px face crossing the narrow camera moved "
+        "4 face heights in 100 ms (9 m/s)")
     carry: bool = Field(
         True, description="key frames and carried detections (carry.key_interval_ms) also "
         "when the regions come from LiDAR clusters: the frames between key frames pair the "

@@ -434,7 +434,7 @@ def _anonymize_images(
         return 0, 0, 0, 0
 
     from v2xlake.tasks.anonymize.blur import blur_boxes
-    from v2xlake.tasks.anonymize.build import blur_config, build_detector
+    from v2xlake.tasks.anonymize.build import blur_config, build_detector, guide_config
     from v2xlake.tasks.anonymize.carry import (
         between,
         between_tracked,
@@ -472,6 +472,8 @@ def _anonymize_images(
                             path=key, stage=STAGE) from e
 
     full = cfg.clusters.full_frame and guide is not None and guide.source == "lidar clusters"
+    gcfg = guide_config(cfg)
+    part_m = (gcfg.face_height_m, gcfg.plate_width_m)  # the sizes the regions expect
 
     def detect(item: tuple[str, str, str, int, int | None,
                            tuple[tuple[int, int], tuple[int, int] | None] | None],
@@ -498,7 +500,8 @@ def _anonymize_images(
         (b, tb), e = prev
         windows = key_windows((known[b], kregions[b], tb),
                               (known[e[0]], kregions[e[0]], e[1]) if e is not None else None,
-                              regions, stamp, cfg.clusters.carry_window, img.shape)
+                              regions, stamp, cfg.clusters.carry_window, img.shape,
+                              cfg.clusters.key_window_mps, part_m)
         return img, detector.detect(to_bgr8(img), [*look, *windows], False), regions
 
     def carried(i: int, rows: list[int], is_key: list[bool], pos: dict[int, int],
