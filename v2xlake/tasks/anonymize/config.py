@@ -272,13 +272,20 @@ class Clusters(Section):
         "its safety pass; the key frames between get the guided plan's shrunk safety pass "
         "(safety.*) and a window (clusters.carry_window) around each detection of the key "
         "frame before that no region here searches at its scale, moved on at its image "
-        "velocity (carry.key_windows). 1: every key frame")
+        "velocity (carry.key_windows). 1 (default): every key frame. Not the default: the "
+        "full-frame plan is ~a quarter of a key frame's CPU (the region search the rest), "
+        "so 2 gave +0-14 % img/s/core on simulated 1080p 30 Hz clips (seeds 0-3, 0.3 / "
+        "0.5 s) and none measurable on a 1.0 s clip, and lost two frames of a 28-29 px face "
+        "crossing the narrow camera (seed 0, 0.3 s; clusters.key_window_mps); 3 lost two "
+        "18 px faces (seed 0, 0.5 s)")
     key_window_mps: float = Field(
         0.0, ge=0, description="with clusters.full_frame_every > 1, a key frame's window "
         "around a find of the key frame before also reaches as far sideways as an object "
         "crossing the view at this speed (m/s, relative to the camera) moves in between, "
-        "at the find's depth (from its size): a 22 px face crossing the narrow camera moved "
-        "4 face heights in 100 ms (9 m/s)")
+        "at the find's depth (from its size): a 28 px face crossing the narrow camera moved "
+        "4 face heights in 100 ms (9 m/s), beyond the window. 15 found it (seed 0, 0.3 s, "
+        "with full_frame_every 2), but on seed 3 (0.5 s) a 27 px face got a box under IoU "
+        "0.3 (34 % of it blurred; every frame in full: 41 %). 0: off")
     carry: bool = Field(
         True, description="key frames and carried detections (carry.key_interval_ms) also "
         "when the regions come from LiDAR clusters: the frames between key frames pair the "
