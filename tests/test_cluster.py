@@ -4,9 +4,9 @@
 working folders; they know the Prefect API and the S3 endpoint only from their environment)
 and a Prefect work pool with a concurrency limit and its process worker, against the
 session's Prefect server, with the lake on the session's S3 server (``weed mini``). Then:
-three clips of fake stages through ``process_clips(runner="dask=ADDRESS")``, and two small
+a clip of fake stages through ``process_clips(runner="dask=ADDRESS")``, and two small
 simulated clips through every real stage with the command line ``v2xlake process A B
---lake s3://... --runner dask=ADDRESS``; the catalog over S3 answers for all five, and the
+--lake s3://... --runner dask=ADDRESS``; the catalog over S3 answers for all three, and the
 stages ran on the worker processes, not in the caller.
 """
 
@@ -91,10 +91,10 @@ def test_cluster_shaped_run(prefect_server: Any, s3_env: Any, tmp_path: Path) ->
 
         # fake stages (module named by ``pipeline=``, imported by the workers themselves)
         t0 = time.monotonic()
-        clips = [fakes.make_fake_clip(tmp_path / "in", f"fake{i}") for i in range(3)]
+        clips = [fakes.make_fake_clip(tmp_path / "in", "fake0")]
         results = process_clips([str(c) for c in clips], uri, pipeline=fakes.FAKES,
                                 runner=f"dask={address}")
-        assert [r["status"] for r in results] == ["ok"] * 3, results
+        assert [r["status"] for r in results] == ["ok"], results
         pids = {int(next(o for o in r["stages"] if o["stage"] == "qa")["report"]["metrics"]
                     ["pid"]) for r in results}
         assert pids <= workers
@@ -125,7 +125,7 @@ def test_cluster_shaped_run(prefect_server: Any, s3_env: Any, tmp_path: Path) ->
 
     lake = Lake(uri)
     got = query(lake, "SELECT clip_id, status FROM clips ORDER BY clip_id").to_pylist()
-    assert [r["clip_id"] for r in got] == ["fake0", "fake1", "fake2", "real0", "real1"]
+    assert [r["clip_id"] for r in got] == ["fake0", "real0", "real1"]
     pts = query(lake, "SELECT clip_id, count(*) AS n FROM lidar_points_deskewed "
                       "GROUP BY 1 ORDER BY 1").to_pylist()
     assert [r["clip_id"] for r in pts] == ["real0", "real1"] and min(r["n"] for r in pts) > 0
