@@ -668,8 +668,8 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     scans = {a.agent: a for a in (ref, *others)}
     filt = {a.agent: StaticScans(a, static, [(b, bodies[b.agent]) for b in (ref, *others)
                                              if b is not a and b.agent in bodies],
-                                 (redeskew_with or {}).get(a.agent), cfg.gicp.max_range_m,
-                                 in_flight=workers)
+                                 (redeskew_with or {}).get(a.agent),
+                                 cfg.gicp.range_m(a is ref), in_flight=workers)
             for a in (ref, *others)}
     limits = cfg.quality.gated(not cfg.solve.enabled)
     # recent prepared clouds per agent, for odometry: frame -> Prepared
