@@ -192,13 +192,13 @@ def test_each_image_is_decoded_once(tmp_path, monkeypatch) -> None:
 
 def test_a_lidar_only_clip_is_carried_by_cluster_track(tmp_path, monkeypatch) -> None:
     """Regions from LiDAR clusters (here the fixture's annotated boxes, given the clusters'
-    source: the fixture's scans hold no objects) are carried by default
-    (``clusters.carry``): the frames between key frames go through
+    source: the fixture's scans hold no objects) are carried with ``clusters.carry`` (off by
+    default: every frame in full): the frames between key frames go through
     ``carry.between_tracked``, those after the second key frame with the key frame before
     that (the image velocity of a detection leaving the view); with
     ``clusters.full_frame_every`` 2 the key frames between two with the full-frame plan get
     the shrunk safety pass and ``carry.key_windows`` around the key frame before's finds;
-    ``clusters.carry`` false (every frame in full) is named by the provenance."""
+    the provenance tells carried from every frame in full."""
     import dataclasses
 
     from v2xlake.tasks.anonymize import carry as carry_mod
@@ -238,7 +238,7 @@ def test_a_lidar_only_clip_is_carried_by_cluster_track(tmp_path, monkeypatch) ->
     build_raw_clip(lk, n_images=7)  # 30 Hz: key frames 0, 3 and 6
     # every 2nd key frame of a camera with the full-frame plan (clusters.full_frame_every):
     # 0 and 6; 3 gets the shrunk safety pass and windows around key frame 0's detections
-    light = {"carry_safety": False, "full_frame_every": 2}
+    light = {"carry": True, "carry_safety": False, "full_frame_every": 2}
     rep = run_anonymize(lk, CLIP, AnonymizeConfig(work={"workers": 1}, clusters=light))
     assert "anonymize: regions from lidar clusters" in rep.notes
     assert rep.metrics["n_images"] == 14
@@ -246,10 +246,11 @@ def test_a_lidar_only_clip_is_carried_by_cluster_track(tmp_path, monkeypatch) ->
     assert plans.count("full") == 4 and plans.count("shrunk") == 2, plans
     t0 = sorted({t for t, _ in windows})
     assert len(windows) == 2 and len(t0) == 1 and not any(e for _, e in windows), windows
-    # every frame in full stays one setting away, and the provenance tells the two apart
-    off = AnonymizeConfig(clusters={"carry": False})
-    assert "clusters.carry=True" in AnonymizeConfig().provenance("d")
-    assert "clusters.carry=False" in off.provenance("d")
+    # carried is one setting away from every frame in full (the default), and the
+    # provenance tells the two apart
+    on = AnonymizeConfig(clusters={"carry": True})
+    assert "clusters.carry=False" in AnonymizeConfig().provenance("d")
+    assert "clusters.carry=True" in on.provenance("d")
 
 
 def test_the_provenance_names_every_setting_that_changes_what_is_blurred() -> None:

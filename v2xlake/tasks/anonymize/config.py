@@ -287,17 +287,19 @@ class Clusters(Section):
         "with full_frame_every 2), but on seed 3 (0.5 s) a 27 px face got a box under IoU "
         "0.3 (34 % of it blurred; every frame in full: 41 %). 0: off")
     carry: bool = Field(
-        True, description="key frames and carried detections (carry.key_interval_ms) also "
+        False, description="key frames and carried detections (carry.key_interval_ms) also "
         "when the regions come from LiDAR clusters: the frames between key frames pair the "
         "key frames' detections by cluster track (clusters.track_gate_m) and interpolate "
         "them, search regions new to both key frames, a window around each unpaired "
         "detection and the shrunk safety pass, and keep the part still in view of one "
         "leaving the view (carry.between_tracked). Simulated 1080p 30 Hz LiDAR-only clips, "
-        "seeds 0-3 (0.3 and 0.5 s), against every frame in full (false, the default "
-        "before): 1.42-1.78x the img/s/core, faces >= 16 px 396 -> 398 / 401, plates >= "
-        "20 px 1361 -> 1360 / 1361 (the one: a 20 x 4 px plate wholly blurred, its merged "
-        "box at IoU 0.27), false blurs -0.09 to +0.12 per image. false: every frame of a "
-        "LiDAR-only clip detected in full")
+        "against every frame in full: 1.42-1.78x the img/s/core on seeds 0-3 at 0.3 and "
+        "0.5 s with the same faces and plates blurred, and 1.66-1.74x on 1.0 s clips, where "
+        "it LEAVES UNBLURRED what every frame in full blurs (seed 0: 5 plates of 21-75 px "
+        "and an 18 px face; seed 1: 4 faces of 18-41 px and a 113 px plate: fast plates "
+        "leaving the view, plates seen only between key frames). Hence off (every frame of "
+        "a LiDAR-only clip detected in full) until longer clips hold; true trades that "
+        "recall for speed")
     track_gate_m: float = Field(
         3.0, ge=0, description="with clusters.carry, a LiDAR's clusters get one identity "
         "per object across its scans (clusters.track_ids): a box continues the track whose "
