@@ -40,12 +40,12 @@ def test_every_parameter_has_one_default() -> None:
 
 
 def test_only_the_reference_scans_reach_farther() -> None:
-    """gicp.reference_max_range_m widens the reference agent's scans only (the target of
-    the cross pairs); unset, every agent keeps max_range_m."""
+    """gicp.reference_max_range_m (120 m by default) widens the reference agent's scans only
+    (the target of the cross pairs); None, every agent keeps max_range_m."""
     cfg = RegisterConfig()
-    assert cfg.gicp.range_m(True) == cfg.gicp.range_m(False) == cfg.gicp.max_range_m == 80.0
-    cfg = RegisterConfig.model_validate({"gicp": {"reference_max_range_m": 120.0}})
     assert cfg.gicp.range_m(True) == 120.0 and cfg.gicp.range_m(False) == 80.0
+    cfg = RegisterConfig.model_validate({"gicp": {"reference_max_range_m": None}})
+    assert cfg.gicp.range_m(True) == cfg.gicp.range_m(False) == cfg.gicp.max_range_m == 80.0
 
 
 def test_unknown_keys_are_refused_inside_sections() -> None:
