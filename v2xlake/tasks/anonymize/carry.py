@@ -453,18 +453,12 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
 
     def lost(d: Detection, rk: Region | None, reg: Region | None, k: float,
              ahead: Box | None = None) -> None:
-        boxes = [d.box]
-        if rk is not None and reg is not None and _fits(d, rk, 4.0):
-            boxes.append(_move(d.box, rk, reg))  # where its track's region puts it
+        boxes, cut = _search_boxes(d, rk, reg, ahead, w, h)
         edge = d.box[0] <= 1 or d.box[1] <= 1 or d.box[2] >= w - 1 or d.box[3] >= h - 1
         keep = (Detection(d.kind, _grow(d.box, grow * k, w, h), d.score, CARRIED)
                 if edge else None)  # leaving the view: its cut part may score low
-        if ahead is not None:
-            cut = _grow(ahead, 0.0, w, h)
-            if cut[2] - cut[0] >= 1 and cut[3] - cut[1] >= 1:
-                boxes.append(cut)
-                if cut != ahead:  # on its way out of the view: the part still in it
-                    keep = Detection(d.kind, _grow(cut, grow * k, w, h), d.score, CARRIED)
+        if cut is not None and cut != ahead:  # on its way out of the view: the part in it
+            keep = Detection(d.kind, _grow(cut, grow * k, w, h), d.score, CARRIED)
         look(d, boxes, keep)
 
     def track(r: Region | None) -> tuple[str, str, str] | None:
@@ -545,23 +539,35 @@ def key_windows(before: tuple[Sequence[Detection], Sequence[Region] | None, int]
         if (rk is not None and reg is not None and _fits(d, rk) and not _at_edge(rk, shape)
                 and not _at_edge(reg, shape)):
             continue  # its track's region is searched here at its scale
-        boxes = [d.box]
+        ahead = _ahead(d, earlier, t0, t_ns, window) if earlier is not None else None
+        boxes, _cut = _search_boxes(d, rk, reg, ahead, w, h)
         if speed_mps > 0:
             px = d.box[3] - d.box[1] if d.kind == "face" else d.box[2] - d.box[0]
             m = speed_mps * dt * px / (size_m[0] if d.kind == "face" else size_m[1])
             boxes += [(d.box[0] - m, d.box[1], d.box[2] - m, d.box[3]),
                       (d.box[0] + m, d.box[1], d.box[2] + m, d.box[3])]
-        if rk is not None and reg is not None and _fits(d, rk, 4.0):
-            boxes.append(_move(d.box, rk, reg))
-        ahead = _ahead(d, earlier, t0, t_ns, window) if earlier is not None else None
-        if ahead is not None:
-            cut = _grow(ahead, 0.0, w, h)
-            if cut[2] - cut[0] >= 1 and cut[3] - cut[1] >= 1:
-                boxes.append(cut)
         r = _window(d, boxes, window, shape, band)
         if r is not None:
             out.setdefault(("window", d.kind, *(f"{v:.0f}" for v in r.box)), r)
     return list(out.values())
+
+
+def _search_boxes(d: Detection, rk: Region | None, reg: Region | None, ahead: Box | None,
+                  w: int, h: int) -> tuple[list[Box], Box | None]:
+    """Where to look for ``d`` of another frame: where it was, where its track's region
+    (``rk`` then, ``reg`` here) moves it when it fits that region, and the part in view of
+    where its image velocity puts it (``ahead``, from ``_ahead``), returned too (None when
+    that is outside the frame). Shared by the frames between key frames
+    (``between_tracked``) and the key frames without the full-frame plan (``key_windows``)."""
+    boxes = [d.box]
+    if rk is not None and reg is not None and _fits(d, rk, 4.0):
+        boxes.append(_move(d.box, rk, reg))
+    cut = _grow(ahead, 0.0, w, h) if ahead is not None else None
+    if cut is not None and (cut[2] - cut[0] < 1 or cut[3] - cut[1] < 1):
+        cut = None
+    if cut is not None:
+        boxes.append(cut)
+    return boxes, cut
 
 
 def _window(d: Detection, boxes: Sequence[Box], window: float, shape: tuple[int, ...],
