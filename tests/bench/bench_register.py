@@ -209,6 +209,152 @@ COOP_VARIATIONS: dict[str, dict[str, Any]] = {
 }
 
 
+# the pairs at 50-70 m (the range floor's concern): ``--seeds`` adds each at other seeds
+FAR_VARIATIONS = ("behind 50 m", "ahead 50 m", "with a roadside unit")
+
+
+def coop_variations(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """``COOP_VARIATIONS`` plus, for each ``--seeds`` seed, the far variations at that seed
+    (named "..., seed N"); filtered by ``--only``."""
+    out = dict(COOP_VARIATIONS)
+    for seed in args.seeds:
+        for n in FAR_VARIATIONS:
+            out[f"{n}, seed {seed}"] = {**COOP_VARIATIONS[n], "seed": seed}
+    return {n: v for n, v in out.items() if not args.only or any(o in n for o in args.only)}
+
+
+def coop_root(base: Path, name: str, secs: float) -> Path:
+    return base / f"{name.replace(' ', '_').replace('/', '')}_{secs:g}s"
+
+
+def _deep_merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(
+            out.get(k), dict) else v
+    return out
+
+
+def parse_settings(items: list[str]) -> list[tuple[str, dict[str, Any]]]:
+    """``--set NAME=JSON`` (or a bare JSON, named by its text): RegisterConfig overrides,
+    validated here so that a typo fails before anything runs; "default" always comes first."""
+    from v2xlake.tasks.register.stage import RegisterConfig
+
+    out: list[tuple[str, dict[str, Any]]] = [("default", {})]
+    for it in items:
+        name, _, js = it.partition("=") if not it.lstrip().startswith("{") else ("", "", it)
+        over = json.loads(js)
+        RegisterConfig.model_validate(_deep_merge({"write_bev": False}, over))
+        out.append((name or js, over))
+    return out
+
+
+def bar(args: argparse.Namespace) -> None:
+    """The safety bar: the register stage alone (+ the errors against the simulator's truth)
+    with every ``--set`` setting on the same lakes, one clip at a time (the settings of a
+    clip run back to back, so their CPU seconds share the machine's load). Each lake is
+    built (simulate, ingest, anonymize, deskew) once into ``--workdir`` and reused; the
+    stage rewrites its own tables (``registrations``, ``calibration_refined``) on every run
+    and reads only what the stages before it wrote, so the settings cannot see each other's
+    output. The far variations run first. ``--bar-street``: the hard street of issue #13 too
+    (``--seconds``, ``--turn-at``, ``--beams``, ``--street-cols``), with and without
+    annotations."""
+    import logging
+    import shutil
+
+    from tests.fixtures.street import (
+        coop_config,
+        processed_street,
+        registration_errors,
+        street_config,
+    )
+    from v2xlake.storage.lake import Lake
+    from v2xlake.tasks.register.stage import RegisterConfig, run_register
+
+    # the stage's per-frame "not accepted" warnings: the table says it per clip
+    logging.getLogger("v2xlake.tasks.register").setLevel(logging.ERROR)
+    if not args.workdir:
+        raise SystemExit("--bar needs --workdir (the lakes are built once and reused)")
+    base = Path(args.workdir)
+    settings = parse_settings(args.settings)
+
+    def build(root: Path, cfg: Any) -> None:
+        # a lake counts as built once its marker is written: an interrupted build is redone
+        if (root / "built.ok").exists():
+            return
+        shutil.rmtree(root, ignore_errors=True)
+        t = time.process_time()
+        processed_street(root, cfg)
+        (root / "built.ok").touch()
+        print(f"built {root.name}: {time.process_time() - t:.0f} cpu s", flush=True)
+
+    clips: list[tuple[str, float, Path, list[str], dict[str, Any]]] = []
+    variations = coop_variations(args)
+    # the far pairs first (what the range floor decides), then the rest
+    order = sorted(variations, key=lambda n: not any(n.startswith(f) for f in FAR_VARIATIONS)
+                   and "roadside unit" not in n)
+    for secs in args.coop_seconds:
+        for name in order:
+            over = dict(variations[name])
+            seed = int(over.pop("seed", 1))
+            root = coop_root(base, name, secs)
+            build(root, coop_config("coop", seconds=secs, seed=seed, **over))
+            others = [a for a in over.get("agents", ["red", "black"]) if a != "red"]
+            clips.append((name, secs, root, others, {}))
+    if args.bar_street:
+        root = base / f"street_{args.seconds:g}s_{args.beams}x{args.street_cols}"
+        build(root, street_config("bench_street", seconds=args.seconds, beams=args.beams,
+                                  columns=args.street_cols, turn_at_s=args.turn_at))
+        for tag, ex in (("hard street", {}),
+                        ("hard street, no annotations", {"static": {"use_annotations": False}})):
+            clips.append((tag, args.seconds, root, ["black"], ex))
+    print(f"safety bar: {len(clips)} clips x {len(settings)} settings; wrong = accepted "
+          "outside 3 cm / 0.1 deg; cells: within / accepted / wrong (median final cm)")
+    for i, (n, o) in enumerate(settings):
+        print(f"  [{i}] {n}: {json.dumps(o)}")
+    results: list[dict[str, Any]] = []
+    head = f"{'clip':40s} {'s':>3s} {'pair':>5s} " + " ".join(
+        f"{f'[{i}]':>22s}" for i in range(len(settings)))
+    print(head)
+    tot = {n: [0, 0, 0] for n, _ in settings}
+    for name, secs, root, others, extra in clips:
+        cid = "bench_street" if name.startswith("hard street") else "coop"
+        lake, clip_dir = Lake(root / "lake"), root / "clip"
+        cells: dict[str, list[str]] = {a: [] for a in others}
+        for sname, over in settings:
+            cfg = RegisterConfig.model_validate(
+                _deep_merge(_deep_merge({"write_bev": False}, extra), over))
+            c0 = time.process_time()
+            run_register(lake, cid, cfg)
+            cpu = time.process_time() - c0
+            for a in others:
+                errs = registration_errors(lake, clip_dir, cid, other=a)
+                within = sum(e.within() for e in errs)
+                acc = sum(e.accepted for e in errs)
+                wrong = sum(e.accepted and not e.within() for e in errs)
+                med = float(np.median([e.final_m for e in errs])) * 100
+                worst = max((e.final_m for e in errs if e.accepted), default=float("nan"))
+                results.append({
+                    "variation": name, "seconds": secs, "pair": f"red-{a}", "setting": sname,
+                    "overrides": over, "frames": len(errs), "within": within,
+                    "accepted": acc, "wrong": wrong, "median_final_cm": round(med, 3),
+                    "worst_accepted_cm": round(worst * 100, 3),
+                    "register_cpu_s": round(cpu, 2)})
+                for k, x in enumerate((within, acc, wrong)):
+                    tot[sname][k] += x
+                cells[a].append(f"{within:3d}/{acc:3d}/{wrong:2d} ({med:4.2f})")
+        for a in others:
+            print(f"{name:40s} {secs:3g} {a:>5s} " + " ".join(f"{c:>22s}" for c in cells[a]),
+                  flush=True)
+        if args.json:
+            Path(args.json).write_text(json.dumps(results, indent=1))
+    print(f"{'total':40s} {'':3s} {'':5s} " + " ".join(
+        f"{f'{t[0]}/{t[1]}/{t[2]}':>22s}" for t in tot.values()))
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1))
+
+
+
 def coop(args: argparse.Namespace) -> None:
     import shutil
     import tempfile
@@ -230,7 +376,8 @@ def coop(args: argparse.Namespace) -> None:
     from v2xlake.tasks.simulate import simulate
 
     base = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench_coop"))
-    names = [n for n in COOP_VARIATIONS if not args.only or any(o in n for o in args.only)]
+    variations = coop_variations(args)
+    names = list(variations)
     timed = ("ingest", "qa", "anonymize", "deskew", "register", "annotate", "align")
     if set(timed) != set(stage_names()):
         raise SystemExit(f"the pipeline's stages are {stage_names()}, this bench times {timed}")
@@ -259,10 +406,10 @@ def coop(args: argparse.Namespace) -> None:
     print("register stage " + ("with" if args.plots else "without") + " its PNGs (--plots)")
     for secs in args.coop_seconds:
         for name in names:
-            over = dict(COOP_VARIATIONS[name])
+            over = dict(variations[name])
             seed = int(over.pop("seed", 1))
             cid = "coop"
-            root = base / f"{name.replace(' ', '_').replace('/', '')}_{secs:g}s"
+            root = coop_root(base, name, secs)
             cfg = coop_config(cid, seconds=secs, seed=seed, **over)
             times: dict[str, float] = {}
             if not (root / "lake").exists():
@@ -404,6 +551,21 @@ def main() -> None:
                     "(write_bev, the stage's default)")
     ap.add_argument("--no-warmup", dest="warmup", action="store_false",
                     help="--coop: time the first variation cold (numba cache loading included)")
+    ap.add_argument("--seeds", type=int, nargs="*", default=[],
+                    help="--coop: also the far variations (" + ", ".join(FAR_VARIATIONS)
+                    + ") at these seeds")
+    ap.add_argument("--bar", action="store_true",
+                    help="--coop: the safety bar, the register stage alone with each --set on "
+                    "the lakes of --workdir (built once when missing)")
+    ap.add_argument("--set", dest="settings", action="append", default=[],
+                    metavar="NAME=JSON", help="--bar: a RegisterConfig override, e.g. "
+                    "'floor40={\"solve\": {\"floor_range_m\": 40}}' (repeatable; the "
+                    "default always runs first)")
+    ap.add_argument("--bar-street", action="store_true",
+                    help="--bar: the hard street of issue #13 too, with and without "
+                    "annotations")
+    ap.add_argument("--json", default=None, help="--bar: write per clip, agent pair and "
+                    "setting: within, accepted, wrong, median final error, register CPU s")
     ap.add_argument("--street", action="store_true", help="the hard street of issue #13")
     ap.add_argument("--seconds", type=float, default=16.0)
     ap.add_argument("--turn-at", type=float, default=13.0)
@@ -427,6 +589,9 @@ def main() -> None:
         os.sched_setaffinity(0, set(cores[:n]))
     if args.street:
         street(args)
+        return
+    if args.coop and args.bar:
+        bar(args)
         return
     if args.coop:
         coop(args)
