@@ -113,15 +113,25 @@ def score_map(feats: np.ndarray, w: np.ndarray, bias: float) -> np.ndarray:
     hs, ws = feats.shape[0] - (r - 1) * step, feats.shape[1] - (c - 1) * step
     if hs <= 0 or ws <= 0:
         return np.zeros((0, 0), np.float32)
-    # per channel, one correlation with the window's weights spread out to the grid (the
-    # cells of a window are ``step`` grid points apart); anchored at the kernel's corner
-    kern = np.zeros(((r - 1) * step + 1, (c - 1) * step + 1), np.float32)
+    # the cells of a window are ``step`` grid points apart, so the windows whose corners
+    # share a row and column phase (i % step, j % step) read one sub-grid only: per phase
+    # and channel one correlation of that sub-grid with the window's dense weights (r x c
+    # taps), anchored at the kernel's corner. The same sums as one correlation of the full
+    # grid with the weights spread out ``step`` apart, at a quarter of the multiplications
+    # (the scorer's dense part: 0.087 -> ~0.03 CPU s per narrow-camera band)
     out = np.full((hs, ws), bias, np.float32)
-    for ch in range(feats.shape[2]):
-        kern[::step, ::step] = w[..., ch]
-        full = cv2.filter2D(np.ascontiguousarray(feats[..., ch]), -1, kern, anchor=(0, 0),
-                            borderType=cv2.BORDER_CONSTANT)
-        out += full[:hs, :ws]
+    for pi in range(step):
+        for pj in range(step):
+            sub = feats[pi::step, pj::step]
+            ni, nj = len(range(pi, hs, step)), len(range(pj, ws, step))
+            if ni <= 0 or nj <= 0:
+                continue
+            acc = out[pi::step, pj::step]
+            for ch in range(feats.shape[2]):
+                full = cv2.filter2D(np.ascontiguousarray(sub[..., ch]), -1,
+                                    np.ascontiguousarray(w[..., ch]), anchor=(0, 0),
+                                    borderType=cv2.BORDER_CONSTANT)
+                acc += full[:ni, :nj]
     return out
 
 

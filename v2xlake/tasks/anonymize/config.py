@@ -391,18 +391,22 @@ class Clusters(Section):
         "detector barely responds to it at any affordable scale (nor OpenCV's plate "
         "cascades: 8-10 of 96 at x3-x3.9). 0: off")
     band_learned_score: float = Field(
-        0.0, ge=0, description="the far band's learned small-plate scorer "
+        8.0, ge=0, description="the far band's learned small-plate scorer "
         "(anonymize.bandplate, weights bandplate.npz made by scripts/train_band_plates.py "
         "from synthetic plates and shipped photos only): windows of the band scored at "
-        "least this by its linear classifier on oriented-gradient cells are blurred as "
-        "plates (20-30 px plates; not read). Why: a plate on a white or silver car, or one "
-        "joining a chrome bumper, is no brighter than its car and escapes the plate-blob "
-        "test (band_blob_max_px). Real plates_eu plates pasted into the band of simulated "
-        "LiDAR-only clips (seeds 0-3, 32 per width), 0 -> 12: 20 px 18 -> 21 (eu[::2]) and "
-        "18 -> 24 (eu[1::2], held out) of 32, 30 / 40 px unchanged or +1, band false plates "
-        "on the real street frames 0.33 both, +0.35-0.5 CPU s per narrow-camera frame; off by "
-        "default: on the LiDAR-only 1080p clip (seed 0) it cost 0.73 -> 0.58-0.64 img/s/core. "
-        "0: off")
+        "least this by its linear classifier on oriented-gradient cells, whose middle rows "
+        "hold glyph texture, are blurred as plates (20-30 px plates; not read). Why: a "
+        "plate on a white or silver car, or one joining a chrome bumper, is no brighter "
+        "than its car and escapes the plate-blob test (band_blob_max_px). Real plates_eu "
+        "plates pasted into the band of simulated LiDAR-only clips (bench_anonymize "
+        "--band-plates --quick, seeds 0-3, 32 per width), off -> 8: 20 px 18 -> 23 "
+        "(eu[::2], where it was set) and 18 -> 25 (eu[1::2], held out) of 32, 30 / 40 px "
+        "unchanged or +1; band false plates on the real street frames 0.33 both (the band "
+        "laid at 4 row placements, mirrored too: 0.75 -> 0.79 per piece, each 0.02 % of "
+        "the frame); plate boxes off the pasted plates 3.8 -> 5.3 per simulated frame (the "
+        "clip's own rendered plates among them); 0.71 -> 0.82 CPU s per narrow-camera "
+        "frame. 6 finds one more on eu[::2] (24) but blurs 0.92 per street piece; 12 finds "
+        "21. 0: off")
     ground_isolated_m: float = Field(
         5.0, ge=0, description="a ground cell (2 m) with fewer than two occupied neighbours "
         "is a lone object's own returns (the road around it unseen): its ground is at most "
