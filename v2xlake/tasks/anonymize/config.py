@@ -391,7 +391,7 @@ class Clusters(Section):
         "detector barely responds to it at any affordable scale (nor OpenCV's plate "
         "cascades: 8-10 of 96 at x3-x3.9). 0: off")
     band_learned_score: float = Field(
-        8.0, ge=0, description="the far band's learned small-plate scorer "
+        0.0, ge=0, description="the far band's learned small-plate scorer "
         "(anonymize.bandplate, weights bandplate.npz made by scripts/train_band_plates.py "
         "from synthetic plates and shipped photos only): windows of the band scored at "
         "least this by its linear classifier on oriented-gradient cells, whose middle rows "

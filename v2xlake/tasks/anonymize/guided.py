@@ -264,9 +264,9 @@ class GuidedConfig(FromParams):
     # ``band_learned_score`` 0: off): windows scoring at least that, at most
     # ``band_learned_max`` per band (the highest, overlaps dropped), each with glyph texture
     # along its middle rows ``band_learned_glyph_ratio`` x the rows above and below (+3):
-    # 1.3, not 1.0, since the scorer is on by default at 8 (real 20 px plates, eu[::2], at 8:
-    # 1.0 -> 1.3 kept 23 / 32 found and dropped the one false plate it added on the bench's
-    # three real street frames)
+    # 1.3, not 1.0, for the scorer at 8 (real 20 px plates, eu[::2], at 8: 1.0 -> 1.3 kept
+    # 23 / 32 found and dropped the one false plate it added on the bench's three real
+    # street frames; at 12 it costs 21 -> 20 found)
     band_learned_score: float = _param("clusters.band_learned_score")
     band_learned_max: int = 12
     band_learned_glyph_ratio: float = 1.3
