@@ -61,6 +61,16 @@ def test_score_map_is_the_windows_linear_score() -> None:
         v = bp.window_at(f, i, j)
         assert m[i, j] == np.float32(v.ravel() @ w.ravel() + 0.5) or abs(
             m[i, j] - (v.ravel() @ w.ravel() + 0.5)) < 1e-3
+    # every grid point, so all four row / column phases the map is computed in, on grids of
+    # odd and even sizes (a phase with one row or column fewer than another)
+    for cut in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        ff = f[: f.shape[0] - cut[0], : f.shape[1] - cut[1]]
+        mm = bp.score_map(ff, w, 0.5)
+        brute = np.array([[bp.window_at(ff, i, j) @ w.ravel() + 0.5
+                           for j in range(mm.shape[1])] for i in range(mm.shape[0])])
+        assert mm.shape == (ff.shape[0] - (bp.WIN_CELLS[0] - 1) * bp.CELL // bp.STRIDE,
+                            ff.shape[1] - (bp.WIN_CELLS[1] - 1) * bp.CELL // bp.STRIDE)
+        assert np.abs(mm - brute).max() < 1e-3
 
 
 def test_a_plate_on_a_white_car_is_found_where_the_blob_test_sees_none() -> None:
