@@ -301,10 +301,18 @@ class SolveSection(Section):
                            "Hessian says (voxels, deskew residuals, what filtering left)")
     floor_deg: float = Field(0.02, gt=0, description="... and its rotation floor")
     floor_range_m: float | None = Field(
-        20.0, gt=0, description="a cross-agent result's floor grows in proportion to the "
+        40.0, gt=0, description="a cross-agent result's floor grows in proportion to the "
         "range between the two LiDARs beyond this (the far agent's point spacing on what "
-        "both see: a bias GICP's Hessian does not show, the same frame after frame); None: "
-        "the same floor at every range")
+        "both see: at 40 m a 1024-column LiDAR's columns are 0.25 m apart, most of a 0.3 m "
+        "voxel, so its centroids shift with where its rings fall, in every direction; a bias "
+        "GICP's Hessian does not show). None: the same floor at every range. 20 m until "
+        "2026-11-28, sized on the 3-19 cm bias the reference's 80 m range cut caused; with "
+        "the reference's scans to 120 m, on 26 far clips (50 m behind / ahead, the roadside "
+        "unit; seeds 1-5, 3 and 10 s) 20 m accepted 789 frames, none outside 3 cm / 0.1 deg, "
+        "30 / 40 / None alone 1252 / 1601 / 1738 with 21 / 42 / 63 outside: the far pairs' "
+        "bias is along the street, which weak_geometry_beyond_m covers. With it, 40 m keeps "
+        "every clip's within-target count (None lost 4 of 30 on one 3 s clip) and none "
+        "outside on the whole bar (bench_register.py --coop --bar)")
     degenerate_ratio: float = Field(
         0.02, ge=0, lt=1, description="a GICP result carries no information in directions "
         "weaker than this fraction of its strongest (the slide along a street)")
@@ -369,6 +377,23 @@ class SolveSection(Section):
         "same sign, each claiming 0.5 cm + the 1 cm floor; the clip reported 1.0-1.5 cm and "
         "accepted 28 frames 3.0-4.7 cm off. Only the reported 1-sigma changes, never the "
         "estimate; pairs without a stationary agent are untouched")
+    weak_geometry_beyond_m: float | None = Field(
+        30.0, ge=0, description="in the reported clip covariance, a cross frame whose two "
+        "LiDARs are farther apart than this is whitened with its weak-geometry floor "
+        "(weak_geometry_ratio) as well, as a stationary pair's are "
+        "(stationary_weak_geometry), still counted once per correlation_s; only the "
+        "reported 1-sigma changes, never the estimate. Why: at 40-50 m what fixes a pair "
+        "along the street is a few poles and car flanks seen in the far agent's sparse "
+        "rings, and their bias repeats while the agents keep their distance: black 50 m "
+        "behind (seed 3, 10 s) was 3-19 cm short along the street for 4 s, each frame "
+        "claiming ~0.5 cm there (translation observability 0.005-0.01). Pairs at 20 m "
+        "(0.01-0.03, errors 0.9-1.5x the claim) need no such floor: applied to every cross "
+        "frame it cost the 20 m-behind vehicle up to 88 of 98 accepted frames (seed 2, "
+        "10 s), hence a range well above theirs. With floor_range_m 40, on the safety bar "
+        "(bench_register.py --coop --bar --seeds 3 4 5 --bar-street: 48 clips and the hard "
+        "street; 2026-11-28) accepted 2285 -> 2855 frames, none outside 3 cm / 0.1 deg, no "
+        "clip's within-target count lower (50 m behind 0 -> 80 of 100 at 10 s). None: off; "
+        "0: every cross frame")
     stationary_correlation_s: float | None = Field(
         3.0, gt=0, description="... and the frames of such a pair within this many seconds "
         "count as one measurement (correlation_s for the others; None: correlation_s). The "

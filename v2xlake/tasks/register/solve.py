@@ -53,7 +53,10 @@ information counted once per ``correlation_s`` (consecutive GICP errors are corr
 observe itself needs observing frames before and after it within ``max_bridge_s``. A pair
 with a stationary agent (``still``) sees the same surfaces from the same place all clip long,
 so in the reported covariance its frames carry their weak-geometry floor too and count once
-per ``stationary_correlation_s`` (:func:`stationary_cross_information`).
+per ``stationary_correlation_s`` (:func:`stationary_cross_information`). So do the frames of
+a pair farther apart than ``weak_geometry_beyond_m`` (once per ``correlation_s``): at 40-50 m
+a following vehicle's GICP was 3-19 cm short along the street, the one direction its
+surfaces barely constrain, for seconds on end, each frame claiming ~0.5 cm.
 """
 
 from __future__ import annotations
@@ -748,6 +751,23 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
     PtP = P.P.T @ P.P
     A_c = (A - PtP) / corr + PtP
     pair = np.array([ref in still or c.other in still for c in uc], bool)
+    far = s.weak_geometry_beyond_m
+    moving = ~pair & np.array([far is not None and pair_range(c) > far for c in uc], bool)
+    if moving.any():
+        # a far pair's frames honestly whitened too (weak_geometry_beyond_m), counted as
+        # before, once per correlation_s: only the weak directions' variance changes. At
+        # 40-50 m the other agent's sparse rings on the poles and car flanks that alone fix
+        # the pair along the street bias it the same way for seconds (seed 3, 50 m behind:
+        # 3-19 cm short for 4 s, each frame claiming ~0.5 cm), which the isotropic range
+        # floor covered only by refusing every far frame
+        mv = np.flatnonzero(moving)
+        C_m = vf * Cw[mv] + floors[mv] + weak_geometry_floor(np.stack([Ws[i] for i in mv]), s)
+        U_m = _chol_upper(_drop_weak_batch(np.linalg.inv(C_m), dropped[2][mv], dropped[3][mv]))
+        f = np.sqrt(np.maximum(w[:n_c], 0.0))[:, None, None]
+        J_m = np.zeros((n_c, 6, P.n))
+        J_m[mv] = -(U_m @ G[mv]) * f[mv]
+        A_c = stationary_cross_information(A_c, -(U[:n_c] @ G[:n_c]) * f, J_m, moving, corr,
+                                           corr)
     if pair.any():
         # a stationary pair's frames: honestly whitened (its weak-geometry floor, the same
         # degenerate directions dropped) and counted once per stationary_correlation_s
@@ -906,9 +926,15 @@ def weak_geometry_floor(W: np.ndarray, s: SolveSection) -> np.ndarray:
     return out
 
 
+def pair_range(c: CrossMeasurement) -> float:
+    """The distance between the two LiDARs of a cross measurement, by the INS (metres)."""
+    return float(np.linalg.norm((np.linalg.inv(c.M_ref) @ c.M_oth)[:3, 3]))
+
+
 def range_floor(c: CrossMeasurement, s: SolveSection) -> np.ndarray:
     """The 6x6 error floor of a cross-agent GICP result: ``floor_m`` / ``floor_deg``, times
-    ``range / floor_range_m`` beyond ``floor_range_m`` between the two LiDARs (INS).
+    ``range / floor_range_m`` beyond ``floor_range_m`` between the two LiDARs (INS; off by
+    default since the reference's scans reach 120 m: ``weak_geometry_beyond_m`` instead).
 
     Why: what both agents see, the farther one sees with a point spacing that grows with
     range, and the voxel centroids of a sparse surface depend on where its rings fall. That
@@ -917,8 +943,7 @@ def range_floor(c: CrossMeasurement, s: SolveSection) -> np.ndarray:
     results within 1 cm at 5-20 m."""
     f = np.array([np.radians(s.floor_deg)] * 3 + [s.floor_m] * 3)
     if s.floor_range_m is not None:
-        d = float(np.linalg.norm((np.linalg.inv(c.M_ref) @ c.M_oth)[:3, 3]))
-        f = f * max(1.0, d / s.floor_range_m)
+        f = f * max(1.0, pair_range(c) / s.floor_range_m)
     return np.diag(f**2)
 
 
