@@ -5,6 +5,13 @@ same frame pairs, one core.
     python tests/bench/bench_register.py --street [--seconds 16 --turn-at 13] [--workdir DIR]
     python tests/bench/bench_register.py --coop [--coop-seconds 3 10] [--workdir DIR] [--cores 2]
                                          [--plots]
+    python tests/bench/bench_register.py --coop --bar --workdir DIR [--seeds 3 4 5]
+                                         [--bar-street --seconds 12 --turn-at 8]
+                                         [--set 'NAME={"solve": {...}}' ...] [--json OUT]
+
+``--coop --bar``: the safety bar (``bar()``): the register stage alone with the default and
+each ``--set`` RegisterConfig override on the same lakes (built once into ``--workdir``),
+within / accepted / wrong per clip and agent pair; the far variations first.
 
 ``--coop``: the cooperative boulevard of issue #21 (``coop_config``, 64 x 1024 scans) and its
 variations (the other vehicle ahead / 5-50 m away, no turn, INS drift and noise, an INS step,
