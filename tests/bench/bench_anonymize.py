@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import pickle
 import shutil
 import subprocess
 import sys
@@ -379,6 +380,19 @@ def main() -> None:
                     "1080p), ours (every frame vs key frames + carry) and deface")
     ap.add_argument("--clip-sizes", default="1080,4k,lidar",
                     help="with --clips: which clips (1080, 4k, lidar; comma-separated)")
+    ap.add_argument("--lidar-seconds", type=float, default=0.0,
+                    help="with --clips lidar: clip length in s (default 0.3 with --quick, "
+                    "else 0.5); carrying lost objects only on 1.0 s clips")
+    ap.add_argument("--work", type=Path, default=None,
+                    help="with --clips lidar: keep the simulated, ingested clips here and "
+                    "reuse them (a 1.0 s clip's simulation and ingest take CPU-minutes)")
+    ap.add_argument("--reuse-default", action="store_true",
+                    help="with --work: take every-frame-in-full's detections from the last "
+                    "run kept there (no timing of it: recall and the miss listing only)")
+    ap.add_argument("--no-deface", action="store_true", help="with --clips: skip deface")
+    ap.add_argument("--no-rules-alone", action="store_true",
+                    help="with --clips lidar: skip the carried variant without the fallback "
+                    "to a full detection (clusters.carry_unsure_full false)")
     ap.add_argument("--lidar-seeds", default="0",
                     help="with --clips: the simulated scenes of the LiDAR-guided clip "
                     "(comma-separated seeds)")
@@ -406,13 +420,15 @@ def main() -> None:
     if args.clips:
         cv2.setNumThreads(1)
         if "1080" in args.clip_sizes:
-            clip_bench(1920, 30.0, 0.6 if args.quick else 1.0)
+            clip_bench(1920, 30.0, 0.6 if args.quick else 1.0, deface=not args.no_deface)
         if "4k" in args.clip_sizes:
-            clip_bench(3840, 30.0, 0.3)
+            clip_bench(3840, 30.0, 0.3, deface=not args.no_deface)
         if "lidar" in args.clip_sizes:
             for seed in args.lidar_seeds.split(","):
-                clip_bench(1920, 30.0, 0.3 if args.quick else 0.5, lidar_only=True,
-                           seed=int(seed))
+                clip_bench(1920, 30.0, args.lidar_seconds or (0.3 if args.quick else 0.5),
+                           lidar_only=True, seed=int(seed), work=args.work,
+                           reuse_default=args.reuse_default, deface=not args.no_deface,
+                           rules_alone=not args.no_rules_alone)
         return
     if args.real:
         cv2.setNumThreads(1)
@@ -713,8 +729,55 @@ def deface_detections(frames: dict[tuple[str, str, int], Path]) -> dict:
     return out
 
 
+def missed_listing(truth: dict, full: dict, carried: dict, key_ns: int) -> None:
+    """Every visible face >= ``FACE_MIN_PX`` / plate >= ``PLATE_MIN_PX`` that ``full``
+    (every frame in full) blurs and ``carried`` does not, one line each: camera, frame
+    time, key frame or between, kind, instance, size and box, and the nearest carried
+    detection of its kind (centre distance in sizes, size): where carrying lost it."""
+    from v2xlake.tasks.anonymize.carry import key_frames
+    from v2xlake.tasks.anonymize.evaluate import FACE_MIN_PX, PLATE_MIN_PX
+
+    occluded = truth.get("occluded") or [False] * len(truth["kind"])
+    stamps: dict[tuple[str, str], list[int]] = {}
+    for a, c, t in full:
+        stamps.setdefault((a, c), []).append(t)
+    key_of: dict[tuple[str, str, int], bool] = {}
+    t_first: dict[tuple[str, str], int] = {}
+    for cam, ts in stamps.items():
+        ts.sort()
+        t_first[cam] = ts[0]
+        for t, k in zip(ts, key_frames(ts, key_ns), strict=True):
+            key_of[(*cam, t)] = k
+    n = 0
+    for i, kind in enumerate(truth["kind"]):
+        if kind not in ("face", "plate") or occluded[i]:
+            continue
+        key = (str(truth["agent"][i]), str(truth["camera"][i]), int(truth["stamp_ns"][i]))
+        if key not in full or key not in carried:
+            continue
+        box = tuple(float(truth[c][i]) for c in ("x0", "y0", "x1", "y1"))
+        size = box[3] - box[1] if kind == "face" else box[2] - box[0]
+        if size < (FACE_MIN_PX if kind == "face" else PLATE_MIN_PX):
+            continue
+        if not match([(kind, box)], full[key])[0][0] or match([(kind, box)], carried[key])[0][0]:
+            continue
+        n += 1
+        cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+        near = sorted((float(np.hypot((d.box[0] + d.box[2]) / 2 - cx,
+                                       (d.box[1] + d.box[3]) / 2 - cy)) / size,
+                        max(d.box[2] - d.box[0], d.box[3] - d.box[1]))
+                       for d in carried[key] if d.kind == kind)
+        hint = (f"nearest carried {near[0][0]:.1f} sizes away, {near[0][1]:.0f} px"
+                if near else "no carried one of its kind")
+        print(f"    missed: {key[0]}/{key[1]} t={(key[2] - t_first[key[:2]]) / 1e6:.0f} ms "
+              f"({'key' if key_of[key] else 'between'}) {kind} {truth['instance_id'][i]} "
+              f"{size:.0f} px at ({box[0]:.0f},{box[1]:.0f},{box[2]:.0f},{box[3]:.0f}); {hint}")
+    print(f"  carried missed {n} face(s) / plate(s) that every frame in full blurs")
+
+
 def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
-               seed: int = 0) -> None:
+               seed: int = 0, work: Path | None = None, reuse_default: bool = False,
+               deface: bool = True, rules_alone: bool = True) -> None:
     """One simulated clip (small preset, front / narrow / back cameras at ``width``, ``hz``)
     through the stage, one worker, CPU seconds: every frame detected in full
     (``key_interval_ms=0``) against the default (key frames + carry), recall of visible
@@ -748,15 +811,26 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
         print(f"  {name}: {speed_s}; {'; '.join(cells)}; "
               f"{false_blurs(truth, dets):.2f} false blurs/img")
 
-    with tempfile.TemporaryDirectory() as tmp:
-        clip_dir = simulate(Path(tmp) / "clip", SimConfig.preset(
-            "small", seconds=seconds, camera_hz=hz, image_width=width, seed=seed,
-            cameras=("CAM_FRONT", "CAM_FRONT_NARROW", "CAM_BACK")))
+    with tempfile.TemporaryDirectory() as tmp_dir:
+        tmp = (work / f"clip_{width}_{hz:g}hz_{seconds:g}s_seed{seed}"
+               f"{'_lidar' if lidar_only else ''}") if work is not None else Path(tmp_dir)
+        tmp.mkdir(parents=True, exist_ok=True)
+        made = tmp / "clip_id.txt"  # written once the clip is simulated and ingested
+        if made.exists():
+            clip_dir, cid = made.read_text().split("\n")[:2]
+            lake = Lake(tmp / "lake")
+        else:
+            shutil.rmtree(tmp / "clip", ignore_errors=True)
+            shutil.rmtree(tmp / "lake", ignore_errors=True)
+            clip_dir = str(simulate(tmp / "clip", SimConfig.preset(
+                "small", seconds=seconds, camera_hz=hz, image_width=width, seed=seed,
+                cameras=("CAM_FRONT", "CAM_FRONT_NARROW", "CAM_BACK"))))
+            lake = Lake(tmp / "lake")
+            cid = run_ingest(lake, Path(clip_dir)).clip_id
+            if lidar_only:
+                drop_annotations(lake, cid)
+            made.write_text(f"{clip_dir}\n{cid}\n")
         truth = pq.read_table(Path(clip_dir) / "truth" / "boxes2d.parquet").to_pydict()
-        lake = Lake(Path(tmp) / "lake")
-        cid = run_ingest(lake, clip_dir).clip_id
-        if lidar_only:
-            drop_annotations(lake, cid)
         keys = lake_image_keys(lake, cid)
         print(f"\nSimulated clip {width} px, {hz:g} Hz, {seconds:g} s, seed {seed}: "
               f"{len(keys)} images, "
@@ -767,19 +841,45 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
         # carry.key_interval_ms=0 without the cluster tracks; carried is the variant
         variants: tuple[tuple[str, dict], ...] = ((
             ("default: every frame in full (clusters.carry false)", {}),
-            ("carried by cluster track (clusters.carry true)", {"clusters": {"carry": True}}))
+            ("carried by cluster track (clusters.carry true)", {"clusters": {"carry": True}}),
+            ("carried, unsure frames carried too (clusters.carry_unsure_full false)",
+             {"clusters": {"carry": True, "carry_unsure_full": False}}))
             if lidar_only else (
             ("every frame in full (carry.key_interval_ms=0)", {"carry": {"key_interval_ms": 0}}),
             ("default (key frames + carry, faces int8 then float)", {}),
             ("key frames + carry, float CenterFace alone",
              {"faces": {"regions_first_int8": False}}),
             ("key frames + carry, int8 CenterFace alone", {"faces": {"int8": True}})))
+        if lidar_only and not rules_alone:
+            variants = variants[:2]
+        got: dict[str, dict] = {}
+        kept = tmp / "default_detections.pkl"
         for name, upd in variants:
+            if reuse_default and not upd and kept.exists():
+                got[name] = pickle.loads(kept.read_bytes())
+                line(f"ours, {name} (kept from an earlier run)", got[name], None)
+                continue
             t = time.process_time()
             rep = run_anonymize(lake, cid, AnonymizeConfig(work={"workers": 1}, **upd))
             cpu = time.process_time() - t
-            line(f"ours, {name}", audit_detections(lake, cid), rep.metrics["n_images"] / cpu)
-        folder = Path(tmp) / "png"
+            got[name] = audit_detections(lake, cid)
+            if not upd and work is not None:
+                kept.write_bytes(pickle.dumps(got[name]))
+            line(f"ours, {name}", got[name], rep.metrics["n_images"] / cpu)
+            if rep.metrics.get("n_images_carried"):
+                print(f"    {rep.metrics['n_images_carried']:.0f} images between key frames, "
+                      f"{rep.metrics.get('n_images_carried_in_full', 0):.0f} of them detected "
+                      "in full (carrying unsure)")
+        if lidar_only:
+            full, *rest = got.values()
+            for name, car in zip([n for n, _ in variants][1:], rest, strict=True):
+                print(f"  {name}:")
+                missed_listing(truth, full, car,
+                               int(AnonymizeConfig().carry.key_interval_ms * 1e6))
+        if not deface:
+            return
+        folder = tmp / "png"
+        shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir()
         frames = {}
         for k, (blob, _f) in keys.items():

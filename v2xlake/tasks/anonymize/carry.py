@@ -368,7 +368,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                     regions: Sequence[Region] | None, t_ns: int, grow: float,
                     window: float, shape: tuple[int, ...], fresh: Sequence[Region] = (),
                     earlier: tuple[Sequence[Detection], Sequence[Region] | None, int] | None
-                    = None
+                    = None, unsure: list[str] | None = None
                     ) -> tuple[list[Detection], list[Region], list[tuple[Region, Detection]]]:
     """``between`` for regions from LiDAR cluster tracks: the carried detections of a frame
     at ``t_ns``, the regions to search here, and fallbacks: (searched window, detection)
@@ -410,8 +410,27 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     search finds nothing: a plate leaving the narrow camera at 45 px a frame was inside
     the frame on one key frame and gone on the next, and its cut part 34 px in view was
     found neither by its window search at its own scale (121 px) nor by the edge rule (it
-    touched no edge on the key frame)."""
+    touched no edge on the key frame).
+
+    ``earlier`` pairs by track identity first (``_ahead``): a plate leaving the view at 100
+    px a frame moved 6 sizes per key interval, beyond any size-bounded reach. So does the
+    pairing of the two key frames: a detection without a partner of its size nearby gets
+    the nearest of its kind in a region of the same track (a plate found 10 px wide on one
+    key frame and 22 px on the other is one plate, not two lost ones).
+
+    ``unsure``: where given, the reasons this frame's carried result cannot be trusted are
+    appended (the caller then detects the frame in full, the safe default): a detection of
+    the key frame before without a partner in the key frame after and without an image
+    velocity (no key frame before it, or no partner there) not in view for sure in the key
+    frame after (``in_view``: nothing bounds where it went: a plate
+    1.7 sizes from the edge on the first key frame had left the view by the next, and one
+    whose region came from another agent's LiDAR on the key frame before, so no track to
+    pair by, moved 3 sizes per key interval and left it, each unblurred on the two frames
+    between); one of the key frame after without a partner that may have entered the view
+    (``may_enter``: anywhere on its way in); a pair of one track whose sizes differ more
+    than 2x (one of them a piece of the object: the box between them is neither)."""
     (d0, r0, t0), (d1, r1, t1) = before, after
+    doubt: list[str] = unsure if unsure is not None else []
     h, w = shape[:2]
     a = min(max((t_ns - t0) / max(t1 - t0, 1), 0.0), 1.0)
     here = {_key(r): r for r in regions or ()}
@@ -464,6 +483,39 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     def track(r: Region | None) -> tuple[str, str, str] | None:
         return _key(r) if r is not None and r.instance and r.part != "band" else None
 
+    in_a = {_key(r): r for r in r0 or ()}
+
+    def cut(r: Region) -> bool:
+        """A region's box cut by the frame edge (not ``_at_edge``: a vehicle face's
+        anchored region is cut too as its car leaves the view)."""
+        return r.box[0] <= 1 or r.box[1] <= 1 or r.box[2] >= w - 1 or r.box[3] >= h - 1
+
+    def in_view(d: Detection, rk: Region | None, other: dict[tuple[str, str, str], Region]
+                ) -> bool:
+        """Whether ``d`` is in view on the other key frame for sure: its track's region
+        is there with its box whole, and ``d`` moved with it, grown by its reach
+        (``window`` x its size), is inside the frame (a close car's region stayed whole
+        while its plate, 3.5 sizes per key interval, left the view)."""
+        o = other.get(_key(rk)) if rk is not None and track(rk) is not None else None
+        if rk is None or o is None or cut(o):
+            return False
+        b, m = _move(d.box, rk, o), window * _size(d)
+        return b[0] - m > 0 and b[1] - m > 0 and b[2] + m < w and b[3] + m < h
+
+    def may_enter(d: Detection, rk: Region | None) -> bool:
+        """Whether ``d``, found in the key frame after only, may have entered the view
+        between the key frames: its track's region in the key frame before is not in
+        view whole, and its box grown by its reach (``window`` x its size, plus how far
+        its track's region moved between the key frames) touches the edge."""
+        if in_view(d, rk, in_a):
+            return False
+        m = window * _size(d)
+        o = in_a.get(_key(rk)) if rk is not None and track(rk) is not None else None
+        if rk is not None and o is not None:
+            m += float(np.hypot((o.box[0] + o.box[2] - rk.box[0] - rk.box[2]) / 2,
+                                (o.box[1] + o.box[3] - rk.box[1] - rk.box[3]) / 2))
+        return d.box[0] - m <= 0 or d.box[1] - m <= 0 or d.box[2] + m >= w or d.box[3] + m >= h
+
     keys_a = {track(r) for r in r0 or ()} - {None}
     keys_b = {track(r) for r in r1 or ()} - {None}
     for k, (p, rk, reg) in enumerate(c0):
@@ -477,8 +529,18 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         j = _match(pred[k][0], cand, used | other)
         if j is None and pred[k][0] is not p:
             j = _match(p, cand, used | other)  # the region jumped, the object did not
+        if j is None and tp is not None:  # one track's find of its kind: the same object
+            j = _nearest(p, [(q, None) if track(rq) == tp else (None, None)
+                             for q, rq, _ in c1], used)
+            if j is not None and max(_size(p), _size(c1[j][0])) > 2 * min(
+                    _size(p), _size(c1[j][0])):
+                doubt.append(f"{p.kind} of one track found at {_size(p):.0f} and "
+                             f"{_size(c1[j][0]):.0f} px")
         if j is None:
-            lost(p, rk, reg, a, _ahead(p, earlier, t0, t_ns, window) if earlier else None)
+            ahead = _ahead(p, earlier, t0, t_ns, window, rk) if earlier else None
+            if ahead is None and not in_view(p, rk, in_b):
+                doubt.append(f"{p.kind} of {_size(p):.0f} px gone near the edge, no velocity")
+            lost(p, rk, reg, a, ahead)
             continue
         used.add(j)
         q = c1[j][0]
@@ -492,6 +554,8 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
             out.append(d)
     for j, (q, rk, reg) in enumerate(c1):
         if j not in used:
+            if may_enter(q, rk):
+                doubt.append(f"{q.kind} of {_size(q):.0f} px new near the edge")
             lost(q, rk, reg, 1 - a)
     out = [Detection(d.kind, _grow(d.box, 0.0, w, h), d.score, d.detector) for d in out]
     return ([d for d in out if d.box[2] - d.box[0] >= 1 and d.box[3] - d.box[1] >= 1],
@@ -539,7 +603,7 @@ def key_windows(before: tuple[Sequence[Detection], Sequence[Region] | None, int]
         if (rk is not None and reg is not None and _fits(d, rk) and not _at_edge(rk, shape)
                 and not _at_edge(reg, shape)):
             continue  # its track's region is searched here at its scale
-        ahead = _ahead(d, earlier, t0, t_ns, window) if earlier is not None else None
+        ahead = _ahead(d, earlier, t0, t_ns, window, rk) if earlier is not None else None
         boxes, _cut = _search_boxes(d, rk, reg, ahead, w, h)
         if speed_mps > 0:
             px = d.box[3] - d.box[1] if d.kind == "face" else d.box[2] - d.box[0]
@@ -593,20 +657,45 @@ def _window(d: Detection, boxes: Sequence[Box], window: float, shape: tuple[int,
 
 
 def _ahead(d: Detection, earlier: tuple[Sequence[Detection], Sequence[Region] | None, int],
-           t0: int, t_ns: int, window: float) -> Box | None:
+           t0: int, t_ns: int, window: float, rk: Region | None = None) -> Box | None:
     """Where ``d`` (found at ``t0``) is at ``t_ns`` if it goes on as it came: its partner
-    in the ``earlier`` key frame (the nearest detection of its kind, within 2x its size
-    and ``window`` x its larger side, as far as a window search looks) gives each corner's
-    image velocity (a plate leaving the view also grows and drops as it nears); None
-    without a partner. Unclipped: the caller tells a box across the frame edge by it."""
-    dets, _regions, te = earlier
+    in the ``earlier`` key frame gives each corner's image velocity (a plate leaving the
+    view also grows and drops as it nears); None without a partner. The partner: the
+    nearest detection of its kind in a region of ``d``'s track (``rk``, its region at
+    ``t0``: a LiDAR track is one object however far it moved: a plate leaving the view
+    at 100 px a frame moved 6 sizes per key interval), else the nearest of its kind
+    within 2x its size and ``window`` x its larger side (as far as a window search
+    looks). Unclipped: the caller tells a box across the frame edge by it."""
+    dets, regions, te = earlier
     if te >= t0:
         return None
-    j = _match(d, [(e, None) for e in dets], set(), window * _size(d))
+    j = None
+    if rk is not None and rk.instance and rk.part != "band" and regions:
+        same = [(e, None) if (re := _region_of(e, regions)) is not None
+                and _key(re) == _key(rk) else (None, None) for e in dets]
+        j = _nearest(d, same, set())
+    if j is None:
+        j = _match(d, [(e, None) for e in dets], set(), window * _size(d))
     if j is None:
         return None
     k = (t_ns - t0) / (t0 - te)
     return tuple(float(u + k * (u - v)) for u, v in zip(d.box, dets[j].box, strict=True))  # type: ignore[return-value]
+
+
+def _nearest(p: Detection, cands: Sequence[tuple[Detection | None, Region | None]],
+             used: set[int]) -> int | None:
+    """The nearest unused candidate of ``p``'s kind (None entries: not candidates), at
+    any distance and size: for candidates already known to be ``p``'s object (one
+    track's)."""
+    px, py = (p.box[0] + p.box[2]) / 2, (p.box[1] + p.box[3]) / 2
+    best, best_d = None, np.inf
+    for k, (q, _) in enumerate(cands):
+        if q is None or k in used or q.kind != p.kind:
+            continue
+        dist = float(np.hypot((q.box[0] + q.box[2]) / 2 - px, (q.box[1] + q.box[3]) / 2 - py))
+        if dist < best_d:
+            best, best_d = k, dist
+    return best
 
 
 def _size(d: Detection) -> float:

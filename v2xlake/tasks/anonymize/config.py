@@ -297,9 +297,23 @@ class Clusters(Section):
         "0.5 s with the same faces and plates blurred, and 1.66-1.74x on 1.0 s clips, where "
         "it LEAVES UNBLURRED what every frame in full blurs (seed 0: 5 plates of 21-75 px "
         "and an 18 px face; seed 1: 4 faces of 18-41 px and a 113 px plate: fast plates "
-        "leaving the view, plates seen only between key frames). Hence off (every frame of "
-        "a LiDAR-only clip detected in full) until longer clips hold; true trades that "
-        "recall for speed")
+        "leaving the view, plates seen only between key frames). 2026-11-28: pairing by "
+        "track identity and the full detection where carrying is unsure "
+        "(clusters.carry_unsure_full) leave 1 plate on each 1.0 s clip (seed 0: 64 px at "
+        "433 ms, seed 1: 113 px at 733 ms, both between key frames), at only 1.23x every "
+        "frame in full's img/s/core (seed 0, 1.86 -> 2.28; half the carried frames detected "
+        "in full). Hence off (every frame of a LiDAR-only clip detected in full) until "
+        "longer clips hold; true trades that recall for speed")
+    carry_unsure_full: bool = Field(
+        True, description="with clusters.carry, a frame between key frames where carrying "
+        "cannot tell where an object is gets the full detection instead (the safe default, "
+        "as without carrying): a key frame's find gone in the next key frame without an "
+        "image velocity and not surely in view there, a find new in the next key frame that "
+        "may have entered the view, one track's finds more than 2x apart in size "
+        "(carry.between_tracked's unsure). Simulated 1080p 30 Hz LiDAR-only 1.0 s clips "
+        "(2026-11-28): faces / plates that every frame in full blurs left unblurred, seed "
+        "0: 4 -> 1, seed 1: 4 -> 1; about half the carried frames (56 and 46 of 114) are "
+        "then detected in full: 1.23x every frame in full's img/s/core (seed 0, same run)")
     track_gate_m: float = Field(
         3.0, ge=0, description="with clusters.carry, a LiDAR's clusters get one identity "
         "per object across its scans (clusters.track_ids): a box continues the track whose "

@@ -279,8 +279,10 @@ def _write_clean(
             lake.read_table("raw", "lidar_frames", clip_id=clip_id), guide_config(cfg),
             lidar_clusters(lake, clip_id, t0, ego, cfg))
         report.notes.append(f"anonymize: regions from {guide.source}")
+    stats: dict[str, float] = {}
     n_faces, n_plates, n_images, n_guided = _anonymize_images(
-        lake, stage, clip_id, cfg, t0, write, progress, guide)
+        lake, stage, clip_id, cfg, t0, write, progress, guide, stats)
+    report.metrics.update(stats)
     report.metrics["n_images_guided"] = float(n_guided)
     report.metrics.update(
         n_images=float(n_images), n_faces=float(n_faces), n_plates=float(n_plates)
@@ -416,10 +418,14 @@ def _anonymize_images(
     write: Callable[..., None],
     progress: Progress | None,
     guide: ClipGuide | None = None,
+    stats: dict[str, float] | None = None,
 ) -> tuple[int, int, int, int]:
     """Every camera image: detect (guided when the guide has regions for it), fill temporal
     gaps per camera, blur, encode; frames of one camera go in time order, ``frames_per_chunk``
-    at a time, detected with one frame of look-ahead so a chunk's last frame has its next."""
+    at a time, detected with one frame of look-ahead so a chunk's last frame has its next.
+    ``stats``: where given, gets the number of frames carried between key frames
+    (``n_images_carried``) and of those detected in full instead because carrying was
+    unsure (``n_images_carried_in_full``, LiDAR-only clips)."""
     files = partition_files(lake, "raw", "camera_frames", clip_id)
     tables = [(agent, name, read_parquet(path, filesystem=lake.fs)) for path, agent, name in files]
     total = sum(t.num_rows for _, _, t in tables)
@@ -472,6 +478,10 @@ def _anonymize_images(
                             path=key, stage=STAGE) from e
 
     full = cfg.clusters.full_frame and guide is not None and guide.source == "lidar clusters"
+    # frames between key frames: carried, and (LiDAR-only) those detected in full instead
+    counts: dict[str, list[int]] = {"carried": [], "carried_in_full": []}  # rows
+    if stats is not None:
+        stats.update(n_images_carried=0.0, n_images_carried_in_full=0.0)
     gcfg = guide_config(cfg)
     part_m = (gcfg.face_height_m, gcfg.plate_width_m)  # the sizes the regions expect
 
@@ -527,14 +537,22 @@ def _anonymize_images(
             # the key frame before ``a``: its detections give an image velocity to those of
             # ``a`` that ``b`` lacks (``carry._ahead``: one leaving the view)
             e = next((rows[q] for q in range(pos[a] - 1, -1, -1) if is_key[q]), None)
+            doubt: list[str] = []
             found, again, fallback = between_tracked(
                 (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
                 regions, int(stamps[i]), cfg.carry.grow, cfg.clusters.carry_window, img.shape,
-                fresh, (known[e], kregions[e], int(stamps[e])) if e is not None else None)
+                fresh, (known[e], kregions[e], int(stamps[e])) if e is not None else None,
+                doubt)
+            if doubt and cfg.clusters.carry_unsure_full:
+                # carrying cannot tell where an object is here: this frame is detected in
+                # full, as without carrying (``carry.between_tracked``'s ``unsure``)
+                counts["carried_in_full"].append(i)
+                return img, detector.detect(to_bgr8(img), regions, full), regions
         else:
             (found, again), fallback = between(
                 (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
                 regions, int(stamps[i]), cfg.carry.grow, img.shape, fresh), []
+        counts["carried"].append(i)
         safe = tracked and cfg.clusters.carry_safety
         seen: list[Detection] = []
         if fresh or again or safe:
@@ -697,6 +715,10 @@ def _anonymize_images(
             write("camera_frames", _clean_frames(table, t0, result, anonymizer,
                                                  [len(d) for d in dets]), agent, name)
             write("anonymization_audit", _audit_table(audit, agent), agent, name)
+    if stats is not None:
+        stats.update(
+            n_images_carried=float(len(counts["carried"]) + len(counts["carried_in_full"])),
+            n_images_carried_in_full=float(len(counts["carried_in_full"])))
     return n_faces, n_plates, int(total), n_guided
 
 
