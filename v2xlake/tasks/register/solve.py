@@ -933,8 +933,9 @@ def pair_range(c: CrossMeasurement) -> float:
 
 def range_floor(c: CrossMeasurement, s: SolveSection) -> np.ndarray:
     """The 6x6 error floor of a cross-agent GICP result: ``floor_m`` / ``floor_deg``, times
-    ``range / floor_range_m`` beyond ``floor_range_m`` between the two LiDARs (INS; off by
-    default since the reference's scans reach 120 m: ``weak_geometry_beyond_m`` instead).
+    ``range / floor_range_m`` beyond ``floor_range_m`` between the two LiDARs (INS; 40 m by
+    default since the reference's scans reach 120 m, the far pairs' bias along the street
+    being covered by ``weak_geometry_beyond_m``).
 
     Why: what both agents see, the farther one sees with a point spacing that grows with
     range, and the voxel centroids of a sparse surface depend on where its rings fall. That
