@@ -1,7 +1,10 @@
-"""LiDAR cluster tracks (``clusters.track_ids``) and the frames between key frames of a clip
-guided by them (``carry.between_tracked``): pure functions, no detector."""
+"""LiDAR cluster tracks (``clusters.track_ids``, across agents ``clusters.object_ids``) and
+the frames between key frames of a clip guided by them (``carry.between_tracked``): pure
+functions, no detector."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
@@ -11,7 +14,7 @@ from v2xlake.tasks.anonymize.carry import (
     merge_overlapping,
     unconfirmed,
 )
-from v2xlake.tasks.anonymize.clusters import track_ids
+from v2xlake.tasks.anonymize.clusters import object_ids, track_ids
 from v2xlake.tasks.anonymize.detectors import Detection
 from v2xlake.tasks.anonymize.guide import Region
 
@@ -40,6 +43,84 @@ def test_a_moving_car_keeps_its_track_across_scans() -> None:
     assert second[3] not in first and third[3] not in second  # 5 m a scan: beyond the gate
     # without a gate the same boxes get a new number in every scan
     assert len(set(track_ids(t, centre, size, yaw, cat, 0.0, 250 * MS))) == 12
+
+
+def test_two_agents_tracks_of_one_object_share_it() -> None:
+    """Two agents' LiDARs scanning 50 ms out of phase, each with its own track numbers: a
+    car driving 15 m/s (1.5 m a scan), a parked car 5 m behind it (two tracks of agent A:
+    its cluster's end-on copy too), and two walkers 1 m apart. Each object's tracks share
+    one number, and only theirs: the walkers are each other's second nearest, the parked
+    car is 5 m from the moving one at its first scan. Agent B's box of the parked car 4 m
+    off (beyond the 3 m gate) is another object; one LiDAR's tracks are joined alone only
+    when they are one cluster's copies (the moving car's track split in A is two objects
+    without B)."""
+    t_a = np.arange(5) * 100 * MS
+    t_b = t_a + 50 * MS
+    rows: list[tuple[int, float, float, str, int]] = []  # t, x, y, lidar, track
+    for t0, lid, dy in ((t_a, "a", 0.0), (t_b, "b", 0.3)):
+        for ts in t0:
+            x = 10.0 + 15.0 * ts / 1e9
+            rows.append((int(ts), x, dy, lid, 1 if lid == "a" else 7))
+            rows.append((int(ts), 5.0, dy - 0.2, lid, 2 if lid == "a" else 8))
+            rows.append((int(ts), 20.0, 6.0 + dy, lid, 4 if lid == "a" else 10))
+            rows.append((int(ts), 20.0, 7.0 + dy, lid, 5 if lid == "a" else 11))
+        if lid == "a":
+            rows += [(int(ts), 5.0, -0.2, "a", 3) for ts in t0]  # the end-on copy
+    t = np.array([r[0] for r in rows], np.int64)
+    c = np.array([[r[1], r[2], 1.0] for r in rows])
+    lid_ = np.array([r[3] for r in rows])
+    trk = np.array([r[4] for r in rows])
+    obj = object_ids(t, c, trk, lid_, 3.0)
+
+    def of(lidar: str, track: int) -> set[int]:
+        return set(obj[(lid_ == lidar) & (trk == track)].tolist())
+
+    assert of("a", 1) == of("b", 7) and len(of("a", 1)) == 1
+    assert of("a", 2) == of("a", 3) == of("b", 8)
+    assert of("a", 4) == of("b", 10) != of("a", 5) == of("b", 11)
+    assert len({next(iter(of("a", k))) for k in (1, 2, 4, 5)}) == 4
+    # the parked car 4 m off in agent B's world (its pose wrong): no shared object
+    far = c.copy()
+    far[(lid_ == "b") & (trk == 8), 1] += 4.0
+    obj_far = object_ids(t, far, trk, lid_, 3.0)
+    assert set(obj_far[(lid_ == "b") & (trk == 8)]) != set(obj_far[(lid_ == "a") & (trk == 2)])
+    # one LiDAR alone: its tracks keep apart, however close (a track that ended and one
+    # that began where it would be), but for the copies of one cluster
+    only_a = lid_ == "a"
+    split = trk[only_a].copy()
+    split[(t[only_a] >= 300 * MS) & (split == 1)] = 9
+    alone = object_ids(t[only_a], c[only_a], split, lid_[only_a], 3.0)
+    assert len(set(alone)) == len(set(split)) - 1
+
+
+def test_a_plate_found_in_two_agents_tracks_gets_its_velocity() -> None:
+    """The key frame before that found a plate in a region of agent B's track and the key
+    frame before in agent A's (one car: ``object_ids`` gave both ``@o3``), gone on the key
+    frame after: the two finds are one plate moving 300 px a key interval, so the frame
+    between knows it is leaving the view (unsure: detected in full). Numbered as two
+    objects, nothing pairs them (no velocity) and the car's region, whole in view on
+    the key frame after, said the plate is there: the frame was carried and the plate,
+    leaving the view, unblurred."""
+    p_early = Detection("plate", (1400.0, 700.0, 1450.0, 712.0), 0.9, "text")
+    p_key = Detection("plate", (1700.0, 700.0, 1750.0, 712.0), 0.9, "text")
+    reg_b = Region("plate", (1350.0, 650.0, 1500.0, 760.0), 150.0, "lidar:b:L:t9@o3", None,
+                   None, "front", None)
+    reg_a = Region("plate", (1650.0, 650.0, 1800.0, 760.0), 150.0, "lidar:a:L:t5@o3", None,
+                   None, "rear", None)
+    # the car's region lags: 20 px further on the key frame after, whole in view
+    reg_a1 = dataclasses.replace(reg_a, box=(1670.0, 650.0, 1820.0, 760.0))
+    before = ([p_key], [reg_a], 0)
+    after: tuple[list[Detection], list[Region], int] = ([], [reg_a1], 100 * MS)
+    unsure: list[str] = []
+    between_tracked(before, after, [], 33 * MS, 0.5, 2.0, SHAPE, (),
+                    ([p_early], [reg_b], -100 * MS), unsure)
+    assert any("velocity" in u for u in unsure)
+    # another object in agent B's region: no velocity, the lagging region says in view
+    other = dataclasses.replace(reg_b, instance="lidar:b:L:t9@o4")
+    unsure = []
+    between_tracked(before, after, [], 33 * MS, 0.5, 2.0, SHAPE, (),
+                    ([p_early], [other], -100 * MS), unsure)
+    assert not unsure
 
 
 def test_a_face_crossing_the_view_is_searched_where_it_went() -> None:
@@ -220,8 +301,10 @@ def test_a_plate_leaving_the_view_fast_moves_on_by_its_track() -> None:
     """A 50 px plate 300 px (6 sizes) further each key interval, gone from the view on the
     key frame after: its partner in the key frame before that is found by its track (no
     size-bounded reach gets there), and the part still in view 67 ms later (its image
-    velocity puts it at x 1900-1950) stays blurred when its window search finds nothing.
-    Without that key frame nothing tells where it went: the frame is unsure."""
+    velocity puts it at x 1900-1950) stays blurred when its window search finds nothing
+    (with ``clusters.carry_unsure_full`` false); by its own velocity it is leaving the view,
+    so the frame is unsure (detected in full). Without that key frame nothing tells where
+    it went: the frame is unsure too, and there is no part to keep."""
     p_early = Detection("plate", (1400.0, 700.0, 1450.0, 712.0), 0.9, "text")
     p_key = Detection("plate", (1700.0, 700.0, 1750.0, 712.0), 0.9, "text")
     earlier = ([p_early], [_plate_region("t5", (1350.0, 650.0, 1500.0, 760.0))], -100 * MS)
@@ -230,7 +313,7 @@ def test_a_plate_leaving_the_view_fast_moves_on_by_its_track() -> None:
     unsure: list[str] = []
     _f, _again, fallback = between_tracked(before, after, [], 67 * MS, 0.5, 2.0, SHAPE, (),
                                            earlier, unsure)
-    assert not unsure
+    assert unsure == ["plate of 50 px leaving the view at its velocity"]
     assert any(d.box[0] <= 1905 and d.box[2] >= 1919 for _r, d in fallback)
     # the partner of another track (another object 300 px away) gives no velocity
     other = ([p_early], [_plate_region("t9", (1350.0, 650.0, 1500.0, 760.0))], -100 * MS)

@@ -359,8 +359,18 @@ def _fits(d: Detection, r: Region, within: float = 2.0) -> bool:
 
 
 def _lidar(instance: str) -> str:
-    """The LiDAR that numbered a cluster track (``lidar:<agent>:<sensor>:t<k>``)."""
-    return instance.rsplit(":", 1)[0]
+    """The LiDAR that numbered a cluster track (``lidar:<agent>:<sensor>:t<k>``, maybe
+    followed by ``@o<object>``)."""
+    return instance.split("@", 1)[0].rsplit(":", 1)[0]
+
+
+def _object(r: Region) -> tuple[str, str]:
+    """The object a region's find belongs to, and the find's kind: the object number the
+    clusters of all agents' LiDARs share (``<track>@o<object>``, ``clusters.object_ids``),
+    else the region's instance. The part is left out: two agents' boxes of one car may
+    name its ends the other way round (a footprint's yaw is known modulo 180°)."""
+    inst = r.instance
+    return (inst.split("@", 1)[1] if "@" in inst else inst, r.kind)
 
 
 def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
@@ -412,17 +422,24 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     found neither by its window search at its own scale (121 px) nor by the edge rule (it
     touched no edge on the key frame).
 
-    ``earlier`` pairs by track identity first (``_ahead``): a plate leaving the view at 100
-    px a frame moved 6 sizes per key interval, beyond any size-bounded reach. So does the
+    ``earlier`` pairs by object identity first (``_ahead``; ``_object``: the object number
+    all agents' LiDAR tracks of one object share, ``clusters.object_ids``): a plate
+    leaving the view at 100 px a frame moved 6 sizes per key interval, beyond any
+    size-bounded reach, and its finds on two key frames may lie in regions of two agents'
+    tracks (regions come from the scan nearest in time, of either agent). So does the
     pairing of the two key frames: a detection without a partner of its size nearby gets
-    the nearest of its kind in a region of the same track (a plate found 10 px wide on one
-    key frame and 22 px on the other is one plate, not two lost ones).
+    the nearest of its kind in a region of the same object (a plate found 10 px wide on
+    one key frame and 22 px on the other is one plate, not two lost ones).
 
     ``unsure``: where given, the reasons this frame's carried result cannot be trusted are
     appended (the caller then detects the frame in full, the safe default): a detection of
     the key frame before without a partner in the key frame after and without an image
     velocity (no key frame before it, or no partner there) not in view for sure in the key
-    frame after (``in_view``: nothing bounds where it went: a plate
+    frame after; one with an image velocity whose own box, moved on at it, grown by
+    ``window`` x its size, is not inside the frame here or at the key frame after (it is
+    leaving the view: judged by the find, not by its region, whose box lags a close car;
+    a window at its scale missed a 64 px plate at 90 px a frame that the full detection
+    found) (``in_view``: nothing bounds where it went: a plate
     1.7 sizes from the edge on the first key frame had left the view by the next, and one
     whose region came from another agent's LiDAR on the key frame before, so no track to
     pair by, moved 3 sizes per key interval and left it, each unblurred on the two frames
@@ -480,8 +497,8 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
             keep = Detection(d.kind, _grow(cut, grow * k, w, h), d.score, CARRIED)
         look(d, boxes, keep)
 
-    def track(r: Region | None) -> tuple[str, str, str] | None:
-        return _key(r) if r is not None and r.instance and r.part != "band" else None
+    def track(r: Region | None) -> tuple[str, str] | None:
+        return _object(r) if r is not None and r.instance and r.part != "band" else None
 
     in_a = {_key(r): r for r in r0 or ()}
 
@@ -489,6 +506,10 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         """A region's box cut by the frame edge (not ``_at_edge``: a vehicle face's
         anchored region is cut too as its car leaves the view)."""
         return r.box[0] <= 1 or r.box[1] <= 1 or r.box[2] >= w - 1 or r.box[3] >= h - 1
+
+    def inside(b: Box, m: float) -> bool:
+        """Whether box ``b`` grown by ``m`` on each side is inside the frame."""
+        return b[0] - m > 0 and b[1] - m > 0 and b[2] + m < w and b[3] + m < h
 
     def in_view(d: Detection, rk: Region | None, other: dict[tuple[str, str, str], Region]
                 ) -> bool:
@@ -499,8 +520,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         o = other.get(_key(rk)) if rk is not None and track(rk) is not None else None
         if rk is None or o is None or cut(o):
             return False
-        b, m = _move(d.box, rk, o), window * _size(d)
-        return b[0] - m > 0 and b[1] - m > 0 and b[2] + m < w and b[3] + m < h
+        return inside(_move(d.box, rk, o), window * _size(d))
 
     def may_enter(d: Detection, rk: Region | None) -> bool:
         """Whether ``d``, found in the key frame after only, may have entered the view
@@ -524,8 +544,10 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         # key frame (a track that broke between them says nothing)
         tp = track(rk)
         other = {j for j, (_q, rq, _) in enumerate(c1)
-                 if tp is not None and (tq := track(rq)) is not None and tp != tq
-                 and (tp in keys_b or tq in keys_a) and _lidar(tp[0]) == _lidar(tq[0])}
+                 if tp is not None and rk is not None and rq is not None
+                 and (tq := track(rq)) is not None and tp != tq
+                 and (tp in keys_b or tq in keys_a)
+                 and _lidar(rk.instance) == _lidar(rq.instance)}
         j = _match(pred[k][0], cand, used | other)
         if j is None and pred[k][0] is not p:
             j = _match(p, cand, used | other)  # the region jumped, the object did not
@@ -538,8 +560,16 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                              f"{_size(c1[j][0]):.0f} px")
         if j is None:
             ahead = _ahead(p, earlier, t0, t_ns, window, rk) if earlier else None
+            at_b = _ahead(p, earlier, t0, t1, window, rk) if earlier else None
             if ahead is None and not in_view(p, rk, in_b):
                 doubt.append(f"{p.kind} of {_size(p):.0f} px gone near the edge, no velocity")
+            elif ahead is not None and not all(inside(b, window * _size(p))
+                                               for b in (ahead, at_b or ahead)):
+                # its own box at its image velocity (not its region's: a close car's box
+                # lags the car) near the edge here or by the key frame after: it left the
+                # view between them, where a window at its scale missed a 64 px plate at
+                # 90 px a frame that the full detection found
+                doubt.append(f"{p.kind} of {_size(p):.0f} px leaving the view at its velocity")
             lost(p, rk, reg, a, ahead)
             continue
         used.add(j)
@@ -672,7 +702,7 @@ def _ahead(d: Detection, earlier: tuple[Sequence[Detection], Sequence[Region] | 
     j = None
     if rk is not None and rk.instance and rk.part != "band" and regions:
         same = [(e, None) if (re := _region_of(e, regions)) is not None
-                and _key(re) == _key(rk) else (None, None) for e in dets]
+                and _object(re) == _object(rk) else (None, None) for e in dets]
         j = _nearest(d, same, set())
     if j is None:
         j = _match(d, [(e, None) for e in dets], set(), window * _size(d))

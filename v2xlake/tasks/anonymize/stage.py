@@ -321,7 +321,12 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
     world, for clips without annotations; None when the clip has annotations (or no LiDAR,
     or no poses)."""
     from v2xlake.tasks.anonymize.build import cluster_config
-    from v2xlake.tasks.anonymize.clusters import cluster_boxes, track_ids, yaw_quat
+    from v2xlake.tasks.anonymize.clusters import (
+        cluster_boxes,
+        object_ids,
+        track_ids,
+        yaw_quat,
+    )
     from v2xlake.tasks.anonymize.guide import WorldBoxes, world_boxes_from_sensor
     from v2xlake.tasks.motion import deskew_points
 
@@ -389,6 +394,23 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
             tracked.append(b)
         if tracked:
             out[agent] = WorldBoxes.concat(tracked)
+    if out and cfg.clusters.carry and cfg.clusters.track_gate_m > 0:
+        # one identity per object across the agents' LiDARs (``object_ids``: their tracks'
+        # centres in the clip world): a find in a region of agent A's track pairs with
+        # one in agent B's (``carry.between_tracked``), kept after the track as
+        # ``<track>@o<object>`` (a region's key stays its LiDAR's track)
+        names = list(out)
+        allb = WorldBoxes.concat([out[a] for a in names])
+        inst = allb.instance.astype(str)
+        obj = object_ids(allb.t_ns, allb.center, inst,
+                         np.array([i.rsplit(":", 1)[0] for i in inst]),
+                         cfg.clusters.track_gate_m)
+        tagged = np.array([f"{i}@o{k}" for i, k in zip(inst, obj, strict=True)])
+        start_at = 0
+        for a in names:
+            n_a = len(out[a].instance)
+            out[a] = dataclasses.replace(out[a], instance=tagged[start_at:start_at + n_a])
+            start_at += n_a
     return out or None
 
 
