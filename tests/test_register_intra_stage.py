@@ -61,7 +61,13 @@ def test_side_lidar_refined_end_to_end(side_clip: tuple[Lake, Path]) -> None:
 
     lake, clip = side_clip
     assert set(read_extrinsics(lake, CID, "red")) == {"LIDAR_TOP", "LIDAR_LEFT"}
-    rows, notes = refine_agent_lidars(lake, CID, "red", IntraStageSettings(frames=2))
+    # the stage's own setting (intra.frames, 3 frame pairs pooled), not fewer: which single
+    # frame finds a second minimum scoring within ambiguity_ratio of the best depends on the
+    # CPU's floating point path (an AVX2-less AMD EPYC refused one of the first two frames
+    # as ambiguous, where earlier machines accepted both); that frame is refused, the
+    # other two agree and are pooled, as a user's run pools them
+    rows, notes = refine_agent_lidars(lake, CID, "red", IntraStageSettings())
+    assert IntraStageSettings().frames >= 3
     assert [r.sensor for r in rows] == ["LIDAR_LEFT"], notes
     row = rows[0]
     assert row.usable, row.reason
