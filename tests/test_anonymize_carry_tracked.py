@@ -123,6 +123,30 @@ def test_a_plate_found_in_two_agents_tracks_gets_its_velocity() -> None:
     assert not unsure
 
 
+def test_a_find_past_its_fresh_region_is_not_left_to_that_region() -> None:
+    """A find whose region is searched afresh here (its track is not in the key frame
+    after) is left to that search, unless its image velocity, with its reach (the window:
+    2 sizes), puts it outside the region: a close car's box lags the car (a 64 px plate at
+    90 px a frame was past its region's edge, and the region's search missed it). Then
+    it is judged as a find gone in the key frame after: leaving the view by its
+    velocity, so unsure (detected in full). A slow one stays inside its region with its
+    reach and is left to its search."""
+    reg = Region("plate", (1590.0, 600.0, 1800.0, 760.0), 25.0, "lidar:a:L:t5@o3", None,
+                 None, "rear", None)
+    here = dataclasses.replace(reg, box=(1600.0, 600.0, 1810.0, 760.0))  # lags the car
+    p_key = Detection("plate", (1700.0, 700.0, 1720.0, 706.0), 0.9, "text")
+    before = ([p_key], [reg], 0)
+    after: tuple[list[Detection], list[Region], int] = ([], [], 100 * MS)
+    for x_early, expect in ((1400.0, True), (1690.0, False)):
+        early = Detection("plate", (x_early, 700.0, x_early + 20.0, 706.0), 0.9, "text")
+        e_reg = Region("plate", (x_early - 50.0, 650.0, x_early + 100.0, 760.0), 25.0,
+                       "lidar:b:L:t9@o3", None, None, "front", None)
+        unsure: list[str] = []
+        between_tracked(before, after, [here], 33 * MS, 0.5, 2.0, SHAPE, [here],
+                        ([early], [e_reg], -100 * MS), unsure)
+        assert bool(unsure) == expect, (x_early, unsure)
+
+
 def test_a_face_crossing_the_view_is_searched_where_it_went() -> None:
     """A face 20 px high crossing a narrow camera 30 px a frame: at 130 px in the key frame
     before, 43 px in the key frame after (too far apart to pair); the frame 67 ms after the

@@ -302,8 +302,12 @@ class Clusters(Section):
         "(clusters.carry_unsure_full) leave 1 plate on each 1.0 s clip (seed 0: 64 px at "
         "433 ms, seed 1: 113 px at 733 ms, both between key frames), at only 1.23x every "
         "frame in full's img/s/core (seed 0, 1.86 -> 2.28; half the carried frames detected "
-        "in full). Hence off (every frame of a LiDAR-only clip detected in full) until "
-        "longer clips hold; true trades that recall for speed")
+        "in full). Later that day one object identity across agents' LiDARs "
+        "(clusters.object_ids) and leaving the view judged by a find's own velocity: both "
+        "plates blurred, seed 1 loses a 23 px face (467 ms), at 1.18 / 1.19x (seeds 0 / 1; "
+        "82 and 73 of 114 carried frames detected in full). Hence off (every frame of a "
+        "LiDAR-only clip detected in full) until longer clips hold; true trades that recall "
+        "for speed")
     carry_unsure_full: bool = Field(
         True, description="with clusters.carry, a frame between key frames where carrying "
         "cannot tell where an object is gets the full detection instead (the safe default, "
@@ -313,7 +317,10 @@ class Clusters(Section):
         "(carry.between_tracked's unsure). Simulated 1080p 30 Hz LiDAR-only 1.0 s clips "
         "(2026-11-28): faces / plates that every frame in full blurs left unblurred, seed "
         "0: 4 -> 1, seed 1: 4 -> 1; about half the carried frames (56 and 46 of 114) are "
-        "then detected in full: 1.23x every frame in full's img/s/core (seed 0, same run)")
+        "then detected in full: 1.23x every frame in full's img/s/core (seed 0, same run). "
+        "Also a find whose own box, moved on at its image velocity (from the key frame "
+        "before, paired by object across agents), leaves the frame by the key frame after "
+        "(2026-11-28, later: 82 / 73 of 114 in full, seeds 0 / 1)")
     track_gate_m: float = Field(
         3.0, ge=0, description="with clusters.carry, a LiDAR's clusters get one identity "
         "per object across its scans (clusters.track_ids): a box continues the track whose "
@@ -322,7 +329,10 @@ class Clusters(Section):
         "by a metre as its returns change), so the frames between key frames pair a key "
         "frame's detections with the other's and search only regions new to both. On the "
         "simulated LiDAR-only clip (seed 0) 2 m left 50 % of the carried frames' face "
-        "region area new, 3 m 32 %, 4 m 32 %; 0: numbered per scan (no identity)")
+        "region area new, 3 m 32 %, 4 m 32 %. The same gate joins the tracks of different "
+        "agents' LiDARs into one object (clusters.object_ids: centres within it at half "
+        "their scans or more; seed 0, 1.0 s: 265 tracks, 101 objects, 25 seen by both "
+        "agents); 0: numbered per scan (no identity)")
     carry_window: float = Field(
         2.0, ge=0, description="between key frames, a key-frame detection of a LiDAR-only "
         "clip without a partner in the other key frame is searched for here in a window "
