@@ -306,6 +306,16 @@ class SparseGicpBackend(SmallGicpBackend):
                   else np.arange(len(pts), dtype=np.int64))
         return Prepared(pts, Surfaces.empty(len(pts)), tree, sample)
 
+    def own_surfaces(self, base: Prepared) -> Prepared:
+        """``base`` (prepared by this backend's kind) with the same points, grid and sample
+        and a surface store of its own, empty: surfaces from another number of neighbours
+        (``gicp.far_pair_num_neighbors``) beside the ones ``base`` keeps."""
+        from dataclasses import replace
+
+        from v2xlake.tasks.register.sparse import Surfaces
+
+        return replace(base, handle=Surfaces.empty(len(base.points)))
+
     def align(self, target: Prepared, source: Prepared, init: np.ndarray) -> AlignOutcome:
         """Align the source's sample; where it finds fewer than ``sample_min_pairs``
         correspondences, align again from there with more (co-visible) source centroids

@@ -625,6 +625,9 @@ class _Scan:
     # prepared whole, shared by its co-visible clouds (grid and surfaces computed once):
     # ``whole``, or prepared for that when several agents register against the scan
     base: Prepared | None = None
+    # ``base`` with a surface store of its own for the far pairs' number of neighbours
+    # (``gicp.far_pair_num_neighbors``), filled only where a far pair uses the scan
+    far_base: Prepared | None = None
 
 
 @dataclass
@@ -638,6 +641,9 @@ class _CrossWork:
     target: Prepared | None
     source: Prepared | None
     why: str
+    # the two LiDARs farther apart than ``gicp.far_pair_beyond_m``: aligned by the far
+    # pairs' backend (``gicp.far_pair_num_neighbors``)
+    far: bool = False
 
 
 def register_workers(cfg: RegisterConfig) -> int:
@@ -672,6 +678,20 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                                  cfg.gicp.range_m(a is ref), in_flight=workers)
             for a in (ref, *others)}
     limits = cfg.quality.gated(not cfg.solve.enabled)
+    # a far cross pair's surfaces from their own number of neighbours, in a second surface
+    # store per scan (near pairs and odometry compute exactly what they do without it)
+    far_params = cfg.gicp.far_pair()
+    far_backend = (make_backend(cfg.gicp.backend, far_params) if far_params is not None
+                   else None)
+    own_surfaces = getattr(far_backend, "own_surfaces", None)
+
+    def with_far(s: _Scan) -> _Scan:
+        """``s`` with its far pairs' surface store beside ``s.base`` (before the scan is
+        shared between frames or threads)."""
+        if own_surfaces is not None and s.base is not None and s.far_base is None:
+            s.far_base = own_surfaces(s.base)
+        return s
+
     # recent prepared clouds per agent, for odometry: frame -> Prepared
     recent: dict[str, dict[int, Prepared]] = {a: {} for a in scans}
     odo_frames = {a: {g: i for i, g in enumerate(sorted(sc.frames))} for a, sc in scans.items()}
@@ -698,19 +718,19 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         return a.world_ego(a.frames[f][1])[0]
 
     def prepare(points: np.ndarray, other_origin: np.ndarray | None = None,
-                base: Prepared | None = None, as_target: bool = False
-                ) -> tuple[Prepared | None, str]:
-        """The scan prepared for GICP; with ``other_origin`` only what the LiDAR there sees
-        from the same side (:mod:`covisible`; the whole scan where too little would remain),
-        sharing what ``base`` (the same points prepared whole) computed."""
+                base: Prepared | None = None, as_target: bool = False,
+                b: RegistrationBackend = backend) -> tuple[Prepared | None, str]:
+        """The scan prepared for GICP (by ``b``); with ``other_origin`` only what the LiDAR
+        there sees from the same side (:mod:`covisible`; the whole scan where too little
+        would remain), sharing what ``base`` (the same points prepared whole) computed."""
         t = time.perf_counter()
         try:
             if other_origin is None:
-                return backend.prepare_points(points), ""
-            return backend.prepare_covisible(points, other_origin, cfg.quality.min_inliers,
-                                             base, as_target=as_target), ""
+                return b.prepare_points(points), ""
+            return b.prepare_covisible(points, other_origin, cfg.quality.min_inliers,
+                                       base, as_target=as_target), ""
         except Exception as e:  # per frame, never the clip's end
-            return None, f"{backend.name} could not prepare the scan: {e}"
+            return None, f"{b.name} could not prepare the scan: {e}"
         finally:
             spent("gicp_s" if other_origin is None else "prepare_s", time.perf_counter() - t)
 
@@ -727,7 +747,8 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         sc = filt[agent].filtered(f, voxel)
         odo_f = uses_odometry(agent, f)
         whole = prepare(sc.points)[0] if odo_f else None
-        return _Scan(agent, f, sc.points, sc.counts, sc.ground_m, odo_f, whole, whole)
+        return with_far(_Scan(agent, f, sc.points, sc.counts, sc.ground_m, odo_f, whole,
+                              whole))
 
     # a stationary agent's scans (cfg.stationary): one of every ``reuse_frames`` frames is
     # read and prepared, with its grid and lazily filled surfaces, and stands for the frames
@@ -755,6 +776,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                 s = own_scan(agent, anchor, voxel)
                 if s.base is None:  # shared by the frames it stands for
                     s.base = prepare(s.points)[0]
+                    with_far(s)
                 held[agent][(anchor, voxel)] = s
                 while len(held[agent]) > 2 + 2 * workers:
                     held[agent].popitem(last=False)
@@ -762,11 +784,17 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
             return s
         return replace(s, frame=f, ground_m=float("nan"), odometry=False, whole=None)
 
-    def cross_cloud(s: _Scan, other_origin: np.ndarray, as_target: bool
+    def cross_cloud(s: _Scan, other_origin: np.ndarray, as_target: bool, far: bool = False
                     ) -> tuple[Prepared | None, str]:
         """The cloud a cross pair registers: with ``covisible`` only what the other LiDAR
         sees from the same side (:mod:`covisible`; the whole scan where too little would
-        remain), else the whole scan (prepared once, shared with odometry)."""
+        remain), else the whole scan (prepared once, shared with odometry). ``far``: by
+        the far pairs' backend, on the scan's second surface store."""
+        if far and far_backend is not None:
+            if not cfg.covisible:
+                return (s.far_base, "") if s.far_base is not None else prepare(
+                    s.points, b=far_backend)
+            return prepare(s.points, other_origin, s.far_base, as_target, far_backend)
         if not cfg.covisible:
             return (s.whole, "") if s.whole is not None else prepare(s.points)
         return prepare(s.points, other_origin, s.base, as_target)
@@ -777,6 +805,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
         if ref_scan.base is None and cfg.covisible \
                 and sum(f in pairs[o.agent] for o in others) > 1:
             ref_scan.base = prepare(ref_scan.points)[0]
+            with_far(ref_scan)
         work = []
         for o in others:
             if f not in pairs[o.agent]:
@@ -787,9 +816,11 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                                        o.world_ego(o.frames[fo][1])[0], ref.T_ego_lidar,
                                        o.T_ego_lidar)
             oth = scan(o.agent, fo, cfg.gicp.source_voxel_m)
-            target, why_t = cross_cloud(ref_scan, T_init[:3, 3], True)
-            source, why_s = cross_cloud(oth, invert(T_init)[:3, 3], False)
-            work.append(_CrossWork(o, fo, T_init, oth, target, source, why_t or why_s))
+            far = far_backend is not None and \
+                float(np.linalg.norm(T_init[:3, 3])) > cfg.gicp.far_pair_beyond_m
+            target, why_t = cross_cloud(ref_scan, T_init[:3, 3], True, far)
+            source, why_s = cross_cloud(oth, invert(T_init)[:3, 3], False, far)
+            work.append(_CrossWork(o, fo, T_init, oth, target, source, why_t or why_s, far))
         return ref_scan, work
 
     def odometry_gicp(g: Prepared, f: Prepared, T_ins: np.ndarray) -> PairResult:
@@ -841,7 +872,8 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                 source = replace(source, translation_eps_m=cfg.stationary.translation_eps_m,
                                  max_iterations=cfg.stationary.max_iterations,
                                  dense_cell_m=cfg.stationary.dense_cell_m)
-            return refine(backend, w.target, source, w.T_init, limits, start)
+            return refine(far_backend if w.far and far_backend is not None else backend,
+                          w.target, source, w.T_init, limits, start)
         finally:
             spent("gicp_s", time.perf_counter() - t)
 
