@@ -753,6 +753,23 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
     pair = np.array([ref in still or c.other in still for c in uc], bool)
     far = s.weak_geometry_beyond_m
     moving = ~pair & np.array([far is not None and pair_range(c) > far for c in uc], bool)
+    f = np.sqrt(np.maximum(w[:n_c], 0.0))[:, None, None]
+
+    def recounted(A_c: np.ndarray, sel: np.ndarray, weak: bool, n_count: float
+                  ) -> np.ndarray:
+        """``A_c`` with the frames ``sel`` honestly whitened (their degenerate directions
+        dropped as in the solve, the weak-geometry floor added where ``weak``) and counted
+        once per ``n_count`` frames (:func:`stationary_cross_information`)."""
+        ix = np.flatnonzero(sel)
+        C_h = vf * Cw[ix] + floors[ix]
+        if weak:
+            C_h = C_h + weak_geometry_floor(np.stack([Ws[i] for i in ix]), s)
+        U_h = _chol_upper(_drop_weak_batch(np.linalg.inv(C_h), dropped[2][ix], dropped[3][ix]))
+        J_h = np.zeros((n_c, 6, P.n))
+        J_h[ix] = -(U_h @ G[ix]) * f[ix]
+        return stationary_cross_information(A_c, -(U[:n_c] @ G[:n_c]) * f, J_h, sel, corr,
+                                            n_count)
+
     if moving.any():
         # a far pair's frames honestly whitened too (weak_geometry_beyond_m), counted as
         # before, once per correlation_s: only the weak directions' variance changes. At
@@ -760,33 +777,17 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
         # the pair along the street bias it the same way for seconds (seed 3, 50 m behind:
         # 3-19 cm short for 4 s, each frame claiming ~0.5 cm), which the isotropic range
         # floor covered only by refusing every far frame
-        mv = np.flatnonzero(moving)
-        C_m = vf * Cw[mv] + floors[mv] + weak_geometry_floor(np.stack([Ws[i] for i in mv]), s)
-        U_m = _chol_upper(_drop_weak_batch(np.linalg.inv(C_m), dropped[2][mv], dropped[3][mv]))
-        f = np.sqrt(np.maximum(w[:n_c], 0.0))[:, None, None]
-        J_m = np.zeros((n_c, 6, P.n))
-        J_m[mv] = -(U_m @ G[mv]) * f[mv]
-        A_c = stationary_cross_information(A_c, -(U[:n_c] @ G[:n_c]) * f, J_m, moving, corr,
-                                           corr)
+        A_c = recounted(A_c, moving, True, corr)
     if pair.any():
         # a stationary pair's frames: honestly whitened (its weak-geometry floor, the same
         # degenerate directions dropped) and counted once per stationary_correlation_s
         sp = np.flatnonzero(pair)
-        Wm = np.stack([Ws[i] for i in sp])
-        C_h = vf * Cw[sp] + floors[sp]
-        if s.stationary_weak_geometry:
-            C_h = C_h + weak_geometry_floor(Wm, s)
-        U_h = _chol_upper(_drop_weak_batch(np.linalg.inv(C_h), dropped[2][sp], dropped[3][sp]))
-        f = np.sqrt(np.maximum(w[:n_c], 0.0))[:, None, None]
-        J_h = np.zeros((n_c, 6, P.n))
-        J_h[sp] = -(U_h @ G[sp]) * f[sp]
         span = s.correlation_s if s.stationary_correlation_s is None \
             else s.stationary_correlation_s
         # frames per pair within the span, never more than the pair has
         n_pair = max(1.0, min(span * rate / n_same, float(pair.sum()) / max(
             1, len({uc[i].other for i in sp}))))
-        A_c = stationary_cross_information(A_c, -(U[:n_c] @ G[:n_c]) * f, J_h, pair, corr,
-                                           n_pair)
+        A_c = recounted(A_c, pair, s.stationary_weak_geometry, n_pair)
     A_c_inv = np.linalg.pinv(A_c, rcond=1e-13, hermitian=True)
     cov_all = (G_all @ A_c_inv) @ G_all.transpose(0, 2, 1)
     d = np.arange(6)
