@@ -503,12 +503,16 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         if keep is not None:
             fallback.append((r, keep))
 
+    def cut_by_edge(b: Box) -> bool:
+        """A box cut by the frame edge (not ``_at_edge``: a vehicle face's anchored region
+        is cut too as its car leaves the view)."""
+        return b[0] <= 1 or b[1] <= 1 or b[2] >= w - 1 or b[3] >= h - 1
+
     def lost(d: Detection, rk: Region | None, reg: Region | None, k: float,
              ahead: Box | None = None) -> None:
         boxes, cut = _search_boxes(d, rk, reg, ahead, w, h)
-        edge = d.box[0] <= 1 or d.box[1] <= 1 or d.box[2] >= w - 1 or d.box[3] >= h - 1
         keep = (Detection(d.kind, _grow(d.box, grow * k, w, h), d.score, CARRIED)
-                if edge else None)  # leaving the view: its cut part may score low
+                if cut_by_edge(d.box) else None)  # leaving the view: its cut part may score low
         if cut is not None and cut != ahead:  # on its way out of the view: the part in it
             keep = Detection(d.kind, _grow(cut, grow * k, w, h), d.score, CARRIED)
         look(d, boxes, keep)
@@ -517,11 +521,6 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         return _object(r) if r is not None and r.instance and r.part != "band" else None
 
     in_a = {_key(r): r for r in r0 or ()}
-
-    def cut(r: Region) -> bool:
-        """A region's box cut by the frame edge (not ``_at_edge``: a vehicle face's
-        anchored region is cut too as its car leaves the view)."""
-        return r.box[0] <= 1 or r.box[1] <= 1 or r.box[2] >= w - 1 or r.box[3] >= h - 1
 
     def inside(b: Box, m: float) -> bool:
         """Whether box ``b`` grown by ``m`` on each side is inside the frame."""
@@ -534,7 +533,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         (``window`` x its size), is inside the frame (a close car's region stayed whole
         while its plate, 3.5 sizes per key interval, left the view)."""
         o = other.get(_key(rk)) if rk is not None and track(rk) is not None else None
-        if rk is None or o is None or cut(o):
+        if rk is None or o is None or cut_by_edge(o.box):
             return False
         return inside(_move(d.box, rk, o), window * _size(d))
 
@@ -550,7 +549,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         if rk is not None and o is not None:
             m += float(np.hypot((o.box[0] + o.box[2] - rk.box[0] - rk.box[2]) / 2,
                                 (o.box[1] + o.box[3] - rk.box[1] - rk.box[3]) / 2))
-        return d.box[0] - m <= 0 or d.box[1] - m <= 0 or d.box[2] + m >= w or d.box[3] + m >= h
+        return not inside(d.box, m)
 
     keys_a = {track(r) for r in r0 or ()} - {None}
     keys_b = {track(r) for r in r1 or ()} - {None}
