@@ -18,6 +18,7 @@ an equivalent blur loop are timed in-process instead, and the output says so.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import pickle
 import shutil
@@ -396,6 +397,10 @@ def main() -> None:
     ap.add_argument("--lidar-seeds", default="0",
                     help="with --clips: the simulated scenes of the LiDAR-guided clip "
                     "(comma-separated seeds)")
+    ap.add_argument("--clip-set", action="append", default=[],
+                    help="with --clips lidar: NAME=JSON, a config update (e.g. "
+                    "'learned8={\"clusters\": {\"band_learned_score\": 8}}') run beside the "
+                    "default instead of the carried variants (repeatable)")
     ap.add_argument("--band-plates", action="store_true",
                     help="only: real plates pasted into the far band of LiDAR-only clips "
                     "(seeds: --lidar-seeds)")
@@ -428,7 +433,9 @@ def main() -> None:
                 clip_bench(1920, 30.0, args.lidar_seconds or (0.3 if args.quick else 0.5),
                            lidar_only=True, seed=int(seed), work=args.work,
                            reuse_default=args.reuse_default, deface=not args.no_deface,
-                           rules_alone=not args.no_rules_alone)
+                           rules_alone=not args.no_rules_alone,
+                           extra=tuple((n, json.loads(v)) for n, v in
+                                       (a.split("=", 1) for a in args.clip_set)))
         return
     if args.real:
         cv2.setNumThreads(1)
@@ -777,7 +784,8 @@ def missed_listing(truth: dict, full: dict, carried: dict, key_ns: int) -> None:
 
 def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
                seed: int = 0, work: Path | None = None, reuse_default: bool = False,
-               deface: bool = True, rules_alone: bool = True) -> None:
+               deface: bool = True, rules_alone: bool = True,
+               extra: tuple[tuple[str, dict], ...] = ()) -> None:
     """One simulated clip (small preset, front / narrow / back cameras at ``width``, ``hz``)
     through the stage, one worker, CPU seconds: every frame detected in full
     (``key_interval_ms=0``) against the default (key frames + carry), recall of visible
@@ -786,7 +794,9 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
     ``lidar_only``: the clip's annotations are deleted after ingest, so the regions come
     from LiDAR clusters (the default then detects every frame in full; carrying by cluster
     track, ``clusters.carry``, is the variant beside it). ``seed``: the simulated scene
-    (``--lidar-seeds``: LiDAR clusters are measured on several scenes, not tuned to one)."""
+    (``--lidar-seeds``: LiDAR clusters are measured on several scenes, not tuned to one).
+    ``extra``: (name, config update) variants run beside the default instead of the carried
+    ones (``--clip-set``)."""
     import pyarrow.parquet as pq
 
     from v2xlake.storage.lake import Lake
@@ -852,6 +862,8 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
             ("key frames + carry, int8 CenterFace alone", {"faces": {"int8": True}})))
         if lidar_only and not rules_alone:
             variants = variants[:2]
+        if extra:
+            variants = (variants[0], *extra)
         got: dict[str, dict] = {}
         kept = tmp / "default_detections.pkl"
         for name, upd in variants:
@@ -865,12 +877,14 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
             got[name] = audit_detections(lake, cid)
             if not upd and work is not None:
                 kept.write_bytes(pickle.dumps(got[name]))
+            elif extra and work is not None:  # for a listing of what a variant blurred
+                (tmp / f"{name}_detections.pkl").write_bytes(pickle.dumps(got[name]))
             line(f"ours, {name}", got[name], rep.metrics["n_images"] / cpu)
             if rep.metrics.get("n_images_carried"):
                 print(f"    {rep.metrics['n_images_carried']:.0f} images between key frames, "
                       f"{rep.metrics.get('n_images_carried_in_full', 0):.0f} of them detected "
                       "in full (carrying unsure)")
-        if lidar_only:
+        if lidar_only and not extra:
             full, *rest = got.values()
             for name, car in zip([n for n, _ in variants][1:], rest, strict=True):
                 print(f"  {name}:")

@@ -270,6 +270,8 @@ class GuidedConfig(FromParams):
     band_learned_score: float = _param("clusters.band_learned_score")
     band_learned_max: int = 12
     band_learned_glyph_ratio: float = 1.3
+    band_learned_faces: bool = _param("clusters.band_learned_faces")
+    band_learned_max_slope: float = _param("clusters.band_learned_max_slope")
 
 
 @dataclass(frozen=True, eq=False)
@@ -768,7 +770,8 @@ def band_learned_plates(gray: np.ndarray, box: tuple[int, int, int, int], min_px
 
     def textured(b: tuple[float, float, float, float]) -> bool:
         glyph, ratio = bandplate.glyph_texture(gray, b)
-        return glyph >= cfg.band_blob_min_glyph and ratio >= cfg.band_learned_glyph_ratio
+        return (glyph >= cfg.band_blob_min_glyph and ratio >= cfg.band_learned_glyph_ratio
+                and not 0 < cfg.band_learned_max_slope <= bandplate.stripe_slope(gray, b))
 
     return band_plate_scores(gray, box, band_learned_widths(min_px), cfg.band_learned_score,
                              cfg.band_learned_max, accept=textured)
@@ -1292,12 +1295,14 @@ class GuidedDetector:
             # of that plate (the carried frames get in_regions alone, without ``detect``)
             gray = to_gray(image)
             larger = [d.box for d in dets if d.kind == "plate"]
+            faces = [d.box for d in dets if d.kind == "face"] if c.band_learned_faces else []
             for r in regions:
                 bbox = _frame_box(r.box, w, h) if r.part == "band" else None
                 if bbox is not None:
                     dets += [Detection("plate", pb, band_learned_conf(sc, c), BAND_LEARNED)
                              for pb, sc in band_learned_plates(gray, bbox, r.expected_px, c)
-                             if not inside_larger(pb, larger)]
+                             if not inside_larger(pb, larger)
+                             and not bandplate.on_face(pb, faces)]
         return dets
 
     def _band_look(self, image: np.ndarray, r: Region) -> list[Detection]:
@@ -1392,6 +1397,8 @@ class GuidedDetector:
             # learned boxes inside a larger plate of the safety pass are parts of it
             # (``in_regions`` held them against its own plates already)
             larger = [d.box for d in safety if d.kind == "plate"]
-            dets = [d for d in dets
-                    if d.detector != BAND_LEARNED or not inside_larger(d.box, larger)]
+            faces = ([d.box for d in dets + safety if d.kind == "face"]
+                     if self.config.band_learned_faces else [])
+            dets = [d for d in dets if d.detector != BAND_LEARNED
+                    or not (inside_larger(d.box, larger) or bandplate.on_face(d.box, faces))]
         return nms(dets + safety, 0.3)
