@@ -301,20 +301,29 @@ class SparseGicpBackend(SmallGicpBackend):
 
         p = self.params
         pts = _finite(pts)
-        tree = VoxelGrid(pts, p.grid_cell_m)
+        tree = VoxelGrid(pts, p.grid_cell_m, p.knn_grid_cell_m)
         sample = (spread_sample(pts, p.sample_cell_m) if p.sample_cell_m
                   else np.arange(len(pts), dtype=np.int64))
         return Prepared(pts, Surfaces.empty(len(pts)), tree, sample)
 
-    def own_surfaces(self, base: Prepared) -> Prepared:
+    def own_surfaces(self, base: Prepared, share: bool = True) -> Prepared:
         """``base`` (prepared by this backend's kind) with the same points, grid and sample
         and a surface store of its own, empty: surfaces from another number of neighbours
-        (``gicp.far_pair_num_neighbors``) beside the ones ``base`` keeps."""
+        (``gicp.far_pair_num_neighbors``) beside the ones ``base`` keeps. ``share``: the
+        two stores share their k-nearest-neighbour searches (:class:`sparse.Neighbours`,
+        attached to ``base``'s store here): the one with more neighbours keeps its
+        searches, the other takes the first columns of those where they exist (the same
+        neighbours its own search finds). Either way each store computes the same
+        surfaces."""
         from dataclasses import replace
 
-        from v2xlake.tasks.register.sparse import Surfaces
+        from v2xlake.tasks.register.sparse import Neighbours, Surfaces
 
-        return replace(base, handle=Surfaces.empty(len(base.points)))
+        surf = base.handle
+        if share and surf.neighbours is None:
+            surf.neighbours = Neighbours.empty(len(base.points))
+        return replace(base, handle=Surfaces.empty(len(base.points),
+                                                   surf.neighbours if share else None))
 
     def align(self, target: Prepared, source: Prepared, init: np.ndarray) -> AlignOutcome:
         """Align the source's sample; where it finds fewer than ``sample_min_pairs``

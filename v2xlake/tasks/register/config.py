@@ -151,6 +151,21 @@ class GicpSection(Section):
         "about max_correspondence_m is best (a nearest neighbour within it is then always in "
         "the query's cell or the 26 around it). On 28k-centroid clouds 0.6 m and 1.5 m were "
         "1.2-2x slower than 1.0 m")
+    knn_grid_cell_m: float | None = Field(
+        1.6, gt=0, description="sparse backend: cell of a second hash grid per scan, built "
+        "on its first k-nearest-neighbour search (the surfaces: num_neighbors / "
+        "far_pair_num_neighbors of a point), for those searches only; None: grid_cell_m. "
+        "Speed only, the searches are exact at any size (the same neighbours in the same "
+        "order; only points at exactly the same distance may come in another order, which "
+        "a scan's voxel centroids did not show: every such search of the register stage on "
+        "three clips identical on 1.0, 1.3, 1.6 and 2.0 m cells). WHY: "
+        "the 10th nearest 0.3 m centroid lies beyond 1 m for about half the points of a "
+        "64-beam scan (sparse far rings), so on 1.0 m cells most searches looped over a "
+        "second shell of up to 98 cells; the k-nearest searches of the register stage's "
+        "surfaces took 0.44 / 0.27 / 1.28 s (roadside unit 3 s, base 3 s, seed 2's roadside "
+        "unit 10 s, one core) on 1.0 m cells, 0.34 / 0.21 / 1.05 s on 1.6 m ones (1.3 m "
+        "0.38 / 0.22 / 1.09, 2.0 m about as 1.6 m); the nearest-neighbour searches of GICP "
+        "keep grid_cell_m, which suits max_correspondence_m")
     max_iterations: int = Field(30, ge=1)
     num_threads: int = Field(1, ge=1, description="small_gicp / open3d: threads per GICP "
                              "call; one leaves the other cores to the other clips of a run "

@@ -140,6 +140,55 @@ def spread_sample(points: np.ndarray, cell_m: float) -> np.ndarray:
 
 
 @dataclass
+class Neighbours:
+    """The ``k`` nearest points of a scan's points, nearest first, kept where computed
+    (``known``), for a second surface store of the same scan that takes fewer neighbours.
+
+    WHY: a reference scan registered against a near and a far agent keeps two surface
+    stores (``gicp.num_neighbors`` and ``gicp.far_pair_num_neighbors``), and both pairs
+    want the surfaces of the same rows in part (the strided rows that decide the target's
+    co-visible fraction, every frame; the road and walls where both agents' points land):
+    on the roadside unit's 3 s clip 63k of the far store's 157k rows were searched for
+    both. The first ``j`` of ``k`` nearest are the ``j`` nearest, in the same order
+    (:meth:`voxel.VoxelGrid.batch_knn_search`), so the far store takes them from here."""
+
+    idx: np.ndarray  # (N, k) int64, rows valid where known
+    known: np.ndarray  # (N,) bool
+    k: int = 0  # columns filled (min(num_neighbors, N)); 0 until the first search
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    @classmethod
+    def empty(cls, n: int) -> Neighbours:
+        return cls(np.zeros((n, 0), dtype=np.int64), np.zeros(n, dtype=bool))
+
+    def take(self, rows: np.ndarray, k: int) -> np.ndarray:
+        """Which of ``rows`` have their ``k`` nearest here (a boolean per row)."""
+        with self.lock:
+            if k > self.k:
+                return np.zeros(len(rows), dtype=bool)
+            return self.known[rows].copy()
+
+    def get(self, rows: np.ndarray, k: int) -> np.ndarray:
+        """The ``k`` nearest of ``rows`` (each known, ``k`` at most :attr:`k`)."""
+        with self.lock:
+            return np.ascontiguousarray(self.idx[rows, :k])
+
+    def put(self, rows: np.ndarray, knn: np.ndarray) -> None:
+        """Keep the ``knn`` (the nearest first) of ``rows`` when they are at least as many
+        per row as those kept: more start the store afresh (the store with the most
+        neighbours serves the others), fewer are not kept."""
+        with self.lock:
+            if knn.shape[1] < self.k:
+                return
+            if knn.shape[1] > self.k:
+                self.k = knn.shape[1]
+                self.idx = np.empty((len(self.known), self.k), dtype=np.int64)
+                self.known[:] = False
+            self.idx[rows] = knn
+            self.known[rows] = True
+
+
+@dataclass
 class Surfaces:
     """Per point normal and planarity, computed on first use (``known``)."""
 
@@ -149,10 +198,14 @@ class Surfaces:
     # one scan's surfaces may be filled by two threads at once (its agent's odometry GICP on
     # the register stage's pool, a cross pair on the calling thread)
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+    # shared by the scan's two stores (the near pairs' and the far pairs'): the store with
+    # the most neighbours keeps its searches there, the other takes its first columns
+    neighbours: Neighbours | None = None
 
     @classmethod
-    def empty(cls, n: int) -> Surfaces:
-        return cls(np.zeros((n, 3)), np.full(n, np.nan), np.zeros(n, dtype=bool))
+    def empty(cls, n: int, neighbours: Neighbours | None = None) -> Surfaces:
+        return cls(np.zeros((n, 3)), np.full(n, np.nan), np.zeros(n, dtype=bool),
+                   neighbours=neighbours)
 
     def ensure(self, points: np.ndarray, tree: object, rows: np.ndarray, k: int,
                num_threads: int = 1) -> None:
@@ -170,10 +223,24 @@ class Surfaces:
         mark[todo] = True
         todo = np.flatnonzero(mark)
         kk = min(k, len(points))
-        knn, _ = tree.batch_knn_search(points[todo], kk,  # type: ignore[attr-defined]
-                                       num_threads=num_threads)
-        _surfaces(points, todo, np.ascontiguousarray(knn, dtype=np.int64), self.normals,
-                  self.ratio)
+        nb = self.neighbours
+        have = nb.take(todo, kk) if nb is not None else None
+        if have is not None and have.any():
+            knn = np.empty((len(todo), kk), dtype=np.int64)
+            knn[have] = nb.get(todo[have], kk)  # type: ignore[union-attr]
+            search = todo[~have]
+            if len(search):
+                got, _ = tree.batch_knn_search(points[search], kk,  # type: ignore[attr-defined]
+                                               num_threads=num_threads)
+                knn[~have] = got
+                nb.put(search, knn[~have])  # type: ignore[union-attr]
+        else:
+            got, _ = tree.batch_knn_search(points[todo], kk,  # type: ignore[attr-defined]
+                                           num_threads=num_threads)
+            knn = np.ascontiguousarray(got, dtype=np.int64)
+            if nb is not None:
+                nb.put(todo, knn)
+        _surfaces(points, todo, knn, self.normals, self.ratio)
         self.known[todo] = True
 
 

@@ -687,9 +687,12 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
 
     def with_far(s: _Scan) -> _Scan:
         """``s`` with its far pairs' surface store beside ``s.base`` (before the scan is
-        shared between frames or threads)."""
+        shared between frames or threads). The reference agent's scans, the target of near
+        and far pairs alike, share the two stores' neighbour searches; another agent's
+        scan is the source of one pair, so its stores hardly meet and keeping its
+        searches would cost more than it saves."""
         if own_surfaces is not None and s.base is not None and s.far_base is None:
-            s.far_base = own_surfaces(s.base)
+            s.far_base = own_surfaces(s.base, share=s.agent == ref.agent)
         return s
 
     # recent prepared clouds per agent, for odometry: frame -> Prepared
