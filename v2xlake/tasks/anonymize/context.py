@@ -78,7 +78,8 @@ class ClipGuide:
             keep = ~np.isin(ob.instance, list(seen)) if seen else np.ones(len(ob), bool)
             parts.append(_take(ob, keep))
             seen |= set(ob.instance[keep].tolist())
-        regions = project_regions(WorldBoxes.concat(parts), T_cam_world, intr, self.config)
+        regions = project_regions(WorldBoxes.concat(parts), T_cam_world, intr, self.config,
+                                  self.source == "lidar clusters")
         if self.source == "lidar clusters" and self.config.band_from_m > 0:
             T_world_ego = track.matrices(t)[0]
             if own is not None and len(own):  # the nearest scan's, without held persons
