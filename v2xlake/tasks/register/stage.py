@@ -641,8 +641,9 @@ class _CrossWork:
     target: Prepared | None
     source: Prepared | None
     why: str
-    # the two LiDARs farther apart than ``gicp.far_pair_beyond_m``: aligned by the far
-    # pairs' backend (``gicp.far_pair_num_neighbors``)
+    # the two LiDARs farther apart than ``gicp.far_pair_beyond_m``, or a stationary agent
+    # in the pair (``stationary.far_pair_surfaces``): aligned by the far pairs' backend
+    # (``gicp.far_pair_num_neighbors``)
     far: bool = False
 
 
@@ -819,8 +820,10 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                                        o.world_ego(o.frames[fo][1])[0], ref.T_ego_lidar,
                                        o.T_ego_lidar)
             oth = scan(o.agent, fo, cfg.gicp.source_voxel_m)
-            far = far_backend is not None and \
+            far = far_backend is not None and (
                 float(np.linalg.norm(T_init[:3, 3])) > cfg.gicp.far_pair_beyond_m
+                or (cfg.stationary.far_pair_surfaces
+                    and (o.agent in still or ref.agent in still)))
             target, why_t = cross_cloud(ref_scan, T_init[:3, 3], True, far)
             source, why_s = cross_cloud(oth, invert(T_init)[:3, 3], False, far)
             work.append(_CrossWork(o, fo, T_init, oth, target, source, why_t or why_s, far))
