@@ -777,6 +777,18 @@ def band_learned_plates(gray: np.ndarray, box: tuple[int, int, int, int], min_px
                              cfg.band_learned_max, accept=textured)
 
 
+def learned_kept(found: Sequence[Detection], faces: bool
+                 ) -> Callable[[tuple[float, float, float, float]], bool]:
+    """Whether a learned band box (``band_learned_plates``) stands on its own against the
+    detections ``found`` by the other passes: not inside a larger plate of theirs
+    (``inside_larger``) and, with ``faces`` (``band_learned_faces``), not on one of their
+    faces (``bandplate.on_face``). ``in_regions`` holds its learned boxes against its own
+    finds, ``detect`` again against the safety pass's."""
+    larger = [d.box for d in found if d.kind == "plate"]
+    face_boxes = [d.box for d in found if d.kind == "face"] if faces else []
+    return lambda box: not (inside_larger(box, larger) or bandplate.on_face(box, face_boxes))
+
+
 def inside_larger(box: tuple[float, float, float, float], others: Sequence[Any],
                   share: float = 0.5, ratio: float = 2.0) -> bool:
     """Whether at least ``share`` of ``box`` (x0, y0, x1, y1) lies in one of ``others`` at
@@ -1294,15 +1306,13 @@ class GuidedDetector:
             # last: a learned box inside a larger plate any other pass found here is a part
             # of that plate (the carried frames get in_regions alone, without ``detect``)
             gray = to_gray(image)
-            larger = [d.box for d in dets if d.kind == "plate"]
-            faces = [d.box for d in dets if d.kind == "face"] if c.band_learned_faces else []
+            kept = learned_kept(dets, c.band_learned_faces)
             for r in regions:
                 bbox = _frame_box(r.box, w, h) if r.part == "band" else None
                 if bbox is not None:
                     dets += [Detection("plate", pb, band_learned_conf(sc, c), BAND_LEARNED)
                              for pb, sc in band_learned_plates(gray, bbox, r.expected_px, c)
-                             if not inside_larger(pb, larger)
-                             and not bandplate.on_face(pb, faces)]
+                             if kept(pb)]
         return dets
 
     def _band_look(self, image: np.ndarray, r: Region) -> list[Detection]:
@@ -1394,11 +1404,8 @@ class GuidedDetector:
         safety = self.full_frame(image) if full_safety else self.safety(image)
         dets = self.in_regions(image, regions)
         if self.config.band_learned_score > 0:
-            # learned boxes inside a larger plate of the safety pass are parts of it
-            # (``in_regions`` held them against its own plates already)
-            larger = [d.box for d in safety if d.kind == "plate"]
-            faces = ([d.box for d in dets + safety if d.kind == "face"]
-                     if self.config.band_learned_faces else [])
-            dets = [d for d in dets if d.detector != BAND_LEARNED
-                    or not (inside_larger(d.box, larger) or bandplate.on_face(d.box, faces))]
+            # learned boxes inside a larger plate or on a face of the safety pass (``in_regions``
+            # held them against its own plates and faces already: its learned pass is last)
+            kept = learned_kept(safety, self.config.band_learned_faces)
+            dets = [d for d in dets if d.detector != BAND_LEARNED or kept(d.box)]
         return nms(dets + safety, 0.3)
