@@ -502,8 +502,6 @@ def _anonymize_images(
     full = cfg.clusters.full_frame and guide is not None and guide.source == "lidar clusters"
     # frames between key frames: carried, and (LiDAR-only) those detected in full instead
     counts: dict[str, list[int]] = {"carried": [], "carried_in_full": []}  # rows
-    if stats is not None:
-        stats.update(n_images_carried=0.0, n_images_carried_in_full=0.0)
     gcfg = guide_config(cfg)
     part_m = (gcfg.face_height_m, gcfg.plate_width_m)  # the sizes the regions expect
 
