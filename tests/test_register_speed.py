@@ -228,6 +228,36 @@ def test_sample_pairs_are_read_from_the_dense_search() -> None:
     assert sample_pairs(np.array([0, 3]), dense, None, 1.0) == 0
 
 
+def test_quality_figures_reuse_the_dense_search_and_search_the_rest() -> None:
+    """A dense pass's last search gives its sample rows' distances; a sample row outside the
+    dense rows is searched at the result, so the figures equal a search of every row."""
+    from dataclasses import replace
+
+    from v2xlake.tasks.register.backends import make_backend, sample_sq_dist
+    from v2xlake.tasks.register.config import GicpSection
+    from v2xlake.tasks.register.core import evaluate
+
+    dense = np.array([0, 2, 3, 5, 8, 9])
+    sq = np.array([0.1, 4.0, 0.5, np.inf, 1.0, 0.2])
+    got = sample_sq_dist(np.array([2, 7, 9]), dense, sq)
+    assert got is not None and got[0] == 4.0 and np.isnan(got[1]) and got[2] == 0.2
+    assert sample_sq_dist(np.array([2]), dense, None) is None
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-10, 10, (400, 3))
+    backend = make_backend("sparse", GicpSection())
+    target = backend.prepare(pts)
+    sample = np.arange(0, len(target.points), 2)
+    source = replace(target, sample=sample)
+    T = np.eye(4)
+    T[:3, 3] = [0.05, 0.0, 0.0]
+    full = evaluate(backend, target, source, T, 0.5)
+    d2 = backend.nearest_sq_dist(target, target.points[sample] + T[:3, 3], 0.5)
+    part = d2.copy()
+    part[::3] = np.nan  # rows the dense search did not cover
+    assert evaluate(backend, target, source, T, 0.5, part) == full
+
+
 def test_workers_default_to_this_process_cores_capped() -> None:
     import os
 

@@ -273,19 +273,34 @@ class Open3dBackend:
         return _masked_prepare(self, pts, other_origin, min_keep)
 
 
+def sample_sq_dist(sample: np.ndarray, dense: np.ndarray, sq_dist: np.ndarray | None
+                   ) -> np.ndarray | None:
+    """Each ``sample`` row's squared nearest distance from a search of the ``dense`` rows
+    (both ascending; ``sq_dist``: one per dense row), NaN where a sample row is not a dense
+    row. WHY: a pair aligned on more rows than its sample (a stationary agent's dense pass,
+    the fallback after a short sample) has already searched the sample rows in its last
+    iteration; the quality figures and the next frame's decision read them from there."""
+    if sq_dist is None:
+        return None
+    out = np.full(len(sample), np.nan)
+    if len(sample) == 0 or len(dense) == 0:
+        return out
+    pos = np.minimum(np.searchsorted(dense, sample), len(dense) - 1)
+    there = dense[pos] == sample
+    out[there] = sq_dist[pos[there]]
+    return out
+
+
 def sample_pairs(sample: np.ndarray, dense: np.ndarray, sq_dist: np.ndarray | None,
                  max_correspondence_m: float) -> int:
     """How many of the ``sample`` rows found a correspondence within
-    ``max_correspondence_m`` in a search of the ``dense`` rows (both ascending; ``sq_dist``:
-    one squared distance per dense row); a sample row that is not a dense row counts as none.
-    WHY: a pair aligned on every centroid without its sample pass still needs to know whether
-    that pass would have been short, to decide the next frame; the dense pass's last search
-    answers it without a search of its own."""
-    if sq_dist is None or len(sample) == 0 or len(dense) == 0:
-        return 0
-    pos = np.minimum(np.searchsorted(dense, sample), len(dense) - 1)
-    there = dense[pos] == sample
-    return int(np.count_nonzero(sq_dist[pos[there]] <= max_correspondence_m ** 2))
+    ``max_correspondence_m`` in a search of the ``dense`` rows (:func:`sample_sq_dist`); a
+    sample row that is not a dense row counts as none. WHY: a pair aligned on every centroid
+    without its sample pass still needs to know whether that pass would have been short, to
+    decide the next frame; the dense pass's last search answers it without a search of its
+    own."""
+    sq = sample_sq_dist(sample, dense, sq_dist)
+    return 0 if sq is None else int(np.count_nonzero(sq <= max_correspondence_m ** 2))
 
 
 class SparseGicpBackend(SmallGicpBackend):
@@ -343,7 +358,8 @@ class SparseGicpBackend(SmallGicpBackend):
             out = self._align_rows(target, source, dense, init, dense=True)
             short = sample_pairs(rows, dense, out.sq_dist,
                                  p.max_correspondence_m) < p.sample_min_pairs
-            return AlignOutcome(out.T, out.converged, out.iterations, out.H, None, short)
+            sq = sample_sq_dist(rows, dense, out.sq_dist) if p.reuse_last_search else None
+            return AlignOutcome(out.T, out.converged, out.iterations, out.H, sq, short)
         out = self._align_rows(target, source, rows, init)
         sq = out.sq_dist
         short = out.pairs < p.sample_min_pairs and source.sample is not None
@@ -351,7 +367,7 @@ class SparseGicpBackend(SmallGicpBackend):
             dense = self._fallback_rows(source, out.pairs, rows, out.sq_dist)
             if len(dense) > len(rows):
                 out = self._align_rows(target, source, dense, out.T, dense=True)
-                sq = None  # aligned on other rows: the quality figures search again
+                sq = sample_sq_dist(rows, dense, out.sq_dist)
         return AlignOutcome(out.T, out.converged, out.iterations, out.H,
                             sq if p.reuse_last_search else None, short)
 

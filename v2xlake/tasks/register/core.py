@@ -81,13 +81,18 @@ def evaluate(backend: RegistrationBackend, target: Prepared, source: Prepared, T
     The RMSE is point to nearest target voxel centroid, so it includes the voxel
     discretisation (about half the target voxel on sparse scans). ``sq_dist``: each source
     row's squared nearest distance already found by the GICP's last search (one update
-    before ``T``: at convergence under 0.1 deg / 1 mm), used instead of searching again."""
+    before ``T``: at convergence under 0.1 deg / 1 mm), used instead of searching again; a
+    NaN row was not in that search and is searched here."""
     pts = source.points if source.sample is None else source.points[source.sample]
     n = len(pts)
     if n == 0 or len(target.points) == 0:
         return 0.0, 0.0, 0
     if sq_dist is not None and len(sq_dist) == n:
-        d2 = sq_dist
+        d2 = sq_dist.copy()
+        miss = np.isnan(d2)  # rows the last search did not cover: searched here
+        if miss.any():
+            d2[miss] = backend.nearest_sq_dist(target, apply(T, pts[miss]),
+                                               max_dist_m=distance_m)
     else:
         d2 = backend.nearest_sq_dist(target, apply(T, pts), max_dist_m=distance_m)
     inl = d2 <= distance_m**2
