@@ -42,10 +42,13 @@ if ORACLES.is_dir() and str(ORACLES) not in sys.path:
 def pytest_configure(config: pytest.Config) -> None:
     """Bag checksums remembered across processes go to a file of this run, not ~/.v2xlake;
     shared Prefect servers started by tests stop 30 s after their last user."""
+    import shutil
     import tempfile
 
-    os.environ.setdefault("V2XLAKE_CHECKSUM_CACHE",
-                          str(Path(tempfile.mkdtemp(prefix="v2xlake-sums-")) / "sums.sqlite"))
+    if "V2XLAKE_CHECKSUM_CACHE" not in os.environ:
+        sums = tempfile.mkdtemp(prefix="v2xlake-sums-")
+        config.add_cleanup(lambda: shutil.rmtree(sums, ignore_errors=True))
+        os.environ["V2XLAKE_CHECKSUM_CACHE"] = str(Path(sums) / "sums.sqlite")
     # a CLI test without PREFECT_API_URL starts the shared temporary server: let it stop
     # soon after the test instead of the 600 s a user's shell gets
     os.environ.setdefault("V2XLAKE_SERVER_IDLE_S", "30")

@@ -335,17 +335,24 @@ def test_user_sql_has_a_timeout_a_memory_limit_and_a_row_cap(
 
 
 def test_a_where_that_cannot_be_interrupted_is_stopped(
-        lake: Lake, monkeypatch: pytest.MonkeyPatch) -> None:
+        lake: Lake, monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """``length(repeat('a', 2000000000)) > 0`` ran six minutes: one DuckDB call is not
     interruptible, so the predicate runs in a child process killed at the bound."""
+    import tempfile
+
     from v2xlake.flows.release import build_release
 
     monkeypatch.setenv("V2XLAKE_QUERY_TIMEOUT_S", "2")
+    # the killed child's private database must not outlive it (it leaked one folder a run)
+    tmp = tmp_path
+    monkeypatch.setenv("TMPDIR", str(tmp))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
     t0 = time.perf_counter()
     with pytest.raises(QueryTimeout, match="statement timeout"):
         build_release(lake.uri, "slow", "length(repeat('a', 2000000000)) > 0", ["lake"], 0,
                       (1.0, 0.0, 0.0))
     assert time.perf_counter() - t0 < 2 + 3 + 20
+    assert list(tmp.iterdir()) == []
     assert not Path(lake.path("releases", "slow")).exists()
     meta = build_release(lake.uri, "fast", "weather = 'rain'", ["lake"], 0, (1.0, 0.0, 0.0))
     assert meta["clip_ids"] == ["c1"]
@@ -446,3 +453,22 @@ def test_audit_of_a_lake_without_cameras_finds_nothing_unreadable(tmp_path: Path
                                                             cameras=(), clip_id="nocam")))
     report = audit(lake, "raw", sample_images=0)
     assert not [f for f in report.findings if f.kind == "unreadable"], report.findings
+
+
+def test_a_locked_catalog_dropped_without_close_removes_its_copy(lake: Lake) -> None:
+    """The read-only copy of a locked-down catalog lives in a private temporary folder; a
+    catalog the caller forgets to close must not leave it behind."""
+    import gc
+
+    cat = Catalog(lake, read_only=True)
+    cat.lock_down()
+    folder = cat._tmpdir
+    assert folder is not None and Path(folder).is_dir()
+    cat.con.close()
+    del cat
+    gc.collect()
+    assert not Path(folder).exists()
+    with Catalog(lake, read_only=True) as cat:  # and close() removes it at once
+        cat.lock_down()
+        folder = cat._tmpdir
+    assert folder is not None and not Path(folder).exists()

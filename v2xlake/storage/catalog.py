@@ -44,6 +44,7 @@ import sys
 import tempfile
 import threading
 import uuid
+import weakref
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -324,6 +325,7 @@ class Catalog:
             self._setup_s3(self.con)
         self._locked = False
         self._tmpdir: str | None = None  # the read-only copy of a locked-down catalog
+        self._cleanup: weakref.finalize | None = None  # removes _tmpdir
         self._lockfile: str | None = None
         self._union = False  # a file of another schema was met: every table view unions
         self._bound: dict[str, ViewInfo] = {}  # views created on self.con, in creation order
@@ -812,6 +814,8 @@ class Catalog:
         if self._locked:
             return
         self._tmpdir = tempfile.mkdtemp(prefix="v2xlake-catalog-")
+        # a catalog dropped without close() (or an interpreter ending) still removes it
+        self._cleanup = weakref.finalize(self, shutil.rmtree, self._tmpdir, True)
         self._lock(list(self._bound.values()))
 
     def _lock(self, views: list[ViewInfo]) -> None:
@@ -999,8 +1003,9 @@ class Catalog:
 
     def close(self) -> None:
         self.con.close()
-        if self._tmpdir is not None:
-            shutil.rmtree(self._tmpdir, ignore_errors=True)
+        if self._cleanup is not None:
+            self._cleanup()  # removes the read-only copy's folder, once
+            self._cleanup = None
             self._tmpdir = None
 
     def __enter__(self) -> Catalog:
@@ -1038,10 +1043,13 @@ def predicate_ids(lake: Lake, where: str, timeout_s: float | None = None) -> lis
     limit = query_bounds()[0] if timeout_s is None else timeout_s
     code = "from v2xlake.storage.catalog import _where_child; _where_child()"
     try:
-        done = subprocess.run(
-            [sys.executable, "-c", code], capture_output=True, text=True,
-            input=json.dumps({"lake": lake.uri, "where": where, "timeout": limit}),
-            timeout=limit + WHERE_GRACE_S)
+        # the child's private database goes to a folder this process removes: a child killed
+        # at the deadline cannot remove its own
+        with tempfile.TemporaryDirectory(prefix="v2xlake-where-") as tmp:
+            done = subprocess.run(
+                [sys.executable, "-c", code], capture_output=True, text=True,
+                input=json.dumps({"lake": lake.uri, "where": where, "timeout": limit}),
+                timeout=limit + WHERE_GRACE_S, env={**os.environ, "TMPDIR": tmp})
     except subprocess.TimeoutExpired:
         raise QueryTimeout(f"--where {where[:200]!r}: stopped after {limit:g} s (statement "
                            "timeout; V2XLAKE_QUERY_TIMEOUT_S)") from None
