@@ -59,6 +59,9 @@ class Prepared:
     # as a source (sparse backend): its dense pass (``dense_first``) aligns the co-visible
     # rows of a spread sample at this cell (and the sample's) instead of every one
     dense_cell_m: float | None = None
+    # as a source (sparse backend): each spot's correspondences from the scan that sampled
+    # it more densely (``gicp.far_pair_denser_side``, :func:`sparse.align_sparse`)
+    denser_side: bool = False
 
     def rows(self) -> np.ndarray:
         """The rows a source contributes: its sample, or every point."""
@@ -416,11 +419,13 @@ class SparseGicpBackend(SmallGicpBackend):
 
     def _align_rows(self, target: Prepared, source: Prepared, rows: np.ndarray,
                     init: np.ndarray, dense: bool = False) -> SparseOutcome:
-        from v2xlake.tasks.register.sparse import align_sparse
+        from v2xlake.tasks.register.sparse import DenserSide, align_sparse
 
         p = self.params
         surf = source.handle
         surf.ensure(source.points, source.tree, rows, p.num_neighbors, p.num_threads)
+        denser = (DenserSide(source.points, source.tree, surf, source.covisible_with)
+                  if source.denser_side else None)
         eps = (source.translation_eps_m if source.translation_eps_m is not None
                else p.fallback_translation_eps_m if dense else None)
         return align_sparse(target.points, target.tree, target.handle, source.points[rows],
@@ -429,7 +434,7 @@ class SparseGicpBackend(SmallGicpBackend):
                             max_correspondence_m=p.max_correspondence_m,
                             max_iterations=source.max_iterations or p.max_iterations,
                             num_threads=p.num_threads,
-                            t_covisible_with=target.covisible_with,
+                            t_covisible_with=target.covisible_with, denser=denser,
                             **({"translation_eps_m": eps} if eps is not None else {}))
 
     def _dense_rows(self, source: Prepared, rows: np.ndarray | None = None) -> np.ndarray:

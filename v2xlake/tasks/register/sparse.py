@@ -244,6 +244,19 @@ class Surfaces:
         self.known[todo] = True
 
 
+@dataclass
+class DenserSide:
+    """The whole source of a pair that takes each spot's correspondence from the scan that
+    sampled it more densely (``gicp.far_pair_denser_side``): its points, grid, lazily filled
+    surfaces and the target LiDAR's origin in its frame (``Prepared.covisible_with``, None:
+    no co-visibility test)."""
+
+    points: np.ndarray
+    tree: object
+    surf: Surfaces
+    covisible_with: np.ndarray | None = None
+
+
 @dataclass(frozen=True)
 class SparseOutcome:
     T: np.ndarray
@@ -260,12 +273,30 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
                  s_surf_n: np.ndarray, s_surf_r: np.ndarray, init: np.ndarray, *,
                  num_neighbors: int, max_correspondence_m: float, max_iterations: int,
                  num_threads: int = 1, rotation_eps_rad: float = np.radians(0.1),
-                 translation_eps_m: float = 1e-3, t_covisible_with: np.ndarray | None = None
-                 ) -> SparseOutcome:
+                 translation_eps_m: float = 1e-3, t_covisible_with: np.ndarray | None = None,
+                 denser: DenserSide | None = None) -> SparseOutcome:
     """Gauss-Newton GICP of the source sample ``sp`` (with its surfaces) onto the target
     points ``tp`` (neighbour grid ``t_tree``, lazily filled ``t_surf``) from ``init``. With
     ``t_covisible_with`` (the source LiDAR's origin in the target frame) a pair is kept only
-    where the target surface is seen from that side too (:mod:`covisible`)."""
+    where the target surface is seen from that side too (:mod:`covisible`).
+
+    With ``denser`` (the whole source) each spot's correspondences go from the sparser scan
+    to the denser one: the cost keeps the source sample's points nearer the target LiDAR than
+    the source LiDAR (by ``init``), and every target point nearer the source LiDAR is paired
+    with its nearest source point (both surfaces, the same GICP term). WHY: far from its
+    LiDAR a scan's rings are far apart; a dense point paired with the nearest centroid of a
+    sparse ring sits up to half a ring spacing from it in the plane, so the sparse side's
+    leaning normal (its neighbours span several rings) pulls it along the street. The
+    quality figures, ``pairs`` (the sample-short decision) and the Hessian returned (the
+    information matrix) stay the forward search's, every sample pair's, at the same
+    linearisation: the reverse terms count the sparse side's points, fewer, which shrank the
+    along-street information and, with it, what the clip solve accepts (its weak-geometry
+    floor and variance factor are calibrated on the forward Hessian) without larger errors."""
+    if denser is not None:
+        return _align_denser(tp, t_tree, t_surf, sp, s_surf_n, s_surf_r, init, denser,
+                             num_neighbors, max_correspondence_m, max_iterations,
+                             num_threads, rotation_eps_rad, translation_eps_m,
+                             t_covisible_with)
     T = np.array(init, dtype=np.float64, copy=True)
     H = np.zeros((6, 6))
     converged, iterations, used = False, 0, 0
@@ -279,13 +310,8 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
     while iterations < max_iterations:
         iterations += 1
         q = sp @ T[:3, :3].T + T[:3, 3]
-        if isinstance(t_tree, VoxelGrid):
-            nn, d2 = t_tree.nearest_bounded(q, max_correspondence_m, anchor, lb, hold, slack)
-        else:
-            nn, d2 = t_tree.batch_nearest_neighbor_search(  # type: ignore[attr-defined]
-                q, num_threads=num_threads, max_dist_m=max_correspondence_m)
-        nn = np.asarray(nn, dtype=np.int64)
-        d2 = np.asarray(d2, dtype=np.float64)
+        nn, d2 = _nearest(t_tree, q, max_correspondence_m, num_threads,
+                          (anchor, lb, hold, slack))
         close = np.flatnonzero(d2 <= max_d2)
         t_surf.ensure(tp, t_tree, nn[close], num_neighbors, num_threads)
         if t_covisible_with is not None and len(close):
@@ -300,11 +326,140 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
             dx = np.linalg.solve(H, -b)
         except np.linalg.LinAlgError:
             break
-        D = np.eye(4)
-        D[:3, :3] = so3_exp(dx[:3])
-        D[:3, 3] = dx[3:]
-        T = D @ T
+        T = _update(T, dx)
         if np.linalg.norm(dx[:3]) < rotation_eps_rad and np.linalg.norm(dx[3:]) < translation_eps_m:
             converged = True
             break
     return SparseOutcome(T, converged, iterations, 0.5 * (H + H.T), used, d2)
+
+
+def _nearest(tree: object, q: np.ndarray, max_dist_m: float, num_threads: int,
+             held: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Each query's nearest point of ``tree`` within ``max_dist_m`` (-1 / inf: none); on a
+    :class:`voxel.VoxelGrid` with ``held`` (anchor, lb, hold, slack) its bounded search for
+    a query set that moves a little from call to call."""
+    if isinstance(tree, VoxelGrid) and held is not None:
+        nn, d2 = tree.nearest_bounded(q, max_dist_m, *held)
+    else:
+        nn, d2 = tree.batch_nearest_neighbor_search(  # type: ignore[attr-defined]
+            q, num_threads=num_threads, max_dist_m=max_dist_m)
+    return np.asarray(nn, dtype=np.int64), np.asarray(d2, dtype=np.float64)
+
+
+def _update(T: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """``exp(dx) T`` for a Gauss-Newton step ``dx = [rot, trans]``."""
+    D = np.eye(4)
+    D[:3, :3] = so3_exp(dx[:3])
+    D[:3, 3] = dx[3:]
+    return D @ T
+
+
+def _held(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fresh (anchor, lb, hold, slack) of ``n`` queries for :meth:`VoxelGrid.nearest_bounded`."""
+    return np.zeros((n, 3)), np.zeros(n), np.full(n, -1, dtype=np.int64), np.zeros(n)
+
+
+def _align_denser(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarray,
+                  s_surf_n: np.ndarray, s_surf_r: np.ndarray, init: np.ndarray,
+                  denser: DenserSide, num_neighbors: int, max_correspondence_m: float,
+                  max_iterations: int, num_threads: int, rotation_eps_rad: float,
+                  translation_eps_m: float, t_covisible_with: np.ndarray | None
+                  ) -> SparseOutcome:
+    """:func:`align_sparse` with ``denser``: the sample rows nearer the target LiDAR (by
+    ``init``) and the target points nearer the source LiDAR (:func:`_denser_terms`) in the
+    cost. The other sample rows are searched once, at the last linearisation, for what
+    stays the forward search's (the quality figures' squared distances, ``pairs``, the
+    Hessian returned)."""
+    T = np.array(init, dtype=np.float64, copy=True)
+    H = np.zeros((6, 6))
+    converged, iterations, used = False, 0, 0
+    max_d2 = max_correspondence_m**2
+    o = T[:3, 3].copy()  # the source LiDAR in the target frame; nearer it: 2 x.o > |o|^2
+    half = float(o @ o)
+    far = 2.0 * ((sp @ T[:3, :3].T + o) @ o) > half  # sample rows nearer the source LiDAR
+    near = np.flatnonzero(~far)
+    sp_n, sn_n, sr_n = sp[near], s_surf_n[near], s_surf_r[near]
+    cand = np.flatnonzero(2.0 * (tp @ o) > half)  # target points nearer the source LiDAR
+    held, r_held = _held(len(near)), _held(len(cand))
+    T_lin = T
+    nn = np.zeros(0, dtype=np.int64)
+    d2 = np.zeros(0)
+    H_near = H
+    while iterations < max_iterations:
+        iterations += 1
+        T_lin = T
+        q = sp_n @ T[:3, :3].T + T[:3, 3]
+        nn, d2 = _nearest(t_tree, q, max_correspondence_m, num_threads, held)
+        close = np.flatnonzero(d2 <= max_d2)
+        t_surf.ensure(tp, t_tree, nn[close], num_neighbors, num_threads)
+        if t_covisible_with is not None and len(close):
+            seen = covisible_rows(tp, t_surf.normals, t_surf.ratio, nn[close],
+                                  t_covisible_with)
+            nn[close[~seen]] = -1
+        H_near, b, used = _linearise(tp, t_surf.normals, t_surf.ratio, sp_n, sn_n, sr_n,
+                                     nn, d2, T, max_d2)
+        Hr, br, ur = _denser_terms(tp, t_tree, t_surf, cand, denser, T, num_neighbors,
+                                   max_correspondence_m, num_threads, t_covisible_with,
+                                   r_held)
+        H, b, used = H_near + Hr, b + br, used + ur
+        if used < 6:
+            break
+        try:
+            dx = np.linalg.solve(H, -b)
+        except np.linalg.LinAlgError:
+            break
+        T = _update(T, dx)
+        if np.linalg.norm(dx[:3]) < rotation_eps_rad and np.linalg.norm(dx[3:]) < translation_eps_m:
+            converged = True
+            break
+    # the far rows at the last linearisation, for the forward figures
+    fr = np.flatnonzero(far)
+    q = sp[fr] @ T_lin[:3, :3].T + T_lin[:3, 3]
+    nn_f, d2_f = _nearest(t_tree, q, max_correspondence_m, num_threads, None)
+    close = np.flatnonzero(d2_f <= max_d2)
+    t_surf.ensure(tp, t_tree, nn_f[close], num_neighbors, num_threads)
+    if t_covisible_with is not None and len(close):
+        seen = covisible_rows(tp, t_surf.normals, t_surf.ratio, nn_f[close], t_covisible_with)
+        nn_f[close[~seen]] = -1
+    Hf, _, _ = _linearise(tp, t_surf.normals, t_surf.ratio, sp[fr], s_surf_n[fr],
+                          s_surf_r[fr], nn_f, d2_f, T_lin, max_d2)
+    sq = np.empty(len(sp))
+    sq[near], sq[fr] = d2, d2_f
+    pairs = int(np.count_nonzero((nn >= 0) & (d2 <= max_d2))
+                + np.count_nonzero((nn_f >= 0) & (d2_f <= max_d2)))
+    H_info = H_near + Hf  # every sample pair's forward Hessian: the information reported
+    return SparseOutcome(T, converged, iterations, 0.5 * (H_info + H_info.T), pairs, sq)
+
+
+def _denser_terms(tp: np.ndarray, t_tree: object, t_surf: Surfaces, cand: np.ndarray,
+                  denser: DenserSide, T: np.ndarray, num_neighbors: int,
+                  max_correspondence_m: float, num_threads: int,
+                  t_covisible_with: np.ndarray | None,
+                  held: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+                  ) -> tuple[np.ndarray, np.ndarray, int]:
+    """GICP terms of the target points ``tp[cand]`` (those nearer the source LiDAR), each
+    paired with its nearest source point within ``max_correspondence_m`` where both
+    surfaces are seen from the other LiDAR's side (:func:`align_sparse`)."""
+    if not len(cand):
+        return np.zeros((6, 6)), np.zeros(6), 0
+    R, t = T[:3, :3], T[:3, 3]
+    p = (tp[cand] - t) @ R  # in the source frame
+    s_tree = denser.tree
+    k, d2 = _nearest(s_tree, p, max_correspondence_m, num_threads, held)
+    close = np.flatnonzero(d2 <= max_correspondence_m ** 2)
+    if not len(close):
+        return np.zeros((6, 6)), np.zeros(6), 0
+    ks, js = k[close], cand[close]
+    denser.surf.ensure(denser.points, s_tree, ks, num_neighbors, num_threads)
+    t_surf.ensure(tp, t_tree, js, num_neighbors, num_threads)
+    ok = np.ones(len(close), dtype=bool)
+    if denser.covisible_with is not None:
+        ok &= covisible_rows(denser.points, denser.surf.normals, denser.surf.ratio, ks,
+                             denser.covisible_with)
+    if t_covisible_with is not None:
+        ok &= covisible_rows(tp, t_surf.normals, t_surf.ratio, js, t_covisible_with)
+    ks, js, dd = ks[ok], js[ok], d2[close[ok]]
+    return _linearise(tp, t_surf.normals, t_surf.ratio, denser.points[ks],
+                      denser.surf.normals[ks], denser.surf.ratio[ks], js, dd, T,
+                      max_correspondence_m ** 2)

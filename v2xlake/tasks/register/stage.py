@@ -874,6 +874,10 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
             if w.target is None or w.source is None:
                 return failed_pair(w.T_init, w.why)
             source = replace(w.source, dense_first=True) if dense else w.source
+            side = cfg.gicp.far_pair_denser_side
+            if (side == "far" and w.far) or (side != "off" and (
+                    w.other.agent in still or ref.agent in still)):
+                source = replace(source, denser_side=True)
             if w.other.agent in still:
                 source = replace(source, translation_eps_m=cfg.stationary.translation_eps_m,
                                  max_iterations=cfg.stationary.max_iterations,
