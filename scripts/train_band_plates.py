@@ -5,15 +5,19 @@ minutes on one core). Training data that may ship with the repository only:
 
 * positives: EU-style plates (520 x 112 mm: a white or yellow field, a dark rim, a blue EU
   strip, 5-8 random letters and digits in matplotlib's DejaVu Sans Bold) rendered onto
-  car rears drawn here (bodies of random light and dark colours, shading, chrome bars,
-  bumper edges, recesses, lamps, a rear window, the road), shrunk so the plate is 16-34 px
-  wide (area resize, some JPEG, blur and noise), then brought to the classifier's scale as
-  the band is (linear upscale) and cut with a pixel or two of jitter;
+  car rears drawn here (bodies of random colours, half of them white, silver or pale,
+  shading, chrome bars, bumper edges, recesses, lamps, a rear window, the road), half in a
+  dark holder, some dimmed or of low contrast (dirt, glare), some behind lens blur and haze,
+  shrunk so the plate is 16-34 px wide (area resize, some JPEG, blur and noise), then
+  brought to the classifier's scale as the band is (linear upscale) and cut with a pixel or
+  two of jitter (a fifth of a plate's height up or down, so the score peaks where the
+  plate's glyph row is);
 * negatives: the same car rears without a plate, windows beside or off a plate (half a
-  plate or more) or at the wrong scale, and windows of the photos that ship with
-  scikit-image and matplotlib (a street with a motorcycle, brick, grass, gravel, text,
-  faces, ...) at several scales; then one round of the highest-scoring negative windows of
-  those photos (hard negatives).
+  plate or more) or at the wrong scale, lane dashes and curb edges leaning as ground lines
+  do (``road_sample``), and windows of the photos that ship with scikit-image and
+  matplotlib (a street with a motorcycle, brick, grass, gravel, text, faces, ...) at
+  several scales; then two rounds of the highest-scoring negative windows of those photos
+  (hard negatives).
 
 Real plate photos (plates_eu) and the real street frames are test data: never used here.
 The classifier is an L2-regularised logistic regression on ``bandplate.window_at`` of
@@ -81,7 +85,9 @@ def render_plate(rng: np.random.Generator, wpx: int = 156) -> np.ndarray:
 
 def body_colour(rng: np.random.Generator) -> np.ndarray:
     """A car's colour (BGR float): white, silver, grey, black or a colour, light or dark."""
-    kind = rng.choice(["white", "silver", "dark", "colour", "colour"])
+    kind = rng.choice(["white", "white", "silver", "silver", "pale", "dark", "colour", "colour"])
+    if kind == "pale":  # a light tint: beige, pale blue, light grey-green
+        return rng.uniform(150, 235) + rng.normal(0, 12, 3)
     if kind == "white":
         v = rng.uniform(190, 250)
         return np.array([v, v, v]) + rng.normal(0, 4, 3)
@@ -161,6 +167,11 @@ def car_rear(rng: np.random.Generator, h: int, w: int, plate: tuple[int, int, in
 def finish(img: np.ndarray, rng: np.random.Generator, scale: float) -> np.ndarray:
     """A drawn patch as a far camera sees it: some JPEG at full size, shrunk by ``scale``
     (area), blurred and noised a little (uint8)."""
+    if rng.random() < 0.5:  # the optics' blur, at the drawn size (a few px there)
+        img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.5, 1.2) / scale)
+    if rng.random() < 0.3:  # haze: far away, everything towards one grey
+        a = rng.uniform(0.1, 0.4)
+        img = (1 - a) * img + a * rng.uniform(120, 220)
     u8 = np.clip(img, 0, 255).astype(np.uint8)
     if rng.random() < 0.5:
         _ok, enc = cv2.imencode(".jpg", u8, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(40, 95))])
@@ -168,7 +179,7 @@ def finish(img: np.ndarray, rng: np.random.Generator, scale: float) -> np.ndarra
     small = cv2.resize(u8, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     f = small.astype(np.float32)
     if rng.random() < 0.5:
-        f = cv2.GaussianBlur(f, (0, 0), rng.uniform(0.3, 0.8))
+        f = cv2.GaussianBlur(f, (0, 0), rng.uniform(0.3, 1.0))
     f *= rng.uniform(0.6, 1.15)
     f += rng.normal(0, rng.uniform(0, 4), f.shape)
     return np.clip(f, 0, 255).astype(np.uint8)
@@ -202,13 +213,47 @@ def car_sample(rng: np.random.Generator, with_plate: bool
     img = car_rear(rng, h, w, box)
     if with_plate:
         plate = render_plate(rng, pw).astype(np.float32)
-        shade = rng.uniform(0.55, 1.05)
+        if rng.random() < 0.5:  # a dark plastic holder around the plate
+            m = int(rng.integers(2, 10))
+            img[max(0, py0 - m) : py0 + ph + m, max(0, px0 - m) : px0 + pw + m] = \
+                rng.uniform(10, 70)
+        if rng.random() < 0.4:  # dirt or glare: glyphs and field closer together
+            plate = plate.mean() + (plate - plate.mean()) * rng.uniform(0.35, 0.8)
+        shade = rng.uniform(0.45, 1.05)
         # a plate dimmer than a white body is common (shade, dirt, its angle)
         img[py0 : py0 + ph, px0 : px0 + pw] = plate * shade
     target = rng.uniform(16.0, 34.0)
     scale = target / pw
     out = finish(img, rng, scale)
     return out, ((px0 + pw / 2) * scale, (py0 + ph / 2) * scale, pw * scale)
+
+
+def road_sample(rng: np.random.Generator) -> tuple[np.ndarray, tuple[float, float, float]]:
+    """A stretch of road with a lane dash or a curb's edge (a bright stroke leaning 0.1-0.6,
+    as a ground line beside a camera appears), finished as ``car_sample``; a point on the
+    stroke and a plate width (native px). Why: far dashes are bright, plate-sized strokes on
+    a dark field, which a scorer trained on car rears alone rates as plates."""
+    pw = 156
+    h, w = int(pw * 2.6), int(pw * 4.0)
+    img = np.full((h, w, 3), rng.uniform(50, 130), np.float32) + rng.normal(0, 4, (h, w, 1))
+    slope = rng.uniform(0.1, 0.6) * rng.choice([-1, 1])
+    t = rng.uniform(0.2, 1.0) * pw / bp.PLATE_ASPECT
+    x0 = rng.uniform(0, 0.4) * w
+    x1 = x0 + rng.uniform(1.0, 5.0) * pw
+    cy = h / 2
+    pts = np.array([[x0, cy - slope * (w / 2 - x0)], [x1, cy - slope * (w / 2 - x1)],
+                    [x1, cy - slope * (w / 2 - x1) + t], [x0, cy - slope * (w / 2 - x0) + t]])
+    if rng.random() < 0.3:  # a curb: the field on one side of the edge lighter
+        pts[2:, 1] += h
+        pts[2, 0], pts[3, 0] = w, 0
+        pts[0, 0], pts[1, 0] = 0, w
+        pts[0, 1], pts[1, 1] = cy - slope * w / 2, cy + slope * w / 2
+    cv2.fillPoly(img, [pts.astype(np.int32)], (float(rng.uniform(140, 240)),) * 3)
+    target = rng.uniform(16.0, 34.0)
+    scale = target / pw
+    cx = rng.uniform(max(x0, w * 0.3), min(x1, w * 0.7)) if x1 > w * 0.3 else w / 2
+    cyy = cy - slope * (w / 2 - cx) + t / 2
+    return finish(img, rng, scale), (cx * scale, cyy * scale, pw * scale)
 
 
 def photos() -> tuple[list[np.ndarray], list[str]]:
@@ -352,7 +397,7 @@ def main() -> None:
 
     while len(pos) < args.n_pos:
         img, (cx, cy, wd) = car_sample(rng, True)
-        v = window_at(img, cx + rng.uniform(-0.06, 0.06) * wd, cy + rng.uniform(-0.5, 0.5)
+        v = window_at(img, cx + rng.uniform(-0.06, 0.06) * wd, cy + rng.uniform(-0.2, 0.2)
                       * wd / bp.PLATE_ASPECT, wd * rng.uniform(0.85, 1.15))
         if v is not None:
             pos.append(v)
@@ -364,6 +409,12 @@ def main() -> None:
         v = off_window(img, cx, cy, wd, False)
         if v is not None:
             neg.append(v)
+    n_road = len(neg) + args.n_neg // 10
+    while len(neg) < n_road:
+        img, (cx, cy, wd) = road_sample(rng)
+        v = window_at(img, cx + rng.uniform(-0.3, 0.3) * wd, cy, wd * rng.uniform(0.85, 1.15))
+        if v is not None:
+            neg.append(v)
     ims, names = photos()
     print(f"photos ({len(names)}): {', '.join(names)}")
     neg += photo_windows(rng, ims, args.n_neg - len(neg))
@@ -372,14 +423,16 @@ def main() -> None:
     wts = np.where(y == 1, len(neg) / len(pos), 1.0)
     w, b = fit(x, y, 1.0, wts)
     print(f"round 1: {len(pos)} positives, {len(neg)} negatives", flush=True)
-    hard = hard_negatives(w, b, ims, 60, rng)
-    x = np.concatenate([x, np.array(hard, np.float32)])
-    y = np.r_[y, np.zeros(len(hard))]
-    wts = np.where(y == 1, (len(y) - len(pos)) / len(pos), 1.0)
-    w, b = fit(x, y, 1.0, wts)
-    t = x @ w + b
-    print(f"round 2: +{len(hard)} hard negatives; training accuracy positives "
-          f"{(t[y == 1] > 0).mean():.3f}, negatives {(t[y == 0] <= 0).mean():.3f}")
+    for rnd in (2, 3):  # two rounds of hard negatives
+        hard = hard_negatives(w, b, ims, 60, rng)
+        x = np.concatenate([x, np.array(hard, np.float32)])
+        y = np.r_[y, np.zeros(len(hard))]
+        wts = np.where(y == 1, (len(y) - len(pos)) / len(pos), 1.0)
+        w, b = fit(x, y, 1.0, wts)
+        t = x @ w + b
+        print(f"round {rnd}: +{len(hard)} hard negatives; training accuracy positives "
+              f"{(t[y == 1] > 0).mean():.3f}, negatives {(t[y == 0] <= 0).mean():.3f}",
+              flush=True)
     np.savez_compressed(args.out, w=w.astype(np.float32), b=np.float32(b),
                         photos=np.array(names))
     print(f"wrote {args.out} ({args.out.stat().st_size} bytes)")

@@ -53,20 +53,23 @@ def test_a_lane_dash_leans_and_a_level_plate_does_not() -> None:
 
 
 def test_the_scorer_drops_its_boxes_that_lean_past_the_setting() -> None:
-    """Plates on white cars sheared to lean 0.15 (a camera rolled 8.5 degrees): the scorer
-    finds all three with the test off; set below their lean it drops them; at the default
-    (0.15) the level ones stay."""
+    """Plates on white cars sheared to lean 0.1 (a camera rolled 5.7 degrees; the classifier,
+    trained with leaning lane dashes as negatives, rates plates leaning 0.15 under its
+    threshold itself): the scorer finds all three with the test off and at the default
+    (0.15); set below their lean it drops them."""
     img = np.full((1080, 1920, 3), 70, np.uint8)
     truth = [_white_car_plate(img, x, 480) for x in (300, 900, 1500)]
     level = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    m = np.float32([[1, 0, 0], [0.15, 1, -0.15 * 960]])
+    m = np.float32([[1, 0, 0], [0.1, 1, -0.1 * 960]])
     sheared = cv2.warpAffine(level, m, (1920, 1080), borderValue=70)
     cfg = replace(GuidedConfig(), band_learned_score=8.0)
     band = (0, 300, 1920, 700)
     off = band_learned_plates(sheared, band, 20.0, replace(cfg, band_learned_max_slope=0.0))
     assert len(off) == 3, off
+    at_default = replace(cfg, band_learned_max_slope=0.15)
+    assert len(band_learned_plates(sheared, band, 20.0, at_default)) == 3
     assert band_learned_plates(sheared, band, 20.0,
-                               replace(cfg, band_learned_max_slope=0.12)) == []
+                               replace(cfg, band_learned_max_slope=0.07)) == []
     assert GuidedConfig().band_learned_max_slope == 0.15
     kept = [b for b, _s in band_learned_plates(level, band, 20.0, cfg)]
     assert kept and (iou_xyxy(np.array(truth, float), np.array(kept)) >= 0.3).any(1).all()
