@@ -192,8 +192,8 @@ def test_each_image_is_decoded_once(tmp_path, monkeypatch) -> None:
 
 def test_a_lidar_only_clip_is_carried_by_cluster_track(tmp_path, monkeypatch) -> None:
     """Regions from LiDAR clusters (here the fixture's annotated boxes, given the clusters'
-    source: the fixture's scans hold no objects) are carried with ``clusters.carry`` (off by
-    default: every frame in full): the frames between key frames go through
+    source: the fixture's scans hold no objects) are carried with ``clusters.carry`` (on by
+    default; false: every frame in full): the frames between key frames go through
     ``carry.between_tracked``, those after the second key frame with the key frame before
     that (the image velocity of a detection leaving the view); with
     ``clusters.full_frame_every`` 2 the key frames between two with the full-frame plan get
@@ -246,11 +246,11 @@ def test_a_lidar_only_clip_is_carried_by_cluster_track(tmp_path, monkeypatch) ->
     assert plans.count("full") == 4 and plans.count("shrunk") == 2, plans
     t0 = sorted({t for t, _ in windows})
     assert len(windows) == 2 and len(t0) == 1 and not any(e for _, e in windows), windows
-    # carried is one setting away from every frame in full (the default), and the
+    # every frame in full is one setting away from carried (the default), and the
     # provenance tells the two apart
-    on = AnonymizeConfig(clusters={"carry": True})
-    assert "clusters.carry=False" in AnonymizeConfig().provenance("d")
-    assert "clusters.carry=True" in on.provenance("d")
+    off = AnonymizeConfig(clusters={"carry": False})
+    assert "clusters.carry=True" in AnonymizeConfig().provenance("d")
+    assert "clusters.carry=False" in off.provenance("d")
 
 
 def test_the_provenance_names_every_setting_that_changes_what_is_blurred() -> None:

@@ -792,8 +792,8 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
     faces / plates from 16 / 20 px and false blurs per image; deface (recall of its own
     detections, speed of its command line on one core) on the same frames.
     ``lidar_only``: the clip's annotations are deleted after ingest, so the regions come
-    from LiDAR clusters (the default then detects every frame in full; carrying by cluster
-    track, ``clusters.carry``, is the variant beside it). ``seed``: the simulated scene
+    from LiDAR clusters (every frame detected in full, ``clusters.carry`` false, and
+    carried by cluster track, whichever is the default). ``seed``: the simulated scene
     (``--lidar-seeds``: LiDAR clusters are measured on several scenes, not tuned to one).
     ``extra``: (name, config update) variants run beside the default instead of the carried
     ones (``--clip-set``)."""
@@ -846,12 +846,15 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
               f"{len(keys)} images, "
               f"regions from {'LiDAR clusters' if lidar_only else 'annotations'} "
               "(one worker, CPU seconds)")
-        # LiDAR-only: the default detects every frame in full (clusters.carry false: carried
-        # by cluster track lost faces and plates on 1.0 s clips), the same detections as
-        # carry.key_interval_ms=0 without the cluster tracks; carried is the variant
+        # LiDAR-only: every frame in full (clusters.carry false; the same detections as
+        # carry.key_interval_ms=0 without the cluster tracks) first, the reference of the
+        # miss listing, then carried by cluster track (clusters.carry), whichever the default
+        on = AnonymizeConfig().clusters.carry
         variants: tuple[tuple[str, dict], ...] = ((
-            ("default: every frame in full (clusters.carry false)", {}),
-            ("carried by cluster track (clusters.carry true)", {"clusters": {"carry": True}}),
+            (f"{'' if on else 'default: '}every frame in full (clusters.carry false)",
+             {"clusters": {"carry": False}}),
+            (f"{'default: ' if on else ''}carried by cluster track (clusters.carry true)",
+             {"clusters": {"carry": True}}),
             ("carried, unsure frames carried too (clusters.carry_unsure_full false)",
              {"clusters": {"carry": True, "carry_unsure_full": False}}))
             if lidar_only else (
@@ -862,12 +865,14 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
             ("key frames + carry, int8 CenterFace alone", {"faces": {"int8": True}})))
         if lidar_only and not rules_alone:
             variants = variants[:2]
-        if extra:
-            variants = (variants[0], *extra)
+        if extra:  # beside the default
+            variants = (("default", {}), *extra)
         got: dict[str, dict] = {}
         kept = tmp / "default_detections.pkl"
-        for name, upd in variants:
-            if reuse_default and not upd and kept.exists():
+        for k, (name, upd) in enumerate(variants):
+            # every frame in full: kept for --reuse-default
+            first = k == 0 and lidar_only and not extra
+            if reuse_default and first and kept.exists():
                 got[name] = pickle.loads(kept.read_bytes())
                 line(f"ours, {name} (kept from an earlier run)", got[name], None)
                 continue
@@ -875,15 +880,16 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
             rep = run_anonymize(lake, cid, AnonymizeConfig(work={"workers": 1}, **upd))
             cpu = time.process_time() - t
             got[name] = audit_detections(lake, cid)
-            if not upd and work is not None:
+            if first and work is not None:
                 kept.write_bytes(pickle.dumps(got[name]))
             elif extra and work is not None:  # for a listing of what a variant blurred
                 (tmp / f"{name}_detections.pkl").write_bytes(pickle.dumps(got[name]))
             line(f"ours, {name}", got[name], rep.metrics["n_images"] / cpu)
             if rep.metrics.get("n_images_carried"):
                 print(f"    {rep.metrics['n_images_carried']:.0f} images between key frames, "
-                      f"{rep.metrics.get('n_images_carried_in_full', 0):.0f} of them detected "
-                      "in full (carrying unsure)")
+                      f"{rep.metrics.get('n_images_carried_in_full', 0):.0f} of them unsure "
+                      "(clusters.carry_unsure_full; searched where carrying cannot vouch, "
+                      "clusters.carry_unsure_zones)")
         if lidar_only and not extra:
             full, *rest = got.values()
             for name, car in zip([n for n, _ in variants][1:], rest, strict=True):

@@ -378,7 +378,9 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                     regions: Sequence[Region] | None, t_ns: int, grow: float,
                     window: float, shape: tuple[int, ...], fresh: Sequence[Region] = (),
                     earlier: tuple[Sequence[Detection], Sequence[Region] | None, int] | None
-                    = None, unsure: list[str] | None = None
+                    = None, unsure: list[str] | None = None,
+                    zones: list[tuple[str, Box]] | None = None,
+                    centre: tuple[float, float] | None = None
                     ) -> tuple[list[Detection], list[Region], list[tuple[Region, Detection]]]:
     """``between`` for regions from LiDAR cluster tracks: the carried detections of a frame
     at ``t_ns``, the regions to search here, and fallbacks: (searched window, detection)
@@ -445,9 +447,24 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     pair by, moved 3 sizes per key interval and left it, each unblurred on the two frames
     between); one of the key frame after without a partner that may have entered the view
     (``may_enter``: anywhere on its way in); a pair of one track whose sizes differ more
-    than 2x (one of them a piece of the object: the box between them is neither)."""
+    than 2x (one of them a piece of the object: the box between them is neither); a pair
+    whose find of the key frame after lies beyond ``window`` x its size of where the image
+    velocity of the find before puts it (two objects one behind the other: a face crossing
+    the front camera at 150 px per key interval was paired with the next walker's face
+    found where it had been, and the frames between blurred neither): such a pair is not
+    made, the find before is searched for as one without a partner and the find after is
+    left to another partner or searched as new.
+
+    ``zones``: where given, for each reason in ``unsure`` the part of this frame where the
+    object it concerns can be (its finds, where its track's region and its image velocity
+    put it, grown by its reach, clipped to the frame; one gone or new near the edge on to
+    the nearest frame edge): the stage's cheaper fallback (``clusters.carry_unsure_zones``)
+    searches the regions there at their own scales and the full-frame plan over them.
+    ``centre``: the camera's principal point (``_ahead``: image velocities at a constant
+    velocity relative to the camera too); None: the image velocity alone."""
     (d0, r0, t0), (d1, r1, t1) = before, after
     doubt: list[str] = unsure if unsure is not None else []
+    zone: list[tuple[str, Box]] = zones if zones is not None else []
     h, w = shape[:2]
     a = min(max((t_ns - t0) / max(t1 - t0, 1), 0.0), 1.0)
     here = {_key(r): r for r in regions or ()}
@@ -456,6 +473,22 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     in_b = {_key(r): r for r in r1 or ()}
 
     fresh_at = {_key(r): r for r in fresh}
+
+    def doubt_at(d: Detection, reason: str, boxes: Sequence[Box | None], m: float,
+                 edge: bool = False) -> None:
+        """A reason this frame is unsure, and where the object of ``d`` (the find it
+        concerns) can be: ``boxes`` grown by ``m``, clipped to the frame; ``edge``: and on
+        to the nearest frame edge (it entered or left the view there, when or how fast
+        is not known: a face at 60 px a frame was 2 reaches past its key frame's find)."""
+        bs = [b for b in boxes if b is not None]
+        doubt.append(reason)
+        z = [max(0.0, min(b[0] for b in bs) - m), max(0.0, min(b[1] for b in bs) - m),
+             min(float(w), max(b[2] for b in bs) + m), min(float(h), max(b[3] for b in bs) + m)]
+        if edge:
+            gap = [z[0], z[1], w - z[2], h - z[3]]
+            k = int(np.argmin(gap))
+            z[k] = (0.0, 0.0, float(w), float(h))[k]
+        zone.append((d.kind, (z[0], z[1], z[2], z[3])))
 
     def side(dets: Sequence[Detection], rk: Sequence[Region] | None, first: bool
              ) -> list[tuple[Detection, Region | None, Region | None]]:
@@ -469,7 +502,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                 # puts it outside that region here (a close car's box lags the car: a 64
                 # px plate at 90 px a frame was 7 px past its region's edge, 25 px
                 # further than its velocity said, and the region's search missed it)
-                ahead = (_ahead(d, earlier, t0, t_ns, window, r)
+                ahead = (_ahead(d, earlier, t0, t_ns, window, r, centre)
                          if first and earlier is not None else None)
                 fr = fresh_at.get(_key(r))
                 m = window * _size(d)
@@ -531,25 +564,37 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         """Whether ``d`` is in view on the other key frame for sure: its track's region
         is there with its box whole, and ``d`` moved with it, grown by its reach
         (``window`` x its size), is inside the frame (a close car's region stayed whole
-        while its plate, 3.5 sizes per key interval, left the view)."""
+        while its plate, 3.5 sizes per key interval, left the view). A plate of the far
+        band (30-60 m away: it moves little in the image) where its box grown by its reach
+        is inside the frame: the band is the camera's own rows, in view on every frame,
+        and has no track (each far plate gone on the next key frame, far plates flicker,
+        marked its frames unsure: on a 1.0 s clip the reasons "plate gone near the edge"
+        fell from 67 to 20, the unsure frames from 82 to 70 of 114)."""
+        if rk is not None and rk.part == "band":
+            return inside(d.box, window * _size(d))
         o = other.get(_key(rk)) if rk is not None and track(rk) is not None else None
         if rk is None or o is None or cut_by_edge(o.box):
             return False
         return inside(_move(d.box, rk, o), window * _size(d))
 
-    def may_enter(d: Detection, rk: Region | None) -> bool:
-        """Whether ``d``, found in the key frame after only, may have entered the view
-        between the key frames: its track's region in the key frame before is not in
-        view whole, and its box grown by its reach (``window`` x its size, plus how far
-        its track's region moved between the key frames) touches the edge."""
-        if in_view(d, rk, in_a):
-            return False
+    def reach(d: Detection, rk: Region | None, other: dict[tuple[str, str, str], Region]
+              ) -> float:
+        """How far ``d`` may have gone by the other key frame: ``window`` x its size, plus
+        how far its track's region moved between the key frames."""
         m = window * _size(d)
-        o = in_a.get(_key(rk)) if rk is not None and track(rk) is not None else None
+        o = other.get(_key(rk)) if rk is not None and track(rk) is not None else None
         if rk is not None and o is not None:
             m += float(np.hypot((o.box[0] + o.box[2] - rk.box[0] - rk.box[2]) / 2,
                                 (o.box[1] + o.box[3] - rk.box[1] - rk.box[3]) / 2))
-        return not inside(d.box, m)
+        return m
+
+    def may_enter(d: Detection, rk: Region | None) -> bool:
+        """Whether ``d``, found in the key frame after only, may have entered the view
+        between the key frames: its track's region in the key frame before is not in
+        view whole, and its box grown by its reach (``reach``) touches the edge."""
+        if in_view(d, rk, in_a):
+            return False
+        return not inside(d.box, reach(d, rk, in_a))
 
     keys_a = {track(r) for r in r0 or ()} - {None}
     keys_b = {track(r) for r in r1 or ()} - {None}
@@ -571,23 +616,41 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                              for q, rq, _ in c1], used)
             if j is not None and max(_size(p), _size(c1[j][0])) > 2 * min(
                     _size(p), _size(c1[j][0])):
-                doubt.append(f"{p.kind} of one track found at {_size(p):.0f} and "
-                             f"{_size(c1[j][0]):.0f} px")
+                doubt_at(p, f"{p.kind} of one track found at {_size(p):.0f} and "
+                         f"{_size(c1[j][0]):.0f} px",
+                         [p.box, c1[j][0].box],
+                         window * max(_size(p), _size(c1[j][0])))
+        ahead = _ahead(p, earlier, t0, t_ns, window, rk, centre) if earlier else None
+        at_b = _ahead(p, earlier, t0, t1, window, rk, centre) if earlier else None
+        moved = (_move(p.box, rk, reg) if rk is not None and reg is not None
+                 and _fits(p, rk, 4.0) else None)
+        m = window * _size(p)
+        if j is not None and at_b is not None:
+            q = c1[j][0]
+            qx, qy = (q.box[0] + q.box[2]) / 2, (q.box[1] + q.box[3]) / 2
+            if not (at_b[0] - m <= qx <= at_b[2] + m and at_b[1] - m <= qy <= at_b[3] + m):
+                # its partner is not where its image velocity goes: another object (one
+                # walker behind another) or another velocity; either way not known here.
+                # Not paired: searched for as without a partner, the other find left to
+                # another partner or searched as new
+                doubt_at(p, f"{p.kind} of {_size(p):.0f} px paired against its velocity",
+                         [p.box, q.box, ahead, at_b], m)
+                j = None
         if j is None:
-            ahead = _ahead(p, earlier, t0, t_ns, window, rk) if earlier else None
-            at_b = _ahead(p, earlier, t0, t1, window, rk) if earlier else None
             if ahead is not None and not all(inside(b, window * _size(p))
                                              for b in (ahead, at_b or ahead)):
                 # its own box at its image velocity (not its region's: a close car's box
                 # lags the car) near the edge here or by the key frame after: it left the
                 # view between them, where a window at its scale missed a 64 px plate at
                 # 90 px a frame that the full detection found
-                doubt.append(f"{p.kind} of {_size(p):.0f} px leaving the view at its velocity")
+                doubt_at(p, f"{p.kind} of {_size(p):.0f} px leaving the view at its velocity",
+                         [p.box, ahead, at_b], window * _size(p))
             elif not in_view(p, rk, in_b):
                 # with a velocity too: it is extrapolated from two key frames' finds, and
                 # a region not surely in view was the rule before it (kept: the safe side)
-                doubt.append(f"{p.kind} of {_size(p):.0f} px gone near the edge"
-                             + ("" if ahead is not None else ", no velocity"))
+                doubt_at(p, f"{p.kind} of {_size(p):.0f} px gone near the edge"
+                         + ("" if ahead is not None else ", no velocity"),
+                         [p.box, moved, ahead, at_b], reach(p, rk, in_b), True)
             lost(p, rk, reg, a, ahead)
             continue
         used.add(j)
@@ -603,11 +666,44 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     for j, (q, rk, reg) in enumerate(c1):
         if j not in used:
             if may_enter(q, rk):
-                doubt.append(f"{q.kind} of {_size(q):.0f} px new near the edge")
+                doubt_at(q, f"{q.kind} of {_size(q):.0f} px new near the edge", [q.box],
+                         reach(q, rk, in_a), True)
             lost(q, rk, reg, 1 - a)
     out = [Detection(d.kind, _grow(d.box, 0.0, w, h), d.score, d.detector) for d in out]
     return ([d for d in out if d.box[2] - d.box[0] >= 1 and d.box[3] - d.box[1] >= 1],
             list(again.values()), fallback)
+
+
+def zone_regions(regions: Sequence[Region] | None, zones: Sequence[tuple[str, Box]],
+                 shape: tuple[int, ...], skip: Sequence[Region] = ()) -> list[Region]:
+    """The regions of a frame the full detection would search where carrying is unsure
+    (``between_tracked``'s ``zones``: (kind, box)), each at its own scale but only where it
+    overlaps a zone of its kind, once around all its zones: a vehicle face the part of it
+    around them (``_sub_face``: its rectified plane, plus ``PLATE_PAD_M``), any other region
+    its box within them; none of those in ``skip`` (searched here already), nor the far band:
+    its plates are carried as on any frame between key frames (``clusters.carry_band``;
+    cut to a zone's columns, the band's plate-blob test found 6 false plates on a 1.0 s
+    clip that the whole band does not)."""
+    h, w = shape[:2]
+    out: list[Region] = []
+    skipped = {id(r) for r in skip}
+    for r in regions or ():
+        if id(r) in skipped or r.part == "band":
+            continue
+        over = [(max(r.box[0], z[0]), max(r.box[1], z[1]), min(r.box[2], z[2]),
+                 min(r.box[3], z[3])) for k, z in zones if k == r.kind]
+        over = [b for b in over if b[2] > b[0] and b[3] > b[1]]
+        if not over:
+            continue
+        # once per region, around all its zones (overlapping zones: one search)
+        b = (min(v[0] for v in over), min(v[1] for v in over), max(v[2] for v in over),
+             max(v[3] for v in over))
+        if r.quad is not None and r.size_m is not None:
+            sub = _sub_face(r, b, w, h)
+            out.append(sub if sub is not None else r)
+        else:
+            out.append(dataclasses.replace(r, box=b))
+    return out
 
 
 def key_windows(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
@@ -705,7 +801,8 @@ def _window(d: Detection, boxes: Sequence[Box], window: float, shape: tuple[int,
 
 
 def _ahead(d: Detection, earlier: tuple[Sequence[Detection], Sequence[Region] | None, int],
-           t0: int, t_ns: int, window: float, rk: Region | None = None) -> Box | None:
+           t0: int, t_ns: int, window: float, rk: Region | None = None,
+           centre: tuple[float, float] | None = None) -> Box | None:
     """Where ``d`` (found at ``t0``) is at ``t_ns`` if it goes on as it came: its partner
     in the ``earlier`` key frame gives each corner's image velocity (a plate leaving the
     view also grows and drops as it nears); None without a partner. The partner: the
@@ -713,7 +810,13 @@ def _ahead(d: Detection, earlier: tuple[Sequence[Detection], Sequence[Region] | 
     ``t0``: a LiDAR track is one object however far it moved: a plate leaving the view
     at 100 px a frame moved 6 sizes per key interval), else the nearest of its kind
     within 2x its size and ``window`` x its larger side (as far as a window search
-    looks). Unclipped: the caller tells a box across the frame edge by it."""
+    looks). Unclipped: the caller tells a box across the frame edge by it.
+
+    ``centre``: the camera's principal point; where given, the box also holds where the
+    pair puts ``d`` at a constant velocity relative to the camera (``_perspective``): an
+    object nearing the camera speeds up in the image, so its image velocity is not
+    constant (a 17 px face crossing the front camera moved 150 px in the 100 ms before a
+    key frame and 154 px in the 67 ms after it)."""
     dets, regions, te = earlier
     if te >= t0:
         return None
@@ -727,7 +830,34 @@ def _ahead(d: Detection, earlier: tuple[Sequence[Detection], Sequence[Region] | 
     if j is None:
         return None
     k = (t_ns - t0) / (t0 - te)
-    return tuple(float(u + k * (u - v)) for u, v in zip(d.box, dets[j].box, strict=True))  # type: ignore[return-value]
+    lin: Box = tuple(float(u + k * (u - v)) for u, v in zip(d.box, dets[j].box, strict=True))  # type: ignore[assignment]
+    if centre is None:
+        return lin
+    per = _perspective(d.box, dets[j].box, k, centre)
+    return (min(lin[0], per[0]), min(lin[1], per[1]), max(lin[2], per[2]), max(lin[3], per[3]))
+
+
+def _perspective(box: Box, before: Box, k: float, centre: tuple[float, float]) -> Box:
+    """``box`` moved on ``k`` times its motion since ``before`` at a constant velocity
+    relative to the camera (principal point ``centre``). Why: a pinhole camera sees a part
+    of height H at lateral offset X and depth Z with a size s = f H / Z at
+    c + f X / Z, so 1 / s (the depth) and (position - c) / s (the offset) are linear in
+    time where X and Z are, and the image velocity of an object nearing the camera grows:
+    a 17 px face crossing the front camera 150 px per 100 ms before a key frame was 70 px
+    past where its image velocity put it 67 ms after (seed 1, 1.0 s, 467 ms), outside its
+    window. The size grows at most 2x (as pairs are matched: a nearer extrapolation says
+    the object reaches the camera plane, which the box's growth does not follow)."""
+    s1 = max(box[2] - box[0], box[3] - box[1], 1e-6)
+    s0 = max(before[2] - before[0], before[3] - before[1], 1e-6)
+    inv = max(1 / s1 + k * (1 / s1 - 1 / s0), 0.5 / s1)
+    g = 1 / (inv * s1)  # the box's growth
+    m1 = ((box[0] + box[2]) / 2 - centre[0], (box[1] + box[3]) / 2 - centre[1])
+    m0 = ((before[0] + before[2]) / 2 - centre[0], (before[1] + before[3]) / 2 - centre[1])
+    # offsets in sizes, moved on linearly, back to pixels at the new size
+    mx = (m1[0] / s1 + k * (m1[0] / s1 - m0[0] / s0)) / inv + centre[0]
+    my = (m1[1] / s1 + k * (m1[1] / s1 - m0[1] / s0)) / inv + centre[1]
+    hw, hh = g * (box[2] - box[0]) / 2, g * (box[3] - box[1]) / 2
+    return (mx - hw, my - hh, mx + hw, my + hh)
 
 
 def _nearest(p: Detection, cands: Sequence[tuple[Detection | None, Region | None]],

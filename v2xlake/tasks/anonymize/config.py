@@ -287,27 +287,20 @@ class Clusters(Section):
         "with full_frame_every 2), but on seed 3 (0.5 s) a 27 px face got a box under IoU "
         "0.3 (34 % of it blurred; every frame in full: 41 %). 0: off")
     carry: bool = Field(
-        False, description="key frames and carried detections (carry.key_interval_ms) also "
+        True, description="key frames and carried detections (carry.key_interval_ms) also "
         "when the regions come from LiDAR clusters: the frames between key frames pair the "
-        "key frames' detections by cluster track (clusters.track_gate_m) and interpolate "
-        "them, search regions new to both key frames, a window around each unpaired "
-        "detection and the shrunk safety pass, and keep the part still in view of one "
-        "leaving the view (carry.between_tracked). Simulated 1080p 30 Hz LiDAR-only clips, "
-        "against every frame in full: 1.42-1.78x the img/s/core on seeds 0-3 at 0.3 and "
-        "0.5 s with the same faces and plates blurred, and 1.66-1.74x on 1.0 s clips, where "
-        "it LEAVES UNBLURRED what every frame in full blurs (seed 0: 5 plates of 21-75 px "
-        "and an 18 px face; seed 1: 4 faces of 18-41 px and a 113 px plate: fast plates "
-        "leaving the view, plates seen only between key frames). 2026-11-28: pairing by "
-        "track identity and the full detection where carrying is unsure "
-        "(clusters.carry_unsure_full) leave 1 plate on each 1.0 s clip (seed 0: 64 px at "
-        "433 ms, seed 1: 113 px at 733 ms, both between key frames), at only 1.23x every "
-        "frame in full's img/s/core (seed 0, 1.86 -> 2.28; half the carried frames detected "
-        "in full). Later that day one object identity across agents' LiDARs "
-        "(clusters.object_ids) and leaving the view judged by a find's own velocity: both "
-        "plates blurred, seed 1 loses a 23 px face (467 ms), at 1.18 / 1.19x (seeds 0 / 1; "
-        "82 and 73 of 114 carried frames detected in full). Hence off (every frame of a "
-        "LiDAR-only clip detected in full) until longer clips hold; true trades that recall "
-        "for speed")
+        "key frames' detections by cluster track and object (clusters.track_gate_m, "
+        "clusters.object_ids) and interpolate them, search regions new to both key frames, "
+        "a window around each unpaired detection and the shrunk safety pass, and keep the "
+        "part still in view of one leaving the view (carry.between_tracked); where carrying "
+        "is unsure of an object they are searched as in full where it can be "
+        "(clusters.carry_unsure_full, carry_unsure_zones). Simulated 1080p 30 Hz LiDAR-only "
+        "clips (2026-11-28, against every frame in full in the same run): 1.4-1.5x the "
+        "img/s/core on seeds 0-1 at 1.0 s and 0-3 at 0.3 s, every face >= 16 px and plate "
+        ">= 20 px that every frame in full blurs blurred. Off before (1.0 s clips lost "
+        "plates and faces that every frame in full blurs, and the full detection of the "
+        "unsure frames left only 1.14-1.23x: docs/anonymization.md). false: every frame of "
+        "a LiDAR-only clip detected in full")
     carry_unsure_full: bool = Field(
         True, description="with clusters.carry, a frame between key frames where carrying "
         "cannot tell where an object is gets the full detection instead (the safe default, "
@@ -321,6 +314,17 @@ class Clusters(Section):
         "Also a find whose own box, moved on at its image velocity (from the key frame "
         "before, paired by object across agents), leaves the frame by the key frame after "
         "(2026-11-28, later: 82 / 73 of 114 in full, seeds 0 / 1)")
+    carry_unsure_zones: bool = Field(
+        True, description="with clusters.carry_unsure_full, an unsure frame is not detected "
+        "in full: it keeps its carried result and searches, and is searched as the full "
+        "detection would where the unsure objects can be (their finds, where their track's "
+        "region and their image velocity put them, grown by their reach; one that entered "
+        "or left the view on to the frame edge: carry.between_tracked's zones): the regions "
+        "there at their own scales (carry.zone_regions), the full-frame plan over those "
+        "parts (clusters.full_frame; GuidedDetector.full_frame_in), and the regions cut by "
+        "the frame's side edges. Why: two thirds of the carried frames of 1.0 s clips were "
+        "unsure, and a full detection each left carrying 1.14-1.23x faster than every frame "
+        "in full. false: the full detection (2026-11-28 figures: docs/anonymization.md)")
     track_gate_m: float = Field(
         3.0, ge=0, description="with clusters.carry, a LiDAR's clusters get one identity "
         "per object across its scans (clusters.track_ids): a box continues the track whose "

@@ -55,7 +55,7 @@ from v2xlake.tasks.interpolate import PoseTrack
 
 if TYPE_CHECKING:
     from v2xlake.tasks.anonymize.context import ClipGuide
-    from v2xlake.tasks.anonymize.detectors import Detection
+    from v2xlake.tasks.anonymize.detectors import Box, Detection
     from v2xlake.tasks.anonymize.guide import GuideConfig, Region, WorldBoxes
 
 # The numeric modules (detectors, plate reader, blur, images, guide, LiDAR clusters: cv2,
@@ -446,8 +446,9 @@ def _anonymize_images(
     gaps per camera, blur, encode; frames of one camera go in time order, ``frames_per_chunk``
     at a time, detected with one frame of look-ahead so a chunk's last frame has its next.
     ``stats``: where given, gets the number of frames carried between key frames
-    (``n_images_carried``) and of those detected in full instead because carrying was
-    unsure (``n_images_carried_in_full``, LiDAR-only clips)."""
+    (``n_images_carried``) and of those where carrying was unsure
+    (``n_images_carried_in_full``, LiDAR-only clips: detected in full, or with
+    ``clusters.carry_unsure_zones`` searched as in full where the unsure objects can be)."""
     files = partition_files(lake, "raw", "camera_frames", clip_id)
     tables = [(agent, name, read_parquet(path, filesystem=lake.fs)) for path, agent, name in files]
     total = sum(t.num_rows for _, _, t in tables)
@@ -473,6 +474,7 @@ def _anonymize_images(
         new_regions,
         plate_windows,
         unconfirmed,
+        zone_regions,
     )
     from v2xlake.tasks.anonymize.images import decode_image, to_bgr8
     from v2xlake.tasks.anonymize.temporal import fill_gaps
@@ -558,16 +560,54 @@ def _anonymize_images(
             # ``a`` that ``b`` lacks (``carry._ahead``: one leaving the view)
             e = next((rows[q] for q in range(pos[a] - 1, -1, -1) if is_key[q]), None)
             doubt: list[str] = []
+            zones: list[tuple[str, Box]] = []
+            cam = guide.cameras.get((agent_col[i], sensors[i])) if guide is not None else None
             found, again, fallback = between_tracked(
                 (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
                 regions, int(stamps[i]), cfg.carry.grow, cfg.clusters.carry_window, img.shape,
                 fresh, (known[e], kregions[e], int(stamps[e])) if e is not None else None,
-                doubt)
+                doubt, zones, (cam[1].cx, cam[1].cy) if cam is not None else None)
             if doubt and cfg.clusters.carry_unsure_full:
-                # carrying cannot tell where an object is here: this frame is detected in
-                # full, as without carrying (``carry.between_tracked``'s ``unsure``)
+                # carrying cannot tell where an object is here (``carry.between_tracked``'s
+                # ``unsure``)
                 counts["carried_in_full"].append(i)
-                return img, detector.detect(to_bgr8(img), regions, full), regions
+                if not cfg.clusters.carry_unsure_zones:  # detected in full, as without carrying
+                    return img, detector.detect(to_bgr8(img), regions, full), regions
+                # the carried frame's result and searches, and where the unsure objects can
+                # be (``zones``) the full detection's: the regions there at their own scales
+                # and its safety pass, the full-frame plan, over those parts of the frame.
+                # A plate's window is searched at the plate's own scale (or the far band's);
+                # here the vehicle faces under it are searched too, at theirs (a 67 px plate
+                # moving 86 px per key interval was found in its window as two halves of its
+                # text line, counted lost)
+                plan_at = [z for _k, z in zones]
+                n_doubt = len(zones)
+                zones += [(r.kind, r.box) for r in again if r.kind == "plate" and r.quad is None]
+                # the regions cut by the frame's side edges too, whole (the entry strips: an
+                # object entering or leaving the view shows a plate or face there that
+                # neither key frame may have seen: a 58 / 22 px cut plate on the narrow
+                # camera at 33 / 67 ms that every frame in full found, on neither key frame)
+                width = img.shape[1]
+                skip = [*fresh, *(r for r in regions or () if r.part != "band"
+                                  and (r.box[0] <= 1 or r.box[2] >= width - 1))]
+                look = [*skip, *again, *zone_regions(regions, zones, img.shape, skip)]
+                bgr = to_bgr8(img)
+                near = detector.in_regions(bgr, look)
+                if full:
+                    near += detector.full_frame_in(bgr, plan_at)
+                if cfg.clusters.carry_safety:
+                    near += detector.safety(bgr)
+                # one box per object as on a carried frame: the union of its finds (a 19 px
+                # face's window box and the full-frame plan's, each under IoU 0.3 alone)
+                near = merge_overlapping(near)
+                # a fallback (kept where its window found nothing: a cut part may score low)
+                # in a zone of its kind, searched there as the full detection would: dropped
+                # when that found nothing either (objects gone from the view, blurred at the
+                # edge as 67-300 px boxes on a 1.0 s clip)
+                kept = [d for d in unconfirmed(fallback, near) if not any(
+                    k == d.kind and z[0] <= (d.box[0] + d.box[2]) / 2 <= z[2]
+                    and z[1] <= (d.box[1] + d.box[3]) / 2 <= z[3] for k, z in zones[:n_doubt])]
+                return img, found + near + kept, regions
         else:
             (found, again), fallback = between(
                 (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
