@@ -305,32 +305,52 @@ def align_sparse(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarra
     # the lower bounds of the points without correspondence, the nearest point and its
     # margin of those with one (VoxelGrid.nearest_bounded: a point that moved less than its
     # margin keeps its nearest point without a search)
-    anchor, lb = np.zeros((len(sp), 3)), np.zeros(len(sp))
-    hold, slack = np.full(len(sp), -1, dtype=np.int64), np.zeros(len(sp))
+    held = _held(len(sp))
     while iterations < max_iterations:
         iterations += 1
         q = sp @ T[:3, :3].T + T[:3, 3]
-        nn, d2 = _nearest(t_tree, q, max_correspondence_m, num_threads,
-                          (anchor, lb, hold, slack))
-        close = np.flatnonzero(d2 <= max_d2)
-        t_surf.ensure(tp, t_tree, nn[close], num_neighbors, num_threads)
-        if t_covisible_with is not None and len(close):
-            seen = covisible_rows(tp, t_surf.normals, t_surf.ratio, nn[close],
-                                  t_covisible_with)
-            nn[close[~seen]] = -1
+        nn, d2 = _matches(tp, t_tree, t_surf, q, max_correspondence_m, num_neighbors,
+                          num_threads, t_covisible_with, held)
         H, b, used = _linearise(tp, t_surf.normals, t_surf.ratio, sp, s_surf_n, s_surf_r,
                                 nn, d2, T, max_d2)
-        if used < 6:
+        step = _step(T, H, b, used, rotation_eps_rad, translation_eps_m)
+        if step is None:
             break
-        try:
-            dx = np.linalg.solve(H, -b)
-        except np.linalg.LinAlgError:
-            break
-        T = _update(T, dx)
-        if np.linalg.norm(dx[:3]) < rotation_eps_rad and np.linalg.norm(dx[3:]) < translation_eps_m:
-            converged = True
+        T, converged = step
+        if converged:
             break
     return SparseOutcome(T, converged, iterations, 0.5 * (H + H.T), used, d2)
+
+
+def _matches(tp: np.ndarray, t_tree: object, t_surf: Surfaces, q: np.ndarray,
+             max_correspondence_m: float, num_neighbors: int, num_threads: int,
+             t_covisible_with: np.ndarray | None,
+             held: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Each query's nearest target point within ``max_correspondence_m`` (:func:`_nearest`),
+    with the surfaces of those found computed, and -1 where that surface is not seen from
+    the source side (``t_covisible_with``)."""
+    nn, d2 = _nearest(t_tree, q, max_correspondence_m, num_threads, held)
+    close = np.flatnonzero(d2 <= max_correspondence_m**2)
+    t_surf.ensure(tp, t_tree, nn[close], num_neighbors, num_threads)
+    if t_covisible_with is not None and len(close):
+        seen = covisible_rows(tp, t_surf.normals, t_surf.ratio, nn[close], t_covisible_with)
+        nn[close[~seen]] = -1
+    return nn, d2
+
+
+def _step(T: np.ndarray, H: np.ndarray, b: np.ndarray, used: int, rotation_eps_rad: float,
+          translation_eps_m: float) -> tuple[np.ndarray, bool] | None:
+    """One Gauss-Newton step from ``T``: (the new T, converged); None when there is none
+    (fewer than 6 pairs, a singular system)."""
+    if used < 6:
+        return None
+    try:
+        dx = np.linalg.solve(H, -b)
+    except np.linalg.LinAlgError:
+        return None
+    return _update(T, dx), bool(np.linalg.norm(dx[:3]) < rotation_eps_rad
+                                and np.linalg.norm(dx[3:]) < translation_eps_m)
 
 
 def _nearest(tree: object, q: np.ndarray, max_dist_m: float, num_threads: int,
@@ -390,38 +410,25 @@ def _align_denser(tp: np.ndarray, t_tree: object, t_surf: Surfaces, sp: np.ndarr
         iterations += 1
         T_lin = T
         q = sp_n @ T[:3, :3].T + T[:3, 3]
-        nn, d2 = _nearest(t_tree, q, max_correspondence_m, num_threads, held)
-        close = np.flatnonzero(d2 <= max_d2)
-        t_surf.ensure(tp, t_tree, nn[close], num_neighbors, num_threads)
-        if t_covisible_with is not None and len(close):
-            seen = covisible_rows(tp, t_surf.normals, t_surf.ratio, nn[close],
-                                  t_covisible_with)
-            nn[close[~seen]] = -1
+        nn, d2 = _matches(tp, t_tree, t_surf, q, max_correspondence_m, num_neighbors,
+                          num_threads, t_covisible_with, held)
         H_near, b, used = _linearise(tp, t_surf.normals, t_surf.ratio, sp_n, sn_n, sr_n,
                                      nn, d2, T, max_d2)
         Hr, br, ur = _denser_terms(tp, t_tree, t_surf, cand, denser, T, num_neighbors,
                                    max_correspondence_m, num_threads, t_covisible_with,
                                    r_held)
         H, b, used = H_near + Hr, b + br, used + ur
-        if used < 6:
+        step = _step(T, H, b, used, rotation_eps_rad, translation_eps_m)
+        if step is None:
             break
-        try:
-            dx = np.linalg.solve(H, -b)
-        except np.linalg.LinAlgError:
-            break
-        T = _update(T, dx)
-        if np.linalg.norm(dx[:3]) < rotation_eps_rad and np.linalg.norm(dx[3:]) < translation_eps_m:
-            converged = True
+        T, converged = step
+        if converged:
             break
     # the far rows at the last linearisation, for the forward figures
     fr = np.flatnonzero(far)
     q = sp[fr] @ T_lin[:3, :3].T + T_lin[:3, 3]
-    nn_f, d2_f = _nearest(t_tree, q, max_correspondence_m, num_threads, None)
-    close = np.flatnonzero(d2_f <= max_d2)
-    t_surf.ensure(tp, t_tree, nn_f[close], num_neighbors, num_threads)
-    if t_covisible_with is not None and len(close):
-        seen = covisible_rows(tp, t_surf.normals, t_surf.ratio, nn_f[close], t_covisible_with)
-        nn_f[close[~seen]] = -1
+    nn_f, d2_f = _matches(tp, t_tree, t_surf, q, max_correspondence_m, num_neighbors,
+                          num_threads, t_covisible_with, None)
     Hf, _, _ = _linearise(tp, t_surf.normals, t_surf.ratio, sp[fr], s_surf_n[fr],
                           s_surf_r[fr], nn_f, d2_f, T_lin, max_d2)
     sq = np.empty(len(sp))
