@@ -6,6 +6,7 @@ plates on a car stay; both settings reach the provenance string.
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -93,3 +94,18 @@ def test_both_settings_are_config_fields_in_the_provenance() -> None:
     assert "clusters.band_learned_max_slope=0.15" in p
     other = AnonymizeConfig(clusters={"band_learned_score": 8.0, "band_learned_max_slope": 0})
     assert other.provenance("v") != p
+
+
+def test_the_scorer_weights_reach_the_detector_version(tmp_path: Path) -> None:
+    """A retrained ``bandplate.npz`` blurs other boxes at the same settings: the guided
+    detector's version (the first part of ``camera_frames.anonymizer``) names its hash."""
+    from v2xlake.tasks.anonymize.guided import GuidedDetector
+
+    on = GuidedConfig.of(AnonymizeConfig(clusters={"band_learned_score": 7.0}))
+    off = GuidedConfig.of(AnonymizeConfig(clusters={"band_learned_score": 0.0}))
+    assert bp.weights_version() in GuidedDetector(None, None, on).version
+    assert "bandplate-sha256" not in GuidedDetector(None, None, off).version
+    other = tmp_path / "other.npz"
+    w, b = bp.load_weights()
+    np.savez(other, w=w * 1.01, b=b)
+    assert bp.weights_version(str(other)) != bp.weights_version()

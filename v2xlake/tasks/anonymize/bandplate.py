@@ -20,6 +20,7 @@ window is cut out).
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable, Sequence
 from functools import lru_cache
 from pathlib import Path
@@ -133,6 +134,13 @@ def score_map(feats: np.ndarray, w: np.ndarray, bias: float) -> np.ndarray:
                                     borderType=cv2.BORDER_CONSTANT)
                 acc += full[:ni, :nj]
     return out
+
+
+@lru_cache(maxsize=4)
+def weights_version(path: str = str(WEIGHTS)) -> str:
+    """``bandplate-sha256:<12 hex>`` of the weights file: a retrained scorer blurs different
+    boxes at the same settings, so the stage's provenance string names the weights too."""
+    return f"bandplate-sha256:{hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]}"
 
 
 @lru_cache(maxsize=4)

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from v2xlake.tasks.anonymize import bandplate
-from v2xlake.tasks.anonymize.bandplate import band_plate_scores
+from v2xlake.tasks.anonymize.bandplate import band_plate_scores, weights_version
 from v2xlake.tasks.anonymize.config import Faces, Plates
 from v2xlake.tasks.anonymize.detectors import (
     Box,
@@ -907,7 +907,8 @@ class GuidedDetector:
             f":safe{c.safety_face_max_side}/{c.safety_plate_max_side}:blob{c.blob_below_px:g}"
             + (":edge-heads" if c.edge_heads else "")
             + (f":band-look{c.band_look_px:g}" if c.band_look_px > 0 else "")
-            + (f":band-blob{c.band_blob_max_px:g}" if c.band_blob_max_px > 0 else ""))
+            + (f":band-blob{c.band_blob_max_px:g}" if c.band_blob_max_px > 0 else "")
+            + (f":{weights_version()}" if c.band_learned_score > 0 else ""))
         if region_first is not None and face is not None:
             self.version += (f"|region-first@{region_first.version}"
                              f":f{c.face_proposal_threshold:g}/{c.face_first_accept:g}")
