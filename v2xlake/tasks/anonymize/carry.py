@@ -706,6 +706,54 @@ def zone_regions(regions: Sequence[Region] | None, zones: Sequence[tuple[str, Bo
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class UnsurePlan:
+    """Where an unsure frame between key frames is searched as the full detection would
+    (``clusters.carry_unsure_zones``): ``look`` the regions (at their own scales), ``plan_at``
+    the parts the full-frame plan covers, ``doubt`` the unsure objects' zones (a fallback in
+    one of its kind is dropped when the search there finds nothing: :func:`unsure_kept`)."""
+
+    look: list[Region]
+    plan_at: list[Box]
+    doubt: list[tuple[str, Box]]
+
+
+def unsure_plan(zones: Sequence[tuple[str, Box]], again: Sequence[Region],
+                fresh: Sequence[Region], regions: Sequence[Region] | None,
+                shape: tuple[int, ...]) -> UnsurePlan:
+    """The searches of a frame where carrying is unsure of an object (``zones``:
+    ``between_tracked``'s, (kind, box)), beside the carried frame's own (``again``: windows
+    searched afresh, ``fresh``: regions new to both key frames):
+
+    * the full-frame plan over the unsure zones;
+    * a plate's window (``again``) at the plate's own scale, and the vehicle faces under it at
+      theirs: a 67 px plate moving 86 px per key interval was found in its window as two
+      halves of its text line, counted lost;
+    * the regions cut by the frame's side edges, whole (the entry strips: an object entering
+      or leaving the view shows a plate or face there that neither key frame may have seen; a
+      58 / 22 px cut plate on the narrow camera at 33 / 67 ms that every frame in full found,
+      on neither key frame);
+    * the regions there at their own scales (:func:`zone_regions`)."""
+    doubt = list(zones)
+    wider = [*doubt, *((r.kind, r.box) for r in again if r.kind == "plate" and r.quad is None)]
+    width = shape[1]
+    skip = [*fresh, *(r for r in regions or () if r.part != "band"
+                      and (r.box[0] <= 1 or r.box[2] >= width - 1))]
+    look = [*skip, *again, *zone_regions(regions, wider, shape, skip)]
+    return UnsurePlan(look, [z for _k, z in doubt], doubt)
+
+
+def unsure_kept(fallback: Sequence[tuple[Region, Detection]], near: Sequence[Detection],
+                doubt: Sequence[tuple[str, Box]]) -> list[Detection]:
+    """The fallbacks of an unsure frame that stay: those :func:`unconfirmed` keeps (a cut part
+    may score low), less any in an unsure zone of its kind, searched there as the full
+    detection would and found empty (objects gone from the view, blurred at the edge as
+    67-300 px boxes on a 1.0 s clip)."""
+    return [d for d in unconfirmed(fallback, near) if not any(
+        k == d.kind and z[0] <= (d.box[0] + d.box[2]) / 2 <= z[2]
+        and z[1] <= (d.box[1] + d.box[3]) / 2 <= z[3] for k, z in doubt)]
+
+
 def key_windows(before: tuple[Sequence[Detection], Sequence[Region] | None, int],
                 earlier: tuple[Sequence[Detection], Sequence[Region] | None, int] | None,
                 regions: Sequence[Region] | None, t_ns: int, window: float,

@@ -474,7 +474,8 @@ def _anonymize_images(
         new_regions,
         plate_windows,
         unconfirmed,
-        zone_regions,
+        unsure_kept,
+        unsure_plan,
     )
     from v2xlake.tasks.anonymize.images import decode_image, to_bgr8
     from v2xlake.tasks.anonymize.temporal import fill_gaps
@@ -574,40 +575,18 @@ def _anonymize_images(
                 if not cfg.clusters.carry_unsure_zones:  # detected in full, as without carrying
                     return img, detector.detect(to_bgr8(img), regions, full), regions
                 # the carried frame's result and searches, and where the unsure objects can
-                # be (``zones``) the full detection's: the regions there at their own scales
-                # and its safety pass, the full-frame plan, over those parts of the frame.
-                # A plate's window is searched at the plate's own scale (or the far band's);
-                # here the vehicle faces under it are searched too, at theirs (a 67 px plate
-                # moving 86 px per key interval was found in its window as two halves of its
-                # text line, counted lost)
-                plan_at = [z for _k, z in zones]
-                n_doubt = len(zones)
-                zones += [(r.kind, r.box) for r in again if r.kind == "plate" and r.quad is None]
-                # the regions cut by the frame's side edges too, whole (the entry strips: an
-                # object entering or leaving the view shows a plate or face there that
-                # neither key frame may have seen: a 58 / 22 px cut plate on the narrow
-                # camera at 33 / 67 ms that every frame in full found, on neither key frame)
-                width = img.shape[1]
-                skip = [*fresh, *(r for r in regions or () if r.part != "band"
-                                  and (r.box[0] <= 1 or r.box[2] >= width - 1))]
-                look = [*skip, *again, *zone_regions(regions, zones, img.shape, skip)]
+                # be (``zones``) the full detection's (``carry.unsure_plan``)
+                plan = unsure_plan(zones, again, fresh, regions, img.shape)
                 bgr = to_bgr8(img)
-                near = detector.in_regions(bgr, look)
+                near = detector.in_regions(bgr, plan.look)
                 if full:
-                    near += detector.full_frame_in(bgr, plan_at)
+                    near += detector.full_frame_in(bgr, plan.plan_at)
                 if cfg.clusters.carry_safety:
                     near += detector.safety(bgr)
                 # one box per object as on a carried frame: the union of its finds (a 19 px
                 # face's window box and the full-frame plan's, each under IoU 0.3 alone)
                 near = merge_overlapping(near)
-                # a fallback (kept where its window found nothing: a cut part may score low)
-                # in a zone of its kind, searched there as the full detection would: dropped
-                # when that found nothing either (objects gone from the view, blurred at the
-                # edge as 67-300 px boxes on a 1.0 s clip)
-                kept = [d for d in unconfirmed(fallback, near) if not any(
-                    k == d.kind and z[0] <= (d.box[0] + d.box[2]) / 2 <= z[2]
-                    and z[1] <= (d.box[1] + d.box[3]) / 2 <= z[3] for k, z in zones[:n_doubt])]
-                return img, found + near + kept, regions
+                return img, found + near + unsure_kept(fallback, near, plan.doubt), regions
         else:
             (found, again), fallback = between(
                 (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
