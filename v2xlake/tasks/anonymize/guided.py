@@ -1267,20 +1267,13 @@ class GuidedDetector:
             gy = max(margin, (min_side - (y1 - y0)) / 2)
             rects.append([max(0, int(x0 - gx)), max(0, int(y0 - gy)),
                           min(w, int(np.ceil(x1 + gx))), min(h, int(np.ceil(y1 + gy)))])
-        joined = True
-        while joined:  # overlapping rectangles as one (a pixel searched once)
-            joined = False
-            for i in range(len(rects)):
-                for j in range(i + 1, len(rects)):
-                    a, b = rects[i], rects[j]
-                    if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
-                        rects[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]),
-                                    max(a[3], b[3])]
-                        del rects[j]
-                        joined = True
-                        break
-                if joined:
-                    break
+
+        def union(a: list[int], b: list[int]) -> list[int] | None:
+            if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                return [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+            return None
+
+        rects = merge_until_stable(rects, union)  # overlapping as one: a pixel searched once
         out = []
         for x0, y0, x1, y1 in rects:
             if x1 - x0 < 8 or y1 - y0 < 8:
