@@ -645,6 +645,9 @@ class _CrossWork:
     # in the pair (``stationary.far_pair_surfaces``): aligned by the far pairs' backend
     # (``gicp.far_pair_num_neighbors``)
     far: bool = False
+    # a stationary agent in the pair (``register.stationary``): its surfaces and its
+    # correspondences' direction (``gicp.far_pair_denser_side``) follow from it
+    still: bool = False
 
 
 def register_workers(cfg: RegisterConfig) -> int:
@@ -820,13 +823,14 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                                        o.world_ego(o.frames[fo][1])[0], ref.T_ego_lidar,
                                        o.T_ego_lidar)
             oth = scan(o.agent, fo, cfg.gicp.source_voxel_m)
+            standing = o.agent in still or ref.agent in still
             far = far_backend is not None and (
                 float(np.linalg.norm(T_init[:3, 3])) > cfg.gicp.far_pair_beyond_m
-                or (cfg.stationary.far_pair_surfaces
-                    and (o.agent in still or ref.agent in still)))
+                or (cfg.stationary.far_pair_surfaces and standing))
             target, why_t = cross_cloud(ref_scan, T_init[:3, 3], True, far)
             source, why_s = cross_cloud(oth, invert(T_init)[:3, 3], False, far)
-            work.append(_CrossWork(o, fo, T_init, oth, target, source, why_t or why_s, far))
+            work.append(_CrossWork(o, fo, T_init, oth, target, source, why_t or why_s, far,
+                                   standing))
         return ref_scan, work
 
     def odometry_gicp(g: Prepared, f: Prepared, T_ins: np.ndarray) -> PairResult:
@@ -875,8 +879,7 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                 return failed_pair(w.T_init, w.why)
             source = replace(w.source, dense_first=True) if dense else w.source
             side = cfg.gicp.far_pair_denser_side
-            if (side == "far" and w.far) or (side != "off" and (
-                    w.other.agent in still or ref.agent in still)):
+            if (side == "far" and w.far) or (side != "off" and w.still):
                 source = replace(source, denser_side=True)
             if w.other.agent in still:
                 source = replace(source, translation_eps_m=cfg.stationary.translation_eps_m,
