@@ -343,6 +343,26 @@ class SparseGicpBackend(SmallGicpBackend):
         return replace(base, handle=Surfaces.empty(len(base.points),
                                                    surf.neighbours if share else None))
 
+    @staticmethod
+    def follow(pairs: list[tuple[Prepared | None, Prepared | None]]) -> None:
+        """Each (new, old) store of two scans of the same stationary LiDAR: the new one takes
+        its surfaces from the old one where they cannot differ (:class:`sparse.Predecessor`,
+        the points matched once for all pairs); ``old`` None: the link is dropped."""
+        from dataclasses import replace
+
+        from v2xlake.tasks.register.sparse import Predecessor, Surfaces
+
+        link: Predecessor | None = None
+        for new, old in pairs:
+            if new is None or not isinstance(new.handle, Surfaces):
+                continue
+            if old is None or not isinstance(old.handle, Surfaces):
+                new.handle.pred = None
+                continue
+            if link is None:
+                link = Predecessor.of(new.points, old.points, old.handle)
+            new.handle.pred = replace(link, surf=old.handle)
+
     def align(self, target: Prepared, source: Prepared, init: np.ndarray) -> AlignOutcome:
         """Align the source's sample; where it finds fewer than ``sample_min_pairs``
         correspondences, align again from there with more (co-visible) source centroids

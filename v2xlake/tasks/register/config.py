@@ -288,6 +288,12 @@ class StationarySection(Section):
         5, ge=1, description="a stationary agent's scan is prepared on every n-th of its "
         "frames (and on its odometry frames) and reused by the frames between; 1: every frame "
         "its own scan (the behaviour before)")
+    inherit_surfaces: bool = Field(
+        True, description="sparse backend: a stationary agent's prepared scan takes each "
+        "surface (normal, planarity) from its previous prepared scan where the point is in "
+        "both, bit-identical, and no point that is in only one of them lies within its k-th "
+        "neighbour's distance: the same k nearest neighbours, the same surface (the results "
+        "do not change), without the search. Speed only; false: every scan searches its own")
     max_motion_m: float = Field(
         0.02, ge=0, description="stationary: every INS position of the clip within this of "
         "the first one")

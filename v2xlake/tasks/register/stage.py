@@ -764,6 +764,9 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
     still = _stationary(cfg, [ref, *others])
     reuse = {a: cfg.stationary.reuse_frames for a in still if cfg.stationary.reuse_frames > 1}
     ordered = {a: sorted(scans[a].frames) for a in reuse}
+    # a stationary agent's scan takes the surfaces of its previous one where they cannot
+    # differ (sparse.Predecessor: the same results, fewer searches)
+    follow = getattr(backend, "follow", None) if cfg.stationary.inherit_surfaces else None
     held: dict[str, OrderedDict[tuple[int, float], _Scan]] = {a: OrderedDict() for a in reuse}
     held_lock = {a: threading.Lock() for a in reuse}
 
@@ -784,9 +787,15 @@ def _measure(cfg: RegisterConfig, backend: RegistrationBackend, ref: AgentScans,
                 if s.base is None:  # shared by the frames it stands for
                     s.base = prepare(s.points)[0]
                     with_far(s)
+                j = i - i % reuse[agent] - reuse[agent]
+                before = held[agent].get((ordered[agent][j], voxel)) if j >= 0 else None
+                if follow is not None and before is not None:
+                    follow([(s.base, before.base), (s.far_base, before.far_base)])
                 held[agent][(anchor, voxel)] = s
                 while len(held[agent]) > 2 + 2 * workers:
-                    held[agent].popitem(last=False)
+                    _, gone = held[agent].popitem(last=False)
+                    if follow is not None:  # the chain of scans ends with the held ones
+                        follow([(gone.base, None), (gone.far_base, None)])
         if anchor == f:
             return s
         return replace(s, frame=f, ground_m=float("nan"), odometry=False, whole=None)
