@@ -19,6 +19,11 @@ minutes on one core). Training data that may ship with the repository only:
   several scales; then two rounds of the highest-scoring negative windows of those photos
   (hard negatives).
 
+* the second stage (``bandplate.second_score``, weights ``w2``, ``b2``; its own random
+  stream, seed 1, after the first stage is fitted): ``bandplate.second_features`` of the
+  first stage's best window on each synthetic plate against its windows on no plate (car
+  rears with and without a plate, roads, the shipped photos), fitted the same way.
+
 Real plate photos (plates_eu) and the real street frames are test data: never used here.
 The classifier is an L2-regularised logistic regression on ``bandplate.window_at`` of
 ``bandplate.cell_features``. Deterministic: seed 0, and every maths library on one thread
@@ -342,6 +347,45 @@ def hard_negatives(w: np.ndarray, b: float, ims: list[np.ndarray], per: int,
     return out
 
 
+def second_samples(rng: np.random.Generator, first: tuple[np.ndarray, float], n: int,
+                   ims: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The second stage's training data (``bp.second_features``): per car rear with a plate
+    the first stage's best window at IoU >= 0.3 with it (scoring 4 or more: what the second
+    stage is asked about), and as negatives every first-stage window (0 or more, overlaps
+    dropped) on no plate: elsewhere on that rear, on rears without a plate, on roads with
+    dashes and curbs (every other sample each), and on the shipped photos."""
+    from v2xlake.tasks.geometry import iou_xyxy
+
+    def found(gray: np.ndarray, thr: float, keep: int) -> list:
+        return bp.band_plate_scores(gray, (0, 0, gray.shape[1], gray.shape[0]), bp.WIDTHS,
+                                    thr, keep, weights=first)
+
+    pos: list[np.ndarray] = []
+    neg: list[np.ndarray] = []
+    for it in range(n):
+        img, (cx, cy, wd) = car_sample(rng, True)
+        g = to_gray(img)
+        ph = wd / bp.PLATE_ASPECT
+        truth = np.array([[cx - wd / 2, cy - ph / 2, cx + wd / 2, cy + ph / 2]])
+        best: tuple[tuple[float, float, float, float], float] | None = None
+        for box, sc in found(g, 0.0, 40):
+            iou = iou_xyxy(truth, np.array([box]))[0, 0]
+            if iou >= 0.3 and sc >= 4.0 and (best is None or sc > best[1]):
+                best = (box, sc)
+            elif iou < 0.05:
+                neg.append(bp.second_features(g, box))
+        if best is not None:
+            pos.append(bp.second_features(g, best[0]))
+        img, _ = car_sample(rng, False) if it % 2 == 0 else road_sample(rng)
+        g = to_gray(img)
+        neg += [bp.second_features(g, box) for box, _sc in found(g, 0.0, 40)]
+    for im in ims:
+        for sc in (0.25, 0.5, 1.0):
+            small = to_gray(cv2.resize(im, None, fx=sc, fy=sc, interpolation=cv2.INTER_AREA))
+            neg += [bp.second_features(small, box) for box, _s in found(small, 0.0, 150)]
+    return np.array(pos, np.float32), np.array(neg, np.float32)
+
+
 def fit(x: np.ndarray, y: np.ndarray, l2: float, wts: np.ndarray) -> tuple[np.ndarray, float]:
     """L2-regularised logistic regression (L-BFGS); ``wts`` per-sample weights."""
     mu = x.mean(axis=0)
@@ -371,6 +415,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=bp.WEIGHTS)
     ap.add_argument("--n-pos", type=int, default=5000)
     ap.add_argument("--n-neg", type=int, default=14000)
+    ap.add_argument("--n-second", type=int, default=3000,
+                    help="car rears (and as many rears without a plate or roads) for the "
+                    "second stage")
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     cv2.setNumThreads(1)
@@ -433,8 +480,19 @@ def main() -> None:
         print(f"round {rnd}: +{len(hard)} hard negatives; training accuracy positives "
               f"{(t[y == 1] > 0).mean():.3f}, negatives {(t[y == 0] <= 0).mean():.3f}",
               flush=True)
+    # the second stage: its own random stream, so the first stage's weights do not depend
+    # on it (and its data on nothing but the first stage's weights)
+    first = (w.astype(np.float32).reshape(*bp.WIN_CELLS, bp.CHANNELS), float(np.float32(b)))
+    p2, n2 = second_samples(np.random.default_rng(1), first, args.n_second, ims)
+    x2 = np.concatenate([p2, n2])
+    y2 = np.r_[np.ones(len(p2)), np.zeros(len(n2))]
+    w2, b2 = fit(x2, y2, 1.0, np.where(y2 == 1, len(n2) / len(p2), 1.0))
+    t2 = x2 @ w2 + b2
+    print(f"second stage: {len(p2)} positives, {len(n2)} negatives; training accuracy "
+          f"positives {(t2[y2 == 1] > 0).mean():.3f}, negatives {(t2[y2 == 0] <= 0).mean():.3f}",
+          flush=True)
     np.savez_compressed(args.out, w=w.astype(np.float32), b=np.float32(b),
-                        photos=np.array(names))
+                        photos=np.array(names), w2=w2.astype(np.float32), b2=np.float32(b2))
     print(f"wrote {args.out} ({args.out.stat().st_size} bytes)")
 
 

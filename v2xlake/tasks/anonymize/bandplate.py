@@ -15,7 +15,8 @@ this module, deterministically); real plate photos are never its training data.
 Scoring is dense and linear: the band is rescaled so a plate of one width in the pyramid is
 ``PLATE_PX`` wide, cell features are computed once on a grid of ``STRIDE`` px, and the
 window score at every grid point is a sum of correlations, one per feature channel (no
-window is cut out).
+window is cut out). A second stage (``second_score``, the same file's ``w2``, ``b2``) rates
+a window's row and column profiles, for a window whose glyphs the texture test cannot see.
 """
 
 from __future__ import annotations
@@ -148,6 +149,68 @@ def load_weights(path: str = str(WEIGHTS)) -> tuple[np.ndarray, float]:
     """The shipped classifier: cell weights (rows, cols, ``CHANNELS``) and bias."""
     with np.load(path) as z:
         return z["w"].astype(np.float32).reshape(*WIN_CELLS, CHANNELS), float(z["b"])
+
+
+@lru_cache(maxsize=4)
+def load_second(path: str = str(WEIGHTS)) -> tuple[np.ndarray, float] | None:
+    """The shipped second stage (``second_score``): weights over ``second_features`` and
+    bias; None where the weights file holds none."""
+    with np.load(path) as z:
+        if "w2" not in z:
+            return None
+        return z["w2"].astype(np.float32), float(z["b2"])
+
+
+SECOND_GRID = (24, 64)  # rows, columns: the box's context resampled (``second_features``)
+
+
+def second_features(gray: np.ndarray, box: tuple[float, float, float, float]) -> np.ndarray:
+    """Profiles of a small plate box (frame px) and its context, whatever its size: the
+    box's rows from 2.5 box heights above its centre to 2.5 below and its columns widened
+    by half its width on each side, resampled (linear) to ``SECOND_GRID`` px (the box the
+    middle 32 x 4.8 px), then per row of the box's columns the mean grey level (in the
+    patch's standard deviations, +8) and the mean change along the row (against the
+    patch's, +3), and per eighth of the width the same two over the box's middle rows:
+    64 values. Why: at 20 px a plate's glyphs may be gone, but it is still a light field
+    between two darker lines (its rim, holder or the body's edge) that ends on either
+    side, a shape the row test (``glyph_texture``) does not read."""
+    x0, y0, x1, y1 = box
+    w, h = x1 - x0, y1 - y0
+    gh, gw = SECOND_GRID
+    sx, sy = 2.0 * w / gw, 5.0 * h / gh
+    # grid pixel (c, r) samples frame point (x0 - w / 2 + (c + 0.5) sx, cy - 2.5 h + ...),
+    # read from a crop of the frame that holds every point sampled (and the frame's edge
+    # where they pass it: replicated as in the whole frame)
+    ox, oy = x0 - 0.5 * w + 0.5 * sx - 0.5, (y0 + y1) / 2 - 2.5 * h + 0.5 * sy - 0.5
+    ca = int(np.clip(np.floor(ox) - 1, 0, gray.shape[1] - 1))
+    ra = int(np.clip(np.floor(oy) - 1, 0, gray.shape[0] - 1))
+    cb = int(np.clip(np.ceil(ox + gw * sx) + 2, ca + 1, gray.shape[1]))
+    rb = int(np.clip(np.ceil(oy + gh * sy) + 2, ra + 1, gray.shape[0]))
+    m = np.array([[sx, 0, ox - ca], [0, sy, oy - ra]], np.float32)
+    g = cv2.warpAffine(gray[ra:rb, ca:cb].astype(np.float32), m, (gw, gh),
+                       flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                       borderMode=cv2.BORDER_REPLICATE)
+    z = (g - g.mean()) / (g.std() + 8.0)
+    along = np.abs(np.diff(g, axis=1))
+    along /= along.mean() + 3.0
+    q = gw // 4  # the box's columns: the middle half of the grid
+    mid = slice(gh // 2 - 2, gh // 2 + 2)  # the box's middle rows
+    return np.concatenate([
+        z[:, q : 3 * q].mean(1), along[:, q : 3 * q - 1].mean(1),
+        z[mid].mean(0).reshape(8, -1).mean(1),
+        np.pad(along[mid].mean(0), (0, 1), mode="edge").reshape(8, -1).mean(1),
+    ]).astype(np.float32)
+
+
+def second_score(gray: np.ndarray, box: tuple[float, float, float, float],
+                 weights: tuple[np.ndarray, float] | None = None) -> float:
+    """The second stage's score (a logistic regression's log-odds, trained on synthetic
+    plates against the first stage's windows elsewhere) of a box the first stage found;
+    -inf where no second stage ships."""
+    wb = weights if weights is not None else load_second()
+    if wb is None:
+        return float("-inf")
+    return float(second_features(gray, box) @ wb[0] + wb[1])
 
 
 def band_plate_scores(gray: np.ndarray, box: tuple[int, int, int, int],

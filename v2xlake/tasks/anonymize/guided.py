@@ -272,6 +272,11 @@ class GuidedConfig(FromParams):
     band_learned_glyph_ratio: float = 1.3
     band_learned_faces: bool = _param("clusters.band_learned_faces")
     band_learned_max_slope: float = _param("clusters.band_learned_max_slope")
+    band_learned_second: bool = _param("clusters.band_learned_second")
+    # the second stage's log-odds threshold: eu[::2]'s 20 px plates, 29 of 32 found at any
+    # of 0-4; the lowest at which the street frames' band rows (at 0.25-0.55 of the frame,
+    # mirrored too: 30 pieces) held no learned box of the second stage's
+    band_learned_second_min: float = 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -769,14 +774,20 @@ def band_learned_plates(gray: np.ndarray, box: tuple[int, int, int, int], min_px
     the texture test: the classifier, trained on synthetic plates only, also takes a curb's
     edge or a bumper's highlight for a dark-rimmed rectangle; a 20 px plate's glyphs still
     change along its rows (real 20 px plates pasted into the band, the bench's half:
-    24 % of the classifier's hits fail it)."""
+    24 % of the classifier's hits fail it). With ``band_learned_second`` a box that fails
+    it is still a plate where ``bandplate.second_score`` rates it ``band_learned_second_min``
+    or more: a 20 px plate whose glyphs are gone, or beside a grille as textured as it, is
+    still a light field between two darker lines, ending on either side."""
     if cfg.band_learned_score <= 0:
         return []
 
     def textured(b: tuple[float, float, float, float]) -> bool:
         glyph, ratio = bandplate.glyph_texture(gray, b)
-        return (glyph >= cfg.band_blob_min_glyph and ratio >= cfg.band_learned_glyph_ratio
-                and not 0 < cfg.band_learned_max_slope <= bandplate.stripe_slope(gray, b))
+        texture = glyph >= cfg.band_blob_min_glyph and ratio >= cfg.band_learned_glyph_ratio
+        if not texture and not (cfg.band_learned_second and bandplate.second_score(gray, b)
+                                >= cfg.band_learned_second_min):
+            return False
+        return not 0 < cfg.band_learned_max_slope <= bandplate.stripe_slope(gray, b)
 
     return band_plate_scores(gray, box, band_learned_widths(min_px), cfg.band_learned_score,
                              cfg.band_learned_max, accept=textured)
