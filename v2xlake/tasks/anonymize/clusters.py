@@ -30,6 +30,7 @@ function of the points.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -594,3 +595,64 @@ def object_ids(t_ns: np.ndarray, centre: np.ndarray, track: np.ndarray, lidar: n
         parent[root(a)] = root(b)
     roots = np.array([root(k) for k in range(m)])
     return roots[inv]
+
+
+def off_axis_copies(t_ns: np.ndarray, centre: np.ndarray, size: np.ndarray, yaw: np.ndarray,
+                    category: np.ndarray, obj: np.ndarray, window_ns: int,
+                    full_length_m: float, lidar: np.ndarray | None = None) -> np.ndarray:
+    """Which boxes are the wrong one of a short cluster's two orientations (``_object``
+    returns a vehicle footprint shorter than ``full_length_m`` both ways: seen end-on, its
+    length axis is unknown), where the object's axis is known from another box of it: a
+    vehicle box of the same object (``object_ids``: another agent's LiDAR, or a copy, row
+    piece or bridged group of its own) at most ``window_ns`` away in time whose footprint
+    is at least ``full_length_m`` long. Of the pair (same scan, same centre, lengths
+    swapped, yaw 90° apart) the one whose length axis is further from that box's is
+    marked (True); a pair without such a box keeps both.
+
+    Why: a car that one agent's LiDAR sees end-on (its rear face, a 1.8 m x 0.5 m
+    footprint) is often seen side-on by the other agent's (a 4.5 m footprint): both
+    copies' camera-facing faces (two sides of the footprint) were searched for plates,
+    one of them a car's side."""
+    n = len(t_ns)
+    drop = np.zeros(n, bool)
+    if n == 0:
+        return drop
+    t = np.asarray(t_ns, np.int64)
+    c = np.asarray(centre, float)[:, :2]
+    sz = np.asarray(size, float)
+    y = np.asarray(yaw, float)
+    veh = np.asarray(category).astype(str) == "Car"
+    ob = np.asarray(obj)
+    lid = np.asarray(lidar).astype(str) if lidar is not None else np.zeros(n, str)
+    length = sz[:, 1]
+    short = veh & (length < full_length_m)
+    long_ = veh & (length >= full_length_m)
+    by_obj: dict[Any, list[int]] = {}
+    for q in map(int, np.flatnonzero(long_)):
+        by_obj.setdefault(ob[q], []).append(q)
+    if not by_obj:
+        return drop
+    done = np.zeros(n, bool)
+    for i in map(int, np.flatnonzero(short)):
+        if done[i]:
+            continue
+        # its copy: same scan (time and LiDAR), same centre, the footprint's sides swapped
+        cand = np.flatnonzero(short & (t == t[i]) & (lid == lid[i])
+                              & (np.hypot(*(c - c[i]).T) < 0.01))
+        cand = cand[np.abs(np.abs(sz[cand, 1] - sz[i, 0]) + np.abs(sz[cand, 0] - sz[i, 1]))
+                    < 0.01]
+        cand = cand[cand != i]
+        if not len(cand):
+            continue
+        j = int(cand[0])
+        done[i] = done[j] = True
+        ref = [k for k in by_obj.get(ob[i], []) + by_obj.get(ob[j], [])
+               if abs(int(t[k]) - int(t[i])) <= window_ns]
+        if not ref:
+            continue
+        k = min(ref, key=lambda q: abs(int(t[q]) - int(t[i])))  # the nearest in time
+        # the angle between each copy's length axis and the reference's, mod 180°
+        off_i, off_j = (float(np.abs((y[a] - y[k] + np.pi / 2) % np.pi - np.pi / 2))
+                        for a in (i, j))
+        drop[i if off_i > off_j else j] = True
+    return drop

@@ -86,9 +86,10 @@ class GuidedConfig(FromParams):
     gap: int = 8
     alone_px: int = 96 * 1024
     # canvases of packed pieces: at the width that makes them smallest (``pack``); the
-    # full-frame plan's proposal canvases set it (the guided plan's regions keep the
-    # fixed ``mosaic_width``, as measured on the simulated clips)
+    # full-frame plan's proposal canvases set it, the guided plan's plate canvases with
+    # ``plate_pack_fit`` (its face canvases keep the fixed ``mosaic_width``)
     pack_fit: bool = False
+    plate_pack_fit: bool = _param("regions.plate_pack_fit")
     face_threshold: float = _param("faces.threshold")  # in projected regions
     full_face_threshold: float = _param("faces.full_threshold")  # in full-frame passes
     face_size_range: tuple[float, float] = (0.15, 3.0)  # x the expected face height
@@ -1322,7 +1323,8 @@ class GuidedDetector:
                 kp += edge
             if det is None or not kp:
                 continue
-            for canvas, ps, pos in mosaics(image, kp, c):
+            fit = replace(c, pack_fit=True) if kind == "plate" and c.plate_pack_fit else c
+            for canvas, ps, pos in mosaics(image, kp, fit):
                 dets += self._in_canvas(kind, det, canvas, ps, pos, w, h)
         if self.plate is not None and c.band_look_px > 0:
             for r in regions:
