@@ -86,3 +86,19 @@ def test_another_number_of_neighbours_or_a_dropped_link_inherits_nothing() -> No
     same.handle.ensure(same.points, same.tree, rows, 6)  # identical scan: every one taken
     assert searched == []
     assert np.array_equal(same.handle.normals, old.handle.normals)
+
+
+def test_reach_is_the_kth_neighbour_squared_distance() -> None:
+    """``Surfaces.reach`` (what inheritance trusts): each computed row's squared distance to
+    its k-th nearest point, by brute force; NaN where no surface was computed."""
+    pts = voxel_downsample(_street(3), 0.3)
+    s = Surfaces.empty(len(pts))
+    rows = np.arange(0, len(pts), 50)
+    s.ensure(pts, VoxelGrid(pts, 1.0), rows, 10)
+    d2 = sum((pts[rows, c, None] - pts[None, :, c]) ** 2 for c in range(3))
+    kth = np.sort(d2, axis=1)[:, 9]
+    assert s.reach is not None
+    assert np.allclose(s.reach[rows], kth, rtol=1e-12, atol=1e-12)
+    rest = np.ones(len(pts), dtype=bool)
+    rest[rows] = False
+    assert np.isnan(s.reach[rest]).all()

@@ -51,20 +51,30 @@ from v2xlake.tasks.register.voxel import (
 # two more odd multipliers for hashing a point's three coordinates (:func:`_same_rows`)
 _MIX1 = np.uint64(0xC2B2AE3D27D4EB4F)
 _MIX2 = np.uint64(0x165667B19E3779F9)
+_NO_REACH = np.zeros(0)  # :func:`_surfaces` keeps no k-th neighbour distances
 
 
 @njit(cache=True, nogil=True)
 def _surfaces(pts: np.ndarray, rows: np.ndarray, knn: np.ndarray,
-              normals: np.ndarray, ratio: np.ndarray) -> None:
+              normals: np.ndarray, ratio: np.ndarray, reach: np.ndarray) -> None:
     """For each point ``rows[i]``: the unit normal of its neighbours ``knn[i]`` and the
     planarity ratio smallest / middle eigenvalue, written into ``normals`` / ``ratio`` (a
-    ratio stays NaN where the neighbours are degenerate)."""
+    ratio stays NaN where the neighbours are degenerate), and the squared distance of its
+    last neighbour into ``reach`` (unless ``reach`` is empty)."""
+    last = knn.shape[1] - 1
+    keep = len(reach) > 0 and last >= 0
     for i in range(len(rows)):
         l_min, l_mid, nx, ny, nz = knn_surface(pts, knn, i)
         r = rows[i]
         normals[r, 0], normals[r, 1], normals[r, 2] = nx, ny, nz
         if l_mid > 1e-12:
             ratio[r] = l_min / l_mid
+        if keep:
+            j = knn[i, last]
+            dx = pts[j, 0] - pts[r, 0]
+            dy = pts[j, 1] - pts[r, 1]
+            dz = pts[j, 2] - pts[r, 2]
+            reach[r] = dx * dx + dy * dy + dz * dz
 
 
 @njit(cache=True, nogil=True)
@@ -371,10 +381,8 @@ class Surfaces:
             knn = np.ascontiguousarray(got, dtype=np.int64)
             if nb is not None:
                 nb.put(todo, knn)
-        _surfaces(points, todo, knn, self.normals, self.ratio)
-        if self.reach is not None and kk:
-            d = points[knn[:, -1]] - points[todo]
-            self.reach[todo] = np.einsum("ij,ij->i", d, d)
+        _surfaces(points, todo, knn, self.normals, self.ratio,
+                  self.reach if self.reach is not None else _NO_REACH)
         self.known[todo] = True
 
 
