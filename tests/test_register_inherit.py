@@ -102,3 +102,16 @@ def test_reach_is_the_kth_neighbour_squared_distance() -> None:
     rest = np.ones(len(pts), dtype=bool)
     rest[rows] = False
     assert np.isnan(s.reach[rest]).all()
+
+
+def test_a_repeated_point_counts_as_changed() -> None:
+    """A point twice in the new scan, once in the old: one copy is matched, the other is a
+    point the old scan did not have (its neighbours' lists differ), so it is changed."""
+    from v2xlake.tasks.register.sparse import Predecessor
+
+    old_pts = voxel_downsample(_street(4), 0.3)
+    new_pts = np.concatenate([old_pts, old_pts[5:6]])
+    pred = Predecessor.of(new_pts, old_pts, Surfaces.empty(len(old_pts)))
+    assert pred.row[5] == 5 and pred.row[-1] == -1
+    assert np.array_equal(pred.row[:-1], np.arange(len(old_pts)))
+    assert len(pred.changed) == 1 and np.array_equal(pred.changed[0], old_pts[5])

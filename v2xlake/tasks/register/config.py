@@ -289,7 +289,8 @@ class StationarySection(Section):
         "frames (and on its odometry frames) and reused by the frames between; 1: every frame "
         "its own scan (the behaviour before)")
     inherit_surfaces: bool = Field(
-        True, description="sparse backend: a stationary agent's prepared scan takes each "
+        True, description="sparse backend, with stationary.reuse_frames > 1 (the scans it "
+        "prepares are the ones linked): a stationary agent's prepared scan takes each "
         "surface (normal, planarity) from its previous prepared scan where the point is in "
         "both, bit-identical, and no point that is in only one of them lies within its k-th "
         "neighbour's distance: the same k nearest neighbours, the same surface (the results "

@@ -232,7 +232,9 @@ def _untouched(pts: np.ndarray, rows: np.ndarray, reach: np.ndarray, changed: np
 @njit(cache=True, nogil=True)
 def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """For each point of ``a`` the row of a bit-identical point of ``b`` (-1: none), by an
-    open-addressing hash table of ``b``'s coordinates' bits (one pass over each)."""
+    open-addressing hash table of ``b``'s coordinates' bits (one pass over each). A row of
+    ``b`` is given once: a repeat in ``a`` of a point already matched gets -1 (it is a point
+    the old scan did not have, so it counts as changed)."""
     ab = a.view(np.uint64)
     bb = b.view(np.uint64)
     cap = _pow2_at_least(2 * len(b) + 2)
@@ -244,6 +246,7 @@ def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             h = (h + 1) & (cap - 1)
         table[h] = j
     out = np.full(len(a), -1, dtype=np.int64)
+    used = np.zeros(len(b), dtype=np.bool_)
     for i in range(len(a)):
         h = np.int64(((ab[i, 0] * _GOLDEN) ^ (ab[i, 1] * _MIX1) ^ (ab[i, 2] * _MIX2)) >> shift)
         while True:
@@ -251,7 +254,9 @@ def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             if j < 0:
                 break
             if bb[j, 0] == ab[i, 0] and bb[j, 1] == ab[i, 1] and bb[j, 2] == ab[i, 2]:
-                out[i] = j
+                if not used[j]:
+                    out[i] = j
+                    used[j] = True
                 break
             h = (h + 1) & (cap - 1)
     return out
@@ -303,7 +308,7 @@ class Surfaces:
     neighbours: Neighbours | None = None
     # squared distance of each known point's k-th nearest neighbour (where known)
     reach: np.ndarray | None = None
-    k: int = 0  # the neighbours per surface (min(num_neighbors, N)); 0 until the first
+    k: int = 0  # the neighbours per surface (min(num_neighbors, N)); 0 until the first search
     # a stationary agent's previous scan (:class:`Predecessor`): surfaces taken from there
     # where they cannot differ, before any search
     pred: Predecessor | None = None
