@@ -62,17 +62,28 @@ def test_a_plate_without_glyphs_is_found_by_the_second_stage(body: float) -> Non
 
 
 def test_a_far_lane_dash_is_no_plate_to_the_second_stage() -> None:
-    """Bright dashes leaning 0.2-0.5 on asphalt: the second stage alone (texture and lean
-    tests off) takes none of the first stage's windows on them for a plate."""
+    """Bright dashes leaning 0.2-0.5 on asphalt: a 20 x 4 px box on any part of a dash (at
+    1 px steps along it) is rated under the second stage's threshold, and the pipeline
+    (texture and lean tests off) takes none of them for a plate. The boxes are scored
+    directly: the first stage alone may find no window on the dashes, which would leave
+    the pipeline's answer saying nothing about the second stage."""
     img = np.full((1080, 1920), 85, np.float32)
     img += np.random.default_rng(5).normal(0, 3, img.shape)
+    boxes = []
     for k, (slope, length, thick) in enumerate(((0.2, 50, 3), (-0.3, 70, 2), (0.45, 45, 3),
                                                 (-0.5, 60, 2), (0.25, 80, 3))):
         x0, y0 = 150 + 350 * k, 500.0
         pts = np.array([[x0, y0], [x0 + length, y0 + slope * length],
                         [x0 + length, y0 + slope * length + thick], [x0, y0 + thick]])
         cv2.fillPoly(img, [np.round(pts * 8).astype(np.int32)], 215.0, shift=3)
+        for x in np.arange(x0, x0 + length - 20 + 1, 1.0):
+            yc = y0 + slope * (x + 10 - x0) + thick / 2
+            boxes.append((float(x), yc - 2.0, float(x) + 20.0, yc + 2.0))
     gray = np.clip(cv2.GaussianBlur(img, (0, 0), 0.6), 0, 255).astype(np.uint8)
+    thr = GuidedConfig().band_learned_second_min
+    scores = np.array([bp.second_score(gray, b) for b in boxes])
+    assert len(boxes) > 150 and np.isfinite(scores).all()
+    assert scores.max() < thr, (scores.max(), boxes[int(scores.argmax())])
     assert band_learned_plates(gray, BAND, 20.0,
                                replace(NO_TEXTURE, band_learned_max_slope=0.0)) == []
 

@@ -255,8 +255,9 @@ class Regions(Section):
         "face near the score threshold was lost on a simulated LiDAR-only clip (seed 2). "
         "With clusters.orient_by_object_ms: docs/anonymization.md, 2026-11-28")
     plate_parts_whole: bool = Field(
-        True, description="where a frame's plate boxes are merged (guided plan, key frames: "
-        "the regions' passes with the safety or full-frame plan), a kept plate box is grown "
+        True, description="where a guided frame's plate boxes are merged (the regions' "
+        "passes with the final boxes of its safety or full-frame plan; not inside the "
+        "full-frame plan's own merge, which runs as before), a kept plate box is grown "
         "to the plate boxes it outscored that hold most (0.8) of it (guided."
         "nms_plate_parts). Why: the text detector also reads one group of a plate's "
         "characters as a line of its own, often scoring above the whole plate's line (0.91 "
@@ -487,7 +488,8 @@ class Clusters(Section):
         "between two darker lines that ends on either side. Real plates_eu plates pasted "
         "into the band (bench_anonymize --band-plates --quick, seeds 0-3, 32 per width), "
         "off -> on: 20 px 26 -> 29 (eu[::2], where its threshold was set) and 27 -> 31 "
-        "(eu[1::2], held out) of 32, 30 / 40 px not lower; band false plates on the real "
+        "(eu[1::2], held out; 30 once the band moved 0.7 px with the fitted plate canvases: "
+        "the scorer's grid phase) of 32, 30 / 40 px not lower; band false plates on the real "
         "street frames 0.33 both; simulated LiDAR-only clips (0.3 s, seeds 0 / 1) false "
         "blurs 0.04 and 0.37 per image both. False: the texture test alone")
     band_learned_max_slope: float = Field(

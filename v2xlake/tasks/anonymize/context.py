@@ -76,14 +76,14 @@ class ClipGuide:
                 continue
             ob = self._at(b, t, other)
             keep = ~np.isin(ob.instance, list(seen)) if seen else np.ones(len(ob), bool)
-            parts.append(_take(ob, keep))
+            parts.append(ob.take(keep))
             seen |= set(ob.instance[keep].tolist())
         regions = project_regions(WorldBoxes.concat(parts), T_cam_world, intr, self.config,
                                   self.source == "lidar clusters")
         if self.source == "lidar clusters" and self.config.band_from_m > 0:
             T_world_ego = track.matrices(t)[0]
             if own is not None and len(own):  # the nearest scan's, without held persons
-                own = _take(own, own.t_ns == own.t_ns[np.argmin(np.abs(own.t_ns - t))])
+                own = own.take(own.t_ns == own.t_ns[np.argmin(np.abs(own.t_ns - t))])
             ground = ground_height(own, T_world_ego, self.config.band_from_m)
             band = band_region(T_cam_world, T_world_ego, intr, ground, self.config)
             if band is not None:
@@ -107,7 +107,7 @@ class ClipGuide:
             dt = np.abs(b.t_ns - t)
             near = b.t_ns[np.argmin(dt)]
             if abs(int(near) - t) > self.config.max_age_ns:
-                return _take(b, np.zeros(len(b), bool))
+                return b.take(np.zeros(len(b), bool))
             keep = b.t_ns == near
             if self.config.person_hold_ns > 0:
                 held = ~keep & (dt <= self.config.person_hold_ns) & np.isin(b.category,
@@ -128,13 +128,8 @@ class ClipGuide:
                                    b.center[idx, None, 1] - b.center[now][None, :, 1])
                     held[idx[gap.min(1) < self.config.person_hold_gap_m]] = False
                 keep |= held
-            return _take(b, keep)
+            return b.take(keep)
         return b.at(t, self.config.max_age_ns)
-
-
-def _take(b: WorldBoxes, m: np.ndarray) -> WorldBoxes:
-    return WorldBoxes(b.t_ns[m], b.center[m], b.size[m], b.quat[m], b.velocity[m],
-                      b.category[m], b.instance[m])
 
 
 def camera_intrinsics(c: CameraCalib) -> CameraIntrinsics | None:

@@ -144,6 +144,12 @@ class WorldBoxes:
                             ("t_ns", "center", "size", "quat", "velocity", "category",
                              "instance")))
 
+    def take(self, rows: np.ndarray) -> WorldBoxes:
+        """The rows ``rows`` (a boolean mask or indices) of every field."""
+        return WorldBoxes(self.t_ns[rows], self.center[rows], self.size[rows],
+                          self.quat[rows], self.velocity[rows], self.category[rows],
+                          self.instance[rows])
+
     def at(self, t_ns: int, max_age_ns: int) -> WorldBoxes:
         """Each instance once, from its box nearest in time to ``t_ns`` (within
         ``max_age_ns``), moved by its velocity to ``t_ns``."""

@@ -824,13 +824,15 @@ def inside_larger(box: tuple[float, float, float, float], others: Sequence[Any],
 
 def nms_plate_parts(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8
                     ) -> list[Detection]:
-    """``nms``, with each kept plate box grown to the union of the plate boxes it dropped
-    (IoU ``iou`` or more with it) that hold ``contain`` or more of it: a box it dropped that
-    holds it is the whole of which it is a part. Why: the text detector also reads one
-    group of a plate's characters (half of a 40 px plate) as a line of its own, often
-    scoring above the whole plate's line (0.91 against 0.84-0.89), and the greedy walk kept
-    the part alone: real 30-40 px plates pasted into the far band with 55-78 % of their box
-    under the blur, the other characters left legible. Boxes the kept one holds, and
+    """``nms``, with each kept plate box grown to the union of the plate boxes not kept
+    that overlap it at IoU ``iou`` or more and hold ``contain`` or more of it (each such
+    box joins the first, best kept box it holds): a dropped box that holds it is the whole
+    of which it is a part. A box dropped by another kept box may join this one too: that
+    only blurs more. Why: the text detector also reads one group of a plate's characters
+    (half of a 40 px plate) as a line of its own, often scoring above the whole plate's line
+    (0.91 against 0.84-0.89), and the greedy walk kept the part alone: real 30-40 px plates
+    pasted into the far band with 55-78 % of their box under the blur, the other characters
+    left legible. Boxes the kept one holds, and
     overlapping boxes that do not hold it, are dropped as ``nms`` drops them."""
     plates = sorted((d for d in dets if d.kind == "plate"), key=lambda d: -d.score)
     out = nms([d for d in dets if d.kind != "plate"], iou, contain)

@@ -403,35 +403,25 @@ def lidar_clusters(lake: Lake, clip_id: str, t0: int, ego: dict[str, list[pa.Tab
         names = list(out)
         allb = WorldBoxes.concat([out[a] for a in names])
         inst = allb.instance.astype(str)
-        obj = object_ids(allb.t_ns, allb.center, inst,
-                         np.array([i.rsplit(":", 1)[0] for i in inst]),
-                         cfg.clusters.track_gate_m)
+        lidar_of = np.array([i.rsplit(":", 1)[0] for i in inst])
+        obj = object_ids(allb.t_ns, allb.center, inst, lidar_of, cfg.clusters.track_gate_m)
         tagged = np.array([f"{i}@o{k}" for i, k in zip(inst, obj, strict=True)])
-        start_at = 0
-        for a in names:
-            n_a = len(out[a].instance)
-            out[a] = dataclasses.replace(out[a], instance=tagged[start_at:start_at + n_a])
-            start_at += n_a
+        keep = np.ones(len(inst), bool)
         if cfg.clusters.orient_by_object_ms > 0:
             # a short cluster's two orientations: the one off the axis of a longer box of
             # the same object (another agent's, or its own track's) is dropped
             # (``clusters.off_axis_copies``)
             w, z = allb.quat[:, 0], allb.quat[:, 3]
-            drop = off_axis_copies(allb.t_ns, allb.center, allb.size, 2 * np.arctan2(z, w),
-                                   allb.category, obj,
-                                   int(cfg.clusters.orient_by_object_ms * 1e6),
-                                   cluster_config(cfg).full_length_m,
-                                   np.array([i.rsplit(":", 1)[0] for i in inst]))
-            start_at = 0
-            for a in names:
-                n_a = len(out[a].instance)
-                out[a] = _take_boxes(out[a], ~drop[start_at:start_at + n_a])
-                start_at += n_a
+            keep = ~off_axis_copies(allb.t_ns, allb.center, allb.size, 2 * np.arctan2(z, w),
+                                    allb.category, obj,
+                                    int(cfg.clusters.orient_by_object_ms * 1e6),
+                                    ccfg.full_length_m, lidar_of)
+        start_at = 0
+        for a in names:
+            rows = slice(start_at, start_at + len(out[a]))
+            out[a] = dataclasses.replace(out[a], instance=tagged[rows]).take(keep[rows])
+            start_at = rows.stop
     return out or None
-
-
-def _take_boxes(b: WorldBoxes, keep: np.ndarray) -> WorldBoxes:
-    return type(b)(*(getattr(b, f.name)[keep] for f in dataclasses.fields(b)))
 
 
 def _encode(img: np.ndarray, key: str, cfg: AnonymizeConfig) -> tuple[bytes, str]:
