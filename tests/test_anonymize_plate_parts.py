@@ -48,3 +48,29 @@ def test_the_setting_reaches_the_detector_and_the_provenance() -> None:
     assert on.provenance("v") != off.provenance("v")
     assert ":plate-parts-whole" in GuidedDetector(None, None, GuidedConfig.of(on)).version
     assert ":plate-parts-whole" not in GuidedDetector(None, None, GuidedConfig.of(off)).version
+
+
+class _Fixed:
+    """A full-frame detector (``GuidedDetector``'s ``extra``) that returns fixed boxes."""
+
+    name, version = "fixed", "1"
+
+    def __init__(self, dets: list[Detection]) -> None:
+        self.dets = dets
+
+    def detect(self, image: object) -> list[Detection]:
+        return list(self.dets)
+
+
+def test_the_full_frame_plan_keeps_the_whole_plate_too() -> None:
+    """A frame without guidance (and a LiDAR-only frame's safety pass) ends with the same
+    merge: the part is grown to the whole plate; off, the part alone, as before."""
+    import numpy as np
+
+    img = np.zeros((1080, 1920, 3), np.uint8)
+    on, off = AnonymizeConfig(), AnonymizeConfig(regions={"plate_parts_whole": False})
+    extra = [_Fixed([HALF, WHOLE, LOOSE])]
+    (d,) = GuidedDetector(None, None, GuidedConfig.of(on), extra).full_frame(img)
+    assert d.box == LOOSE.box and d.score == HALF.score
+    (d,) = GuidedDetector(None, None, GuidedConfig.of(off), extra).full_frame(img)
+    assert d.box == HALF.box

@@ -1298,6 +1298,8 @@ class GuidedDetector:
                      else self._plates_full(image, c.full_plate_scan))
         for d in self.extra:
             dets += d.detect(image)
+        if c.plate_parts_whole:  # a part of a plate's characters kept alone: grown to it
+            return nms_plate_parts(dets, 0.3)
         return nms(dets, 0.3)
 
     def full_frame_in(self, image: np.ndarray, boxes: Sequence[tuple[float, float, float, float]],
