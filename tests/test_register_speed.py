@@ -174,18 +174,38 @@ def test_three_agents_register_the_same_with_their_pairs_in_parallel(tmp_path: P
     finally:
         del rs.EXTR["mast"], rs.BIAS["mast"]
     run_deskew(lake, rs.CLIP)
+    # the stage's links between a stationary agent's prepared scans (``backend.follow``):
+    # with reuse_frames 2 the mast's anchors are frames 0 and 2, and 2 follows 0
+    from v2xlake.tasks.register.backends import SparseGicpBackend
+
+    links: list[bool] = []
+    follow = SparseGicpBackend.follow
+
+    def spy(pairs: list[tuple[object, object]]) -> None:
+        links.extend(old is not None for _new, old in pairs)
+        follow(pairs)  # type: ignore[arg-type]
+
     rows = {}
-    for workers, reuse in ((1, 5), (2, 5), (1, 1)):
-        shutil.copytree(tmp_path / "base", tmp_path / f"{workers}_{reuse}")
-        lk = Lake(tmp_path / f"{workers}_{reuse}")
-        rep = run_register(lk, rs.CLIP, RegisterConfig.model_validate(
-            {"workers": workers, "write_bev": False, "stationary": {"reuse_frames": reuse}}))
+    for workers, reuse, inherit in ((1, 5, True), (2, 5, True), (1, 1, True), (1, 2, True),
+                                    (1, 2, False)):
+        key = (workers, reuse) if inherit else (workers, reuse, "off")
+        shutil.copytree(tmp_path / "base", tmp_path / "_".join(map(str, key)))
+        lk = Lake(tmp_path / "_".join(map(str, key)))
+        links.clear()
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(SparseGicpBackend, "follow", staticmethod(spy))
+            rep = run_register(lk, rs.CLIP, RegisterConfig.model_validate(
+                {"workers": workers, "write_bev": False,
+                 "stationary": {"reuse_frames": reuse, "inherit_surfaces": inherit}}))
         assert rep.metrics["n_pairs"] == 6
-        rows[workers, reuse] = (lk.read_table("clean", "registrations", clip_id=rs.CLIP)
-                                .sort_by([("agent_other", "ascending"),
-                                          ("frame_idx", "ascending")]).to_pylist())
+        # one link per store (near and far) from frame 2's anchor to frame 0's, only there
+        assert links == ([True, True] if key == (1, 2) else []), (key, links)
+        rows[key] = (lk.read_table("clean", "registrations", clip_id=rs.CLIP)
+                     .sort_by([("agent_other", "ascending"),
+                               ("frame_idx", "ascending")]).to_pylist())
     assert {r["agent_other"] for r in rows[1, 5]} == {"black", "mast"}
     assert rows[1, 5] == rows[2, 5]
+    assert rows[1, 2] == rows[1, 2, "off"]  # inherited surfaces: the same registrations
 
     def mast_points(rr: list[dict[str, object]]) -> list[object]:
         return [r["n_points_other"] for r in rr if r["agent_other"] == "mast"]
