@@ -108,8 +108,8 @@ def overlapping(rows: np.ndarray, boxes: np.ndarray, iou: float = 0.3,
 def by_kind(dets: Sequence[Detection], out: list[Detection]
             ) -> Iterator[tuple[list[Detection], np.ndarray]]:
     """Each kind's detections best score first, with their boxes (k, 4), for a greedy walk
-    (``nms``, ``carry.merge_overlapping``); a kind with one detection has nothing to walk
-    and goes to ``out`` as it is."""
+    (``nms``, ``guided.nms_plate_parts``, ``carry.merge_overlapping``); a kind with one
+    detection has nothing to walk and goes to ``out`` as it is."""
     for kind in sorted({d.kind for d in dets}):
         ds = sorted((d for d in dets if d.kind == kind), key=lambda d: -d.score)
         if len(ds) < 2:
@@ -126,15 +126,21 @@ def nms(dets: Sequence[Detection], iou: float = 0.3, contain: float = 0.8) -> li
     pairwise Python loop spent ~0.15 s per 1392 x 512 street image here (same decisions)."""
     out: list[Detection] = []
     for ds, b in by_kind(dets, out):
-        kept: list[int] = []
-        for lo in range(0, len(ds), _NMS_BLOCK):
-            rows = b[lo : lo + _NMS_BLOCK]
-            ov = overlapping(rows, b, iou, contain)
-            for r in range(len(rows)):
-                if not kept or not ov[r, kept].any():
-                    kept.append(lo + r)
-        out.extend(ds[i] for i in kept)
+        out.extend(ds[i] for i in greedy_kept(b, iou, contain))
     return out
+
+
+def greedy_kept(b: np.ndarray, iou: float = 0.3, contain: float = 0.8) -> list[int]:
+    """The rows of ``b`` (boxes best first) that ``nms``'s greedy walk keeps: each row not
+    ``overlapping`` one kept before it."""
+    kept: list[int] = []
+    for lo in range(0, len(b), _NMS_BLOCK):
+        rows = b[lo : lo + _NMS_BLOCK]
+        ov = overlapping(rows, b, iou, contain)
+        for r in range(len(rows)):
+            if not kept or not ov[r, kept].any():
+                kept.append(lo + r)
+    return kept
 
 
 _NMS_BLOCK = 1024  # NMS overlap rows computed at once (memory: 1024 x N booleans + floats)

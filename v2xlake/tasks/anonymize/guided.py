@@ -34,7 +34,9 @@ from v2xlake.tasks.anonymize.detectors import (
     Detection,
     ScanConfig,
     _unmap,
+    by_kind,
     face_scan,
+    greedy_kept,
     iter_views,
     nms,
     overlapping,
@@ -828,30 +830,24 @@ def nms_plate_parts(dets: Sequence[Detection], iou: float = 0.3, contain: float 
     that overlap it at IoU ``iou`` or more and hold ``contain`` or more of it (each such
     box joins the first, best kept box it holds): a dropped box that holds it is the whole
     of which it is a part. A box dropped by another kept box may join this one too: that
-    only blurs more. Why: the text detector also reads one group of a plate's characters
-    (half of a 40 px plate) as a line of its own, often scoring above the whole plate's line
-    (0.91 against 0.84-0.89), and the greedy walk kept the part alone: real 30-40 px plates
-    pasted into the far band with 55-78 % of their box under the blur, the other characters
-    left legible. Boxes the kept one holds, and
-    overlapping boxes that do not hold it, are dropped as ``nms`` drops them."""
-    plates = sorted((d for d in dets if d.kind == "plate"), key=lambda d: -d.score)
+    only blurs more. Boxes the kept one holds, and overlapping boxes that do not hold it,
+    are dropped as ``nms`` drops them. Why: the text detector also reads one group of a
+    plate's characters (half of a 40 px plate) as a line of its own, often scoring above
+    the whole plate's line (0.91 against 0.84-0.89), and the greedy walk kept the part
+    alone: real 30-40 px plates pasted into the far band with 55-78 % of their box under
+    the blur, the other characters left legible."""
     out = nms([d for d in dets if d.kind != "plate"], iou, contain)
-    if len(plates) < 2:
-        return out + plates
-    b = np.array([d.box for d in plates], np.float64).reshape(-1, 4)
-    drops = overlapping(b, b, iou, contain)  # [r, k]: r is dropped where k is kept
-    kept: list[int] = []
-    for r in range(len(plates)):
-        if not kept or not drops[r, kept].any():
-            kept.append(r)
-    holds = overlapping(b, b, np.inf, contain)  # [i, j]: box j holds ``contain`` of box i
-    free = np.ones(len(plates), bool)
-    free[kept] = False
-    for i in kept:
-        g = free & holds[i] & drops[:, i]
-        free &= ~g
-        u = np.vstack([b[i : i + 1], b[g]])
-        out.append(replace(plates[i], box=(float(u[:, 0].min()), float(u[:, 1].min()),
+    for ds, b in by_kind([d for d in dets if d.kind == "plate"], out):
+        kept = greedy_kept(b, iou, contain)
+        drops = overlapping(b, b[kept], iou, contain)  # [r, m]: r is dropped by kept[m]
+        holds = overlapping(b[kept], b, np.inf, contain)  # [m, j]: j holds most of kept[m]
+        free = np.ones(len(ds), bool)
+        free[kept] = False
+        for m, i in enumerate(kept):
+            g = free & holds[m] & drops[:, m]
+            free &= ~g
+            u = np.vstack([b[i : i + 1], b[g]])
+            out.append(replace(ds[i], box=(float(u[:, 0].min()), float(u[:, 1].min()),
                                            float(u[:, 2].max()), float(u[:, 3].max()))))
     return out
 
