@@ -163,6 +163,18 @@ def _grow(box: Box, frac: float, w: int, h: int) -> Box:
             min(float(w), box[2] + mx), min(float(h), box[3] + my))
 
 
+def _union(boxes: Sequence[Box]) -> Box:
+    """The smallest box holding all of ``boxes`` (at least one)."""
+    return (min(b[0] for b in boxes), min(b[1] for b in boxes), max(b[2] for b in boxes),
+            max(b[3] for b in boxes))
+
+
+def _around(boxes: Sequence[Box], m: float, w: int, h: int) -> Box:
+    """``_union(boxes)`` grown by ``m`` on each side, clipped to a ``w`` x ``h`` frame."""
+    x0, y0, x1, y1 = _union(boxes)
+    return (max(0.0, x0 - m), max(0.0, y0 - m), min(float(w), x1 + m), min(float(h), y1 + m))
+
+
 def carry(dets: Sequence[Detection], key_regions: Sequence[Region] | None,
           regions: Sequence[Region] | None, fresh: Sequence[Region] = ()
           ) -> list[tuple[Detection, Region | None]]:
@@ -480,10 +492,8 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         concerns) can be: ``boxes`` grown by ``m``, clipped to the frame; ``edge``: and on
         to the nearest frame edge (it entered or left the view there, when or how fast
         is not known: a face at 60 px a frame was 2 reaches past its key frame's find)."""
-        bs = [b for b in boxes if b is not None]
         doubt.append(reason)
-        z = [max(0.0, min(b[0] for b in bs) - m), max(0.0, min(b[1] for b in bs) - m),
-             min(float(w), max(b[2] for b in bs) + m), min(float(h), max(b[3] for b in bs) + m)]
+        z = list(_around([b for b in boxes if b is not None], m, w, h))
         if edge:
             gap = [z[0], z[1], w - z[2], h - z[3]]
             k = int(np.argmin(gap))
@@ -696,8 +706,7 @@ def zone_regions(regions: Sequence[Region] | None, zones: Sequence[tuple[str, Bo
         if not over:
             continue
         # once per region, around all its zones (overlapping zones: one search)
-        b = (min(v[0] for v in over), min(v[1] for v in over), max(v[2] for v in over),
-             max(v[3] for v in over))
+        b = _union(over)
         if r.quad is not None and r.size_m is not None:
             sub = _sub_face(r, b, w, h)
             out.append(sub if sub is not None else r)
@@ -835,10 +844,8 @@ def _window(d: Detection, boxes: Sequence[Box], window: float, shape: tuple[int,
     None when the window lies outside the frame."""
     h, w = shape[:2]
     bw, bh = d.box[2] - d.box[0], d.box[3] - d.box[1]
-    m = window * max(bw, bh)  # a plate moves as far up or down as sideways
-    x0, y0 = min(b[0] for b in boxes) - m, min(b[1] for b in boxes) - m
-    x1, y1 = max(b[2] for b in boxes) + m, max(b[3] for b in boxes) + m
-    win = (max(0.0, x0), max(0.0, y0), min(float(w), x1), min(float(h), y1))
+    # a plate moves as far up or down as sideways
+    win = _around(boxes, window * max(bw, bh), w, h)
     if win[2] - win[0] < 2 or win[3] - win[1] < 2:
         return None
     cy = (d.box[1] + d.box[3]) / 2
@@ -882,7 +889,7 @@ def _ahead(d: Detection, earlier: tuple[Sequence[Detection], Sequence[Region] | 
     if centre is None:
         return lin
     per = _perspective(d.box, dets[j].box, k, centre)
-    return (min(lin[0], per[0]), min(lin[1], per[1]), max(lin[2], per[2]), max(lin[3], per[3]))
+    return _union((lin, per))
 
 
 def _perspective(box: Box, before: Box, k: float, centre: tuple[float, float]) -> Box:
