@@ -12,6 +12,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
+from tests.fixtures.band import BAND, asphalt_frame
 from tests.fixtures.real import SHARED_REAL, requires_real_data
 from v2xlake.tasks.anonymize import bandplate as bp
 from v2xlake.tasks.anonymize.guided import (
@@ -74,12 +75,10 @@ def test_score_map_is_the_windows_linear_score() -> None:
 
 
 def test_a_plate_on_a_white_car_is_found_where_the_blob_test_sees_none() -> None:
-    img = np.full((1080, 1920, 3), 90, np.uint8)
-    rng = np.random.default_rng(1)
-    img[400:600] = np.clip(90 + rng.normal(0, 3, (200, 1920, 1)), 0, 255).astype(np.uint8)
+    img = asphalt_frame(90, 1)
     truth = [_white_car_plate(img, x, 480) for x in (300, 900, 1500)]
     cfg = GuidedConfig()
-    band = (0, 400, 1920, 600)
+    band = BAND
     assert band_plate_blobs(img, band, 20.0, cfg) == []  # no brighter than its car
     on = replace(cfg, band_learned_score=cfg.band_learned_score or 12.0)
     gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)

@@ -6,19 +6,17 @@ no far lane dash, and fits the training script's synthetic data.
 
 from __future__ import annotations
 
-import importlib.util
 from dataclasses import replace
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+from tests.fixtures.band import BAND, asphalt_frame, lane_dashes, train_script
 from v2xlake.tasks.anonymize import bandplate as bp
 from v2xlake.tasks.anonymize.guided import GuidedConfig, band_learned_plates
 from v2xlake.tasks.geometry import iou_xyxy
 
-BAND = (0, 400, 1920, 600)
 # the glyph-texture test made impossible: whatever is found, the second stage found
 NO_TEXTURE = replace(GuidedConfig(), band_learned_glyph_ratio=float("inf"))
 
@@ -48,9 +46,7 @@ def _glyphless_plate(img: np.ndarray, cx: int, cy: int, body: float) -> tuple[in
 def test_a_plate_without_glyphs_is_found_by_the_second_stage(body: float) -> None:
     """On a white and on a silver car: with the texture test unpassable, the second stage
     (on by default) finds all three plates and nothing else; off, none is found."""
-    img = np.full((1080, 1920, 3), 95, np.uint8)
-    rng = np.random.default_rng(3)
-    img[400:600] = np.clip(95 + rng.normal(0, 3, (200, 1920, 1)), 0, 255).astype(np.uint8)
+    img = asphalt_frame(95, 3)
     truth = np.array([_glyphless_plate(img, x, 490, body) for x in (300, 900, 1500)], float)
     gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     assert GuidedConfig().band_learned_second  # on by default
@@ -67,19 +63,12 @@ def test_a_far_lane_dash_is_no_plate_to_the_second_stage() -> None:
     (texture and lean tests off) takes none of them for a plate. The boxes are scored
     directly: the first stage alone may find no window on the dashes, which would leave
     the pipeline's answer saying nothing about the second stage."""
-    img = np.full((1080, 1920), 85, np.float32)
-    img += np.random.default_rng(5).normal(0, 3, img.shape)
+    gray, dashes = lane_dashes()
     boxes = []
-    for k, (slope, length, thick) in enumerate(((0.2, 50, 3), (-0.3, 70, 2), (0.45, 45, 3),
-                                                (-0.5, 60, 2), (0.25, 80, 3))):
-        x0, y0 = 150 + 350 * k, 500.0
-        pts = np.array([[x0, y0], [x0 + length, y0 + slope * length],
-                        [x0 + length, y0 + slope * length + thick], [x0, y0 + thick]])
-        cv2.fillPoly(img, [np.round(pts * 8).astype(np.int32)], 215.0, shift=3)
+    for x0, y0, slope, length, thick in dashes:
         for x in np.arange(x0, x0 + length - 20 + 1, 1.0):
             yc = y0 + slope * (x + 10 - x0) + thick / 2
             boxes.append((float(x), yc - 2.0, float(x) + 20.0, yc + 2.0))
-    gray = np.clip(cv2.GaussianBlur(img, (0, 0), 0.6), 0, 255).astype(np.uint8)
     thr = GuidedConfig().band_learned_second_min
     scores = np.array([bp.second_score(gray, b) for b in boxes])
     assert len(boxes) > 150 and np.isfinite(scores).all()
@@ -91,11 +80,7 @@ def test_a_far_lane_dash_is_no_plate_to_the_second_stage() -> None:
 def test_the_second_stage_fits_the_scripts_synthetic_data() -> None:
     """The script's second-stage samples from another seed: the shipped second stage rates
     most plates at the default threshold or more and few other windows so."""
-    path = Path(__file__).resolve().parents[1] / "scripts" / "train_band_plates.py"
-    spec = importlib.util.spec_from_file_location("train_band_plates", path)
-    assert spec is not None and spec.loader is not None
-    tr = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tr)
+    tr = train_script()
     pos, neg = tr.second_samples(np.random.default_rng(21), bp.load_weights(), 30, [])
     second = bp.load_second()
     assert second is not None

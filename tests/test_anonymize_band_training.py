@@ -7,28 +7,15 @@ itself, before the lean test; the training script's synthesis is deterministic.
 
 from __future__ import annotations
 
-import importlib.util
 from dataclasses import replace
-from pathlib import Path
-from types import ModuleType
 
 import cv2
 import numpy as np
 
+from tests.fixtures.band import BAND, asphalt_frame, lane_dashes, train_script
 from v2xlake.tasks.anonymize import bandplate as bp
 from v2xlake.tasks.anonymize.guided import GuidedConfig, band_learned_plates
 from v2xlake.tasks.geometry import iou_xyxy
-
-BAND = (0, 400, 1920, 600)
-
-
-def _train_script() -> ModuleType:
-    path = Path(__file__).resolve().parents[1] / "scripts" / "train_band_plates.py"
-    spec = importlib.util.spec_from_file_location("train_band_plates", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _hazy_plate_in_holder(img: np.ndarray, cx: int, cy: int) -> tuple[int, int, int, int]:
@@ -58,9 +45,7 @@ def _hazy_plate_in_holder(img: np.ndarray, cx: int, cy: int) -> tuple[int, int, 
 
 
 def test_a_dim_plate_in_a_dark_holder_through_haze_is_found() -> None:
-    img = np.full((1080, 1920, 3), 95, np.uint8)
-    rng = np.random.default_rng(3)
-    img[400:600] = np.clip(95 + rng.normal(0, 3, (200, 1920, 1)), 0, 255).astype(np.uint8)
+    img = asphalt_frame(95, 3)
     truth = [_hazy_plate_in_holder(img, x, 490) for x in (300, 900, 1500)]
     cfg = GuidedConfig()
     assert cfg.band_learned_score > 0  # on by default
@@ -76,16 +61,7 @@ def test_a_far_lane_dash_is_no_plate_to_the_classifier() -> None:
     """Dashes 2-4 plate widths long, 2-3 px thick, leaning 0.2-0.5 (a ground line 4-9 m
     beside a 1.8 m high camera), bright on asphalt: the classifier alone (the lean test
     off) finds no plate on them."""
-    img = np.full((1080, 1920), 85, np.float32)
-    img += np.random.default_rng(5).normal(0, 3, img.shape)
-    for k, (slope, length, thick) in enumerate(((0.2, 50, 3), (-0.3, 70, 2), (0.45, 45, 3),
-                                                (-0.5, 60, 2), (0.25, 80, 3))):
-        x0 = 150 + 350 * k
-        y0 = 500.0
-        pts = np.array([[x0, y0], [x0 + length, y0 + slope * length],
-                        [x0 + length, y0 + slope * length + thick], [x0, y0 + thick]])
-        cv2.fillPoly(img, [np.round(pts * 8).astype(np.int32)], 215.0, shift=3)
-    gray = np.clip(cv2.GaussianBlur(img, (0, 0), 0.6), 0, 255).astype(np.uint8)
+    gray, _dashes = lane_dashes()
     cfg = replace(GuidedConfig(), band_learned_max_slope=0.0)
     assert band_learned_plates(gray, BAND, 20.0, cfg) == []
 
@@ -94,7 +70,7 @@ def test_the_training_synthesis_is_deterministic_and_scored_as_plates() -> None:
     """Two runs of the script's samplers from one seed draw the same pixels; the shipped
     weights rate most of its synthetic plates over the default threshold and its roads
     under it (the weights fit the data the script makes)."""
-    tr = _train_script()
+    tr = train_script()
     a = tr.car_sample(np.random.default_rng(11), True)
     b = tr.car_sample(np.random.default_rng(11), True)
     assert np.array_equal(a[0], b[0]) and a[1] == b[1]
