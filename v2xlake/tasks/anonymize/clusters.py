@@ -632,13 +632,18 @@ def off_axis_copies(t_ns: np.ndarray, centre: np.ndarray, size: np.ndarray, yaw:
         by_obj.setdefault(ob[q], []).append(q)
     if not by_obj:
         return drop
+    # the short boxes of each scan (time and LiDAR): a copy is looked for in its own scan
+    # only, not over the clip's boxes (quadratic in a long clip)
+    scans: dict[tuple[int, str], list[int]] = {}
+    for q in map(int, np.flatnonzero(short)):
+        scans.setdefault((int(t[q]), str(lid[q])), []).append(q)
     done = np.zeros(n, bool)
     for i in map(int, np.flatnonzero(short)):
         if done[i]:
             continue
-        # its copy: same scan (time and LiDAR), same centre, the footprint's sides swapped
-        cand = np.flatnonzero(short & (t == t[i]) & (lid == lid[i])
-                              & (np.hypot(*(c - c[i]).T) < 0.01))
+        # its copy: same scan, same centre, the footprint's sides swapped
+        same = np.array(scans[(int(t[i]), str(lid[i]))])
+        cand = same[np.hypot(*(c[same] - c[i]).T) < 0.01]
         cand = cand[np.abs(np.abs(sz[cand, 1] - sz[i, 0]) + np.abs(sz[cand, 0] - sz[i, 1]))
                     < 0.01]
         cand = cand[cand != i]
