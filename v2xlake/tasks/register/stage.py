@@ -182,7 +182,7 @@ def _annotation_columns(ann: pa.Table, sensor: str) -> AnnotationColumns | None:
         center=np.stack([col("cx"), col("cy"), col("cz")], 1),
         size_wlh=np.stack([col("w"), col("l"), col("h")], 1),
         quat_wxyz=np.stack([col("qw"), col("qx"), col("qy"), col("qz")], 1),
-        velocity=np.stack([col(k) if k in ann.column_names else np.zeros(len(fr))
+        velocity=np.stack([col(k) if k in ann.column_names else np.full(len(fr), np.nan)
                            for k in ("vx", "vy", "vz")], 1))
 
 

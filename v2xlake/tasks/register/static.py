@@ -45,6 +45,9 @@ class MovingBoxes:
     velocity: np.ndarray  # (M, 3)
     t_s: np.ndarray  # (M,)
     margin: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) metres, every side
+    # (M,) each annotated box's own speed (m/s) as annotated, NaN where not given; None:
+    # not annotated boxes (bodies), never taken for still (``scans.without_still``)
+    speed: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.center)
@@ -72,9 +75,10 @@ def annotation_boxes(center: np.ndarray, size_wlh: np.ndarray, quat_wxyz: np.nda
     half = np.stack([size[:, 1], size[:, 0], size[:, 2]], axis=1) / 2.0
     q = np.asarray(quat_wxyz, np.float64).reshape(n, 4)
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    v = np.asarray(velocity, np.float64).reshape(n, 3)
     return MovingBoxes(np.asarray(center, np.float64).reshape(n, 3), half, quat_to_matrix(q),
-                       np.nan_to_num(np.asarray(velocity, np.float64).reshape(n, 3)),
-                       np.asarray(t_s, np.float64).reshape(n), np.full(n, float(margin_m)))
+                       np.nan_to_num(v), np.asarray(t_s, np.float64).reshape(n),
+                       np.full(n, float(margin_m)), np.linalg.norm(v, axis=1))
 
 
 def body_box(T_scan_ego: np.ndarray, velocity_scan: np.ndarray, t_s: float,
