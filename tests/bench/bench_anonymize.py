@@ -426,6 +426,13 @@ def main() -> None:
     ap.add_argument("--band-learned", default="",
                     help="with --band-plates: also the far band's learned small-plate scorer "
                     "at these clusters.band_learned_score thresholds (comma-separated)")
+    ap.add_argument("--band-jitter", action="store_true",
+                    help="with --band-plates: each frame also with the band's rows moved "
+                    "1, 2 and 3 px (the learned scorer's grid at another phase against "
+                    "the plates): recall per offset and over all four")
+    ap.add_argument("--band-refine", default="",
+                    help="with --band-plates: also clusters.band_learned_refine at these "
+                    "margins (comma-separated)")
     args = ap.parse_args()
     if args.band_plates:
         cv2.setNumThreads(1)
@@ -434,9 +441,13 @@ def main() -> None:
             if v:
                 variants[f"learned scorer at {v} (clusters.band_learned_score)"] = \
                     AnonymizeConfig(clusters={"band_learned_score": float(v)})
+        for v in args.band_refine.split(","):
+            if v:
+                variants[f"refine at {v} (clusters.band_learned_refine)"] = \
+                    AnonymizeConfig(clusters={"band_learned_refine": float(v)})
         band_plates([int(s) for s in args.lidar_seeds.split(",")],
                     n_plates=24 if args.quick else 60, half=args.plates_half,
-                    variants=variants)
+                    variants=variants, offsets=(0, 1, 2, 3) if args.band_jitter else (0,))
         return
     if args.face_plates:
         cv2.setNumThreads(1)
@@ -656,7 +667,7 @@ def speed(quick: bool) -> None:
 # -------------------------------------------------------------------- far band, real plates
 def band_plates(seeds: list[int], widths: tuple[int, ...] = (20, 30, 40), per_frame: int = 4,
                 n_plates: int = 60, variants: dict[str, AnonymizeConfig] | None = None,
-                half: str = "all") -> None:
+                half: str = "all", offsets: tuple[int, ...] = (0,)) -> None:
     """Real plates in the far band of a LiDAR-only clip (issue #22: plates >= 20 px found
     >= 0.95 with guidance from LiDAR clusters only). For each seed a simulated clip (1080p,
     the narrow camera, 5 Hz, annotations deleted) gives frames with their LiDAR-cluster
@@ -673,7 +684,14 @@ def band_plates(seeds: list[int], widths: tuple[int, ...] = (20, 30, 40), per_fr
     plates sit at rows of the band's middle half whatever their width (a real 20 px plate,
     ~90 m away, is near the horizon): it measures the detector at the band's scale, not
     the band's geometry. ``half``: all plates_eu photos, or ``even`` (``eu[::2]``, the half
-    the band's thresholds were set on) or ``odd`` (``eu[1::2]``, held out)."""
+    the band's thresholds were set on) or ``odd`` (``eu[1::2]``, held out). ``offsets``:
+    each frame is also detected with the band's rows moved down by these px (the plates
+    stay): the learned scorer's grid, 1.25 frame px at its 20 px scale, then lies 1.0,
+    0.75 and 0.5 px off its place against the plates (a 20 px plate is found or not with
+    the grid's phase); recall is printed per offset and over all (the first offset's
+    figures are the ones above)."""
+    from dataclasses import replace
+
     from v2xlake.tasks.anonymize.blur import grow_box
     from v2xlake.tasks.anonymize.evaluate import blurred_share, match, plates_eu
 
@@ -685,6 +703,7 @@ def band_plates(seeds: list[int], widths: tuple[int, ...] = (20, 30, 40), per_fr
     variants = variants or {"default": AnonymizeConfig()}
     dets_by = {name: build_detector(cfg) for name, cfg in variants.items()}
     res: dict[str, dict[int, list[bool]]] = {n: {} for n in variants}
+    moved: dict[str, dict[tuple[int, int], list[bool]]] = {n: {} for n in variants}
     under: dict[str, dict[int, list[float]]] = {n: {} for n in variants}
     blurs = {name: blur_config(cfg) for name, cfg in variants.items()}
     cpu: dict[str, list[float]] = {n: [] for n in variants}
@@ -711,11 +730,19 @@ def band_plates(seeds: list[int], widths: tuple[int, ...] = (20, 30, 40), per_fr
                 truth = paste_band_plates(img, band, eu, wd, per_frame, k)
                 k += per_frame
                 for name, det in dets_by.items():
+                    for off in offsets[1:]:
+                        shifted = [replace(x, box=(x.box[0], x.box[1] + off, x.box[2],
+                                                   x.box[3] + off)) if x.part == "band" else x
+                                   for x in regions]
+                        pl = [d for d in det.detect(img, shifted, True) if d.kind == "plate"]
+                        moved[name].setdefault((wd, off), []).extend(
+                            bool(v) for v in match([("plate", b) for b in truth], pl, 0.3)[0])
                     t = time.process_time()
                     plates = [d for d in det.detect(img, regions, True) if d.kind == "plate"]
                     cpu[name].append(time.process_time() - t)
                     hit, extra = match([("plate", b) for b in truth], plates, 0.3)
                     res[name].setdefault(wd, []).extend(bool(v) for v in hit)
+                    moved[name].setdefault((wd, offsets[0]), []).extend(bool(v) for v in hit)
                     done = [grow_box(d.box, img.shape, blurs[name], d.kind) for d in plates]
                     under[name].setdefault(wd, []).extend(
                         blurred_share(b, done, img.shape) for b in truth)
@@ -748,6 +775,13 @@ def band_plates(seeds: list[int], widths: tuple[int, ...] = (20, 30, 40), per_fr
                           for wd, v in sorted(under[name].items()))
               + f"; {np.mean(cpu[name]):.2f} CPU s/frame; "
               f"{np.mean(other[name]):.2f} other plate boxes/frame")
+        if len(offsets) > 1:
+            for wd in sorted(res[name]):
+                per = [moved[name][(wd, o)] for o in offsets]
+                print(f"    {wd} px with the band moved {', '.join(map(str, offsets))} px: "
+                      + " / ".join(str(sum(v)) for v in per)
+                      + f" of {len(per[0])}, {sum(map(sum, per))} / {sum(map(len, per))} "
+                      "in all")
 
 
 # -------------------------------------------------------------------- simulator clips

@@ -509,6 +509,21 @@ class Clusters(Section):
         "the box; at 7, 8 of the 11 left over the widened box (a dash's end, a curb's "
         "edge); real 20 px plates in the band the scorer finds, eu[::2] where it was set: "
         "2 of 23 over the box. 0: off")
+    band_learned_refine: float = Field(
+        3.0, ge=0, description="with band_learned_score: the learned scorer's local peaks "
+        "scoring from this much under band_learned_score are also scored half a grid step "
+        "above and below (bandplate.half_phase_scores; a few windows per band), and those "
+        "windows reaching band_learned_score join the others. Why: the scorer's grid is "
+        "1.25 frame px at its 20 px scale, and a 4-5 px tall plate was found or not as the "
+        "band moved by under a pixel. 3: the 95th percentile of what the rows' other "
+        "phase adds to a synthetic plate's best grid score (1500 drawn with the training "
+        "script's generator, those scoring 4-14 at their best phase). Real plates_eu "
+        "plates pasted into the band (bench_anonymize --band-plates --quick --band-jitter, "
+        "seeds 0-3, 32 per width, the band also moved 1-3 px), off -> 3: 20 px over the "
+        "four placements 114 -> 116 of 128 (eu[::2], where it was chosen) and 118 -> 126 "
+        "(eu[1::2], held out); learned boxes on no plate in 30 real street band pieces "
+        "moved 0-3 px 5 -> 7 of 120 (the same places, found at more phases); "
+        "simulated LiDAR-only clips (0.3 s, seeds 0 / 1) false blurs unchanged. 0: off")
     ground_isolated_m: float = Field(
         5.0, ge=0, description="a ground cell (2 m) with fewer than two occupied neighbours "
         "is a lone object's own returns (the road around it unseen): its ground is at most "

@@ -281,6 +281,9 @@ class GuidedConfig(FromParams):
     # of 0-4; the lowest at which the street frames' band rows (at 0.25-0.55 of the frame,
     # mirrored too: 30 pieces) held no learned box of the second stage's
     band_learned_second_min: float = 2.0
+    # the learned scorer's local peaks from this under ``band_learned_score`` also scored
+    # half a grid step beside (``bandplate.band_plate_scores``' ``refine``); 0: off
+    band_learned_refine: float = _param("clusters.band_learned_refine")
 
 
 @dataclass(frozen=True, eq=False)
@@ -781,7 +784,10 @@ def band_learned_plates(gray: np.ndarray, box: tuple[int, int, int, int], min_px
     24 % of the classifier's hits fail it). With ``band_learned_second`` a box that fails
     it is still a plate where ``bandplate.second_score`` rates it ``band_learned_second_min``
     or more: a 20 px plate whose glyphs are gone, or beside a grille as textured as it, is
-    still a light field between two darker lines, ending on either side."""
+    still a light field between two darker lines, ending on either side. With
+    ``band_learned_refine`` the scorer's peaks from that much under its threshold are also
+    scored at its grid's other row phase (a 20 px plate was found or not as the band moved
+    by under a pixel)."""
     if cfg.band_learned_score <= 0:
         return []
 
@@ -794,7 +800,8 @@ def band_learned_plates(gray: np.ndarray, box: tuple[int, int, int, int], min_px
         return not 0 < cfg.band_learned_max_slope <= bandplate.stripe_slope(gray, b)
 
     return band_plate_scores(gray, box, band_learned_widths(min_px), cfg.band_learned_score,
-                             cfg.band_learned_max, accept=textured)
+                             cfg.band_learned_max, accept=textured,
+                             refine=cfg.band_learned_refine)
 
 
 def learned_kept(found: Sequence[Detection], faces: bool
