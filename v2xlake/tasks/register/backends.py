@@ -302,7 +302,12 @@ def sample_pairs(sample: np.ndarray, dense: np.ndarray, sq_dist: np.ndarray | No
     without its sample pass still needs to know whether that pass would have been short, to
     decide the next frame; the dense pass's last search answers it without a search of its
     own."""
-    sq = sample_sq_dist(sample, dense, sq_dist)
+    return pairs_within(sample_sq_dist(sample, dense, sq_dist), max_correspondence_m)
+
+
+def pairs_within(sq: np.ndarray | None, max_correspondence_m: float) -> int:
+    """How many of the squared distances ``sq`` (:func:`sample_sq_dist`; NaN: none) lie
+    within ``max_correspondence_m``; 0 without them."""
     return 0 if sq is None else int(np.count_nonzero(sq <= max_correspondence_m ** 2))
 
 
@@ -379,10 +384,10 @@ class SparseGicpBackend(SmallGicpBackend):
                 dense = self._dense_rows(source, np.union1d(
                     spread_sample(source.points, source.dense_cell_m), rows))
             out = self._align_rows(target, source, dense, init, dense=True)
-            short = sample_pairs(rows, dense, out.sq_dist,
-                                 p.max_correspondence_m) < p.sample_min_pairs
-            sq = sample_sq_dist(rows, dense, out.sq_dist) if p.reuse_last_search else None
-            return AlignOutcome(out.T, out.converged, out.iterations, out.H, sq, short)
+            sq = sample_sq_dist(rows, dense, out.sq_dist)  # looked up once for both uses
+            short = pairs_within(sq, p.max_correspondence_m) < p.sample_min_pairs
+            return AlignOutcome(out.T, out.converged, out.iterations, out.H,
+                                sq if p.reuse_last_search else None, short)
         out = self._align_rows(target, source, rows, init)
         sq = out.sq_dist
         short = out.pairs < p.sample_min_pairs and source.sample is not None

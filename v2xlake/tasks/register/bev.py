@@ -20,6 +20,17 @@ def _finite(xyz: np.ndarray) -> np.ndarray:
     return p[np.isfinite(p).all(axis=1)]
 
 
+def _layers(pts: np.ndarray, extent_m: float) -> tuple[np.ndarray, ...]:
+    """The points within ``extent_m`` (x and y) as (ground, structure) layers (none when
+    there are none): ground rings say little about alignment, so they are drawn faint and
+    structures strong; ground is the lowest 5 % + 0.3 m."""
+    p = pts[(np.abs(pts[:, 0]) < extent_m) & (np.abs(pts[:, 1]) < extent_m)]
+    if not len(p):
+        return ()
+    ground = p[:, 2] < np.percentile(p[:, 2], 5) + 0.3
+    return p[ground], p[~ground]
+
+
 def render_registration_bev(ref_xyz: np.ndarray, other_xyz: np.ndarray, T_init: np.ndarray,
                             T_refined: np.ndarray, path: str | Path | None = None, *,
                             extent_m: float = 50.0, title: str = "") -> bytes:
@@ -39,22 +50,16 @@ def render_registration_bev(ref_xyz: np.ndarray, other_xyz: np.ndarray, T_init: 
     side = 660 - top - 60
     gap = 62
     x0 = 92 + (1320 - 92 - 14 - 2 * side - gap) // 2
+    ref_layers = _layers(ref, extent_m)  # the same in both panels
     for k, (T, name) in enumerate(((T_init, "initial (eq. 1a)"),
                                    (T_refined, "GICP refined (eq. 1b)"))):
         px0 = x0 + k * (side + gap)
         ax = Panel(c, px0, top, px0 + side, top + side, (-extent_m, extent_m),
                    (-extent_m, extent_m))
         ax.axes(ylabels=k == 0, tick_px=15)
-        moved = apply(T, oth)
-        for pts, color in ((ref, REF), (moved, OTHER)):
-            keep = (np.abs(pts[:, 0]) < extent_m) & (np.abs(pts[:, 1]) < extent_m)
-            p = pts[keep]
-            if not len(p):
-                continue
-            # ground rings say little about alignment: draw them faint, structures strong
-            ground = p[:, 2] < np.percentile(p[:, 2], 5) + 0.3
-            ax.points(p[ground, 0], p[ground, 1], color, GROUND_ALPHA)
-            ax.points(p[~ground, 0], p[~ground, 1], color, STRUCTURE_ALPHA)
+        for layers, color in ((ref_layers, REF), (_layers(apply(T, oth), extent_m), OTHER)):
+            for p, alpha in zip(layers, (GROUND_ALPHA, STRUCTURE_ALPHA), strict=False):
+                ax.points(p[:, 0], p[:, 1], color, alpha)
         ax.markers([0.0], [0.0], "^", 12, REF)
         ax.markers([T[0, 3]], [T[1, 3]], "^", 12, OTHER)
         ax.frame()

@@ -34,6 +34,9 @@ from v2xlake.tasks.register.static import (
 )
 from v2xlake.tasks.register.voxel import VoxelGrid, voxel_downsample_t
 
+#: the other agent's body moves with its INS velocity over this step (ns) after the frame
+_BODY_DT_NS = 20_000_000
+
 #: one deskewed frame of one LiDAR: frame index -> ((N, 3) float32 points, (N,) int64 capture
 #: times), empty arrays for a frame without points
 FrameReader = Callable[[int], tuple[np.ndarray, np.ndarray]]
@@ -134,6 +137,17 @@ class AgentScans:
         period = float(np.median(np.diff(starts))) * 1e-9
         return float(np.percentile(speed, 95)) * period if len(speed) else 0.0
 
+    def prefetch(self, t_ns: list[int]) -> None:
+        """Interpolate ``T_world_ego`` at every time of ``t_ns`` the track covers in one call
+        (:meth:`world_ego` then finds them; a time it does not cover still raises there).
+        WHY: the register stage asks for each frame's pose (and each other agent's body at
+        every frame, two times a frame) one or two times at a time, and every interpolation
+        validated the whole track again: 120 calls on a 3 s clip with three agents, 1 % of
+        its CPU. The pose at a time is the same computed alone or in a batch."""
+        t = np.unique(np.asarray(t_ns, dtype=np.int64))
+        t = t[self.track.covers(t)]
+        self.world_ego(*(int(x) for x in t))
+
     def world_ego(self, *t_ns: int) -> list[np.ndarray]:
         """``T_world_ego`` at each of ``t_ns``, the track interpolated once per time and the
         missing times in one call (raises where the track does not cover one; do not modify
@@ -223,6 +237,11 @@ class StaticScans:
         frames = sorted(scans.frames)
         self._order = {f: i for i, f in enumerate(frames)}
         self._frames = frames
+        # the poses asked for frame by frame (this agent's and the bodies'), at once
+        ref = [scans.frames[f][1] for f in frames]
+        scans.prefetch(ref)
+        for other, _ in bodies:
+            other.prefetch(ref + [t + _BODY_DT_NS for t in ref])
         self.seconds = {"read": 0.0, "voxel": 0.0, "filter": 0.0}  # where the time goes
 
     def _spent(self, key: str, seconds: float) -> None:
@@ -328,7 +347,8 @@ class StaticScans:
                 idx = np.flatnonzero(keep)[moving]
                 counts.dynamic = len(idx)
                 keep[idx] = False
-        return FilteredScan(pts[keep], counts, ground_distance(pts[keep]))
+        kept = pts[keep]
+        return FilteredScan(kept, counts, ground_distance(kept))
 
     def _body(self, f: int, other: AgentScans, body: Body) -> MovingBoxes:
         """The other agent's body in this frame, placed by both INS tracks at this frame's
@@ -336,11 +356,11 @@ class StaticScans:
         ref_ns = self.scans.frames[f][1]
         W_L = self.scans.T_world_lidar(f)
         try:
-            W_e, W_e2 = other.world_ego(ref_ns, ref_ns + 20_000_000)
+            W_e, W_e2 = other.world_ego(ref_ns, ref_ns + _BODY_DT_NS)
         except Exception:  # the other agent's INS does not cover this time
             return MovingBoxes.empty()
         T = invert(W_L) @ W_e
-        v_world = (W_e2[:3, 3] - W_e[:3, 3]) / 0.02
+        v_world = (W_e2[:3, 3] - W_e[:3, 3]) / (_BODY_DT_NS * 1e-9)
         v = W_L[:3, :3].T @ v_world
         return body_box(T, v, 0.0, body.length, body.width, body.height,
                         np.array(body.center_ego), self.s.body_margin_m)

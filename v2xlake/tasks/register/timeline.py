@@ -94,10 +94,11 @@ def render_registration_timeline(rows: list[dict[str, Any]], calibration: list[d
         rs = sorted((r for r in rows if r["agent_other"] == other), key=lambda r: r["t_ns"])
         t = np.array([r["t_ns"] for r in rs], dtype=np.float64) * 1e-9
         init = [row_transform(r, "init_") for r in rs]
-        has_fin = np.array([i is not None and row_transform(r, "") is not None
-                            for r, i in zip(rs, init, strict=True)], dtype=bool)
-        fin = np.array([correction(i, f) for r, i in zip(rs, init, strict=True)
-                        if i is not None and (f := row_transform(r, "")) is not None])
+        final = [row_transform(r, "") for r in rs]
+        has_fin = np.array([i is not None and f is not None
+                            for f, i in zip(final, init, strict=True)], dtype=bool)
+        fin = np.array([correction(i, f) for f, i in zip(final, init, strict=True)
+                        if i is not None and f is not None])
         gicp = np.array([correction(i, g)
                          if (g := row_transform(r, "gicp_")) is not None and i is not None
                          else np.full(6, np.nan) for r, i in zip(rs, init, strict=True)])

@@ -184,24 +184,27 @@ def _grid_build(pts: np.ndarray, inv_cell: float) -> tuple[
     lo = np.full(3, 1 << 22, dtype=np.int64)
     hi = np.full(3, -1, dtype=np.int64)
     m = 0
+    last_key, s = -1, 0
     for i in range(n):
         c0, c1, c2 = _cell_of(pts[i, 0], pts[i, 1], pts[i, 2], inv_cell)
-        lo[0], lo[1], lo[2] = min(lo[0], c0), min(lo[1], c1), min(lo[2], c2)
-        hi[0], hi[1], hi[2] = max(hi[0], c0), max(hi[1], c1), max(hi[2], c2)
         key = _cell_key(c0, c1, c2)
-        h = np.int64((np.uint64(key) * _GOLDEN) >> shift)
-        while True:
-            k = keys[h]
-            if k == key:
-                s = cells[h]
-                break
-            if k == -1:
-                keys[h] = key
-                cells[h] = m
-                s = m
-                m += 1
-                break
-            h = (h + 1) & (cap - 1)
+        if key != last_key:  # a run of points in one cell (scan order) probes once
+            lo[0], lo[1], lo[2] = min(lo[0], c0), min(lo[1], c1), min(lo[2], c2)
+            hi[0], hi[1], hi[2] = max(hi[0], c0), max(hi[1], c1), max(hi[2], c2)
+            h = np.int64((np.uint64(key) * _GOLDEN) >> shift)
+            while True:
+                k = keys[h]
+                if k == key:
+                    s = cells[h]
+                    break
+                if k == -1:
+                    keys[h] = key
+                    cells[h] = m
+                    s = m
+                    m += 1
+                    break
+                h = (h + 1) & (cap - 1)
+            last_key = key
         cell_of[i] = s
         count[s + 1] += 1
     start = np.empty(m + 1, dtype=np.int64)
@@ -435,9 +438,13 @@ def first_per_cell(pts: np.ndarray, inv_cell: float) -> np.ndarray:
     keys = np.full(cap, -1, dtype=np.int64)
     out = np.empty(n, dtype=np.int64)
     m = 0
+    last_key = -1
     for i in range(n):
         ix, iy, iz = _cell_of(pts[i, 0], pts[i, 1], pts[i, 2], inv_cell)
         key = _cell_key(ix, iy, iz)
+        if key == last_key:  # the cell of the point before: not its first point
+            continue
+        last_key = key
         h = np.int64((np.uint64(key) * _GOLDEN) >> shift)
         while True:
             k = keys[h]
@@ -458,8 +465,8 @@ class VoxelGrid:
     sparse backend uses. ``num_threads`` is accepted and ignored: a search runs on the
     calling thread and releases the GIL, the parallelism is across frame pairs."""
 
-    def __init__(self, points: np.ndarray, cell_m: float, knn_cell_m: float | None = None
-                 ) -> None:
+    def __init__(self, points: np.ndarray, cell_m: float, knn_cell_m: float | None = None,
+                 *, checked: bool = False) -> None:
         """``knn_cell_m``: the k-nearest-neighbour searches (:meth:`batch_knn_search`) use a
         second grid of this cell over the same points, built on the first of them: found
         faster where the k-th neighbour lies beyond a cell or two of ``cell_m``, and the
@@ -467,12 +474,15 @@ class VoxelGrid:
         the same distance from a query come in the order their cells are visited (which
         depends on the cell): on 1.6 instead of 1.0 m cells, none in the register stage's
         searches on three boulevard clips, 2 of 1.55 M on the hard street (two equidistant
-        neighbours swapped; its registrations bit-identical)."""
+        neighbours swapped; its registrations bit-identical). ``checked``: ``points`` are
+        a float64 (N, 3) C array already validated for this cell (the ``knn_cell_m`` grid
+        of a validated grid): not scanned again."""
         if cell_m <= 0 or (knn_cell_m is not None and knn_cell_m <= 0):
             raise ValueError(f"grid cell must be positive, got {cell_m} / {knn_cell_m}")
         p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
         small = min(cell_m, knn_cell_m or cell_m)
-        if len(p) and (not np.isfinite(p).all() or np.abs(p).max() / small >= _BIAS - 2):
+        if not checked and len(p) and (not np.isfinite(p).all()
+                                       or np.abs(p).max() / small >= _BIAS - 2):
             raise ValueError("grid points must be finite and within 2^20 cells of the origin")
         self.n = len(p)
         self.inv_cell = 1.0 / cell_m
@@ -490,7 +500,7 @@ class VoxelGrid:
             return self
         with self._knn_lock:
             if self._knn is None:
-                self._knn = VoxelGrid(self._points, self._knn_cell_m)
+                self._knn = VoxelGrid(self._points, self._knn_cell_m, checked=True)
             return self._knn
 
     def _q(self, q: np.ndarray) -> np.ndarray:

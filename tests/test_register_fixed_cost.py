@@ -1,0 +1,88 @@
+"""The register stage's per-clip and per-frame bookkeeping made cheaper (issue #21 item 5,
+speed only): each shortcut must give exactly what the work it replaces gave."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from v2xlake.tasks.interpolate import PoseTrack
+from v2xlake.tasks.register import raster
+from v2xlake.tasks.register.scans import AgentScans
+from v2xlake.tasks.register.voxel import VoxelGrid, _grid_build, first_per_cell
+
+
+def _runs(seed: int) -> np.ndarray:
+    """Points in runs along rings (consecutive points share a cell, as a scan's centroids
+    do), coming back to cells seen before, and a few single points anywhere."""
+    rng = np.random.default_rng(seed)
+    ang = np.repeat(rng.uniform(0, 2 * np.pi, 300), 6) + rng.normal(0, 1e-3, 1800)
+    r = np.repeat(rng.uniform(3, 40, 300), 6)
+    ring = np.c_[r * np.cos(ang), r * np.sin(ang), rng.normal(0, 0.3, 1800)]
+    pts = np.concatenate([ring, ring[::-7] + 0.05, rng.uniform(-40, 40, (200, 3))])
+    return np.ascontiguousarray(pts)
+
+
+@pytest.mark.parametrize("cell", [0.3, 1.0, 1.6])
+def test_first_per_cell_is_the_first_point_of_each_cell(cell: float) -> None:
+    pts = _runs(1)
+    key = np.floor(pts / cell).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    assert np.array_equal(first_per_cell(pts, 1.0 / cell), np.sort(first))
+
+
+@pytest.mark.parametrize("cell", [0.3, 1.0, 1.6])
+def test_grid_groups_every_cell_in_input_order(cell: float) -> None:
+    pts = _runs(2)
+    keys, _cells, start, order, sp, lo, hi = _grid_build(pts, 1.0 / cell)
+    c = np.floor(pts / cell).astype(np.int64) + (1 << 20)
+    # the cells numbered in first-seen order, each one's points contiguous and in input order
+    _, first, inv = np.unique(c, axis=0, return_index=True, return_inverse=True)
+    rank = np.argsort(np.argsort(first))[inv.reshape(-1)]
+    assert np.array_equal(order, np.argsort(rank, kind="stable"))
+    assert np.array_equal(np.diff(start), np.bincount(rank))
+    assert np.array_equal(sp, pts[order])
+    assert np.array_equal(lo, c.min(axis=0)) and np.array_equal(hi, c.max(axis=0))
+    assert int((keys >= 0).sum()) == len(first)
+    # and the searches on it are exact
+    g = VoxelGrid(pts, cell, 2 * cell)
+    i, d2 = g.batch_knn_search(pts[::11], 6)
+    brute = ((pts[::11, None, :] - pts[None, :, :]) ** 2).sum(-1)
+    assert np.allclose(d2, np.sort(brute, axis=1)[:, :6], rtol=0, atol=1e-12)
+    assert np.array_equal(brute[np.arange(len(i))[:, None], i], d2)
+
+
+def test_prefetched_poses_are_the_ones_interpolated_one_at_a_time() -> None:
+    t = np.arange(0, 2_000_000_001, 10_000_000, dtype=np.int64)
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(len(t), 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    track = PoseTrack(t, np.cumsum(rng.normal(0, 0.1, (len(t), 3)), axis=0), q)
+
+    def scans() -> AgentScans:
+        return AgentScans("a", "LIDAR_TOP", track, np.eye(4), {}, lambda f: (
+            np.zeros((0, 3), np.float32), np.zeros(0, np.int64)))
+
+    times = [int(x) for x in rng.integers(0, 2_000_000_000, 40)]
+    outside = 2_000_000_001 + 5
+    one, batch = scans(), scans()
+    batch.prefetch([*times, outside])
+    for x in times:
+        assert np.array_equal(batch.world_ego(x)[0], one.world_ego(x)[0])
+    with pytest.raises(ValueError, match="outside the pose coverage"):
+        batch.world_ego(outside)  # never prefetched: it still raises where asked
+
+
+def test_a_label_drawn_again_has_the_same_pixels() -> None:
+    raster._glyphs.cache_clear()
+    a = raster.Canvas(200, 80)
+    a.text(100, 40, "x (cm) 1.5", 14, anchor="mm")
+    a.text(30, 40, "y (cm)", 14, rotate=True)
+    first = a.png()
+    assert raster._glyphs.cache_info().misses == 2
+    b = raster.Canvas(200, 80)
+    b.text(100, 40, "x (cm) 1.5", 14, anchor="mm")
+    b.text(30, 40, "y (cm)", 14, rotate=True)
+    assert b.png() == first and raster._glyphs.cache_info().hits == 2
+    mask, _, _ = raster._glyphs("y (cm)", 14, "mm", True)
+    assert mask.any() and not mask.flags.writeable
