@@ -12,8 +12,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from v2xlake.tasks.register.scans import without_still
-from v2xlake.tasks.register.static import MovingBoxes, annotation_boxes, box_of_point
+from v2xlake.tasks.register.static import (
+    MovingBoxes,
+    annotation_boxes,
+    box_of_point,
+    without_still,
+)
 
 
 def _boxes(velocity: np.ndarray) -> MovingBoxes:
@@ -47,3 +51,52 @@ def test_none_removes_every_box_as_before() -> None:
     # boxes without annotated speeds (the agents' bodies) are never taken for still
     bodies = MovingBoxes(b.center, b.half, b.R, b.velocity, b.t_s, b.margin)
     assert without_still(bodies, 0.1) is bodies
+
+
+def test_velocity_columns_absent_or_null_read_as_unknown() -> None:
+    """The stage's reader gives NaN, not 0, where a velocity is missing, so such boxes are
+    removed rather than taken for parked (a column of zeros would keep every box)."""
+    import pyarrow as pa
+
+    from v2xlake.tasks.register.stage import _annotation_columns
+
+    base = {"sensor": ["LIDAR_TOP"] * 2, "frame_idx": [0, 0], "t_ns": [0, 0],
+            "cx": [0.0, 10.0], "cy": [0.0, 0.0], "cz": [0.75, 0.75], "w": [1.8, 1.8],
+            "l": [4.5, 4.5], "h": [1.5, 1.5], "qw": [1.0, 1.0], "qx": [0.0, 0.0],
+            "qy": [0.0, 0.0], "qz": [0.0, 0.0]}
+    absent = _annotation_columns(pa.table(base), "LIDAR_TOP")
+    assert absent is not None and np.isnan(absent.velocity).all()
+    partly = _annotation_columns(pa.table({**base, "vx": [0.0, None], "vy": [0.0, 0.0],
+                                           "vz": [0.0, 0.0]}), "LIDAR_TOP")
+    assert partly is not None
+    assert partly.velocity[0].tolist() == [0.0, 0.0, 0.0] and np.isnan(partly.velocity[1, 0])
+
+
+def test_the_static_filter_keeps_the_parked_cars_points() -> None:
+    """``StaticScans`` removes the moving car's points and keeps the parked car's; with the
+    setting None it removes both (the behaviour before it)."""
+    from v2xlake.tasks.interpolate import PoseTrack
+    from v2xlake.tasks.register.config import StaticSection
+    from v2xlake.tasks.register.scans import AgentScans, StaticScans
+
+    rng = np.random.default_rng(0)
+    # points filling a parked car (x 0) and a car driving at 8 m/s (x 10), plus a wall
+    cars = [c + rng.uniform(-0.8, 0.8, (400, 3)) * [2.0, 0.8, 0.6] + [0, 0, 0.75]
+            for c in (np.array([0.0, 0.0, 0.0]), np.array([10.0, 0.0, 0.0]))]
+    wall = np.stack([rng.uniform(-20, 20, 800), np.full(800, 6.0), rng.uniform(0, 3, 800)], 1)
+    pts = np.concatenate([*cars, wall]).astype(np.float32)
+    boxes = {0: _boxes(np.array([[0.0, 0.0, 0.0], [8.0, 0.0, 0.0]]))}
+    t = np.array([0, 1_000_000_000], np.int64)
+    track = PoseTrack(t, np.zeros((2, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (2, 1)))
+
+    def removed(speed: float | None) -> tuple[int, int]:
+        scans = AgentScans("a", "LIDAR_TOP", track, np.eye(4), {0: (0, 0)},
+                           lambda f: (pts, np.zeros(len(pts), np.int64)), boxes)
+        s = StaticSection(keep_still_boxes_mps=speed, dynamic="off")
+        out = StaticScans(scans, s, []).filtered(0, 0.1)
+        return out.counts.n_in, out.counts.boxes
+
+    n_in, kept_parked = removed(0.1)
+    _, both = removed(None)
+    assert 0 < kept_parked < both < n_in
+    assert both - kept_parked > 0.8 * kept_parked  # the parked car's share came back

@@ -67,6 +67,7 @@ def test_prefetched_poses_are_the_ones_interpolated_one_at_a_time() -> None:
     outside = 2_000_000_001 + 5
     one, batch = scans(), scans()
     batch.prefetch([*times, outside])
+    assert all(x in batch._world_ego for x in times)  # interpolated at once, not on demand
     for x in times:
         assert np.array_equal(batch.world_ego(x)[0], one.world_ego(x)[0])
     with pytest.raises(ValueError, match="outside the pose coverage"):

@@ -92,7 +92,9 @@ class BoxAnnotation(BaseModel):
     instance_id: str = Field(description="global id, shared across agents and frames")
     category: ObjectClass
     box: Box3D
-    velocity: Vec3 | None = Field(default=None, description="m/s in the same frame")
+    velocity: Vec3 | None = Field(
+        default=None, description="m/s over ground (the object's own motion in the world, a "
+        "parked car 0 whatever the sensor does), in the same frame's axes")
     links: list[str] = Field(default_factory=list, description="instance ids physically coupled")
     num_lidar_pts: int | None = Field(default=None, ge=0)
 

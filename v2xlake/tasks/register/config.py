@@ -247,10 +247,12 @@ class StaticSection(Section):
     use_annotations: bool = Field(True, description="remove the scan's annotated boxes")
     box_margin_m: float = Field(0.3, ge=0, description="annotated boxes are grown by this")
     keep_still_boxes_mps: float | None = Field(
-        0.1, ge=0, description="an annotated box whose own annotated speed is below this "
-        "(m/s) stays in the scan: a parked car is static scene (at 0.1 m/s a box moves 1 cm "
-        "between two scans 0.1 s apart); None: every annotated box is removed. A box without "
-        "a velocity (NaN, or no velocity columns) is always removed. WHY: two vehicles 50 m "
+        0.1, ge=0, description="an annotated box whose own annotated speed over ground (the "
+        "norm of its 3-D velocity, m/s) is below this stays in the scan: a parked car is "
+        "static scene (at 0.1 m/s a box moves 1 cm in a 10 Hz scan period); None: every "
+        "annotated box is removed. A box without a velocity (NaN, or no velocity columns) is "
+        "always removed; an annotated speed is trusted, not checked against the box's track, "
+        "so velocities relative to the moving sensor must not be given. WHY: two vehicles 50 m "
         "apart on a street of walls see each block end face from one side only while it "
         "stands between them, so the parked cars' front and back faces and the poles are what "
         "fixes the pair along the street; with the parked cars removed, GICP started at the "

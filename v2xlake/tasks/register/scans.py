@@ -31,6 +31,7 @@ from v2xlake.tasks.register.static import (
     dynamic_mask,
     ground_distance,
     grow_to_objects,
+    without_still,
 )
 from v2xlake.tasks.register.voxel import VoxelGrid, voxel_downsample_t
 
@@ -200,18 +201,6 @@ def redeskew(xyz: np.ndarray, t_ns: np.ndarray, t_ref_ns: int, track: PoseTrack,
     return deskew_points(raw, t, track, T_new, t_ref_ns=t_ref_ns).xyz
 
 
-def without_still(boxes: MovingBoxes, speed_mps: float | None) -> MovingBoxes:
-    """``boxes`` less those whose own annotated speed is below ``speed_mps`` (a parked car:
-    static scene, kept in the scan; ``static.keep_still_boxes_mps``); None: all of them. A
-    box without a velocity (NaN, or no ``speed`` at all) is never taken for still."""
-    if speed_mps is None or not len(boxes) or boxes.speed is None:
-        return boxes
-    m = ~(boxes.speed < speed_mps)
-    return MovingBoxes(boxes.center[m], boxes.half[m], boxes.R[m], boxes.velocity[m],
-                       boxes.t_s[m], boxes.margin[m] if len(boxes.margin) else boxes.margin,
-                       boxes.speed[m])
-
-
 class StaticScans:
     """An agent's scans reduced to the static scene, one voxel size per use (target/source).
 
@@ -318,9 +307,7 @@ class StaticScans:
         keep = np.ones(len(pts), bool)
         if self.s.use_annotations and self.scans.has_annotations(f):
             b = self.scans._boxes[f]
-            b = without_still(b, self.s.keep_still_boxes_mps)
-            grown = MovingBoxes(b.center, b.half, b.R, b.velocity, b.t_s,
-                                np.full(len(b), self.s.box_margin_m))
+            grown = without_still(b, self.s.keep_still_boxes_mps).grown(self.s.box_margin_m)
             hit = box_of_point(pts, t_s, grown) >= 0
             counts.boxes = int(hit.sum())
             keep &= ~hit

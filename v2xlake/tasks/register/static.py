@@ -23,7 +23,7 @@ Pure functions on arrays; the lake side (which boxes, which neighbours) is in ``
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numba import njit
@@ -46,7 +46,7 @@ class MovingBoxes:
     t_s: np.ndarray  # (M,)
     margin: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (M,) metres, every side
     # (M,) each annotated box's own speed (m/s) as annotated, NaN where not given; None:
-    # not annotated boxes (bodies), never taken for still (``scans.without_still``)
+    # not annotated boxes (bodies), never taken for still (``without_still``)
     speed: np.ndarray | None = None
 
     def __len__(self) -> int:
@@ -62,14 +62,29 @@ class MovingBoxes:
         parts = [p for p in parts if len(p)]
         if not parts:
             return MovingBoxes.empty()
-        return MovingBoxes(*(np.concatenate([getattr(p, k) for p in parts]) for k in
-                             ("center", "half", "R", "velocity", "t_s", "margin")))
+        cat = {k: np.concatenate([getattr(p, k) for p in parts]) for k in
+               ("center", "half", "R", "velocity", "t_s", "margin")}
+        speeds = [p.speed for p in parts if p.speed is not None]
+        return MovingBoxes(**cat, speed=np.concatenate(speeds) if len(speeds) == len(parts)
+                           else None)
+
+    def take(self, rows: np.ndarray) -> MovingBoxes:
+        """The boxes at ``rows`` (a mask or indices), every per-box field alike."""
+        return replace(self, center=self.center[rows], half=self.half[rows], R=self.R[rows],
+                       velocity=self.velocity[rows], t_s=self.t_s[rows],
+                       margin=self.margin[rows] if len(self.margin) else self.margin,
+                       speed=None if self.speed is None else self.speed[rows])
+
+    def grown(self, margin_m: float) -> MovingBoxes:
+        """The same boxes, each grown by ``margin_m`` on every side."""
+        return replace(self, margin=np.full(len(self), float(margin_m)))
 
 
 def annotation_boxes(center: np.ndarray, size_wlh: np.ndarray, quat_wxyz: np.ndarray,
                      velocity: np.ndarray, t_s: np.ndarray, margin_m: float) -> MovingBoxes:
     """Boxes as the ``annotations`` table stores them (nuScenes size order w, l, h; box x
-    carries the length); missing velocities (NaN) count as standing still."""
+    carries the length). A missing velocity (NaN) does not move its box over the sweep, and
+    its ``speed`` is NaN, so the box is never taken for still (``without_still``)."""
     n = len(center)
     size = np.asarray(size_wlh, np.float64).reshape(n, 3)
     half = np.stack([size[:, 1], size[:, 0], size[:, 2]], axis=1) / 2.0
@@ -80,6 +95,16 @@ def annotation_boxes(center: np.ndarray, size_wlh: np.ndarray, quat_wxyz: np.nda
                        np.nan_to_num(v), np.asarray(t_s, np.float64).reshape(n),
                        np.full(n, float(margin_m)), np.linalg.norm(v, axis=1))
 
+
+
+def without_still(boxes: MovingBoxes, speed_mps: float | None) -> MovingBoxes:
+    """``boxes`` less those whose own annotated speed over ground is below ``speed_mps`` (a
+    parked car: static scene, kept in the scan; ``static.keep_still_boxes_mps``); None: all
+    of them. A box without a velocity (NaN, or no ``speed`` at all: the agents' bodies) is
+    never taken for still."""
+    if speed_mps is None or not len(boxes) or boxes.speed is None:
+        return boxes
+    return boxes.take(~(boxes.speed < speed_mps))
 
 def body_box(T_scan_ego: np.ndarray, velocity_scan: np.ndarray, t_s: float,
              length: float, width: float, height: float, center_ego: np.ndarray,
