@@ -62,3 +62,29 @@ def test_refine_finds_plates_the_grid_misses_on_synthetic_rears() -> None:
         assert hit[3.0] or not hit[0.0], "the refine lost a plate the grid found"
     assert found[3.0] > found[0.0], found
     assert found[0.0] >= 0.6 * n  # the scorer works on its own generator at all
+
+
+def test_the_setting_reaches_the_stage_scorer(monkeypatch: object) -> None:
+    """``clusters.band_learned_refine`` is what ``guided.band_learned_plates`` hands the
+    scorer (0 turns the refine off), and its name and value are in the provenance string."""
+    import pytest
+
+    from v2xlake.tasks.anonymize import guided
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
+
+    assert isinstance(monkeypatch, pytest.MonkeyPatch)
+    seen: list[float] = []
+
+    def spy(*args: object, refine: float = 0.0, **kw: object) -> list[object]:
+        seen.append(refine)
+        return []
+
+    monkeypatch.setattr(guided, "band_plate_scores", spy)
+    gray = np.zeros((60, 200), np.uint8)
+    for value in (3.0, 0.0, 1.5):
+        cfg = AnonymizeConfig(clusters={"band_learned_refine": value})
+        guided.band_learned_plates(gray, (0, 20, 200, 40), 20.0, guided.GuidedConfig.of(cfg))
+    assert seen == [3.0, 0.0, 1.5]
+    prov = AnonymizeConfig().provenance("v")
+    assert "clusters.band_learned_refine=3" in prov
+    assert prov != AnonymizeConfig(clusters={"band_learned_refine": 0}).provenance("v")

@@ -232,8 +232,14 @@ def half_phase_scores(up: np.ndarray, corners: Sequence[tuple[int, int]], w: np.
     normalisation reads, so the scores equal a dense map's at that phase: ~0.2 ms a patch
     against ~60 ms for a narrow camera's band at one scale). Returns (score, row, column) of
     each window scored; corners too near ``up``'s edge are skipped."""
+    # the window at y - dy is cell row k - dy of a patch whose grid starts at y + dy - pad:
+    # true only for a half step of one canonical px on a grid of two
+    assert STRIDE == 2, "half_phase_scores assumes a grid of 2 canonical px"
     wh, ww = window_px()
-    pad = 16  # >= the features' widest context (24 px box) / 2, plus the step, even
+    # the features' widest context (12 px, the 24 px box's half) plus the 2 px the two
+    # shifted windows span, rounded up to a multiple of STRIDE so the patch's grid keeps
+    # the shifted phase
+    pad = 16
     flat = w.reshape(-1)
     out: list[tuple[float, int, int]] = []
     for y, x in corners:

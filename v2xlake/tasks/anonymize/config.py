@@ -512,7 +512,9 @@ class Clusters(Section):
     band_learned_refine: float = Field(
         3.0, ge=0, description="with band_learned_score: the learned scorer's local peaks "
         "scoring from this much under band_learned_score are also scored half a grid step "
-        "above and below (bandplate.half_phase_scores; a few windows per band), and those "
+        "above and below (bandplate.half_phase_scores; a median of 2 peaks per band and "
+        "width on simulated frames, at most 64 per width, the highest first; peaks whose "
+        "patch would cross the scaled band's edge are not re-scored), and those "
         "windows reaching band_learned_score join the others. Why: the scorer's grid is "
         "1.25 frame px at its 20 px scale, and a 4-5 px tall plate was found or not as the "
         "band moved by under a pixel. 3: the 95th percentile of what the rows' other "
@@ -521,7 +523,8 @@ class Clusters(Section):
         "plates pasted into the band (bench_anonymize --band-plates --quick --band-jitter, "
         "seeds 0-3, 32 per width, the band also moved 1-3 px), off -> 3: 20 px over the "
         "four placements 114 -> 116 of 128 (eu[::2], where it was chosen) and 118 -> 126 "
-        "(eu[1::2], held out); learned boxes on no plate in 30 real street band pieces "
+        "(eu[1::2], held out from the choice, though run on the variants tried); learned "
+        "boxes on no plate in 30 real street band pieces "
         "moved 0-3 px 5 -> 7 of 120 (the same places, found at more phases); "
         "simulated LiDAR-only clips (0.3 s, seeds 0 / 1) false blurs unchanged. 0: off")
     ground_isolated_m: float = Field(
