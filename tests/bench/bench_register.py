@@ -526,8 +526,8 @@ def coop(args: argparse.Namespace) -> None:
             print(f"{name:34s} {secs:3g} {init:7.1f} {within:3d}/{n:<3d} {acc:4d} {wrong:5d} "
                   f"{med:6.2f} {per_pair:10.3f} {share * 100:5.0f}% {np.median(d_t):10.3f} "
                   f"{per_pair / np.median(d_t):6.2f} {d_ok:4d}/{len(frames):<3d} "
-                  f"{c_reg:6.1f} {cpu_share * 100:4.0f}% {pipe * 100:4.0f}% "
-                  f"{pipe_cpu * 100:7.0f}%")
+                  f"{c_reg:6.2f} {cpu_share * 100:4.0f}% {pipe * 100:4.0f}% "
+                  f"{pipe_cpu * 100:7.1f}%")
             notes = [x for x in rep.notes if x.startswith("calibration black")]
             if notes:
                 print(f"{'':38s}{notes[0][:110]}")

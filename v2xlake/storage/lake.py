@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import contextvars
 import copy
 import errno
 import hashlib
@@ -432,6 +433,13 @@ def _partition_columns(names: Sequence[str], clip_id: str,
             if k in names and (v is not None or k == "clip_id")}
 
 
+#: :meth:`Lake.reading_once`'s memo: (lake, zone, tables, {(table, clip, agent, columns):
+#: table}) of the calling thread's context, None outside the block
+_READ_ONCE: contextvars.ContextVar[
+    tuple[Lake, str, frozenset[str], dict[tuple[Any, ...], pa.Table]] | None] = \
+    contextvars.ContextVar("lake_read_once", default=None)
+
+
 class Lake:
     def __init__(self, uri: str | os.PathLike[str], *, create: bool = True) -> None:
         s = str(uri)
@@ -832,6 +840,20 @@ class Lake:
         return TableWriter(self, final, schema, options or ParquetOptions.for_zone(zone),
                            background=background)
 
+    @contextlib.contextmanager
+    def reading_once(self, zone: str, tables: Iterable[str]) -> Iterator[None]:
+        """Within the block, in the calling thread only, ``read_table`` of one of ``tables``
+        of ``zone`` with the same keys and columns (no ``filters``) returns the table it read
+        the first time. For a stage whose helpers each read the clip's small tables again
+        (the register stage: ``agents`` 8 times, ``calibrated_sensors`` 6, ``ego_poses`` 9
+        per 3-agent clip), on tables it does not write: the block does not see a change made
+        to them meanwhile."""
+        token = _READ_ONCE.set((self, zone, frozenset(tables), {}))
+        try:
+            yield
+        finally:
+            _READ_ONCE.reset(token)
+
     def read_table(
         self,
         zone: str,
@@ -842,7 +864,20 @@ class Lake:
         columns: Sequence[str] | None = None,
         filters: Any = None,
     ) -> pa.Table:
-        """Read every partition file under the given keys, restoring the partition columns."""
+        """Read every partition file under the given keys, restoring the partition columns
+        (the table read first, inside :meth:`reading_once` for it)."""
+        once = _READ_ONCE.get()
+        if once is None or once[0] is not self or once[1] != zone or table not in once[2] \
+                or filters is not None:
+            return self._read_table(zone, table, clip_id, agent_id, columns, filters)
+        key = (table, clip_id, agent_id, None if columns is None else tuple(columns))
+        hit = once[3].get(key)
+        if hit is None:
+            hit = once[3][key] = self._read_table(zone, table, clip_id, agent_id, columns, None)
+        return hit
+
+    def _read_table(self, zone: str, table: str, clip_id: str | None, agent_id: str | None,
+                    columns: Sequence[str] | None, filters: Any) -> pa.Table:
         self.check_read(zone, table)
         root = self.table_dir(zone, table, clip_id, agent_id)
         files = self.list_files(root, ".parquet")

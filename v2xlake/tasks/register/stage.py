@@ -451,9 +451,20 @@ class _Pair:
     measurement: CrossMeasurement
 
 
+#: the clip's small input tables the stage's helpers each read again (which agents have a
+#: pose, the tracks, the extrinsics, the bodies): read once per run (``Lake.reading_once``;
+#: 36 -> 26 table reads, ~10 ms, on a three-agent clip)
+_READ_ONCE = ("agents", "clips", "ego_poses", "calibrated_sensors")
+
+
 def run_register(lake: Lake, clip_id: str, config: RegisterConfig | None = None) -> StageReport:
     """Register every other agent's deskewed scans to the reference agent's: per-frame GICP
     on the static scene as measurements, fused by the clip-level solve (see the module doc)."""
+    with lake.reading_once("clean", _READ_ONCE):
+        return _run_register(lake, clip_id, config)
+
+
+def _run_register(lake: Lake, clip_id: str, config: RegisterConfig | None) -> StageReport:
     cfg = config or RegisterConfig()
     wall0 = time.perf_counter()
     report = StageReport(stage=STAGE, clip_id=clip_id)

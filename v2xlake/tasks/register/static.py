@@ -244,35 +244,43 @@ def _ground_fit(pts: np.ndarray, above: np.ndarray, r_min2: float, r_max2: float
     """:func:`ground_distance`'s plane fit in one pass per refit: the 3x3 normal equations
     accumulated over the kept points (NumPy's masks, stacks and products over the scan took
     1.6 ms of the static filter's ~5 ms per scan)."""
+    # the kept points' rows, in scan order: each refit sums over them alone, in the same
+    # order as a pass over the whole scan would (the same sums; a fifth of the scan is ground
+    # within 3-15 m)
     n = pts.shape[0]
-    use = np.zeros(n, np.bool_)
+    use = np.empty(n, np.int64)
+    m = 0
     for i in range(n):
         r2 = pts[i, 0] * pts[i, 0] + pts[i, 1] * pts[i, 1]
-        use[i] = not above[i] and r2 >= r_min2 and r2 <= r_max2
+        if not above[i] and r2 >= r_min2 and r2 <= r_max2:
+            use[m] = i
+            m += 1
     a = b = c = 0.0
     for _ in range(3):
-        m = 0
         sxx = sxy = sx = syy = sy = sxz = syz = sz = 0.0
-        for i in range(n):
-            if use[i]:
-                x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
-                m += 1
-                sxx += x * x
-                sxy += x * y
-                sx += x
-                syy += y * y
-                sy += y
-                sxz += x * z
-                syz += y * z
-                sz += z
+        for j in range(m):
+            i = use[j]
+            x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+            sxx += x * x
+            sxy += x * y
+            sx += x
+            syy += y * y
+            sy += y
+            sxz += x * z
+            syz += y * z
+            sz += z
         if m < min_points:
             return np.nan
         M = np.array([[sxx, sxy, sx], [sxy, syy, sy], [sx, sy, float(m)]])
         coef = np.linalg.solve(M, np.array([sxz, syz, sz]))
         a, b, c = coef[0], coef[1], coef[2]
-        for i in range(n):
-            if use[i] and abs(pts[i, 2] - (a * pts[i, 0] + b * pts[i, 1] + c)) > trim_m:
-                use[i] = False
+        k = 0
+        for j in range(m):  # drop the rows farther than trim_m (NaN stays, as before)
+            i = use[j]
+            if not abs(pts[i, 2] - (a * pts[i, 0] + b * pts[i, 1] + c)) > trim_m:
+                use[k] = i
+                k += 1
+        m = k
     return abs(c) / np.sqrt(a * a + b * b + 1.0)
 
 
