@@ -412,7 +412,8 @@ def main() -> None:
     ap.add_argument("--clip-set", action="append", default=[],
                     help="with --clips lidar: NAME=JSON, a config update (e.g. "
                     "'learned8={\"clusters\": {\"band_learned_score\": 8}}') run beside the "
-                    "default instead of the carried variants (repeatable)")
+                    "default instead of the carried variants (repeatable); with "
+                    "--band-plates: a variant beside the default there too")
     ap.add_argument("--face-plates", action="store_true",
                     help="only: real plates on a rectified vehicle face as a LiDAR-only "
                     "clip's region search sees them, at 24-140 px (--plates-half; "
@@ -445,6 +446,9 @@ def main() -> None:
             if v:
                 variants[f"refine at {v} (clusters.band_learned_refine)"] = \
                     AnonymizeConfig(clusters={"band_learned_refine": float(v)})
+        for a in args.clip_set:
+            n, v = a.split("=", 1)
+            variants[n] = AnonymizeConfig(**json.loads(v))
         band_plates([int(s) for s in args.lidar_seeds.split(",")],
                     n_plates=24 if args.quick else 60, half=args.plates_half,
                     variants=variants, offsets=(0, 1, 2, 3) if args.band_jitter else (0,))

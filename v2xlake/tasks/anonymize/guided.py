@@ -284,6 +284,11 @@ class GuidedConfig(FromParams):
     # the learned scorer's local peaks from this under ``band_learned_score`` also scored
     # half a grid step beside (``bandplate.band_plate_scores``' ``refine``); 0: off
     band_learned_refine: float = _param("clusters.band_learned_refine")
+    # the far band's strip searched by the text detector only over the columns of its
+    # ``band_proposals`` lines (each grown by ``band_text_pad`` x the band's largest plate
+    # on both sides), not its whole width (``band_strip_pieces``)
+    band_text_near_lines: bool = _param("clusters.band_text_near_lines")
+    band_text_pad: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -482,6 +487,35 @@ def _band_pieces(r: Region, w: int, h: int, cfg: GuidedConfig) -> list[Piece]:
             for i in range(n)]
 
 
+def band_strip_pieces(r: Region, lines: Sequence[tuple[float, float, float, float]],
+                      w: int, h: int, cfg: GuidedConfig) -> list[Piece]:
+    """The far band ``r``'s strip pieces over the column spans of ``lines`` only (frame px;
+    each grown by ``band_text_pad`` x the band's largest plate, at least its line's width, on
+    both sides; overlapping spans joined): the band's full height, at its own scale. A span's
+    ends lie on the whole strip's grid of ``m`` frame px, ``m`` x the scale a multiple of 32
+    (the text detector's stride) where there is one: a span is resampled as the whole strip
+    is, and the network sees its pixels at the same phase (its finds still read the span's
+    own width as context: near its threshold a line can differ from the whole strip's)."""
+    fb = _frame_box(r.box, w, h)
+    if fb is None:
+        return []
+    bx0 = fb[0]
+    s = min(band_region_scale(r, cfg), cfg.max_piece_side / (fb[3] - fb[1]))
+    m = next((k for k in range(1, 129) if abs(k * s / 32 - round(k * s / 32)) < 1e-6), 1)
+    pad = cfg.band_text_pad * max(r.expected_px, r.expected_max_px)
+    spans = sorted([max(bx0, bx0 + m * np.floor((x0 - max(pad, x1 - x0) - bx0) / m)),
+                    min(fb[2], bx0 + m * np.ceil((x1 + max(pad, x1 - x0) - bx0) / m))]
+                   for x0, _y0, x1, _y1 in lines)
+    merged: list[list[float]] = []
+    for a, b in spans:
+        if merged and a <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    return [p for a, b in merged
+            for p in _band_pieces(replace(r, box=(a, r.box[1], b, r.box[3])), w, h, cfg)]
+
+
 def _merge_crops(items: list[list]) -> list[list]:
     """Crops [kind, x0, y0, x1, y1, scale, lo, hi] of one kind and similar scale that
     overlap, merged while their union is not much larger than the two (a crowd is one piece,
@@ -629,7 +663,9 @@ def band_proposals(gray: np.ndarray, box: tuple[int, int, int, int], cfg: Guided
     return out
 
 
-def band_look_crops(gray: np.ndarray, r: Region, cfg: GuidedConfig) -> list[list]:
+def band_look_crops(gray: np.ndarray, r: Region, cfg: GuidedConfig,
+                    lines: Sequence[tuple[float, float, float, float]] | None = None
+                    ) -> list[list]:
     """The far band ``r``'s closer-look crops [kind, x0, y0, x1, y1, scale, lo, hi] in the
     grey frame: each ``band_proposals`` line with ``band_look_pad`` of its width (and twice
     its height, at least 8 / 6 px) around it, at the scale that makes it ``band_look_px``
@@ -642,7 +678,7 @@ def band_look_crops(gray: np.ndarray, r: Region, cfg: GuidedConfig) -> list[list
     band_s = band_region_scale(r, cfg)
     lo, hi = r.expected_px, max(r.expected_px, r.expected_max_px)
     items: list[list] = []
-    for x0, y0, x1, y1 in band_proposals(gray, fb, cfg):
+    for x0, y0, x1, y1 in band_proposals(gray, fb, cfg) if lines is None else lines:
         bw, bh = x1 - x0, y1 - y0
         s = min(cfg.band_look_px / max(bw, 1.0), cfg.band_look_max_scale)
         if s < cfg.band_look_min_gain * band_s:
@@ -1354,7 +1390,17 @@ class GuidedDetector:
     def in_regions(self, image: np.ndarray, regions: Sequence[Region]) -> list[Detection]:
         c = self.config
         h, w = image.shape[:2]
-        pieces = plan_pieces(regions, image.shape, c)
+        lines: dict[int, list[tuple[float, float, float, float]]] = {}
+        if c.band_text_near_lines and self.plate is not None:
+            gray = to_gray(image)
+            pieces = plan_pieces([r for r in regions if r.part != "band"], image.shape, c)
+            for r in regions:
+                bb = _frame_box(r.box, w, h) if r.part == "band" else None
+                if bb is not None:
+                    lines[id(r)] = band_proposals(gray, bb, c)
+                    pieces += band_strip_pieces(r, lines[id(r)], w, h, c)
+        else:
+            pieces = plan_pieces(regions, image.shape, c)
         edge = edge_pieces(regions, image.shape, c) if c.edge_heads else []
         dets: list[Detection] = []
         for kind, det in (("face", self.face), ("plate", self.plate)):
@@ -1370,7 +1416,7 @@ class GuidedDetector:
         if self.plate is not None and c.band_look_px > 0:
             for r in regions:
                 if r.part == "band":
-                    dets += self._band_look(image, r)
+                    dets += self._band_look(image, r, lines.get(id(r)))
         if self.plate is not None and c.band_blob_max_px > 0:
             for r in regions:
                 bbox = _frame_box(r.box, w, h) if r.part == "band" else None
@@ -1408,7 +1454,9 @@ class GuidedDetector:
                              if kept(pb)]
         return dets
 
-    def _band_look(self, image: np.ndarray, r: Region) -> list[Detection]:
+    def _band_look(self, image: np.ndarray, r: Region,
+                   lines: Sequence[tuple[float, float, float, float]] | None = None
+                   ) -> list[Detection]:
         """Plates of the far band ``r`` too small for its own scale, found in two steps:
         bands of glyph edges (``band_proposals``) propose where a small text line can be;
         each is cut out at the scale that brings it to ``band_look_px`` wide (at most
@@ -1423,7 +1471,7 @@ class GuidedDetector:
         h, w = image.shape[:2]
         pieces = [_crop_piece(k, x0, y0, x1, y1, sc, (a, b))
                   for k, x0, y0, x1, y1, sc, a, b in _merge_crops(
-                      band_look_crops(to_gray(image), r, c))]
+                      band_look_crops(to_gray(image), r, c, lines))]
         out: list[Detection] = []
         for canvas, ps, pos in mosaics(image, pieces, replace(c, pack_fit=True)):
             out += self._in_canvas("plate", self.plate, canvas, ps, pos, w, h)
