@@ -726,9 +726,10 @@ def _solve_clip(agents: list[str], ref: str, extrinsics: dict[str, np.ndarray],
         rw = _mv(U, r) * f
         rn, Jn = P.nonholonomic(th)
         rg, Jg = P.ground_rows(th)
+        U_now = U  # the whitening of this evaluation, whenever the Jacobian is asked
 
         def jac() -> np.ndarray:
-            Jw = -(U @ G) * f[:, :, None]
+            Jw = -(U_now @ G) * f[:, :, None]
             return np.concatenate([Jw.reshape(-1, P.n), Jn, Jg, P.P])
 
         return np.concatenate([rw.ravel(), rn, rg, P.P @ th]), jac
