@@ -289,6 +289,9 @@ class GuidedConfig(FromParams):
     # on both sides), not its whole width (``band_strip_pieces``)
     band_text_near_lines: bool = _param("clusters.band_text_near_lines")
     band_text_pad: float = 1.0
+    # a LiDAR-only key frame's full-frame safety pass with its plate passes (False: the
+    # shrunk safety pass's plates)
+    full_safety_plates: bool = _param("clusters.full_frame_plates")
 
 
 @dataclass(frozen=True, eq=False)
@@ -1325,14 +1328,19 @@ class GuidedDetector:
                                          self.plate.name))
         return out
 
-    def full_frame(self, image: np.ndarray) -> list[Detection]:
-        """The plan of frames without guidance."""
+    def full_frame(self, image: np.ndarray, plates: bool = True) -> list[Detection]:
+        """The plan of frames without guidance. ``plates`` False: its plate passes replaced
+        by the shrunk safety pass's (``safety_plate_max_side``)."""
         c = self.config
         dets: list[Detection] = []
         if self.face is not None:
             dets += (self._faces_proposed(image) if c.full_proposals
                      else self._faces_full(image, c.full_face_scan))
-        if self.plate is not None:
+        if self.plate is not None and not plates:
+            if c.safety_plate_max_side is not None:
+                dets += self._plates_full(image, ScanConfig(max_side=c.safety_plate_max_side,
+                                                            fine_scale=None))
+        elif self.plate is not None:
             dets += (self._plates_proposed(image) if c.full_proposals
                      else self._plates_full(image, c.full_plate_scan))
         for d in self.extra:
@@ -1542,7 +1550,8 @@ class GuidedDetector:
         the regions are less trusted (LiDAR clusters): the full-frame plan is the safety."""
         if regions is None:
             return self.full_frame(image)
-        safety = self.full_frame(image) if full_safety else self.safety(image)
+        safety = (self.full_frame(image, plates=self.config.full_safety_plates)
+                  if full_safety else self.safety(image))
         dets = self.in_regions(image, regions)
         if self.config.band_learned_score > 0:
             # learned boxes inside a larger plate or on a face of the safety pass (``in_regions``
