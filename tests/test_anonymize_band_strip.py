@@ -86,3 +86,36 @@ def test_the_region_search_with_lines_only_finds_what_the_whole_strip_finds() ->
         object.__setattr__(plate, "lines_view", spy)
     assert whole.in_regions(blank, [band]) == [] and len(calls) == 1  # the whole strip
     assert near.in_regions(blank, [band]) == [] and len(calls) == 1  # no line, no call
+
+
+def test_a_low_contrast_plate_is_why_the_lines_only_search_is_off_by_default() -> None:
+    """Far plates of low contrast (light grey 115 on 95, dark grey glyphs) hold no glyph-edge
+    line the closer look proposes: the default (the whole strip, with every other far-band
+    path on) finds all three, lines only misses some. If this stops failing for lines only,
+    the option may be worth measuring again as a default."""
+    import cv2
+
+    from v2xlake.tasks.anonymize.build import build_detector
+    from v2xlake.tasks.anonymize.config import AnonymizeConfig
+    from v2xlake.tasks.geometry import iou_xyxy
+
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.integers(70, 110, (1080, 1920, 3)).astype(np.uint8), (0, 0), 2)
+    truth = []
+    for x, text in ((300, "AB 123"), (1100, "KX 4071"), (1500, "M 88 ZT")):
+        cv2.rectangle(img, (x - 4, 490), (x + 60, 510), (115, 115, 115), -1)
+        cv2.putText(img, text, (x - 2, 506), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (95, 95, 95), 1,
+                    cv2.LINE_AA)
+        truth.append((x - 4, 490, x + 60, 510))
+    assert not AnonymizeConfig().clusters.band_text_near_lines
+
+    def found(cfg: AnonymizeConfig) -> int:
+        boxes = [d.box for d in build_detector(cfg).in_regions(img, [_band()])
+                 if d.kind == "plate"]
+        if not boxes:
+            return 0
+        return int((iou_xyxy(np.asarray(truth, float), np.asarray(boxes)) >= 0.3)
+                   .any(axis=1).sum())
+
+    assert found(AnonymizeConfig()) == 3
+    assert found(AnonymizeConfig(clusters={"band_text_near_lines": True})) < 3

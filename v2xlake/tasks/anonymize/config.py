@@ -537,18 +537,22 @@ class Clusters(Section):
         "moved 0-3 px 5 -> 7 of 120 (the same places, found at more phases); "
         "simulated LiDAR-only clips (0.3 s, seeds 0 / 1) false blurs unchanged. 0: off")
     band_text_near_lines: bool = Field(
-        True, description="the far band's strip (band_plate_px) is searched by the text "
+        False, description="the far band's strip (band_plate_px) is searched by the text "
         "detector only over the columns around its lines of glyph edges (the closer look's "
         "proposals, guided.band_proposals: bands of vertical edges of a text line's shape "
         "in the band upscaled x2 at 60 / 90 / 200), each grown by the band's largest plate "
-        "on both sides, not over its whole width. Why: a plate the text detector can find at "
-        "the band's scale holds such a line, and the rest of the strip (road, sky, "
-        "foliage) was ~11 % of a LiDAR-only clip's CPU. Real plates_eu plates pasted into "
+        "on both sides, not over its whole width. Why: the strip was ~11 % of a LiDAR-only "
+        "clip's CPU, and a sharp plate holds such a line. Not the default: a blurred or "
+        "low-contrast far plate holds none (a synthetic band of three 20 px plates at "
+        "grey 115 on 95, or blurred at sigma 1-1.5: no line proposed, the whole strip finds "
+        "3 of 3, lines only 0 of 3 with every other far-band path on), and the closer "
+        "look's proposals hold the centre of only 15 of 24 real 20 px plates. Real plates_eu "
+        "plates (sharp) pasted into "
         "the band (bench_anonymize --band-plates --quick --band-jitter, seeds 0-3, 32 per "
         "width, four placements), whole strip -> lines only: 20 px 122 -> 126, 30 px 127 "
         "-> 128, 40 px 121 -> 123 of 128, >= 80 % blurred unchanged, band false plates on "
         "the real street frames 0.33 both; simulated LiDAR-only 1080p clips (0.3 s, seeds "
-        "0-3): nothing lost, +9-16 % img/s/core. False: the whole strip")
+        "0-3): nothing lost, +5-8 % img/s/core. False (default): the whole strip")
     ground_isolated_m: float = Field(
         5.0, ge=0, description="a ground cell (2 m) with fewer than two occupied neighbours "
         "is a lone object's own returns (the road around it unseen): its ground is at most "
