@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pytest
 
 from v2xlake.storage.lake import Lake
 from v2xlake.tasks.register.static import _ground_fit, above_ground, ground_distance
@@ -90,3 +91,13 @@ def test_ground_fit_over_kept_rows_matches_the_whole_scan_mask() -> None:
     # the kernel as the filter calls it: NaN where fewer than min_points are on the ground
     pts = np.zeros((10, 3))
     assert np.isnan(_ground_fit(pts, np.zeros(10, bool), 0.0, 1e6, 0.05, 30))
+
+
+def test_one_table_name_as_a_string_is_refused(tmp_path: Path) -> None:
+    lake = Lake(tmp_path / "lake")
+    with pytest.raises(TypeError, match="iterable of table names"), \
+            lake.reading_once("clean", "agents"):
+        pass
+    nan = np.array([[0.0, 0.0, 0.0], [np.nan, 1.0, 0.0]])
+    with pytest.raises(ValueError, match="finite"):
+        above_ground(nan)

@@ -848,6 +848,8 @@ class Lake:
         (the register stage: ``agents`` 8 times, ``calibrated_sensors`` 6, ``ego_poses`` 9
         per 3-agent clip), on tables it does not write: the block does not see a change made
         to them meanwhile."""
+        if isinstance(tables, str):  # a set of its characters would cache nothing
+            raise TypeError("reading_once takes an iterable of table names, not one name")
         token = _READ_ONCE.set((self, zone, frozenset(tables), {}))
         try:
             yield
