@@ -550,7 +550,8 @@ def _gauss_newton(fun_jac: Callable[[np.ndarray], tuple[np.ndarray, Callable[[],
     (the bulk of it; the small nonholonomic and ground rows' come with the residuals),
     called only for a step that is taken; the normal equations are formed once per point
     taken, not again after a refused step (which only raises the damping). On a 10 s
-    three-agent clip 49 of 77 steps were refused: the same numbers, without their Jacobians and products."""
+    three-agent clip 49 of 77 steps were refused: the same numbers, without their
+    Jacobians and products."""
     f, jac = fun_jac(th)
     J = jac()
     cost = float(f @ f)
