@@ -221,8 +221,8 @@ def test_a_lidar_only_clip_is_carried_by_cluster_track(tmp_path, monkeypatch) ->
 
     plans: list[str] = []  # the safety passes, stubbed: the scheduling does not depend on
     # what they find (run for real, the full-frame plan made the test twice as long)
-    monkeypatch.setattr(GuidedDetector, "full_frame", lambda self, img: plans.append("full")
-                        or [])
+    monkeypatch.setattr(GuidedDetector, "full_frame",
+                        lambda self, img, plates=True: plans.append("full") or [])
     monkeypatch.setattr(GuidedDetector, "safety", lambda self, img: plans.append("shrunk")
                         or [])
     build = stage_mod.build_guide
