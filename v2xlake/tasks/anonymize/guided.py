@@ -1336,10 +1336,8 @@ class GuidedDetector:
         if self.face is not None:
             dets += (self._faces_proposed(image) if c.full_proposals
                      else self._faces_full(image, c.full_face_scan))
-        if self.plate is not None and not plates:
-            if c.safety_plate_max_side is not None:
-                dets += self._plates_full(image, ScanConfig(max_side=c.safety_plate_max_side,
-                                                            fine_scale=None))
+        if not plates:
+            dets += self._safety_plates(image)
         elif self.plate is not None:
             dets += (self._plates_proposed(image) if c.full_proposals
                      else self._plates_full(image, c.full_plate_scan))
@@ -1389,10 +1387,15 @@ class GuidedDetector:
         if self.face is not None and c.safety_face_max_side is not None:
             dets += self._faces_full(image, ScanConfig(max_side=c.safety_face_max_side,
                                                        fine_scale=None), two_stage=True)
-        if self.plate is not None and c.safety_plate_max_side is not None:
-            dets += self._plates_full(image, ScanConfig(max_side=c.safety_plate_max_side,
-                                                        fine_scale=None))
-        return dets
+        return dets + self._safety_plates(image)
+
+    def _safety_plates(self, image: np.ndarray) -> list[Detection]:
+        """The shrunk safety pass's plates (``safety_plate_max_side``; none when unset)."""
+        c = self.config
+        if self.plate is None or c.safety_plate_max_side is None:
+            return []
+        return self._plates_full(image, ScanConfig(max_side=c.safety_plate_max_side,
+                                                   fine_scale=None))
 
     # ------------------------------------------------------------------ guided
     def in_regions(self, image: np.ndarray, regions: Sequence[Region]) -> list[Detection]:
