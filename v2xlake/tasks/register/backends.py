@@ -294,20 +294,12 @@ def sample_sq_dist(sample: np.ndarray, dense: np.ndarray, sq_dist: np.ndarray | 
     return out
 
 
-def sample_pairs(sample: np.ndarray, dense: np.ndarray, sq_dist: np.ndarray | None,
-                 max_correspondence_m: float) -> int:
-    """How many of the ``sample`` rows found a correspondence within
-    ``max_correspondence_m`` in a search of the ``dense`` rows (:func:`sample_sq_dist`); a
-    sample row that is not a dense row counts as none. WHY: a pair aligned on every centroid
+def pairs_within(sq: np.ndarray | None, max_correspondence_m: float) -> int:
+    """How many of the squared distances ``sq`` (:func:`sample_sq_dist`; NaN: none) lie
+    within ``max_correspondence_m``; 0 without them. WHY: a pair aligned on every centroid
     without its sample pass still needs to know whether that pass would have been short, to
     decide the next frame; the dense pass's last search answers it without a search of its
     own."""
-    return pairs_within(sample_sq_dist(sample, dense, sq_dist), max_correspondence_m)
-
-
-def pairs_within(sq: np.ndarray | None, max_correspondence_m: float) -> int:
-    """How many of the squared distances ``sq`` (:func:`sample_sq_dist`; NaN: none) lie
-    within ``max_correspondence_m``; 0 without them."""
     return 0 if sq is None else int(np.count_nonzero(sq <= max_correspondence_m ** 2))
 
 
