@@ -34,22 +34,47 @@ def test_first_per_cell_is_the_first_point_of_each_cell(cell: float) -> None:
 @pytest.mark.parametrize("cell", [0.3, 1.0, 1.6])
 def test_grid_groups_every_cell_in_input_order(cell: float) -> None:
     pts = _runs(2)
-    keys, _cells, start, order, sp, lo, hi = _grid_build(pts, 1.0 / cell)
+    bits, rank, start, order, sp, lo, hi = _grid_build(pts, 1.0 / cell)
     c = np.floor(pts / cell).astype(np.int64) + (1 << 20)
-    # the cells numbered in first-seen order, each one's points contiguous and in input order
-    _, first, inv = np.unique(c, axis=0, return_index=True, return_inverse=True)
-    rank = np.argsort(np.argsort(first))[inv.reshape(-1)]
-    assert np.array_equal(order, np.argsort(rank, kind="stable"))
-    assert np.array_equal(np.diff(start), np.bincount(rank))
+    # the cells numbered in box order (x, then y, then z: np.unique's order of the rows),
+    # each one's points contiguous and in input order
+    cells, inv = np.unique(c, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    assert np.array_equal(order, np.argsort(inv, kind="stable"))
+    assert np.array_equal(np.diff(start), np.bincount(inv))
     assert np.array_equal(sp, pts[order])
     assert np.array_equal(lo, c.min(axis=0)) and np.array_equal(hi, c.max(axis=0))
-    assert int((keys >= 0).sum()) == len(first)
+    # the bitmap holds the occupied cells of the box and nothing else; a word's rank counts
+    # the occupied cells before it
+    at = np.ravel_multi_index(tuple((cells - lo).T), tuple(hi - lo + 1))
+    on = np.flatnonzero(np.unpackbits(bits.view(np.uint8), bitorder="little"))
+    assert np.array_equal(on, at)
+    assert np.array_equal(rank, np.searchsorted(at, 64 * np.arange(len(rank))))
     # and the searches on it are exact
     g = VoxelGrid(pts, cell, 2 * cell)
     i, d2 = g.batch_knn_search(pts[::11], 6)
     brute = ((pts[::11, None, :] - pts[None, :, :]) ** 2).sum(-1)
     assert np.allclose(d2, np.sort(brute, axis=1)[:, :6], rtol=0, atol=1e-12)
     assert np.array_equal(brute[np.arange(len(i))[:, None], i], d2)
+
+
+def test_a_cloud_wider_than_the_bitmap_takes_larger_cells() -> None:
+    """Points strewn over a box of more cells than the occupancy bitmap holds are gridded
+    with larger cells; the searches stay exact."""
+    rng = np.random.default_rng(4)
+    far = np.array([4e5, -3e5, 0.0])
+    pts = np.concatenate([rng.uniform(-5, 5, (300, 3)), [far, [-2e5, 4e5, 50.0]],
+                          rng.uniform(-5, 5, (50, 3)) + far])
+    g = VoxelGrid(pts, 1.0)
+    assert g.inv_cell < 1.0 / 64 and len(g._bits) * 64 <= 2 * (1 << 25)
+    q = np.concatenate([pts[::7] + rng.normal(0, 0.2, (len(pts[::7]), 3)), [[1e5, 0, 0]]])
+    brute = ((q[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
+    i, d2 = g.batch_knn_search(q, 5)
+    assert np.array_equal(brute[np.arange(len(q))[:, None], i], d2)
+    assert np.array_equal(d2, np.sort(brute, axis=1)[:, :5])
+    i1, _ = g.batch_nearest_neighbor_search(q, max_dist_m=1.0)
+    near = brute.min(axis=1) <= 1.0
+    assert np.array_equal(i1[near], brute.argmin(axis=1)[near]) and (i1[~near] == -1).all()
 
 
 def test_prefetched_poses_are_the_ones_interpolated_one_at_a_time() -> None:

@@ -68,7 +68,7 @@ def test_bounded_search_skips_only_what_cannot_match() -> None:
         src = src + rng.normal(0, step, 3)
         want_i, want_d = g.batch_nearest_neighbor_search(src, max_dist_m=1.0)
         a0, l0, h0, s0 = (x.copy() for x in state)
-        i, d2, sk = _grid_nn_held(g._keys, g._cells, g._start, g._order, g._sp, g._lo,
+        i, d2, sk = _grid_nn_held(g._bits, g._rank, g._start, g._order, g._sp, g._lo,
                                   g._hi, g.inv_cell, src, 1.0, a0, l0, h0, s0)
         assert np.array_equal(i, want_i) and np.array_equal(d2, want_d)
         got_i, got_d = g.nearest_bounded(src, 1.0, *state)
@@ -82,7 +82,7 @@ def test_bounded_search_skips_only_what_cannot_match() -> None:
         assert (hold[~found] == -1).all()
         skipped += sk
         misses[2][:] = -1
-        i, d2, sk = _grid_nn_held(g._keys, g._cells, g._start, g._order, g._sp, g._lo,
+        i, d2, sk = _grid_nn_held(g._bits, g._rank, g._start, g._order, g._sp, g._lo,
                                   g._hi, g.inv_cell, src, 1.0, *misses)
         assert np.array_equal(i, want_i) and np.array_equal(d2, want_d)
         skipped_misses += sk
