@@ -1017,6 +1017,12 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
                       f"{rep.metrics.get('n_images_carried_in_full', 0):.0f} of them unsure "
                       "(clusters.carry_unsure_full; searched where carrying cannot vouch, "
                       "clusters.carry_unsure_zones)")
+        if lidar_only and extra:  # what each variant leaves unblurred that the default blurs
+            base = got["default"]
+            for name, _upd in extra:
+                print(f"  {name} against the default:")
+                missed_listing(truth, base, got[name],
+                               int(AnonymizeConfig().carry.key_interval_ms * 1e6))
         if lidar_only and not extra:
             full, *rest = got.values()
             for name, car in zip([n for n, _ in variants][1:], rest, strict=True):

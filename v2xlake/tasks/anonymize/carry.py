@@ -392,7 +392,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                     earlier: tuple[Sequence[Detection], Sequence[Region] | None, int] | None
                     = None, unsure: list[str] | None = None,
                     zones: list[tuple[str, Box]] | None = None,
-                    centre: tuple[float, float] | None = None
+                    centre: tuple[float, float] | None = None, in_view_here: bool = False
                     ) -> tuple[list[Detection], list[Region], list[tuple[Region, Detection]]]:
     """``between`` for regions from LiDAR cluster tracks: the carried detections of a frame
     at ``t_ns``, the regions to search here, and fallbacks: (searched window, detection)
@@ -473,7 +473,14 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     the nearest frame edge): the stage's cheaper fallback (``clusters.carry_unsure_zones``)
     searches the regions there at their own scales and the full-frame plan over them.
     ``centre``: the camera's principal point (``_ahead``: image velocities at a constant
-    velocity relative to the camera too); None: the image velocity alone."""
+    velocity relative to the camera too); None: the image velocity alone.
+
+    ``in_view_here`` (``clusters.carry_in_view_here``): a find gone in the other key frame
+    (or new in it) is not unsure where its track's region on this frame (from the scan
+    nearest this frame) holds it in view for sure (``in_view`` with this frame's regions,
+    the find of its region's scale): this frame's window search covers where that region
+    moves it, which is all this frame's carried result needs; where it went by the other
+    key frame is that frame's own detection's concern."""
     (d0, r0, t0), (d1, r1, t1) = before, after
     doubt: list[str] = unsure if unsure is not None else []
     zone: list[tuple[str, Box]] = zones if zones is not None else []
@@ -598,11 +605,17 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                                 (o.box[1] + o.box[3] - rk.box[1] - rk.box[3]) / 2))
         return m
 
+    def seen_here(d: Detection, rk: Region | None) -> bool:
+        """Whether this frame's own region of the track of ``d`` holds it in view for sure
+        (``in_view_here``; a find of its region's scale, as the window search moves it)."""
+        return (in_view_here and rk is not None and _fits(d, rk, 4.0)
+                and in_view(d, rk, here))
+
     def may_enter(d: Detection, rk: Region | None) -> bool:
         """Whether ``d``, found in the key frame after only, may have entered the view
         between the key frames: its track's region in the key frame before is not in
         view whole, and its box grown by its reach (``reach``) touches the edge."""
-        if in_view(d, rk, in_a):
+        if in_view(d, rk, in_a) or seen_here(d, rk):
             return False
         return not inside(d.box, reach(d, rk, in_a))
 
@@ -655,7 +668,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                 # 90 px a frame that the full detection found
                 doubt_at(p, f"{p.kind} of {_size(p):.0f} px leaving the view at its velocity",
                          [p.box, ahead, at_b], window * _size(p))
-            elif not in_view(p, rk, in_b):
+            elif not in_view(p, rk, in_b) and not seen_here(p, rk):
                 # with a velocity too: it is extrapolated from two key frames' finds, and
                 # a region not surely in view was the rule before it (kept: the safe side)
                 doubt_at(p, f"{p.kind} of {_size(p):.0f} px gone near the edge"

@@ -577,7 +577,8 @@ def _anonymize_images(
                 (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
                 regions, int(stamps[i]), cfg.carry.grow, cfg.clusters.carry_window, img.shape,
                 fresh, (known[e], kregions[e], int(stamps[e])) if e is not None else None,
-                doubt, zones, (cam[1].cx, cam[1].cy) if cam is not None else None)
+                doubt, zones, (cam[1].cx, cam[1].cy) if cam is not None else None,
+                cfg.clusters.carry_in_view_here)
             if doubt and cfg.clusters.carry_unsure_full:
                 # carrying cannot tell where an object is here (``carry.between_tracked``'s
                 # ``unsure``)
