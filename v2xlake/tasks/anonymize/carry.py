@@ -90,8 +90,8 @@ def _at_edge(r: Region, shape: tuple[int, ...]) -> bool:
 def new_regions(here: Sequence[Region], before: Sequence[Region] | None,
                 after: Sequence[Region] | None, shape: tuple[int, ...],
                 min_face_px: float = 0.0,
-                found: tuple[Sequence[Detection], Sequence[Detection]] | None = None
-                ) -> list[Region]:
+                found: tuple[Sequence[Detection], Sequence[Detection]] | None = None,
+                by_object: bool = False) -> list[Region]:
     """Regions of this frame searched here: those whose (instance, kind, part) is missing
     from either neighbouring key frame (None: that key frame had no guidance), those cut
     by the frame edge here or in a key frame (the clipped box does not follow the object:
@@ -99,7 +99,12 @@ def new_regions(here: Sequence[Region], before: Sequence[Region] | None,
     expected face is under ``min_face_px`` (small faces score near the threshold and
     flicker from frame to frame: each frame is its own chance to find them), unless
     ``found`` (the detections of the key frame before and after) shows a face in that
-    region in both key frames: it is there, and carried here like a large one."""
+    region in both key frames: it is there, and carried here like a large one.
+
+    ``by_object`` (``clusters.carry_by_object``): a region is known when its object's
+    (``_object``: any agent's track of it) part is in either key frame, at the edge in none
+    (two agents' LiDARs number one car their own way, and regions come from the scan
+    nearest in time, of either agent: its regions alternate between their tracks)."""
     if before is None or after is None:
         return list(here)
     seen = (_found_in(found[0], before) & _found_in(found[1], after)
@@ -108,8 +113,15 @@ def new_regions(here: Sequence[Region], before: Sequence[Region] | None,
              and not (r.instance and _key(r) in seen)]
     if small:
         rest = new_regions([r for r in here if not any(r is q for q in small)],
-                           before, after, shape)
+                           before, after, shape, by_object=by_object)
         return small + rest
+    if by_object:
+        def obj(r: Region) -> tuple[tuple[str, str], str]:
+            return _object(r), r.part
+
+        ok = {obj(r) for r in (*before, *after)} - {
+            obj(r) for r in (*before, *after) if _at_edge(r, shape)}
+        return [r for r in here if not r.instance or obj(r) not in ok or _at_edge(r, shape)]
     known = ({_key(r) for r in before if not _at_edge(r, shape)}
              & {_key(r) for r in after if not _at_edge(r, shape)})  # (the frames share a size)
     return [r for r in here if not r.instance or _key(r) not in known or _at_edge(r, shape)]
@@ -124,6 +136,15 @@ def _found_in(dets: Sequence[Detection], regions: Sequence[Region]
         if r is not None:
             out.add(_key(r))
     return out
+
+
+def _two_objects(d: Detection, regions: Sequence[Region]) -> bool:
+    """Whether regions of two objects (``_object``) of the detection's kind hold its centre,
+    the detection of a size each expects (``_fits`` within 4x)."""
+    cx, cy = (d.box[0] + d.box[2]) / 2, (d.box[1] + d.box[3]) / 2
+    return len({_object(r) for r in regions if r.kind == d.kind and r.instance
+                and r.part != "band" and r.box[0] <= cx <= r.box[2]
+                and r.box[1] <= cy <= r.box[3] and _fits(d, r, 4.0)}) > 1
 
 
 def _region_of(d: Detection, regions: Sequence[Region]) -> Region | None:
@@ -392,7 +413,8 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                     earlier: tuple[Sequence[Detection], Sequence[Region] | None, int] | None
                     = None, unsure: list[str] | None = None,
                     zones: list[tuple[str, Box]] | None = None,
-                    centre: tuple[float, float] | None = None, in_view_here: bool = False
+                    centre: tuple[float, float] | None = None, in_view_here: bool = False,
+                    by_object: bool = False
                     ) -> tuple[list[Detection], list[Region], list[tuple[Region, Detection]]]:
     """``between`` for regions from LiDAR cluster tracks: the carried detections of a frame
     at ``t_ns``, the regions to search here, and fallbacks: (searched window, detection)
@@ -480,7 +502,13 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     nearest this frame) holds it in view for sure (``in_view`` with this frame's regions,
     the find of its region's scale): this frame's window search covers where that region
     moves it, which is all this frame's carried result needs; where it went by the other
-    key frame is that frame's own detection's concern."""
+    key frame is that frame's own detection's concern.
+
+    ``by_object`` (``clusters.carry_by_object``, with ``new_regions``' of the same name): a
+    find held by regions of two objects of its kind that it fits (two cars one behind the
+    other) is not left to the fresh search of one of them: which object it belongs to is
+    not known (a plate of a car leaving the view at 130 px a frame lay in the front-face
+    region of the parked car beside it, fresh here, and had left that region)."""
     (d0, r0, t0), (d1, r1, t1) = before, after
     doubt: list[str] = unsure if unsure is not None else []
     zone: list[tuple[str, Box]] = zones if zones is not None else []
@@ -512,7 +540,8 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
         out = []
         for d in dets:
             r = _region_of(d, rk) if rk else None
-            if r is not None and _key(r) in again_keys and _fits(d, r):
+            if (r is not None and _key(r) in again_keys and _fits(d, r)
+                    and not (by_object and _two_objects(d, rk or ()))):
                 # its region is searched afresh here, at its scale; unless the find's
                 # image velocity, with its reach (``window`` x its size: the velocity is
                 # extrapolated, and a plate nearing the camera speeds up in the image),

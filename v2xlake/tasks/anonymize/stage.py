@@ -559,7 +559,8 @@ def _anonymize_images(
         regions = (guide.regions(agent_col[i], sensors[i], int(stamps[i]))
                    if guide is not None else None)
         fresh = (new_regions(regions, kregions[a], kregions[b], img.shape,
-                             cfg.carry.min_face_px, (known[a], known[b])) if regions else [])
+                             cfg.carry.min_face_px, (known[a], known[b]),
+                             tracked and cfg.clusters.carry_by_object) if regions else [])
         if tracked and cfg.clusters.carry_band and kregions[a] and kregions[b]:
             # the far band is the camera's own rows, not an object: the key frames' band
             # plates are paired and interpolated like any other (a far plate moves little)
@@ -578,7 +579,7 @@ def _anonymize_images(
                 regions, int(stamps[i]), cfg.carry.grow, cfg.clusters.carry_window, img.shape,
                 fresh, (known[e], kregions[e], int(stamps[e])) if e is not None else None,
                 doubt, zones, (cam[1].cx, cam[1].cy) if cam is not None else None,
-                cfg.clusters.carry_in_view_here)
+                cfg.clusters.carry_in_view_here, cfg.clusters.carry_by_object)
             if doubt and cfg.clusters.carry_unsure_full:
                 # carrying cannot tell where an object is here (``carry.between_tracked``'s
                 # ``unsure``)
