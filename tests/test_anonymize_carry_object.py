@@ -53,6 +53,7 @@ def test_a_find_in_two_cars_regions_is_not_left_to_one_of_them() -> None:
         unsure: list[str] = []
         _f, again, _fb = between_tracked(
             ([plate], [parked, leaving], 0), ([], [], 133 * MS), [parked_here], 33 * MS,
-            0.5, 2.0, SHAPE, [parked_here], None, unsure, [], None, False, by_object)
+            0.5, 2.0, SHAPE, [parked_here], None, unsure, [], None, (False, False),
+            by_object)
         assert bool(unsure) == by_object, unsure
         assert bool(again) == by_object

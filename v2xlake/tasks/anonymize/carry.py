@@ -413,8 +413,8 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                     earlier: tuple[Sequence[Detection], Sequence[Region] | None, int] | None
                     = None, unsure: list[str] | None = None,
                     zones: list[tuple[str, Box]] | None = None,
-                    centre: tuple[float, float] | None = None, in_view_here: bool = False,
-                    by_object: bool = False
+                    centre: tuple[float, float] | None = None,
+                    in_view_here: tuple[bool, bool] = (False, False), by_object: bool = False
                     ) -> tuple[list[Detection], list[Region], list[tuple[Region, Detection]]]:
     """``between`` for regions from LiDAR cluster tracks: the carried detections of a frame
     at ``t_ns``, the regions to search here, and fallbacks: (searched window, detection)
@@ -502,7 +502,13 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     nearest this frame) holds it in view for sure (``in_view`` with this frame's regions,
     the find of its region's scale): this frame's window search covers where that region
     moves it, which is all this frame's carried result needs; where it went by the other
-    key frame is that frame's own detection's concern.
+    key frame is that frame's own detection's concern. One flag per key frame (before,
+    after): true only where this frame's regions come from other LiDAR scans than that key
+    frame's (``ClipGuide.scans``). From the same scans this frame's region is the key
+    frame's own, moving the find with it moves it nowhere, and "in view" would only say the
+    find was inside the frame where it was found (a review's case: a plate near the edge
+    moving 3 sizes a frame was called sure on the frame 33 ms after its key frame, its
+    window ending short of where it went).
 
     ``by_object`` (``clusters.carry_by_object``, with ``new_regions``' of the same name): a
     find held by regions of two objects of its kind that it fits (two cars one behind the
@@ -634,17 +640,21 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                                 (o.box[1] + o.box[3] - rk.box[1] - rk.box[3]) / 2))
         return m
 
-    def seen_here(d: Detection, rk: Region | None) -> bool:
-        """Whether this frame's own region of the track of ``d`` holds it in view for sure
-        (``in_view_here``; a find of its region's scale, as the window search moves it)."""
-        return (in_view_here and rk is not None and _fits(d, rk, 4.0)
+    def seen_here(d: Detection, rk: Region | None, side: int) -> bool:
+        """Whether this frame's own region of the track of ``d`` (a find of key frame
+        ``side``: 0 before, 1 after) holds it in view for sure (a find of its region's
+        scale, as the window search moves it). Only where ``in_view_here[side]``: this
+        frame's regions come from other scans than that key frame's; from the same scans
+        its region is the key frame's own, and moving the find with it says nothing of
+        where the find went."""
+        return (in_view_here[side] and rk is not None and _fits(d, rk, 4.0)
                 and in_view(d, rk, here))
 
     def may_enter(d: Detection, rk: Region | None) -> bool:
         """Whether ``d``, found in the key frame after only, may have entered the view
         between the key frames: its track's region in the key frame before is not in
         view whole, and its box grown by its reach (``reach``) touches the edge."""
-        if in_view(d, rk, in_a) or seen_here(d, rk):
+        if in_view(d, rk, in_a) or seen_here(d, rk, 1):
             return False
         return not inside(d.box, reach(d, rk, in_a))
 
@@ -697,7 +707,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                 # 90 px a frame that the full detection found
                 doubt_at(p, f"{p.kind} of {_size(p):.0f} px leaving the view at its velocity",
                          [p.box, ahead, at_b], window * _size(p))
-            elif not in_view(p, rk, in_b) and not seen_here(p, rk):
+            elif not in_view(p, rk, in_b) and not seen_here(p, rk, 0):
                 # with a velocity too: it is extrapolated from two key frames' finds, and
                 # a region not surely in view was the rule before it (kept: the safe side)
                 doubt_at(p, f"{p.kind} of {_size(p):.0f} px gone near the edge"
