@@ -58,6 +58,43 @@ def test_grid_groups_every_cell_in_input_order(cell: float) -> None:
     assert np.array_equal(brute[np.arange(len(i))[:, None], i], d2)
 
 
+def test_queries_above_and_below_the_cloud_find_what_brute_force_finds() -> None:
+    """A query two or more cells above or below the cloud's z range: its shells' column ends
+    lie outside the grid's box, where a bitmap position is another cell's (a review found
+    repeated and wrong neighbours, and an out-of-bounds read, before ``_shell_z`` clipped
+    both ends). Every search against brute force; NaN queries are refused."""
+    rng = np.random.default_rng(7)
+    flat = np.column_stack([rng.uniform(0, 4, 300), rng.uniform(0, 4, 300),
+                            rng.uniform(0, 0.5, 300)])
+    four = np.array([[0.1, 0.1, 0.0], [1.1, 0.1, 0.0], [0.1, 1.1, 0.0], [1.1, 1.1, 0.0]])
+    for pts in (four, flat):
+        g = VoxelGrid(pts, 1.0)
+        q = np.array([[0.5, 0.5, 3.5], [1.5, 1.5, 2000.0], [0.5, 0.5, -3.5],
+                      [2.0, 2.0, -40.0], [3.9, 0.2, 7.3], [0.3, 3.8, -2.2]])
+        d_all = ((q[:, None, :] - pts[None, :, :]) ** 2).sum(-1)
+        k = len(four)
+        idx, d2 = g.batch_knn_search(q, k)
+        assert np.allclose(d2, np.sort(d_all, 1)[:, :k])
+        for t in range(len(q)):
+            assert len(set(idx[t].tolist())) == k  # no point twice
+            assert np.allclose(d_all[t, idx[t]], d2[t])
+        i1, d1 = g.batch_nearest_neighbor_search(q)
+        assert np.allclose(d1, d_all.min(1))
+        assert np.allclose(d_all[np.arange(len(q)), i1], d1)
+        for radius in (3.0, 8.0):
+            ib, db = g.nearest_bounded(q, radius, np.zeros_like(q), np.zeros(len(q)),
+                                       np.full(len(q), -1, dtype=np.int64), np.zeros(len(q)))
+            within = d_all.min(1) < radius ** 2
+            assert np.array_equal(ib >= 0, within)
+            assert np.allclose(db[within], d_all.min(1)[within])
+    g = VoxelGrid(four, 1.0)
+    for bad in ([[np.nan, 0.0, 0.0]], [[0.0, 0.0, np.inf]]):
+        with pytest.raises(ValueError, match="finite"):
+            g.batch_knn_search(np.array(bad), 2)
+        with pytest.raises(ValueError, match="finite"):
+            g.batch_nearest_neighbor_search(np.array(bad))
+
+
 def test_a_cloud_wider_than_the_bitmap_takes_larger_cells() -> None:
     """Points strewn over a box of more cells than the occupancy bitmap holds are gridded
     with larger cells; the searches stay exact."""

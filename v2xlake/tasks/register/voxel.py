@@ -325,11 +325,16 @@ def _shell_z(ix: int, iy: int, cx: int, cy: int, cz: int, s: int, z0: int, z1: i
     if ix == cx - s or ix == cx + s or iy == cy - s or iy == cy + s:
         return z0, z1, 1
     a, b = cz - s, cz + s
-    if a < z0:
-        return (b, b, 1) if b <= z1 else (1, 0, 1)
-    if b > z1:
+    a_in, b_in = z0 <= a <= z1, z0 <= b <= z1
+    if a_in and b_in:
+        return a, b, max(b - a, 1)
+    if a_in:
         return a, a, 1
-    return a, b, max(b - a, 1)
+    if b_in:
+        return b, b, 1
+    # neither end in range: a query above or below the cloud by more than the shell (both
+    # ends then on one side; a cell outside the grid's box has no bit in the bitmap)
+    return 1, 0, 1
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -633,9 +638,10 @@ class VoxelGrid:
 
     def _q(self, q: np.ndarray) -> np.ndarray:
         out = np.ascontiguousarray(np.asarray(q, dtype=np.float64).reshape(-1, 3))
-        if len(out) and np.abs(out).max() * self.inv_cell >= _BIAS - 2:
-            # far beyond any cloud here; the packed cell key has 21 bits per axis
-            raise ValueError("query farther than 2^20 cells from the origin")
+        if len(out) and not np.abs(out).max() * self.inv_cell < _BIAS - 2:
+            # far beyond any cloud here (the packed cell key has 21 bits per axis), or not
+            # finite (NaN: no cell; the search would read outside the grid)
+            raise ValueError("queries must be finite and within 2^20 cells of the origin")
         return out
 
     def batch_nearest_neighbor_search(self, q: np.ndarray, num_threads: int = 1,
