@@ -465,7 +465,9 @@ def _grid_nn_held(bits: np.ndarray, rank: np.ndarray, start: np.ndarray, order: 
     grid's order) and half the gap ``(d2 - d1) / 2`` (``slack``): while it stays within
     ``slack`` of its anchor, ``j`` is still its unique nearest point (every other point is
     farther than ``d2 - move > d1 + move``), so only ``j``'s distance is computed, as the
-    search computes it. ``lb`` 0 and ``hold`` -1: no bound. Results are the plain search's;
+    search computes it. ``lb`` 0 and ``hold`` -1: no bound. Results are the plain search's
+    distances; between points at exactly the same distance the index may differ (this
+    search visits the first shell in scan order, :func:`_grid_knn` nearest cell first);
     also returns the number of queries not searched."""
     nq = q.shape[0]
     out_i = np.full(nq, -1, dtype=np.int64)
@@ -669,7 +671,8 @@ class VoxelGrid:
         unit 70 m away) aligns thousands of centroids that have no correspondence, each
         searching its 27 cells in every iteration, and in GICP's last iterations the
         source barely moves, so most nearest points cannot change. The results are the
-        plain search's."""
+        plain search's (the same distances; of points at exactly one distance, perhaps
+        another)."""
         qq = self._q(q)
         if self.n == 0:
             return np.full(len(qq), -1, dtype=np.int64), np.full(len(qq), np.inf)
