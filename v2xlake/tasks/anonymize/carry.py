@@ -119,9 +119,27 @@ def new_regions(here: Sequence[Region], before: Sequence[Region] | None,
         def obj(r: Region) -> tuple[tuple[str, str], str]:
             return _object(r), r.part
 
-        ok = {obj(r) for r in (*before, *after)} - {
-            obj(r) for r in (*before, *after) if _at_edge(r, shape)}
-        return [r for r in here if not r.instance or obj(r) not in ok or _at_edge(r, shape)]
+        keyed = (*before, *after)
+        edge = {obj(r) for r in keyed if _at_edge(r, shape)}
+        hull = {k: _union([r.box for r in keyed if obj(r) == k])
+                for k in {obj(r) for r in keyed} - edge}
+
+        def carried(r: Region) -> bool:
+            """Its object's part is on a key frame, and at least half of it lies where
+            that part was on the key frames (between them: the object moves on). The
+            part's name alone is not enough: two agents may name a car's ends the other
+            way round (``_object``), and two cars may be given one object number; a
+            region elsewhere in the image is another part, searched here."""
+            b = hull.get(obj(r))
+            if b is None:
+                return False
+            x0, y0 = max(b[0], r.box[0]), max(b[1], r.box[1])
+            x1, y1 = min(b[2], r.box[2]), min(b[3], r.box[3])
+            inter = max(x1 - x0, 0.0) * max(y1 - y0, 0.0)
+            area = (r.box[2] - r.box[0]) * (r.box[3] - r.box[1])
+            return inter >= 0.5 * area
+
+        return [r for r in here if not r.instance or _at_edge(r, shape) or not carried(r)]
     known = ({_key(r) for r in before if not _at_edge(r, shape)}
              & {_key(r) for r in after if not _at_edge(r, shape)})  # (the frames share a size)
     return [r for r in here if not r.instance or _key(r) not in known or _at_edge(r, shape)]
@@ -413,8 +431,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                     earlier: tuple[Sequence[Detection], Sequence[Region] | None, int] | None
                     = None, unsure: list[str] | None = None,
                     zones: list[tuple[str, Box]] | None = None,
-                    centre: tuple[float, float] | None = None,
-                    in_view_here: tuple[bool, bool] = (False, False), by_object: bool = False
+                    centre: tuple[float, float] | None = None, by_object: bool = False
                     ) -> tuple[list[Detection], list[Region], list[tuple[Region, Detection]]]:
     """``between`` for regions from LiDAR cluster tracks: the carried detections of a frame
     at ``t_ns``, the regions to search here, and fallbacks: (searched window, detection)
@@ -496,19 +513,6 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
     searches the regions there at their own scales and the full-frame plan over them.
     ``centre``: the camera's principal point (``_ahead``: image velocities at a constant
     velocity relative to the camera too); None: the image velocity alone.
-
-    ``in_view_here`` (``clusters.carry_in_view_here``): a find gone in the other key frame
-    (or new in it) is not unsure where its track's region on this frame (from the scan
-    nearest this frame) holds it in view for sure (``in_view`` with this frame's regions,
-    the find of its region's scale): this frame's window search covers where that region
-    moves it, which is all this frame's carried result needs; where it went by the other
-    key frame is that frame's own detection's concern. One flag per key frame (before,
-    after): true only where this frame's regions come from other LiDAR scans than that key
-    frame's (``ClipGuide.scans``). From the same scans this frame's region is the key
-    frame's own, moving the find with it moves it nowhere, and "in view" would only say the
-    find was inside the frame where it was found (a review's case: a plate near the edge
-    moving 3 sizes a frame was called sure on the frame 33 ms after its key frame, its
-    window ending short of where it went).
 
     ``by_object`` (``clusters.carry_by_object``, with ``new_regions``' of the same name): a
     find held by regions of two objects of its kind that it fits (two cars one behind the
@@ -640,21 +644,11 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                                 (o.box[1] + o.box[3] - rk.box[1] - rk.box[3]) / 2))
         return m
 
-    def seen_here(d: Detection, rk: Region | None, side: int) -> bool:
-        """Whether this frame's own region of the track of ``d`` (a find of key frame
-        ``side``: 0 before, 1 after) holds it in view for sure (a find of its region's
-        scale, as the window search moves it). Only where ``in_view_here[side]``: this
-        frame's regions come from other scans than that key frame's; from the same scans
-        its region is the key frame's own, and moving the find with it says nothing of
-        where the find went."""
-        return (in_view_here[side] and rk is not None and _fits(d, rk, 4.0)
-                and in_view(d, rk, here))
-
     def may_enter(d: Detection, rk: Region | None) -> bool:
         """Whether ``d``, found in the key frame after only, may have entered the view
         between the key frames: its track's region in the key frame before is not in
         view whole, and its box grown by its reach (``reach``) touches the edge."""
-        if in_view(d, rk, in_a) or seen_here(d, rk, 1):
+        if in_view(d, rk, in_a):
             return False
         return not inside(d.box, reach(d, rk, in_a))
 
@@ -707,7 +701,7 @@ def between_tracked(before: tuple[Sequence[Detection], Sequence[Region] | None, 
                 # 90 px a frame that the full detection found
                 doubt_at(p, f"{p.kind} of {_size(p):.0f} px leaving the view at its velocity",
                          [p.box, ahead, at_b], window * _size(p))
-            elif not in_view(p, rk, in_b) and not seen_here(p, rk, 0):
+            elif not in_view(p, rk, in_b):
                 # with a velocity too: it is extrapolated from two key frames' finds, and
                 # a region not surely in view was the rule before it (kept: the safe side)
                 doubt_at(p, f"{p.kind} of {_size(p):.0f} px gone near the edge"

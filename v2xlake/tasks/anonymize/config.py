@@ -385,18 +385,6 @@ class Clusters(Section):
         True, description="frames of a LiDAR-only clip between key frames also get the "
         "shrunk safety pass (safety.*): a close vehicle crossing the view moves its plate "
         "100+ px a frame, farther than the search around its key-frame box reaches")
-    carry_in_view_here: bool = Field(
-        True, description="with clusters.carry, a find of one key frame without a "
-        "partner in the other is not a reason to call a frame between them unsure when "
-        "that frame's own region of its track (from the LiDAR scan nearest the frame) is "
-        "whole and, moved with it, the find stays inside the frame: the frame's window "
-        "search covers it there (carry.between_tracked). Only where that scan is not the "
-        "key frame's own (a region from the same scan moves the find nowhere). Simulated "
-        "LiDAR-only 1080p clips against false in one run: unsure frames 55 -> 51 of 120 "
-        "(seeds 0-3, 0.3 s), 136 "
-        "-> 129 of 228 (seeds 0-1, 1.0 s), 61 -> 54 and 54 -> 48 of 114 (held-out seeds "
-        "4-5, 1.0 s), every face >= 16 px and plate >= 20 px that false blurs still "
-        "blurred; false: the key frames' regions alone")
     carry_by_object: bool = Field(
         True, description="with clusters.carry, a region of a frame between key frames is "
         "carried (not searched afresh) when its object's part (clusters.object_ids: any "

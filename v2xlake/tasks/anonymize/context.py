@@ -91,18 +91,6 @@ class ClipGuide:
         return regions
 
 
-    def scans(self, stamp_abs: int) -> tuple[int, ...]:
-        """The LiDAR scans an image's cluster regions come from: each agent's scan nearest
-        the image's time (``_at``), in agent order; () for annotated boxes (moved to each
-        image's time by their velocity: every image has its own). Two images with the same
-        scans have the same objects' boxes: one says nothing of the other's motion
-        (``carry.between_tracked``'s ``in_view_here``)."""
-        if self.source != "lidar clusters":
-            return ()
-        t = self.rel(stamp_abs)
-        return tuple(int(b.t_ns[np.argmin(np.abs(b.t_ns - t))]) if len(b) else -1
-                     for _, b in sorted(self.boxes.items()))
-
     def _at(self, b: WorldBoxes, t: int, agent: str = "") -> WorldBoxes:
         """Boxes at time ``t``: annotated instances moved by their velocity; LiDAR clusters
         (no velocity; their track numbers, ``clusters.track_ids``, let carrying pair them) from

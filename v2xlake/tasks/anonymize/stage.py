@@ -574,19 +574,12 @@ def _anonymize_images(
             doubt: list[str] = []
             zones: list[tuple[str, Box]] = []
             cam = guide.cameras.get((agent_col[i], sensors[i])) if guide is not None else None
-            # this frame's regions vouch for a key frame's find only where they come from
-            # other LiDAR scans than that key frame's (``carry.between_tracked``)
-            scans = guide.scans(int(stamps[i])) if guide is not None else ()
-            here_new = (False, False)
-            if cfg.clusters.carry_in_view_here and guide is not None:
-                here_new = (scans != guide.scans(int(stamps[a])),
-                            scans != guide.scans(int(stamps[b])))
             found, again, fallback = between_tracked(
                 (known[a], kregions[a], int(stamps[a])), (known[b], kregions[b], int(stamps[b])),
                 regions, int(stamps[i]), cfg.carry.grow, cfg.clusters.carry_window, img.shape,
                 fresh, (known[e], kregions[e], int(stamps[e])) if e is not None else None,
                 doubt, zones, (cam[1].cx, cam[1].cy) if cam is not None else None,
-                here_new, cfg.clusters.carry_by_object)
+                cfg.clusters.carry_by_object)
             if doubt and cfg.clusters.carry_unsure_full:
                 # carrying cannot tell where an object is here (``carry.between_tracked``'s
                 # ``unsure``)
