@@ -425,6 +425,10 @@ def main() -> None:
     ap.add_argument("--face-plate-m", type=float, default=0.52,
                     help="with --face-plates: the plates' width in metres (the face drawn "
                     "around them at that scale; the face still expects 0.52 m)")
+    ap.add_argument("--face-window", action="store_true",
+                    help="with --face-plates: only the part of the face around the plate "
+                    "searched, as a light key frame searches a plate found before "
+                    "(carry._sub_face): a small text-detector canvas")
     ap.add_argument("--band-plates", action="store_true",
                     help="only: real plates pasted into the far band of LiDAR-only clips "
                     "(seeds: --lidar-seeds)")
@@ -466,7 +470,8 @@ def main() -> None:
         face_plates({"default": AnonymizeConfig(), **{
             n: AnonymizeConfig(**json.loads(v)) for n, v in
             (a.split("=", 1) for a in args.clip_set)}}, half=args.plates_half,
-            soft=(soft[0], soft[1]) if soft else None, plate_m=args.face_plate_m)
+            soft=(soft[0], soft[1]) if soft else None, plate_m=args.face_plate_m,
+            window=args.face_window)
         return
     if args.clips:
         cv2.setNumThreads(1)
@@ -800,7 +805,8 @@ def band_plates(seeds: list[int], widths: tuple[int, ...] = (20, 30, 40), per_fr
 # -------------------------------------------------------------------- simulator clips
 def face_plates(variants: dict[str, AnonymizeConfig], half: str = "all",
                 widths: tuple[int, ...] = (24, 32, 48, 64, 96, 140),
-                soft: tuple[float, float] | None = None, plate_m: float = 0.52) -> None:
+                soft: tuple[float, float] | None = None, plate_m: float = 0.52,
+                window: bool = False) -> None:
     """Real plates on a rectified vehicle face, as a LiDAR-only clip's region search sees
     them (issue #22: the text detector on vehicle faces is the largest cost there, and the
     simulator's plates are easy): each plates_eu photo shrunk so its labelled plate is W px
@@ -814,7 +820,11 @@ def face_plates(variants: dict[str, AnonymizeConfig], half: str = "all",
     around its mean and blurred (Gaussian, ``sigma`` px): soft, low-contrast plates (range,
     motion, haze), which a cut to proposals lost in the far band. ``plate_m``: the plate's
     width in metres (the face around it drawn at that scale, the rectified face still
-    expecting 0.52 m): narrower plates (short EU 0.34 m, US 0.305 m, Japan 0.33 m)."""
+    expecting 0.52 m): narrower plates (short EU 0.34 m, US 0.305 m, Japan 0.33 m).
+    ``window``: only the part of the face around the plate is searched, as a light key frame
+    searches a face where the full key frame before found a plate (``carry._sub_face`` of
+    the labelled box: the text detector's canvas is small)."""
+    from v2xlake.tasks.anonymize.carry import _sub_face
     from v2xlake.tasks.anonymize.evaluate import plates_eu
     from v2xlake.tasks.anonymize.guide import Region
 
@@ -850,6 +860,10 @@ def face_plates(variants: dict[str, AnonymizeConfig], half: str = "all",
             y0 = y1 - fh_m * fpm
             region = Region("plate", (x0, y0, x1, y1), float(wd), "real",
                             ((x0, y0), (x1, y0), (x1, y1), (x0, y1)), (fw_m, fh_m), "rear")
+            if window:
+                sub = _sub_face(region, pb, img.shape[1], img.shape[0])
+                assert sub is not None
+                region = sub
             hit = {}
             for name, det in dets.items():
                 t = time.process_time()
@@ -861,8 +875,8 @@ def face_plates(variants: dict[str, AnonymizeConfig], half: str = "all",
             for name in variants:
                 if hit[first] and not hit[name]:
                     lost[name].append(f"{Path(item.path).name} {wd} px")
-    print(f"\nReal plates on a rectified vehicle face ({len(eu)} plates_eu photos, {half}; "
-          "found at IoU >= 0.3)")
+    print(f"\nReal plates on a rectified vehicle face{' (its plate window)' if window else ''}"
+          f" ({len(eu)} plates_eu photos, {half}; found at IoU >= 0.3)")
     for name in variants:
         print(f"  {name}: " + ", ".join(f"{wd} px {found[name][wd]}/{len(eu)}"
                                         for wd in widths)

@@ -254,6 +254,29 @@ class Regions(Section):
         "detector's cost is its pixels). Face canvases keep the fixed width: fitted, a 19 px "
         "face near the score threshold was lost on a simulated LiDAR-only clip (seed 2). "
         "With clusters.orient_by_object_ms: docs/anonymization.md, 2026-11-28")
+    plate_canvas_min_w: int = Field(
+        448, ge=0, description="a text-detector canvas holding a rectified vehicle face is "
+        "padded right and below with grey regions.plate_canvas_fill to at least this width "
+        "and regions.plate_canvas_min_h height (px; 0, 0: as packed) where the network "
+        "would see less (its size "
+        "rounded up to multiples of 32); crops (far band, full-frame plan) never. Why: the "
+        "detector (PP-OCR's DB) finds fewer real plates in a small canvas than in the same "
+        "pixels inside a larger one: a light key frame's plate window (carry.plate_windows, "
+        "~256 x 128 px) found real plates of 24 / 32 px 37 / 85 of 108, padded 67 / 98 "
+        "(bench_anonymize --face-plates --face-window; docs/anonymization.md, 2026-11-28)")
+    plate_canvas_min_h: int = Field(
+        256, ge=0, description="the height of regions.plate_canvas_min_w's floor (px)")
+    plate_canvas_fill: int = Field(
+        0, ge=0, le=255, description="the grey level of the floor's padding "
+        "(regions.plate_canvas_min_w; black: grey 114 found 57 of the 24 px plates black "
+        "found 67 of)")
+    plate_stretch: float = Field(
+        0.0, ge=0, lt=50, description="each rectified vehicle face in a text-detector "
+        "canvas stretched so its grey levels' P and 100 - P percentiles span 0-255 (gain at "
+        "most 8; 0: off). Why: soft, low-contrast plates on a vehicle face are missed (real "
+        "plates at contrast 0.35, blur 1 px, 64 / 96 px: 5 / 55 of 108 found, with P = 1 "
+        "89 / 105). Off: on simulated LiDAR-only clips it raised false blurs (seed 3 0.07 -> "
+        "0.17 per image); for recordings of hazy or soft plates")
     plate_parts_whole: bool = Field(
         True, description="where plate boxes are merged (a guided frame's regions' passes "
         "with the final boxes of its safety or full-frame plan, and the full-frame plan's "

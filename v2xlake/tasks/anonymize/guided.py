@@ -93,6 +93,14 @@ class GuidedConfig(FromParams):
     pack_fit: bool = False
     plate_pack_fit: bool = _param("regions.plate_pack_fit")
     plate_parts_whole: bool = _param("regions.plate_parts_whole")  # ``nms_plate_parts``
+    # the text detector's canvases of the guided plan (``plate_view``): padded with grey
+    # ``plate_canvas_fill`` to at least ``plate_canvas_min_w`` x ``_h`` px; each piece's grey
+    # levels stretched so its ``plate_stretch`` / 100 - ``plate_stretch`` percentiles span
+    # 0-255 (0: off)
+    plate_canvas_min_w: int = _param("regions.plate_canvas_min_w")
+    plate_canvas_min_h: int = _param("regions.plate_canvas_min_h")
+    plate_canvas_fill: int = _param("regions.plate_canvas_fill")
+    plate_stretch: float = _param("regions.plate_stretch")
     face_threshold: float = _param("faces.threshold")  # in projected regions
     full_face_threshold: float = _param("faces.full_threshold")  # in full-frame passes
     face_size_range: tuple[float, float] = (0.15, 3.0)  # x the expected face height
@@ -601,6 +609,35 @@ def mosaics(image: np.ndarray, pieces: Sequence[Piece], cfg: GuidedConfig
     return out
 
 
+def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int, int]],
+               cfg: GuidedConfig) -> np.ndarray:
+    """The canvas the text detector searches: each rectified vehicle face's piece stretched
+    (``plate_stretch``); a canvas holding one padded right and below to
+    ``plate_canvas_min_w`` x ``plate_canvas_min_h`` (canvas coordinates unchanged). Crops
+    (the far band, the full-frame plan's) are left as packed."""
+    out = canvas
+    if cfg.plate_stretch > 0:
+        out = canvas.copy()
+        for p, (px, py) in zip(ps, pos, strict=True):
+            if p.ppm <= 0:  # a crop, not a rectified vehicle face
+                continue
+            sub = out[py : py + p.out_h, px : px + p.out_w]
+            lo, hi = np.percentile(to_gray(sub), (cfg.plate_stretch, 100 - cfg.plate_stretch))
+            if hi - lo >= 1:
+                g = min(255.0 / (hi - lo), 8.0)
+                mid = 0.5 * (lo + hi)
+                sub[:] = np.clip((sub.astype(np.float32) - mid) * g + 127.5, 0, 255
+                                 ).astype(np.uint8)
+    mw, mh = cfg.plate_canvas_min_w, cfg.plate_canvas_min_h
+    h, w = out.shape[:2]
+    # the network sees a canvas padded to multiples of 32 (``prob_map``): one that is
+    # at least the floor so is left as it is
+    if (-(-w // 32) * 32 < mw or -(-h // 32) * 32 < mh) and any(p.ppm > 0 for p in ps):
+        out = cv2.copyMakeBorder(out, 0, max(0, mh - h), 0, max(0, mw - w),
+                                 cv2.BORDER_CONSTANT, value=(cfg.plate_canvas_fill,) * 3)
+    return out
+
+
 def _piece_of(box: np.ndarray, pieces: Sequence[Piece], pos: Sequence[tuple[int, int]]
               ) -> int | None:
     cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
@@ -998,7 +1035,11 @@ class GuidedDetector:
             + (f":band-look{c.band_look_px:g}" if c.band_look_px > 0 else "")
             + (f":band-blob{c.band_blob_max_px:g}" if c.band_blob_max_px > 0 else "")
             + (f":{weights_version()}" if c.band_learned_score > 0 else "")
-            + (":plate-parts-whole" if c.plate_parts_whole else ""))
+            + (":plate-parts-whole" if c.plate_parts_whole else "")
+            + (f":plate-stretch{c.plate_stretch:g}" if c.plate_stretch > 0 else "")
+            + (f":plate-canvas{c.plate_canvas_min_w}x{c.plate_canvas_min_h}"
+               f"/{c.plate_canvas_fill}" if max(c.plate_canvas_min_w, c.plate_canvas_min_h) > 0
+               else ""))
         if region_first is not None and face is not None:
             self.version += (f"|region-first@{region_first.version}"
                              f":f{c.face_proposal_threshold:g}/{c.face_first_accept:g}")
@@ -1308,7 +1349,7 @@ class GuidedDetector:
                           [it for (it, _a, _r), k in zip(closer, kept, strict=True) if k])]
         for canvas, pcs, pos in mosaics(image, pieces, replace(c, pack_fit=True)):
             cand = []
-            for line in self.plate.lines_view(canvas):
+            for line in self.plate.lines_view(plate_view(canvas, pcs, pos, c)):
                 i = _piece_of(np.asarray(self.plate.plate_box(line[:5])), pcs, pos)
                 if i is None:
                     continue
@@ -1513,7 +1554,7 @@ class GuidedDetector:
                 if sc >= c.face_threshold and i is not None:
                     found.append((b, float(sc), i))
         else:
-            for line in det.lines_view(canvas):
+            for line in det.lines_view(plate_view(canvas, ps, pos, c)):
                 b = det.plate_box(line[:5])
                 i = _piece_of(b, ps, pos)
                 if i is None:

@@ -1,0 +1,116 @@
+"""The text detector's canvases on vehicle faces (issue #22): a real plate in the small
+canvas of a light key frame's plate window (``carry._sub_face``) is found only with the
+canvas padded to 448 x 256 (``regions.plate_canvas_min_w`` / ``_h``); a soft,
+low-contrast real plate on a whole rectified vehicle face only with the face's grey levels
+stretched
+(``regions.plate_stretch``). Both are a pure function of the canvas (``guided.plate_view``),
+crops left as they are."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.fixtures.real import requires_real_data
+from v2xlake.tasks.anonymize.build import build_detector
+from v2xlake.tasks.anonymize.carry import _sub_face
+from v2xlake.tasks.anonymize.config import AnonymizeConfig
+from v2xlake.tasks.anonymize.evaluate import match, plates_eu
+from v2xlake.tasks.anonymize.guide import Region
+from v2xlake.tasks.anonymize.guided import GuidedConfig, Piece, plate_view
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+EU = REAL / "plates_eu"
+
+
+def face_on_plate(photo: np.ndarray, box: tuple[float, ...], width: int,
+                  soft: tuple[float, float] | None) -> tuple[np.ndarray, Region, tuple]:
+    """The photo shrunk so its plate is ``width`` px, made soft (contrast scaled around the
+    mean, Gaussian blur), a 2.4 x 1.25 m vehicle face around the plate (as
+    ``bench_anonymize --face-plates``)."""
+    k = width / (box[2] - box[0])
+    img = cv2.resize(photo, None, fx=k, fy=k,
+                     interpolation=cv2.INTER_AREA if k < 1 else cv2.INTER_LINEAR)
+    if soft is not None:
+        f = img.astype(np.float32)
+        f = f.mean() + soft[0] * (f - f.mean())
+        img = np.clip(cv2.GaussianBlur(f, (0, 0), soft[1]), 0, 255).astype(np.uint8)
+    fpm = width / 0.52
+    pad = int(np.ceil(2.4 * fpm))
+    img = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    pb = tuple(v * k + pad for v in box)
+    cx, cy = (pb[0] + pb[2]) / 2, (pb[1] + pb[3]) / 2
+    x0, x1 = cx - 1.2 * fpm, cx + 1.2 * fpm
+    y1 = cy + 0.45 * fpm
+    y0 = y1 - 1.25 * fpm
+    region = Region("plate", (x0, y0, x1, y1), float(width), "real",
+                    ((x0, y0), (x1, y0), (x1, y1), (x0, y1)), (2.4, 1.25), "rear")
+    return img, region, pb
+
+
+def test_plate_view_stretches_faces_not_crops() -> None:
+    """A rectified face piece's grey levels are spread to 0-255; a crop beside it in the same
+    canvas is untouched; off the canvas is the same array. The floor pads a canvas holding a
+    face, not one of crops alone nor one the network sees at the floor's size already."""
+    rng = np.random.default_rng(0)
+    canvas = (100 + 40 * rng.random((64, 256, 3))).astype(np.uint8)
+    face = Piece("plate", np.eye(3), 96, 48, (20.0, 20.0), 150.0)
+    crop = Piece("plate", np.eye(3), 96, 48, (20.0, 20.0), 0.0)
+    pos = [(8, 8), (128, 8)]
+    off = replace(GuidedConfig(), plate_canvas_min_w=0, plate_canvas_min_h=0, plate_stretch=0.0)
+    assert plate_view(canvas, [face, crop], pos, off) is canvas
+    out = plate_view(canvas, [face, crop], pos, replace(off, plate_stretch=1.0))
+    f = out[8:56, 8:104]
+    assert f.min() <= 5 and f.max() >= 250
+    assert np.array_equal(out[8:56, 128:224], canvas[8:56, 128:224])
+    assert np.array_equal(out[:8], canvas[:8])  # outside the pieces: as packed
+    floor = replace(off, plate_canvas_min_w=448, plate_canvas_min_h=256, plate_canvas_fill=7)
+    big = plate_view(canvas, [face, crop], pos, floor)
+    assert big.shape == (256, 448, 3) and np.array_equal(big[:64, :256], canvas)
+    assert (big[64:] == 7).all() and (big[:, 256:] == 7).all()
+    assert plate_view(canvas, [crop], pos[1:], floor) is canvas  # crops alone: as packed
+    whole = np.zeros((231, 443, 3), np.uint8)  # the network sees it as 448 x 256 already
+    assert plate_view(whole, [face], pos[:1], floor) is whole
+
+
+@requires_real_data("plates_eu")
+@pytest.mark.parametrize("name", ["eu4.jpg", "eu6.jpg"])
+def test_window_real_plate_found_only_with_the_floor(name: str) -> None:
+    """A real plate 32 px wide: a light key frame searches only the part of its vehicle face
+    around the plate the key frame before found (``carry._sub_face``, a 256 x 128 px canvas
+    at the face's scale). There the text detector finds no plate; the same canvas padded
+    with black to 448 x 256 px, it does."""
+    item = next(i for i in plates_eu(EU) if Path(i.path).name == name)
+    box = next(b for k, b in item.truth if k == "plate")
+    img, face, pb = face_on_plate(cv2.imread(item.path), box, 32, None)
+    window = _sub_face(face, pb, img.shape[1], img.shape[0])
+    assert window is not None
+    det = build_detector(AnonymizeConfig())
+    det.config = replace(det.config, plate_canvas_min_w=0, plate_canvas_min_h=0)
+    plain = [d for d in det.in_regions(img, [window]) if d.kind == "plate"]
+    assert not match([("plate", pb)], plain, 0.3)[0][0]
+    det.config = replace(det.config, plate_canvas_min_w=448, plate_canvas_min_h=256)
+    got = [d for d in det.in_regions(img, [window]) if d.kind == "plate"]
+    assert match([("plate", pb)], got, 0.3)[0][0]
+
+
+@requires_real_data("plates_eu")
+@pytest.mark.parametrize("name", ["eu10.jpg", "eu11.jpg"])
+def test_soft_real_plate_found_only_stretched(name: str) -> None:
+    """A real plate 64 px wide, its contrast scaled by 0.35 and blurred (sigma 1 px), on a
+    rectified vehicle face: the text detector finds no plate there as the face is; with the
+    face's grey levels stretched (1st-99th percentile) it does."""
+    item = next(i for i in plates_eu(EU) if Path(i.path).name == name)
+    box = next(b for k, b in item.truth if k == "plate")
+    img, region, pb = face_on_plate(cv2.imread(item.path), box, 64, (0.35, 1.0))
+    det = build_detector(AnonymizeConfig())
+    det.config = replace(det.config, plate_stretch=0.0)
+    plain = [d for d in det.in_regions(img, [region]) if d.kind == "plate"]
+    assert not match([("plate", pb)], plain, 0.3)[0][0]
+    det.config = replace(det.config, plate_stretch=1.0)
+    got = [d for d in det.in_regions(img, [region]) if d.kind == "plate"]
+    assert match([("plate", pb)], got, 0.3)[0][0]
