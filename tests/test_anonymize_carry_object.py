@@ -52,6 +52,13 @@ def test_a_part_of_one_object_elsewhere_in_the_image_is_searched() -> None:
     assert new_regions([partly], [front_a], [front_b], SHAPE, by_object=True) == [partly]
     between = _face("lidar:black:L:t31@o25", (930.0, 510.0, 1230.0, 790.0), "front")
     assert new_regions([between], [front_a], [front_b], SHAPE, by_object=True) == []
+    # an object moving diagonally: a corner of the box around both places was never its
+    up_left = _face("lidar:red:L:t4@o25", (100.0, 100.0, 300.0, 300.0), "front")
+    down_right = _face("lidar:red:L:t4@o25", (900.0, 700.0, 1100.0, 900.0), "front")
+    corner = _face("lidar:black:L:t31@o25", (900.0, 100.0, 1100.0, 300.0), "front")
+    assert new_regions([corner], [up_left], [down_right], SHAPE, by_object=True) == [corner]
+    on_the_way = _face("lidar:black:L:t31@o25", (480.0, 380.0, 680.0, 580.0), "front")
+    assert new_regions([on_the_way], [up_left], [down_right], SHAPE, by_object=True) == []
 
 
 def test_a_find_in_two_cars_regions_is_not_left_to_one_of_them() -> None:

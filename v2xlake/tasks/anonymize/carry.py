@@ -121,23 +121,35 @@ def new_regions(here: Sequence[Region], before: Sequence[Region] | None,
 
         keyed = (*before, *after)
         edge = {obj(r) for r in keyed if _at_edge(r, shape)}
-        hull = {k: _union([r.box for r in keyed if obj(r) == k])
-                for k in {obj(r) for r in keyed} - edge}
+        # where each object's part was: its key-frame boxes, and between a box of the key
+        # frame before and one of the key frame after, the boxes at 1/4, 1/2 and 3/4 of
+        # the way (the path of an object moving on, not the box around both places: an
+        # object moving diagonally would make that hold a corner it never was in)
+        places: dict[tuple[tuple[str, str], str], list[Box]] = {}
+        for r in keyed:
+            if obj(r) not in edge:
+                places.setdefault(obj(r), []).append(r.box)
+        for ra in before:
+            for rb in after:
+                if obj(ra) == obj(rb) and obj(ra) not in edge:
+                    places[obj(ra)] += [
+                        tuple(float((1 - f) * u + f * v)  # type: ignore[misc]
+                              for u, v in zip(ra.box, rb.box, strict=True))
+                        for f in (0.25, 0.5, 0.75)]
 
         def carried(r: Region) -> bool:
-            """Its object's part is on a key frame, and at least half of it lies where
-            that part was on the key frames (between them: the object moves on). The
-            part's name alone is not enough: two agents may name a car's ends the other
-            way round (``_object``), and two cars may be given one object number; a
-            region elsewhere in the image is another part, searched here."""
-            b = hull.get(obj(r))
-            if b is None:
-                return False
-            x0, y0 = max(b[0], r.box[0]), max(b[1], r.box[1])
-            x1, y1 = min(b[2], r.box[2]), min(b[3], r.box[3])
-            inter = max(x1 - x0, 0.0) * max(y1 - y0, 0.0)
+            """Its object's part is on a key frame, and at least half of it lies in one
+            place that part was in, or passed through, between the key frames. The part's
+            name alone is not enough: two agents may name a car's ends the other way round
+            (``_object``), and two cars may be given one object number; a region elsewhere
+            in the image is another part, searched here."""
             area = (r.box[2] - r.box[0]) * (r.box[3] - r.box[1])
-            return inter >= 0.5 * area
+            for b in places.get(obj(r), ()):
+                x0, y0 = max(b[0], r.box[0]), max(b[1], r.box[1])
+                x1, y1 = min(b[2], r.box[2]), min(b[3], r.box[3])
+                if max(x1 - x0, 0.0) * max(y1 - y0, 0.0) >= 0.5 * area:
+                    return True
+            return False
 
         return [r for r in here if not r.instance or _at_edge(r, shape) or not carried(r)]
     known = ({_key(r) for r in before if not _at_edge(r, shape)}

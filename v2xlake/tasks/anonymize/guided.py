@@ -613,8 +613,9 @@ def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int,
                cfg: GuidedConfig) -> np.ndarray:
     """The canvas the text detector searches: each rectified vehicle face's piece stretched
     (``plate_stretch``); a canvas holding one padded right and below to
-    ``plate_canvas_min_w`` x ``plate_canvas_min_h`` (canvas coordinates unchanged). Crops
-    (the far band, the full-frame plan's) are left as packed."""
+    ``plate_canvas_min_w`` x ``plate_canvas_min_h`` (canvas coordinates unchanged). A
+    canvas of crops alone (the far band's, the full-frame plan's) is left as packed; a crop
+    packed beside a face (the packer mixes them) shares the face's padding."""
     out = canvas
     if cfg.plate_stretch > 0:
         out = canvas.copy()
