@@ -272,12 +272,26 @@ class Regions(Section):
         "(regions.plate_canvas_min_w; black: grey 114 found 57 of the 24 px plates black "
         "found 67 of)")
     plate_stretch: float = Field(
-        0.0, ge=0, lt=50, description="each rectified vehicle face in a text-detector "
+        1.0, ge=0, lt=50, description="each rectified vehicle face in a text-detector "
         "canvas stretched so its grey levels' P and 100 - P percentiles span 0-255 (gain at "
-        "most 8; 0: off). Why: soft, low-contrast plates on a vehicle face are missed (real "
-        "plates at contrast 0.35, blur 1 px, 64 / 96 px: 5 / 55 of 108 found, with P = 1 "
-        "89 / 105). Off: on simulated LiDAR-only clips it raised false blurs (seed 3 0.07 -> "
-        "0.17 per image); for recordings of hazy or soft plates")
+        "most 8; 0: off), only a low-contrast one (regions.plate_stretch_below). Why: soft, "
+        "low-contrast plates on a vehicle face are missed (real plates at contrast 0.35, "
+        "blur 1 px, 48 / 64 / 96 px: 0 / 5 / 55 of 108 found, stretched 23 / 89 / 105; "
+        "bench_anonymize --face-plates --face-soft 0.35,1.0). Every face stretched raised "
+        "false blurs on simulated LiDAR-only clips (seed 3 0.07 -> 0.17 per image), hence "
+        "the gate (docs/anonymization.md, 2026-11-28)")
+    plate_stretch_below: float = Field(
+        96.0, ge=0, le=255, description="with regions.plate_stretch P: a rectified vehicle "
+        "face is stretched only where its grey levels' P and 100 - P percentiles lie less "
+        "than this many grey levels apart (0: every face). Why: the stretch is for soft, "
+        "low-contrast faces; the 648 sharp real faces of bench_anonymize --face-plates "
+        "spread 135-253 (1st percentile 144), those at contrast 0.35 / blur 1 px 42-87, so "
+        "a sharp face is left as it is (found unchanged). Every face stretched (0) or the "
+        "bound 128 raised simulated LiDAR-only seed 3's false blurs 0.07 -> 0.17 / 0.19 per "
+        "image, 96: 0.11 (seeds 0-2, 4, 5 unchanged), 64: 0.07; 96 keeps the soft plates of "
+        "contrast 0.35 (all under it), less of them at contrast 0.5 / blur 1.5 px "
+        "(spread 56-125; 96 / 140 px: 55 / 97 of 108 found, every face stretched 96 / 105). "
+        "Chosen among 64 / 96 / 128 on seed 3 (docs/anonymization.md, 2026-11-28)")
     plate_parts_whole: bool = Field(
         True, description="where plate boxes are merged (a guided frame's regions' passes "
         "with the final boxes of its safety or full-frame plan, and the full-frame plan's "

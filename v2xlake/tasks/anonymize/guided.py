@@ -96,11 +96,13 @@ class GuidedConfig(FromParams):
     # the text detector's canvases of the guided plan (``plate_view``): padded with grey
     # ``plate_canvas_fill`` to at least ``plate_canvas_min_w`` x ``_h`` px; each piece's grey
     # levels stretched so its ``plate_stretch`` / 100 - ``plate_stretch`` percentiles span
-    # 0-255 (0: off)
+    # 0-255 (0: off), only where they lie less than ``plate_stretch_below`` grey levels
+    # apart (0: every piece)
     plate_canvas_min_w: int = _param("regions.plate_canvas_min_w")
     plate_canvas_min_h: int = _param("regions.plate_canvas_min_h")
     plate_canvas_fill: int = _param("regions.plate_canvas_fill")
     plate_stretch: float = _param("regions.plate_stretch")
+    plate_stretch_below: float = _param("regions.plate_stretch_below")
     face_threshold: float = _param("faces.threshold")  # in projected regions
     full_face_threshold: float = _param("faces.full_threshold")  # in full-frame passes
     face_size_range: tuple[float, float] = (0.15, 3.0)  # x the expected face height
@@ -612,10 +614,11 @@ def mosaics(image: np.ndarray, pieces: Sequence[Piece], cfg: GuidedConfig
 def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int, int]],
                cfg: GuidedConfig) -> np.ndarray:
     """The canvas the text detector searches: each rectified vehicle face's piece stretched
-    (``plate_stretch``); a canvas holding one padded right and below to
-    ``plate_canvas_min_w`` x ``plate_canvas_min_h`` (canvas coordinates unchanged). A
-    canvas of crops alone (the far band's, the full-frame plan's) is left as packed; a crop
-    packed beside a face (the packer mixes them) shares the face's padding."""
+    (``plate_stretch``), only one of low contrast (``plate_stretch_below``); a canvas
+    holding one padded right and below to ``plate_canvas_min_w`` x ``plate_canvas_min_h``
+    (canvas coordinates unchanged). A canvas of crops alone (the far band's, the full-frame
+    plan's) is left as packed; a crop packed beside a face (the packer mixes them) shares
+    the face's padding."""
     out = canvas
     if cfg.plate_stretch > 0:
         out = canvas.copy()
@@ -624,7 +627,8 @@ def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int,
                 continue
             sub = out[py : py + p.out_h, px : px + p.out_w]
             lo, hi = np.percentile(to_gray(sub), (cfg.plate_stretch, 100 - cfg.plate_stretch))
-            if hi - lo >= 1:
+            if hi - lo >= 1 and (cfg.plate_stretch_below <= 0
+                                 or hi - lo < cfg.plate_stretch_below):
                 g = min(255.0 / (hi - lo), 8.0)
                 mid = 0.5 * (lo + hi)
                 sub[:] = np.clip((sub.astype(np.float32) - mid) * g + 127.5, 0, 255
@@ -1038,6 +1042,8 @@ class GuidedDetector:
             + (f":{weights_version()}" if c.band_learned_score > 0 else "")
             + (":plate-parts-whole" if c.plate_parts_whole else "")
             + (f":plate-stretch{c.plate_stretch:g}" if c.plate_stretch > 0 else "")
+            + (f"<{c.plate_stretch_below:g}"
+               if c.plate_stretch > 0 and c.plate_stretch_below > 0 else "")
             + (f":plate-canvas{c.plate_canvas_min_w}x{c.plate_canvas_min_h}"
                f"/{c.plate_canvas_fill}" if max(c.plate_canvas_min_w, c.plate_canvas_min_h) > 0
                else ""))
