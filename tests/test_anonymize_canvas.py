@@ -2,7 +2,7 @@
 canvas of a light key frame's plate window (``carry._sub_face``) is found only with the
 canvas padded to 448 x 256 (``regions.plate_canvas_min_w`` / ``_h``); a soft,
 low-contrast real plate on a whole rectified vehicle face only with the face's grey levels
-stretched (``regions.plate_stretch``, on for faces of low contrast alone:
+stretched (``regions.plate_stretch``, an option, for faces of low contrast alone:
 ``regions.plate_stretch_below``). Both are a pure function of the canvas (``guided.plate_view``),
 crops left as they are."""
 
@@ -103,8 +103,8 @@ def test_window_real_plate_found_only_with_the_floor(name: str) -> None:
 def test_soft_real_plate_found_only_stretched(name: str) -> None:
     """A real plate 64 px wide, its contrast scaled by 0.35 and blurred (sigma 1 px), on a
     rectified vehicle face: the text detector finds no plate there as the face is; with the
-    face's grey levels stretched (1st-99th percentile), the default, which stretches only a
-    face of low contrast (``plate_stretch_below``), it does."""
+    face's grey levels stretched (1st-99th percentile; the default gate
+    ``plate_stretch_below``, which stretches only a face of low contrast) it does."""
     item = next(i for i in plates_eu(EU) if Path(i.path).name == name)
     box = next(b for k, b in item.truth if k == "plate")
     img, region, pb = face_on_plate(cv2.imread(item.path), box, 64, (0.35, 1.0))
@@ -112,16 +112,16 @@ def test_soft_real_plate_found_only_stretched(name: str) -> None:
     det.config = replace(det.config, plate_stretch=0.0)
     plain = [d for d in det.in_regions(img, [region]) if d.kind == "plate"]
     assert not match([("plate", pb)], plain, 0.3)[0][0]
-    det = build_detector(AnonymizeConfig())
-    assert det.config.plate_stretch > 0 and det.config.plate_stretch_below > 0
+    assert det.config.plate_stretch_below > 0
+    det.config = replace(det.config, plate_stretch=1.0)
     got = [d for d in det.in_regions(img, [region]) if d.kind == "plate"]
     assert match([("plate", pb)], got, 0.3)[0][0]
 
 
 def test_plate_stretch_below_gates_on_the_face_spread() -> None:
-    """By default a face piece whose 1st-99th percentile grey levels lie closer than
-    ``plate_stretch_below`` is stretched; a face of ordinary contrast beside it (spread over
-    the bound) keeps its pixels, which every face stretched (bound 0) would not."""
+    """With the stretch on, a face piece whose 1st-99th percentile grey levels lie closer
+    than the default ``plate_stretch_below`` is stretched; a face of ordinary contrast beside
+    it (spread over the bound) keeps its pixels, which every face stretched (bound 0) would not."""
     rng = np.random.default_rng(1)
     canvas = np.zeros((64, 256, 3), np.uint8)
     canvas[8:56, 8:104] = (100 + 60 * rng.random((48, 96, 3))).astype(np.uint8)  # soft
@@ -129,7 +129,8 @@ def test_plate_stretch_below_gates_on_the_face_spread() -> None:
     soft = Piece("plate", np.eye(3), 96, 48, (20.0, 20.0), 150.0)
     sharp = Piece("plate", np.eye(3), 96, 48, (20.0, 20.0), 150.0)
     pos = [(8, 8), (128, 8)]
-    cfg = replace(GuidedConfig(), plate_canvas_min_w=0, plate_canvas_min_h=0)
+    cfg = replace(GuidedConfig(), plate_canvas_min_w=0, plate_canvas_min_h=0,
+                  plate_stretch=1.0)
     out = plate_view(canvas, [soft, sharp], pos, cfg)
     assert out[8:56, 8:104].min() <= 5 and out[8:56, 8:104].max() >= 250
     assert np.array_equal(out[8:56, 128:224], canvas[8:56, 128:224])

@@ -272,16 +272,19 @@ class Regions(Section):
         "(regions.plate_canvas_min_w; black: grey 114 found 57 of the 24 px plates black "
         "found 67 of)")
     plate_stretch: float = Field(
-        1.0, ge=0, lt=50, description="each rectified vehicle face in a text-detector "
+        0.0, ge=0, lt=50, description="each rectified vehicle face in a text-detector "
         "canvas stretched so its grey levels' P and 100 - P percentiles span 0-255 (gain at "
         "most 8; 0: off), only a low-contrast one (regions.plate_stretch_below). Why: soft, "
         "low-contrast plates on a vehicle face are missed (real plates at contrast 0.35, "
-        "blur 1 px, 48 / 64 / 96 px: 0 / 5 / 55 of 108 found, stretched 23 / 89 / 105; "
-        "bench_anonymize --face-plates --face-soft 0.35,1.0). Every face stretched raised "
-        "false blurs on simulated LiDAR-only clips (seed 3 0.07 -> 0.17 per image), hence "
-        "the gate (docs/anonymization.md, 2026-11-28)")
+        "blur 1 px, 48 / 64 / 96 px: 0 / 5 / 55 of 108 found, with P = 1 23 / 89 / 105; "
+        "bench_anonymize --face-plates --face-soft 0.35,1.0). Off: the annotated simulated "
+        "1080p clip lost a plate with it (plates >= 20 px 195 -> 194 of 197, every frame in "
+        "full 195 -> 193); every face stretched also raised false blurs on simulated "
+        "LiDAR-only clips (seed 3 0.07 -> 0.17 per image), hence the gate; for recordings "
+        "of hazy or soft plates (docs/anonymization.md, 2026-11-28)")
     plate_stretch_below: float = Field(
-        96.0, ge=0, le=255, description="with regions.plate_stretch P: a rectified vehicle "
+        96.0, ge=0, le=255, description="with regions.plate_stretch P > 0 (off by default): "
+        "a rectified vehicle "
         "face is stretched only where its grey levels' P and 100 - P percentiles lie less "
         "than this many grey levels apart (0: every face). Why: the stretch is for soft, "
         "low-contrast faces; the 648 sharp real faces of bench_anonymize --face-plates "
