@@ -15,41 +15,16 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.fixtures.plates import face_on_plate
 from tests.fixtures.real import requires_real_data
 from v2xlake.tasks.anonymize.build import build_detector
 from v2xlake.tasks.anonymize.carry import _sub_face
 from v2xlake.tasks.anonymize.config import AnonymizeConfig
 from v2xlake.tasks.anonymize.evaluate import match, plates_eu
-from v2xlake.tasks.anonymize.guide import Region
 from v2xlake.tasks.anonymize.guided import GuidedConfig, Piece, plate_view
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 EU = REAL / "plates_eu"
-
-
-def face_on_plate(photo: np.ndarray, box: tuple[float, ...], width: int,
-                  soft: tuple[float, float] | None) -> tuple[np.ndarray, Region, tuple]:
-    """The photo shrunk so its plate is ``width`` px, made soft (contrast scaled around the
-    mean, Gaussian blur), a 2.4 x 1.25 m vehicle face around the plate (as
-    ``bench_anonymize --face-plates``)."""
-    k = width / (box[2] - box[0])
-    img = cv2.resize(photo, None, fx=k, fy=k,
-                     interpolation=cv2.INTER_AREA if k < 1 else cv2.INTER_LINEAR)
-    if soft is not None:
-        f = img.astype(np.float32)
-        f = f.mean() + soft[0] * (f - f.mean())
-        img = np.clip(cv2.GaussianBlur(f, (0, 0), soft[1]), 0, 255).astype(np.uint8)
-    fpm = width / 0.52
-    pad = int(np.ceil(2.4 * fpm))
-    img = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
-    pb = tuple(v * k + pad for v in box)
-    cx, cy = (pb[0] + pb[2]) / 2, (pb[1] + pb[3]) / 2
-    x0, x1 = cx - 1.2 * fpm, cx + 1.2 * fpm
-    y1 = cy + 0.45 * fpm
-    y0 = y1 - 1.25 * fpm
-    region = Region("plate", (x0, y0, x1, y1), float(width), "real",
-                    ((x0, y0), (x1, y0), (x1, y1), (x0, y1)), (2.4, 1.25), "rear")
-    return img, region, pb
 
 
 def test_plate_view_stretches_faces_not_crops() -> None:

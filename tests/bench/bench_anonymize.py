@@ -824,16 +824,15 @@ def face_plates(variants: dict[str, AnonymizeConfig], half: str = "all",
     ``window``: only the part of the face around the plate is searched, as a light key frame
     searches a face where the full key frame before found a plate (``carry._sub_face`` of
     the labelled box: the text detector's canvas is small)."""
+    from tests.fixtures.plates import face_on_plate
     from v2xlake.tasks.anonymize.carry import _sub_face
     from v2xlake.tasks.anonymize.evaluate import plates_eu
-    from v2xlake.tasks.anonymize.guide import Region
 
     eu = plates_eu(REAL / "plates_eu") if (REAL / "plates_eu").is_dir() else []
     eu = eu[::2] if half == "even" else eu[1::2] if half == "odd" else eu
     if not eu:
         print("plates_eu not found")
         return
-    fw_m, fh_m = 2.4, 1.25
     dets = {name: build_detector(cfg) for name, cfg in variants.items()}
     found: dict[str, dict[int, int]] = {n: dict.fromkeys(widths, 0) for n in variants}
     cpu: dict[str, float] = dict.fromkeys(variants, 0.0)
@@ -842,24 +841,7 @@ def face_plates(variants: dict[str, AnonymizeConfig], half: str = "all",
         photo = cv2.imread(item.path)
         box = next(b for k, b in item.truth if k == "plate")
         for wd in widths:
-            k = wd / (box[2] - box[0])
-            img = cv2.resize(photo, None, fx=k, fy=k,
-                             interpolation=cv2.INTER_AREA if k < 1 else cv2.INTER_LINEAR)
-            if soft is not None:
-                f = img.astype(np.float32)
-                f = f.mean() + soft[0] * (f - f.mean())
-                img = np.clip(cv2.GaussianBlur(f, (0, 0), soft[1]), 0, 255).astype(np.uint8)
-            fpm = wd / plate_m  # frame px per metre at the plate
-            pad = int(np.ceil(fw_m * fpm))
-            img = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
-            pb = tuple(v * k + pad for v in box)
-            cx, cy = (pb[0] + pb[2]) / 2, (pb[1] + pb[3]) / 2
-            # the plate's centre 0.45 m above the face's lower edge (the slab's rows)
-            x0, x1 = cx - fw_m / 2 * fpm, cx + fw_m / 2 * fpm
-            y1 = cy + 0.45 * fpm
-            y0 = y1 - fh_m * fpm
-            region = Region("plate", (x0, y0, x1, y1), float(wd), "real",
-                            ((x0, y0), (x1, y0), (x1, y1), (x0, y1)), (fw_m, fh_m), "rear")
+            img, region, pb = face_on_plate(photo, box, wd, soft, plate_m)
             if window:
                 sub = _sub_face(region, pb, img.shape[1], img.shape[0])
                 assert sub is not None
