@@ -111,3 +111,20 @@ def test_plate_stretch_below_gates_on_the_face_spread() -> None:
     assert np.array_equal(out[8:56, 128:224], canvas[8:56, 128:224])
     every = plate_view(canvas, [soft, sharp], pos, replace(cfg, plate_stretch_below=0.0))
     assert not np.array_equal(every[8:56, 128:224], canvas[8:56, 128:224])
+
+
+def test_a_face_cut_by_the_frame_edge_is_measured_inside_the_frame() -> None:
+    """A soft face whose piece reaches 40 px past the frame's right edge: the part beyond is
+    black (``Piece.cut``), which read as contrast and kept the face from being stretched. With
+    the frame's shape the spread is measured on the pixels inside it: the face is stretched."""
+    rng = np.random.default_rng(2)
+    canvas = np.zeros((64, 128, 3), np.uint8)
+    canvas[8:56, 8:64] = (100 + 60 * rng.random((48, 56, 3))).astype(np.uint8)  # in frame
+    H = np.array([[1.0, 0.0, 1864.0], [0.0, 1.0, 500.0], [0.0, 0.0, 1.0]])  # x 1864-1960
+    face = Piece("plate", H, 96, 48, (20.0, 20.0), 150.0)
+    cfg = replace(GuidedConfig(), plate_canvas_min_w=0, plate_canvas_min_h=0,
+                  plate_stretch=1.0)
+    kept = plate_view(canvas, [face], [(8, 8)], cfg)  # the black counted: not stretched
+    assert np.array_equal(kept, canvas)
+    out = plate_view(canvas, [face], [(8, 8)], cfg, (1080, 1920, 3))
+    assert out[8:56, 8:64].min() <= 5 and out[8:56, 8:64].max() >= 250

@@ -612,9 +612,11 @@ def mosaics(image: np.ndarray, pieces: Sequence[Piece], cfg: GuidedConfig
 
 
 def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int, int]],
-               cfg: GuidedConfig) -> np.ndarray:
+               cfg: GuidedConfig, frame: tuple[int, ...] | None = None) -> np.ndarray:
     """The canvas the text detector searches: each rectified vehicle face's piece stretched
-    (``plate_stretch``), only one of low contrast (``plate_stretch_below``); a canvas
+    (``plate_stretch``), only one of low contrast (``plate_stretch_below``), its contrast
+    measured on the pixels inside the frame (``frame``: the frame's shape; a face cut by
+    the frame's edge is filled black beyond it, which would read as contrast); a canvas
     holding one padded right and below to ``plate_canvas_min_w`` x ``plate_canvas_min_h``
     (canvas coordinates unchanged). A canvas of crops alone (the far band's, the full-frame
     plan's) is left as packed; a crop packed beside a face (the packer mixes them) shares
@@ -626,7 +628,12 @@ def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int,
             if p.ppm <= 0:  # a crop, not a rectified vehicle face
                 continue
             sub = out[py : py + p.out_h, px : px + p.out_w]
-            lo, hi = np.percentile(to_gray(sub), (cfg.plate_stretch, 100 - cfg.plate_stretch))
+            gray = to_gray(sub)
+            if frame is not None and p.cut_by_frame(frame[1], frame[0]):
+                gray = gray[~p.outside(frame)]
+                if not gray.size:
+                    continue
+            lo, hi = np.percentile(gray, (cfg.plate_stretch, 100 - cfg.plate_stretch))
             if hi - lo >= 1 and (cfg.plate_stretch_below <= 0
                                  or hi - lo < cfg.plate_stretch_below):
                 g = min(255.0 / (hi - lo), 8.0)
@@ -1356,7 +1363,7 @@ class GuidedDetector:
                           [it for (it, _a, _r), k in zip(closer, kept, strict=True) if k])]
         for canvas, pcs, pos in mosaics(image, pieces, replace(c, pack_fit=True)):
             cand = []
-            for line in self.plate.lines_view(plate_view(canvas, pcs, pos, c)):
+            for line in self.plate.lines_view(plate_view(canvas, pcs, pos, c, image.shape)):
                 i = _piece_of(np.asarray(self.plate.plate_box(line[:5])), pcs, pos)
                 if i is None:
                     continue
@@ -1561,7 +1568,7 @@ class GuidedDetector:
                 if sc >= c.face_threshold and i is not None:
                     found.append((b, float(sc), i))
         else:
-            for line in det.lines_view(plate_view(canvas, ps, pos, c)):
+            for line in det.lines_view(plate_view(canvas, ps, pos, c, (h, w))):
                 b = det.plate_box(line[:5])
                 i = _piece_of(b, ps, pos)
                 if i is None:
