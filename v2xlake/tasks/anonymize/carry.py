@@ -102,9 +102,10 @@ def new_regions(here: Sequence[Region], before: Sequence[Region] | None,
     region in both key frames: it is there, and carried here like a large one.
 
     ``by_object`` (``clusters.carry_by_object``): a region is known when its object's
-    (``_object``: any agent's track of it) part is in either key frame, at the edge in none
-    (two agents' LiDARs number one car their own way, and regions come from the scan
-    nearest in time, of either agent: its regions alternate between their tracks)."""
+    (``_object``: any agent's track of it) part is in either key frame, at the edge in none,
+    and half of the region lies where that part was or passed between them (two agents'
+    LiDARs number one car their own way, and regions come from the scan nearest in time, of
+    either agent: its regions alternate between their tracks)."""
     if before is None or after is None:
         return list(here)
     seen = (_found_in(found[0], before) & _found_in(found[1], after)
