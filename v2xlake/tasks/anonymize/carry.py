@@ -30,7 +30,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from v2xlake.tasks.anonymize.detectors import Box, Detection, by_kind
+from v2xlake.tasks.anonymize.detectors import Box, Detection, by_kind, overlapping
 from v2xlake.tasks.anonymize.guide import Region
 from v2xlake.tasks.geometry import iou_xyxy
 
@@ -144,13 +144,10 @@ def new_regions(here: Sequence[Region], before: Sequence[Region] | None,
             name alone is not enough: two agents may name a car's ends the other way round
             (``_object``), and two cars may be given one object number; a region elsewhere
             in the image is another part, searched here."""
-            area = (r.box[2] - r.box[0]) * (r.box[3] - r.box[1])
-            for b in places.get(obj(r), ()):
-                x0, y0 = max(b[0], r.box[0]), max(b[1], r.box[1])
-                x1, y1 = min(b[2], r.box[2]), min(b[3], r.box[3])
-                if max(x1 - x0, 0.0) * max(y1 - y0, 0.0) >= 0.5 * area:
-                    return True
-            return False
+            held = places.get(obj(r))
+            return bool(held) and bool(
+                overlapping(np.asarray(r.box), np.asarray(held), iou=np.inf,
+                            contain=0.5).any())
 
         return [r for r in here if not r.instance or _at_edge(r, shape) or not carried(r)]
     known = ({_key(r) for r in before if not _at_edge(r, shape)}

@@ -57,7 +57,7 @@ from v2xlake.tasks.anonymize.plateprop import (
     row_texture,
     to_gray,
 )
-from v2xlake.tasks.anonymize.textplate import TextPlateDetector
+from v2xlake.tasks.anonymize.textplate import NET_MULTIPLE, TextPlateDetector, net_size
 from v2xlake.tasks.geometry import greedy_boxes, iou_xyxy, merge_until_stable
 
 
@@ -514,7 +514,8 @@ def band_strip_pieces(r: Region, lines: Sequence[tuple[float, float, float, floa
         return []
     bx0 = fb[0]
     s = min(band_region_scale(r, cfg), cfg.max_piece_side / (fb[3] - fb[1]))
-    m = next((k for k in range(1, 129) if abs(k * s / 32 - round(k * s / 32)) < 1e-6), 1)
+    m = next((k for k in range(1, 129)
+              if abs(k * s / NET_MULTIPLE - round(k * s / NET_MULTIPLE)) < 1e-6), 1)
     pad = cfg.band_text_pad * max(r.expected_px, r.expected_max_px)
     spans = sorted([max(bx0, bx0 + m * np.floor((x0 - max(pad, x1 - x0) - bx0) / m)),
                     min(fb[2], bx0 + m * np.ceil((x1 + max(pad, x1 - x0) - bx0) / m))]
@@ -642,9 +643,8 @@ def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int,
                                  ).astype(np.uint8)
     mw, mh = cfg.plate_canvas_min_w, cfg.plate_canvas_min_h
     h, w = out.shape[:2]
-    # the network sees a canvas padded to multiples of 32 (``prob_map``): one that is
-    # at least the floor so is left as it is
-    if (-(-w // 32) * 32 < mw or -(-h // 32) * 32 < mh) and any(p.ppm > 0 for p in ps):
+    wn, hn = net_size(w, h)  # a canvas the network sees at least at the floor is left as is
+    if (wn < mw or hn < mh) and any(p.ppm > 0 for p in ps):
         out = cv2.copyMakeBorder(out, 0, max(0, mh - h), 0, max(0, mw - w),
                                  cv2.BORDER_CONSTANT, value=(cfg.plate_canvas_fill,) * 3)
     return out

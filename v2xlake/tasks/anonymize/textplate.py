@@ -132,6 +132,15 @@ def db_lines(
     return out
 
 
+NET_MULTIPLE = 32  # the DB network's stride: its input sides are multiples of this
+
+
+def net_size(w: int, h: int) -> tuple[int, int]:
+    """The size (w, h) the text detector's network sees a ``w`` x ``h`` view at: each side
+    padded up to a multiple of ``NET_MULTIPLE`` (``TextPlateDetector.prob_map``)."""
+    return -(-w // NET_MULTIPLE) * NET_MULTIPLE, -(-h // NET_MULTIPLE) * NET_MULTIPLE
+
+
 class TextPlateDetector:
     """Plates as text lines of plate geometry, found by PP-OCRv4's DB text detector."""
 
@@ -162,9 +171,9 @@ class TextPlateDetector:
         return nets[(w, h)]
 
     def prob_map(self, view: np.ndarray) -> np.ndarray:
-        """DB text probability per pixel of a BGR view (padded to a multiple of 32)."""
+        """DB text probability per pixel of a BGR view (padded to ``net_size``)."""
         h, w = view.shape[:2]
-        wn, hn = int(np.ceil(w / 32) * 32), int(np.ceil(h / 32) * 32)
+        wn, hn = net_size(w, h)
         if (wn, hn) != (w, h):
             view = cv2.copyMakeBorder(view, 0, hn - h, 0, wn - w, cv2.BORDER_REPLICATE)
         blob = cv2.dnn.blobFromImage(
