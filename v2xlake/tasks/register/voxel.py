@@ -344,6 +344,24 @@ def _covered(cx: int, cy: int, cz: int, s: int, lo: np.ndarray, hi: np.ndarray) 
             and cz - s <= lo[2] and cz + s >= hi[2])
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _knn_cell(sp: np.ndarray, j0: int, j1: int, x: float, y: float, z: float,
+              bd: np.ndarray, bi: np.ndarray) -> None:
+    """Points ``j0:j1`` of the grid's order (one cell) into a query's sorted k-nearest list
+    (``bd`` squared distances, ``bi`` positions; k = its length): a point enters only when
+    strictly closer than the last entry, after every entry as close as itself."""
+    k = bd.shape[0]
+    for j in range(j0, j1):
+        dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 < bd[k - 1]:
+            u = k - 1  # insertion into the sorted list
+            while u > 0 and bd[u - 1] > d2:
+                bd[u], bi[u] = bd[u - 1], bi[u - 1]
+                u -= 1
+            bd[u], bi[u] = d2, j
+
+
 @njit(cache=True, nogil=True)
 def _grid_knn(bits: np.ndarray, rank: np.ndarray, start: np.ndarray, order: np.ndarray,
               sp: np.ndarray, lo: np.ndarray, hi: np.ndarray, inv_cell: float,
@@ -408,16 +426,7 @@ def _grid_knn(bits: np.ndarray, rank: np.ndarray, start: np.ndarray, order: np.n
                 for e in range(nc):
                     if near_d[e] > bd[k - 1]:
                         break
-                    c = near_c[e]
-                    for j in range(start[c], start[c + 1]):
-                        dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
-                        d2 = dx * dx + dy * dy + dz * dz
-                        if d2 < bd[k - 1]:
-                            u = k - 1  # insertion into the sorted list
-                            while u > 0 and bd[u - 1] > d2:
-                                bd[u], bi[u] = bd[u - 1], bi[u - 1]
-                                u -= 1
-                            bd[u], bi[u] = d2, j
+                    _knn_cell(sp, start[near_c[e]], start[near_c[e] + 1], x, y, z, bd, bi)
             else:
                 for ix in range(x0, x1 + 1):
                     for iy in range(y0, y1 + 1):
@@ -427,17 +436,8 @@ def _grid_knn(bits: np.ndarray, rank: np.ndarray, start: np.ndarray, order: np.n
                             if s > 0 and _cell_d2(x, y, z, ix, iy, iz, cell) > bd[k - 1]:
                                 continue
                             c = _lookup(bits, rank, col + iz)
-                            if c < 0:
-                                continue
-                            for j in range(start[c], start[c + 1]):
-                                dx, dy, dz = sp[j, 0] - x, sp[j, 1] - y, sp[j, 2] - z
-                                d2 = dx * dx + dy * dy + dz * dz
-                                if d2 < bd[k - 1]:
-                                    u = k - 1
-                                    while u > 0 and bd[u - 1] > d2:
-                                        bd[u], bi[u] = bd[u - 1], bi[u - 1]
-                                        u -= 1
-                                    bd[u], bi[u] = d2, j
+                            if c >= 0:
+                                _knn_cell(sp, start[c], start[c + 1], x, y, z, bd, bi)
             if _covered(cx, cy, cz, s, lo, hi):
                 break
             s += 1
