@@ -172,11 +172,16 @@ class GicpSection(Section):
         "result")
     max_correspondence_m: float = Field(1.0, gt=0)
     grid_cell_m: float = Field(
-        1.0, gt=0, description="sparse backend: cell of the hash grid its neighbour searches "
-        "use (register/voxel.py VoxelGrid). Speed only, the searches are exact at any size; "
-        "about max_correspondence_m is best (a nearest neighbour within it is then always in "
-        "the query's cell or the 26 around it). On 28k-centroid clouds 0.6 m and 1.5 m were "
-        "1.2-2x slower than 1.0 m")
+        1.6, gt=0, description="sparse backend: cell of the grid its nearest-neighbour "
+        "searches use (register/voxel.py VoxelGrid). Speed only, the searches are exact at "
+        "any size (of points at exactly one distance, perhaps another). At least "
+        "max_correspondence_m (a nearest neighbour within it is then always in the query's "
+        "cell or the 26 around it). 1.6 m, as knn_grid_cell_m, so that a scan has one grid: "
+        "with the occupancy bitmap a cell looked up costs more than a few more points "
+        "scanned; the GICP searches of the register stage, replayed (seed 2's roadside unit "
+        "3 s, one core), held nearest 148 / 138 / 138 ms and the far rows' plain search "
+        "58 / 52 / 48 ms on 1.0 / 1.2 / 1.6 m cells, 0.5-0.8 m slower (178-218 ms). The "
+        "hash-table grid of earlier rounds was fastest at 1.0 m")
     knn_grid_cell_m: float | None = Field(
         1.6, gt=0, description="sparse backend: cell of a second hash grid per scan, built "
         "on its first k-nearest-neighbour search (the surfaces: num_neighbors / "
@@ -193,7 +198,7 @@ class GicpSection(Section):
         "surfaces took 0.44 / 0.27 / 1.28 s (roadside unit 3 s, base 3 s, seed 2's roadside "
         "unit 10 s, one core) on 1.0 m cells, 0.34 / 0.21 / 1.05 s on 1.6 m ones (1.3 m "
         "0.38 / 0.22 / 1.09, 2.0 m about as 1.6 m); the nearest-neighbour searches of GICP "
-        "keep grid_cell_m, which suits max_correspondence_m")
+        "use grid_cell_m (1.6 m too: then both are one grid)")
     max_iterations: int = Field(30, ge=1)
     num_threads: int = Field(1, ge=1, description="small_gicp / open3d: threads per GICP "
                              "call; one leaves the other cores to the other clips of a run "
