@@ -410,9 +410,10 @@ def main() -> None:
                     help="with --clips: the simulated scenes of the LiDAR-guided clip "
                     "(comma-separated seeds)")
     ap.add_argument("--clip-set", action="append", default=[],
-                    help="with --clips lidar: NAME=JSON, a config update (e.g. "
+                    help="with --clips (1080, lidar): NAME=JSON, a config update (e.g. "
                     "'learned8={\"clusters\": {\"band_learned_score\": 8}}') run beside the "
-                    "default instead of the carried variants (repeatable); with "
+                    "default instead of the other variants (repeatable), each one's losses "
+                    "listed against the default and the variants before it; with "
                     "--band-plates: a variant beside the default there too")
     ap.add_argument("--face-plates", action="store_true",
                     help="only: real plates on a rectified vehicle face as a LiDAR-only "
@@ -476,7 +477,9 @@ def main() -> None:
     if args.clips:
         cv2.setNumThreads(1)
         if "1080" in args.clip_sizes:
-            clip_bench(1920, 30.0, 0.6 if args.quick else 1.0, deface=not args.no_deface)
+            clip_bench(1920, 30.0, 0.6 if args.quick else 1.0, deface=not args.no_deface,
+                       extra=tuple((n, json.loads(v)) for n, v in
+                                   (a.split("=", 1) for a in args.clip_set)))
         if "4k" in args.clip_sizes:
             clip_bench(3840, 30.0, 0.3, deface=not args.no_deface)
         if "lidar" in args.clip_sizes:
@@ -1041,12 +1044,13 @@ def clip_bench(width: int, hz: float, seconds: float, lidar_only: bool = False,
                       f"{rep.metrics.get('n_images_carried_in_full', 0):.0f} of them unsure "
                       "(clusters.carry_unsure_full; searched where carrying cannot vouch, "
                       "clusters.carry_unsure_zones)")
-        if lidar_only and extra:  # what each variant leaves unblurred that the default blurs
-            base = got["default"]
-            for name, _upd in extra:
-                print(f"  {name} against the default:")
-                missed_listing(truth, base, got[name],
-                               int(AnonymizeConfig().carry.key_interval_ms * 1e6))
+        if extra:  # what each variant leaves unblurred that the default (or one before) blurs
+            names = ["default", *(n for n, _upd in extra)]
+            for k, name in enumerate(names[1:], 1):
+                for base in names[:k]:
+                    print(f"  {name} against {'the default' if base == 'default' else base}:")
+                    missed_listing(truth, got[base], got[name],
+                                   int(AnonymizeConfig().carry.key_interval_ms * 1e6))
         if lidar_only and not extra:
             full, *rest = got.values()
             for name, car in zip([n for n, _ in variants][1:], rest, strict=True):

@@ -272,20 +272,23 @@ class Regions(Section):
         "(regions.plate_canvas_min_w; black: grey 114 found 57 of the 24 px plates black "
         "found 67 of)")
     plate_stretch: float = Field(
-        0.0, ge=0, lt=50, description="each rectified vehicle face in a text-detector "
-        "canvas stretched so its grey levels' P and 100 - P percentiles span 0-255 (gain at "
-        "most 8; 0: off), only a low-contrast one (regions.plate_stretch_below). Why: soft, "
-        "low-contrast plates on a vehicle face are missed (real plates at contrast 0.35, "
-        "blur 1 px, 48 / 64 / 96 px: 0 / 5 / 55 of 108 found, with P = 1 23 / 89 / 105; "
-        "bench_anonymize --face-plates --face-soft 0.35,1.0). Off: the annotated simulated "
-        "1080p clip lost a plate with it (plates >= 20 px 195 -> 194 of 197, every frame in "
-        "full 195 -> 193); every face stretched also raised false blurs on simulated "
-        "LiDAR-only clips (seed 3 0.07 -> 0.17 per image), hence the gate; for recordings "
-        "of hazy or soft plates (docs/anonymization.md, 2026-11-28)")
+        1.0, ge=0, lt=50, description="a second look at the rectified vehicle faces of a "
+        "text-detector canvas on which the canvas as it is found no plate: each such face of "
+        "low contrast (regions.plate_stretch_below) stretched so its grey levels' P and "
+        "100 - P percentiles span 0-255 (gain at most 8; 0: off). Why: soft, low-contrast "
+        "plates on a vehicle face are missed (real plates at contrast 0.35, blur 1 px, 48 / "
+        "64 / 96 / 140 px: 0 / 5 / 54 / 87 of 108 found, with it 24 / 89 / 105 / 108; "
+        "bench_anonymize --face-plates --face-soft 0.35,1.0). A second look, not the "
+        "stretched faces alone: the stretch clips the levels beyond the percentiles, where "
+        "a plate sharper than its face lies, and so lost a simulated plate half hidden by "
+        "another car (annotated 1080p clip, every frame in full, plates >= 20 px 195 -> 194 "
+        "of 197). Costs a text-detector pass over each such face (simulated clips: +24-32 "
+        "% text-detector pixels, +10 / +13 % CPU on the annotated 1080p / a LiDAR-only "
+        "clip; docs/anonymization.md, 2026-11-28)")
     plate_stretch_below: float = Field(
-        96.0, ge=0, le=255, description="with regions.plate_stretch P > 0 (off by default): "
-        "a rectified vehicle "
-        "face is stretched only where its grey levels' P and 100 - P percentiles lie less "
+        96.0, ge=0, le=255, description="with regions.plate_stretch P > 0: a rectified "
+        "vehicle face is stretched (looked at again) only where its grey levels' P and "
+        "100 - P percentiles lie less "
         "than this many grey levels apart (0: every face). Why: the stretch is for soft, "
         "low-contrast faces; the 648 sharp real faces of bench_anonymize --face-plates "
         "spread 135-253 (1st percentile 144), those at contrast 0.35 / blur 1 px 42-87, so "
@@ -296,7 +299,8 @@ class Regions(Section):
         "(spread 56-125; 96 / 140 px: 55 / 97 of 108 found, every face stretched 96 / 105). "
         "96 lies just above the largest spread (87) of the contrast-0.35 soft set that "
         "the recall figures above come from, so they are not held out; only seed 3 "
-        "checked the false blurs among 64 / 96 / 128 (docs/anonymization.md, 2026-11-28)")
+        "checked the false blurs among 64 / 96 / 128. As a second look (since 2026-11-28) "
+        "128 and 0 still raise seed 3's 0.11 to 0.19 (docs/anonymization.md, 2026-11-28)")
     plate_parts_whole: bool = Field(
         True, description="where plate boxes are merged (a guided frame's regions' passes "
         "with the final boxes of its safety or full-frame plan, and the full-frame plan's "

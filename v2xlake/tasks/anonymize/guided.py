@@ -94,10 +94,11 @@ class GuidedConfig(FromParams):
     plate_pack_fit: bool = _param("regions.plate_pack_fit")
     plate_parts_whole: bool = _param("regions.plate_parts_whole")  # ``nms_plate_parts``
     # the text detector's canvases of the guided plan (``plate_view``): padded with grey
-    # ``plate_canvas_fill`` to at least ``plate_canvas_min_w`` x ``_h`` px; each piece's grey
-    # levels stretched so its ``plate_stretch`` / 100 - ``plate_stretch`` percentiles span
-    # 0-255 (0: off), only where they lie less than ``plate_stretch_below`` grey levels
-    # apart (0: every piece)
+    # ``plate_canvas_fill`` to at least ``plate_canvas_min_w`` x ``_h`` px; a second look
+    # (``_in_canvas``) at the faces the first found no plate on, each piece's grey levels
+    # stretched so its ``plate_stretch`` / 100 - ``plate_stretch`` percentiles span 0-255
+    # (0: off), only where they lie less than ``plate_stretch_below`` grey levels apart (0:
+    # every piece)
     plate_canvas_min_w: int = _param("regions.plate_canvas_min_w")
     plate_canvas_min_h: int = _param("regions.plate_canvas_min_h")
     plate_canvas_fill: int = _param("regions.plate_canvas_fill")
@@ -613,7 +614,9 @@ def mosaics(image: np.ndarray, pieces: Sequence[Piece], cfg: GuidedConfig
 
 
 def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int, int]],
-               cfg: GuidedConfig, frame: tuple[int, ...] | None = None) -> np.ndarray:
+               cfg: GuidedConfig, frame: tuple[int, ...] | None = None,
+               only: Callable[[int], bool] | None = None, stretched: list[int] | None = None
+               ) -> np.ndarray:
     """The canvas the text detector searches: each rectified vehicle face's piece stretched
     (``plate_stretch``), only one of low contrast (``plate_stretch_below``), its contrast
     measured on the pixels inside the frame (``frame``: the frame's shape; a face cut by
@@ -621,14 +624,14 @@ def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int,
     holding one padded right and below to ``plate_canvas_min_w`` x ``plate_canvas_min_h``
     (canvas coordinates unchanged). A canvas of crops alone (the far band's, the full-frame
     plan's) is left as packed; a crop packed beside a face (the packer mixes them) shares
-    the face's padding."""
-    out = canvas
+    the face's padding. ``only``: which pieces (by index) may be stretched (None: all);
+    ``stretched`` (a list) gets the indices of the pieces stretched."""
+    out = canvas  # copied where a face is stretched
     if cfg.plate_stretch > 0:
-        out = canvas.copy()
-        for p, (px, py) in zip(ps, pos, strict=True):
-            if p.ppm <= 0:  # a crop, not a rectified vehicle face
-                continue
-            sub = out[py : py + p.out_h, px : px + p.out_w]
+        for k, (p, (px, py)) in enumerate(zip(ps, pos, strict=True)):
+            if p.ppm <= 0 or (only is not None and not only(k)):
+                continue  # a crop, not a rectified vehicle face (or not asked for)
+            sub = canvas[py : py + p.out_h, px : px + p.out_w]
             gray = to_gray(sub)
             if frame is not None and p.cut_by_frame(frame[1], frame[0]):
                 gray = gray[~p.outside(frame)]
@@ -639,8 +642,12 @@ def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int,
                                  or hi - lo < cfg.plate_stretch_below):
                 g = min(255.0 / (hi - lo), 8.0)
                 mid = 0.5 * (lo + hi)
-                sub[:] = np.clip((sub.astype(np.float32) - mid) * g + 127.5, 0, 255
-                                 ).astype(np.uint8)
+                if out is canvas:
+                    out = canvas.copy()
+                out[py : py + p.out_h, px : px + p.out_w] = np.clip(
+                    (sub.astype(np.float32) - mid) * g + 127.5, 0, 255).astype(np.uint8)
+                if stretched is not None:
+                    stretched.append(k)
     mw, mh = cfg.plate_canvas_min_w, cfg.plate_canvas_min_h
     h, w = out.shape[:2]
     wn, hn = net_size(w, h)  # a canvas the network sees at least at the floor is left as is
@@ -1051,6 +1058,7 @@ class GuidedDetector:
             + (f":plate-stretch{c.plate_stretch:g}" if c.plate_stretch > 0 else "")
             + (f"<{c.plate_stretch_below:g}"
                if c.plate_stretch > 0 and c.plate_stretch_below > 0 else "")
+            + ("/second-look" if c.plate_stretch > 0 else "")
             + (f":plate-canvas{c.plate_canvas_min_w}x{c.plate_canvas_min_h}"
                f"/{c.plate_canvas_fill}" if max(c.plate_canvas_min_w, c.plate_canvas_min_h) > 0
                else ""))
@@ -1543,6 +1551,40 @@ class GuidedDetector:
             out += self._in_canvas("plate", self.plate, canvas, ps, pos, w, h)
         return out
 
+    def _plate_lines(self, det: TextPlateDetector, view: np.ndarray, ps: Sequence[Piece],
+                     pos: Sequence[tuple[int, int]], w: int, h: int,
+                     pieces: set[int] | None = None) -> list[tuple[np.ndarray, float, int]]:
+        """The text detector's lines of plate geometry in a canvas view: (canvas box, score,
+        piece), only in ``pieces`` where given."""
+        c = self.config
+        found: list[tuple[np.ndarray, float, int]] = []
+        for line in det.lines_view(view):
+            b = det.plate_box(line[:5])
+            i = _piece_of(b, ps, pos)
+            if i is None or (pieces is not None and i not in pieces):
+                continue
+            p = ps[i]
+            # the line's box in the frame: is it cut by the frame's edge? (canvas
+            # coordinates say nothing of where the frame ends)
+            fb = p.to_frame(np.asarray(b, float) - [pos[i][0], pos[i][1]] * 2, w, h)
+            if p.ppm > 0:  # rectified: the text line's size in metres
+                long_m, short_m = line[2] / p.ppm, line[3] / p.ppm
+                if min(fb[0], fb[1], w - fb[2], h - fb[3]) <= 2:  # cut by the frame edge
+                    ok = short_m <= c.plate_text_h_max_m and long_m <= c.plate_text_m[1]
+                else:
+                    ok = (c.plate_text_m[0] <= long_m <= c.plate_text_m[1]
+                          and short_m <= c.plate_text_h_max_m
+                          and det.plate_ok(line[:5], 10**9, at_edge=False))
+            else:
+                s = p.crop[4] if p.crop else 1.0
+                rect = (line[0] / s, line[1] / s, line[2] / s, line[3] / s, line[4])
+                lo, hi = c.plate_size_range
+                ok = det.plate_ok(rect, w, at_edge=min(fb[0], w - fb[2]) <= 2) and (
+                    lo * p.expected[0] <= rect[2] <= hi * p.expected[1])
+            if ok:
+                found.append((b, float(line[5]), i))
+        return found
+
     def _in_canvas(self, kind: str, det: CenterFaceDetector | TextPlateDetector,
                    canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int, int]],
                    w: int, h: int) -> list[Detection]:
@@ -1568,31 +1610,19 @@ class GuidedDetector:
                 if sc >= c.face_threshold and i is not None:
                     found.append((b, float(sc), i))
         else:
-            for line in det.lines_view(plate_view(canvas, ps, pos, c, (h, w))):
-                b = det.plate_box(line[:5])
-                i = _piece_of(b, ps, pos)
-                if i is None:
-                    continue
-                p = ps[i]
-                # the line's box in the frame: is it cut by the frame's edge? (canvas
-                # coordinates say nothing of where the frame ends)
-                fb = p.to_frame(np.asarray(b, float) - [pos[i][0], pos[i][1]] * 2, w, h)
-                if p.ppm > 0:  # rectified: the text line's size in metres
-                    long_m, short_m = line[2] / p.ppm, line[3] / p.ppm
-                    if min(fb[0], fb[1], w - fb[2], h - fb[3]) <= 2:  # cut by the frame edge
-                        ok = short_m <= c.plate_text_h_max_m and long_m <= c.plate_text_m[1]
-                    else:
-                        ok = (c.plate_text_m[0] <= long_m <= c.plate_text_m[1]
-                              and short_m <= c.plate_text_h_max_m
-                              and det.plate_ok(line[:5], 10**9, at_edge=False))
-                else:
-                    s = p.crop[4] if p.crop else 1.0
-                    rect = (line[0] / s, line[1] / s, line[2] / s, line[3] / s, line[4])
-                    lo, hi = c.plate_size_range
-                    ok = det.plate_ok(rect, w, at_edge=min(fb[0], w - fb[2]) <= 2) and (
-                        lo * p.expected[0] <= rect[2] <= hi * p.expected[1])
-                if ok:
-                    found.append((b, float(line[5]), i))
+            # the faces as they are; then (``plate_stretch``) a second look, stretched, at the
+            # faces of low contrast on which nothing was found. Not the stretched faces alone:
+            # the stretch clips the levels beyond the face's percentiles, where a plate
+            # sharper than its face lies (its lighter glyph strokes become plate ground, and
+            # a plate half hidden by another car, four glyphs, then reads as too short a line)
+            found += self._plate_lines(det, plate_view(canvas, ps, pos, replace(
+                c, plate_stretch=0.0), (h, w)), ps, pos, w, h)
+            if c.plate_stretch > 0:
+                hit = {i for _b, _s, i in found}
+                redo: list[int] = []
+                view = plate_view(canvas, ps, pos, c, (h, w), lambda k: k not in hit, redo)
+                if redo:
+                    found += self._plate_lines(det, view, ps, pos, w, h, set(redo))
         out = []
         for b, score, i in found:
             px, py = pos[i]
