@@ -83,13 +83,23 @@ def _linearise(tp: np.ndarray, tn: np.ndarray, tr: np.ndarray, sp: np.ndarray,
                T: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray, int]:
     """GICP Hessian and gradient at ``T`` over the pairs (source i, target ``nn[i]``) within
     ``sqrt(max_d2)``. A pair's covariance is ``C_t + R C_s R^T`` (identity for a point
-    without a surface: it acts point to point); scalars only, no allocation per pair."""
+    without a surface: it acts point to point); scalars only, no allocation per pair.
+
+    The residual's Jacobian ``J = [[q]x, -I]`` is written out: its zero terms are left out
+    of ``W J``, ``J^T W J`` and ``J^T W r`` (``x + 0 * y`` is ``x``, ``-1 * x`` is ``-x``),
+    and the sums are kept in scalars in the same order as the 3 x 6 products took them (the
+    same bits on the 425 calls of one stage run). WHY: 18-25 % of the linearisation's time
+    (replayed: 80-82 -> 61-63 ms for 1.44 M sample rows of seed 2's roadside unit 3 s)."""
     H = np.zeros((6, 6))
     b = np.zeros(6)
-    J = np.zeros((3, 6))
-    WJ = np.zeros((3, 6))
     k = 1.0 - PLANE_EPS
     used = 0
+    # the Hessian's upper triangle and the gradient, summed pair by pair in scalars
+    h00 = h01 = h02 = h03 = h04 = h05 = 0.0
+    h11 = h12 = h13 = h14 = h15 = 0.0
+    h22 = h23 = h24 = h25 = 0.0
+    h33 = h34 = h35 = h44 = h45 = h55 = 0.0
+    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
     for i in range(len(sp)):
         j = nn[i]
         if j < 0 or not nn_d2[i] <= max_d2:
@@ -129,19 +139,51 @@ def _linearise(tp: np.ndarray, tn: np.ndarray, tr: np.ndarray, sp: np.ndarray,
         w12 = (c01 * c02 - c00 * c12) * inv
         w22 = (c00 * c11 - c01 * c01) * inv
         r0, r1, r2 = tp[j, 0] - qx, tp[j, 1] - qy, tp[j, 2] - qz
-        # d(residual) / d(xi) for q = exp(xi) T p: [[q]x, -I]
-        J[0, 0], J[0, 1], J[0, 2], J[0, 3] = 0.0, -qz, qy, -1.0
-        J[1, 0], J[1, 1], J[1, 2], J[1, 4] = qz, 0.0, -qx, -1.0
-        J[2, 0], J[2, 1], J[2, 2], J[2, 5] = -qy, qx, 0.0, -1.0
-        for c in range(6):
-            WJ[0, c] = w00 * J[0, c] + w01 * J[1, c] + w02 * J[2, c]
-            WJ[1, c] = w01 * J[0, c] + w11 * J[1, c] + w12 * J[2, c]
-            WJ[2, c] = w02 * J[0, c] + w12 * J[1, c] + w22 * J[2, c]
-        for a in range(6):
-            b[a] += WJ[0, a] * r0 + WJ[1, a] * r1 + WJ[2, a] * r2
-            for c in range(a, 6):
-                H[a, c] += J[0, a] * WJ[0, c] + J[1, a] * WJ[1, c] + J[2, a] * WJ[2, c]
+        # d(residual) / d(xi) for q = exp(xi) T p: J = [[q]x, -I] = [[0, -qz, qy, -1, 0, 0],
+        # [qz, 0, -qx, 0, -1, 0], [-qy, qx, 0, 0, 0, -1]]; p = the first three columns of
+        # W J (its last three are -W), without the zero terms
+        p00 = w01 * qz + w02 * -qy
+        p01 = w00 * -qz + w02 * qx
+        p02 = w00 * qy + w01 * -qx
+        p10 = w11 * qz + w12 * -qy
+        p11 = w01 * -qz + w12 * qx
+        p12 = w01 * qy + w11 * -qx
+        p20 = w12 * qz + w22 * -qy
+        p21 = w02 * -qz + w22 * qx
+        p22 = w02 * qy + w12 * -qx
+        g0 += p00 * r0 + p10 * r1 + p20 * r2
+        g1 += p01 * r0 + p11 * r1 + p21 * r2
+        g2 += p02 * r0 + p12 * r1 + p22 * r2
+        g3 += -w00 * r0 + -w01 * r1 + -w02 * r2
+        g4 += -w01 * r0 + -w11 * r1 + -w12 * r2
+        g5 += -w02 * r0 + -w12 * r1 + -w22 * r2
+        h00 += qz * p10 + -qy * p20
+        h01 += qz * p11 + -qy * p21
+        h02 += qz * p12 + -qy * p22
+        h03 += qz * -w01 + -qy * -w02
+        h04 += qz * -w11 + -qy * -w12
+        h05 += qz * -w12 + -qy * -w22
+        h11 += -qz * p01 + qx * p21
+        h12 += -qz * p02 + qx * p22
+        h13 += -qz * -w00 + qx * -w02
+        h14 += -qz * -w01 + qx * -w12
+        h15 += -qz * -w02 + qx * -w22
+        h22 += qy * p02 + -qx * p12
+        h23 += qy * -w00 + -qx * -w01
+        h24 += qy * -w01 + -qx * -w11
+        h25 += qy * -w02 + -qx * -w12
+        h33 += w00
+        h34 += w01
+        h35 += w02
+        h44 += w11
+        h45 += w12
+        h55 += w22
         used += 1
+    H[0, 0], H[0, 1], H[0, 2], H[0, 3], H[0, 4], H[0, 5] = h00, h01, h02, h03, h04, h05
+    H[1, 1], H[1, 2], H[1, 3], H[1, 4], H[1, 5] = h11, h12, h13, h14, h15
+    H[2, 2], H[2, 3], H[2, 4], H[2, 5] = h22, h23, h24, h25
+    H[3, 3], H[3, 4], H[3, 5], H[4, 4], H[4, 5], H[5, 5] = h33, h34, h35, h44, h45, h55
+    b[0], b[1], b[2], b[3], b[4], b[5] = g0, g1, g2, g3, g4, g5
     for a in range(6):
         for c in range(a):
             H[a, c] = H[c, a]
