@@ -282,7 +282,7 @@ class Regions(Section):
         "stretched faces alone: the stretch clips the levels beyond the percentiles, where "
         "a plate sharper than its face lies, and so lost a simulated plate half hidden by "
         "another car (annotated 1080p clip, every frame in full, plates >= 20 px 195 -> 194 "
-        "of 197). Costs a text-detector pass over each such face (simulated clips: +24-32 "
+        "of 197). Costs a text-detector pass over each such face (simulated clips: +24-33 "
         "% text-detector pixels, +10 / +13 % CPU on the annotated 1080p / a LiDAR-only "
         "clip; docs/anonymization.md, 2026-11-28)")
     plate_stretch_below: float = Field(
