@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from numba import njit
 
 from v2xlake.tasks.geometry import merge_until_stable
 
@@ -239,15 +240,52 @@ def short_strokes(mask: np.ndarray, max_px: int) -> np.ndarray:
 
 
 def component_stats(mask: np.ndarray) -> np.ndarray:
-    """``cv2.connectedComponentsWithStats`` of a binary mask (8-connected): its stats rows
-    (x, y, w, h, area; row 0 the background). Labelled in 16 bits, and in 32 only when a
-    mask has more than 65,535 components (OpenCV raises then): the same stats, at 8 instead
-    of 21 ms per 1920 x 1200 pass (the label image is most of the work), and the plan runs
-    three band passes per frame."""
+    """The components of a binary mask (8-connected) as ``cv2.connectedComponentsWithStats``
+    labels them: a row (x, y, w, h, area) per component in label order, the background's
+    row left out (int32). Labelled in 16 bits, and in 32 only when a mask has more than
+    65,535 components (OpenCV raises then): the label image is most of OpenCV's work at 16
+    bits (8 instead of 21 ms per 1920 x 1200 pass at 32), and its statistics most of the
+    rest (3.3 ms against 1.0 ms for the labels alone on a 1920 x 1080 frame's edge mask,
+    the background's row the costliest), so the components' rows are read off the label
+    image in one pass (``label_stats``): the same rows as OpenCV's."""
     try:
-        return cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_16U)[2]
+        n, lab = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_16U)
     except cv2.error:
-        return cv2.connectedComponentsWithStats(mask, connectivity=8)[2]
+        n, lab = cv2.connectedComponents(mask, connectivity=8)
+    return label_stats(lab, n)
+
+
+@njit(cache=True)
+def label_stats(lab: np.ndarray, n: int) -> np.ndarray:
+    """(x, y, w, h, area) of labels 1 to ``n`` - 1 of a label image (each has a pixel),
+    int32."""
+    h, w = lab.shape
+    x0 = np.full(n, w, np.int64)
+    y0 = np.full(n, h, np.int64)
+    x1 = np.zeros(n, np.int64)
+    y1 = np.zeros(n, np.int64)
+    area = np.zeros(n, np.int64)
+    for y in range(h):
+        for x in range(w):
+            k = lab[y, x]
+            if k == 0:
+                continue
+            area[k] += 1
+            if x < x0[k]:
+                x0[k] = x
+            if x > x1[k]:
+                x1[k] = x
+            if y < y0[k]:
+                y0[k] = y
+            y1[k] = y
+    out = np.empty((max(n - 1, 0), 5), np.int32)
+    for k in range(1, n):
+        out[k - 1, 0] = x0[k]
+        out[k - 1, 1] = y0[k]
+        out[k - 1, 2] = x1[k] - x0[k] + 1
+        out[k - 1, 3] = y1[k] - y0[k] + 1
+        out[k - 1, 4] = area[k]
+    return out
 
 
 def edge_bands(gx: np.ndarray, threshold: float, h_range: tuple[float, float],
@@ -270,7 +308,7 @@ def edge_bands(gx: np.ndarray, threshold: float, h_range: tuple[float, float],
     stats = component_stats(m2)
     (hlo, hhi), (wlo, whi), (alo, ahi) = h_range, w_range, aspect
     bands = [(float(x), float(y), float(x + bw), float(y + bh))
-             for x, y, bw, bh, area in stats[1:].tolist()
+             for x, y, bw, bh, area in stats.tolist()
              if hlo <= bh <= hhi and wlo <= bw <= whi and alo <= bw / bh <= ahi
              and area >= fill * bw * bh]
     if join_gap <= 0:
