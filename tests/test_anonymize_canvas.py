@@ -4,8 +4,9 @@ canvas padded to 448 x 256 (``regions.plate_canvas_min_w`` / ``_h``); a soft,
 low-contrast real plate on a whole rectified vehicle face only with the face's grey levels
 stretched (``regions.plate_stretch``, for faces of low contrast alone:
 ``regions.plate_stretch_below``), a second look at the faces on which the canvas as it is
-found nothing: searched stretched alone, a simulated plate half hidden by another car was
-lost. The canvas is a pure function (``guided.plate_view``), crops left as they are."""
+found no whole plate (``regions.plate_whole_min_m``), repacked into a canvas of their own:
+searched stretched alone, a simulated plate half hidden by another car was lost. The
+canvas is a pure function (``guided.plate_view``), crops left as they are."""
 
 from __future__ import annotations
 
@@ -169,3 +170,75 @@ def test_a_face_cut_by_the_frame_edge_is_measured_inside_the_frame() -> None:
     assert np.array_equal(kept, canvas)
     out = plate_view(canvas, [face], [(8, 8)], cfg, (1080, 1920, 3))
     assert out[8:56, 8:64].min() <= 5 and out[8:56, 8:64].max() >= 250
+
+
+class _BrightLines:
+    """A stub text detector: each blob of grey levels over 200 in a view is a text line
+    (every view it sees kept in ``views``). From its second view on it reads each line half
+    as long again, as a network's reading of a face changes with the canvas around it: a
+    line kept from a face the second look was not asked about is then not the first look's
+    box again."""
+
+    name, version = "stub", "0"
+
+    def __init__(self) -> None:
+        self.views: list[tuple[int, ...]] = []
+
+    def lines_view(self, view: np.ndarray) -> list[tuple[float, ...]]:
+        self.views.append(view.shape)
+        grow = 1.0 if len(self.views) == 1 else 1.5
+        n, _lab, stats, cents = cv2.connectedComponentsWithStats(
+            (view.max(axis=2) > 200).astype(np.uint8))
+        return [(float(cents[k][0]), float(cents[k][1]), grow * float(stats[k][2]),
+                 float(stats[k][3]), 0.0, 0.9) for k in range(1, n)]
+
+    def plate_box(self, rect: tuple[float, ...]) -> np.ndarray:
+        cx, cy, a, b = rect[:4]
+        return np.array([cx - a / 2, cy - b / 2, cx + a / 2, cy + b / 2])
+
+    def plate_ok(self, *_args: object, **_kw: object) -> bool:
+        return True
+
+
+def test_second_look_only_at_faces_without_their_whole_plate() -> None:
+    """Two low-contrast vehicle faces (grey 100-110, 400 x 200 px at 150 px/m) packed in one
+    text-detector canvas. Face A shows a sharp whole plate (a 0.45 m line, found as the
+    face is) and a faint 0.27 m line; face B only a faint 0.45 m plate. Only B is looked at
+    again, stretched, and alone in a canvas of its own: A's faint line stays unfound
+    (looking again at every low-contrast face finds it), B's plate is found (skipping the
+    second look for the canvas because A had a find loses it), and A keeps its one
+    first-look box (lines kept from a face not asked about add a second). Face C shows a
+    sharp 0.27 m line (a badge, or one group of a plate's characters) and a faint whole
+    plate: a line shorter than ``plate_whole_min_m`` is no whole plate, so C is looked at
+    again and its faint plate found (any find cancelling the second look loses it)."""
+    from v2xlake.tasks.anonymize.guided import GuidedDetector, pack
+
+    rng = np.random.default_rng(3)
+    faces = [(100 + 10 * rng.random((200, 400, 3))).astype(np.uint8) for _ in range(3)]
+    faces[0][40:50, 40:108] = 255  # A: a sharp whole plate, 68 px = 0.45 m
+    faces[0][150:158, 250:290] = 120  # A: a faint 40 px line, found only stretched
+    faces[1][100:110, 160:228] = 120  # B: a faint 68 px plate
+    faces[2][30:40, 300:340] = 255  # C: a sharp 40 px line = 0.27 m, no whole plate
+    faces[2][140:150, 60:128] = 120  # C: a faint 68 px plate
+    at = [(100, 300), (900, 300), (100, 700)]  # the faces' frame positions
+    ps = [Piece("plate", np.array([[1.0, 0, x], [0, 1.0, y], [0, 0, 1.0]]), 400, 200,
+                (78.0, 78.0), 150.0) for x, y in at]
+    cfg = GuidedConfig()
+    assert cfg.plate_stretch > 0 and cfg.plate_whole_min_m <= 0.45
+    pos, cw, ch = pack(ps, cfg.mosaic_width, cfg.gap, cfg.plate_pack_fit)
+    canvas = np.zeros((ch, cw, 3), np.uint8)
+    for f, (px, py) in zip(faces, pos, strict=True):
+        canvas[py : py + 200, px : px + 400] = f
+    stub = _BrightLines()
+    gd = GuidedDetector(None, None, cfg)
+    got = gd._in_canvas("plate", stub, canvas, ps, pos, 1920, 1080)  # type: ignore[arg-type]
+    on_a = [d for d in got if d.box[2] <= 500]
+    on_b = [d for d in got if d.box[0] >= 900]
+    # A: the sharp plate, once (IoU 0.8), not the faint line; B: its faint plate (read longer there)
+    on_a = [d for d in on_a if d.box[1] < 600]
+    on_c = [d for d in got if d.box[1] >= 700]
+    assert len(on_a) == 1 and match([("plate", (140, 340, 208, 350))], on_a, 0.8)[0][0]
+    assert len(on_b) == 1 and match([("plate", (1060, 400, 1128, 410))], on_b, 0.6)[0][0]
+    assert match([("plate", (160, 840, 228, 850))], on_c, 0.6)[0][0]  # C's faint plate
+    assert len(stub.views) == 2  # the canvas as it is, then B and C alone: fewer pixels
+    assert stub.views[1][0] * stub.views[1][1] < stub.views[0][0] * stub.views[0][1]

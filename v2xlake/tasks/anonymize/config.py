@@ -273,18 +273,21 @@ class Regions(Section):
         "found 67 of)")
     plate_stretch: float = Field(
         1.0, ge=0, lt=50, description="a second look at the rectified vehicle faces of a "
-        "text-detector canvas on which the canvas as it is found no plate: each such face of "
-        "low contrast (regions.plate_stretch_below) stretched so its grey levels' P and "
-        "100 - P percentiles span 0-255 (gain at most 8; 0: off). Why: soft, low-contrast "
+        "text-detector canvas on which the canvas as it is found no whole plate "
+        "(regions.plate_whole_min_m): each such face of low contrast "
+        "(regions.plate_stretch_below) stretched so its grey levels' P and 100 - P "
+        "percentiles span 0-255 (gain at most 8; 0: off). Why: soft, low-contrast "
         "plates on a vehicle face are missed (real plates at contrast 0.35, blur 1 px, 48 / "
         "64 / 96 / 140 px: 0 / 5 / 54 / 87 of 108 found, with it 24 / 89 / 105 / 108; "
         "bench_anonymize --face-plates --face-soft 0.35,1.0). A second look, not the "
         "stretched faces alone: the stretch clips the levels beyond the percentiles, where "
         "a plate sharper than its face lies, and so lost a simulated plate half hidden by "
         "another car (annotated 1080p clip, every frame in full, plates >= 20 px 195 -> 194 "
-        "of 197). Costs a text-detector pass over each such face (simulated clips: +24-33 "
-        "% text-detector pixels, +10 / +13 % CPU on the annotated 1080p / a LiDAR-only "
-        "clip; docs/anonymization.md, 2026-11-28)")
+        "of 197). Costs one more text-detector pass per canvas holding such faces, over "
+        "them alone (repacked into a canvas of their own where the canvas holds others; "
+        "lines found there inside a first-look box are dropped): +2-20 % stage CPU on the "
+        "simulated clips (annotated 1080p 111 -> 133 ms per image; LiDAR-only seeds 0-3 at "
+        "0.3 s +18 / +15 / +9 / +2 %; docs/anonymization.md, 2026-11-28)")
     plate_stretch_below: float = Field(
         96.0, ge=0, le=255, description="with regions.plate_stretch P > 0: a rectified "
         "vehicle face is stretched (looked at again) only where its grey levels' P and "
@@ -301,6 +304,21 @@ class Regions(Section):
         "the recall figures above come from, so they are not held out; only seed 3 "
         "checked the false blurs among 64 / 96 / 128. As a second look (since 2026-11-28) "
         "128 and 0 still raise seed 3's 0.11 to 0.19 (docs/anonymization.md, 2026-11-28)")
+    plate_whole_min_m: float = Field(
+        0.3, ge=0, description="with regions.plate_stretch P > 0: a rectified vehicle face "
+        "counts as found (no second look) only where the first look found a plate text "
+        "line at least this many metres long, one that could be its whole plate; a "
+        "shorter one may be one group of a plate's characters or a badge, and a "
+        "low-contrast face holding only such lines is looked at again (0: any find "
+        "counts). Why: any find cancelled the second look, so a soft 96 px real plate "
+        "whose first look read only a 40 px part of it (contrast 0.35) stayed mostly "
+        "unblurred, and a sharp badge on a soft-plate face hid the plate. Measured on "
+        "real plates_eu plates on rectified faces (bench_anonymize --face-plates, first "
+        "look, lines matching the plate at IoU >= 0.3): whole lines 0.25-0.55 m, median "
+        "0.50 m, 1st percentile 0.29-0.31 m (sharp and both soft sets); the partial lines "
+        "that cancelled a second look 0.22 / 0.26 m. A whole US or Japanese plate's line "
+        "(~0.25 m) on a low-contrast face is looked at again too: it costs, finds nothing "
+        "less. In the provenance (docs/anonymization.md, 2026-11-28, after review)")
     plate_parts_whole: bool = Field(
         True, description="where plate boxes are merged (a guided frame's regions' passes "
         "with the final boxes of its safety or full-frame plan, and the full-frame plan's "

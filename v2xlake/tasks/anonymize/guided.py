@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import Any
 
 import cv2
@@ -97,15 +98,16 @@ class GuidedConfig(FromParams):
     plate_parts_whole: bool = _param("regions.plate_parts_whole")  # ``nms_plate_parts``
     # the text detector's canvases of the guided plan (``plate_view``): padded with grey
     # ``plate_canvas_fill`` to at least ``plate_canvas_min_w`` x ``_h`` px; a second look
-    # (``_in_canvas``) at the faces the first found no plate on, each piece's grey levels
-    # stretched so its ``plate_stretch`` / 100 - ``plate_stretch`` percentiles span 0-255
-    # (0: off), only where they lie less than ``plate_stretch_below`` grey levels apart (0:
-    # every piece)
+    # (``_in_canvas``) at the faces the first found no whole plate on (no text line
+    # ``plate_whole_min_m`` long), each piece's grey levels stretched so its
+    # ``plate_stretch`` / 100 - ``plate_stretch`` percentiles span 0-255 (0: off), only where
+    # they lie less than ``plate_stretch_below`` grey levels apart (0: every piece)
     plate_canvas_min_w: int = _param("regions.plate_canvas_min_w")
     plate_canvas_min_h: int = _param("regions.plate_canvas_min_h")
     plate_canvas_fill: int = _param("regions.plate_canvas_fill")
     plate_stretch: float = _param("regions.plate_stretch")
     plate_stretch_below: float = _param("regions.plate_stretch_below")
+    plate_whole_min_m: float = _param("regions.plate_whole_min_m")
     face_threshold: float = _param("faces.threshold")  # in projected regions
     full_face_threshold: float = _param("faces.full_threshold")  # in full-frame passes
     face_size_range: tuple[float, float] = (0.15, 3.0)  # x the expected face height
@@ -343,8 +345,7 @@ class Piece:
 
     def outside(self, shape: tuple[int, ...]) -> np.ndarray:
         """Mask of the piece pixels that lie beyond the frame's edge."""
-        ones = np.ones(shape[:2], np.uint8)
-        inside = cv2.warpPerspective(ones, self.H, (self.out_w, self.out_h),
+        inside = cv2.warpPerspective(_ones(shape[0], shape[1]), self.H, (self.out_w, self.out_h),
                                      flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return inside == 0
@@ -358,6 +359,15 @@ class Piece:
         return cv2.warpPerspective(image, self.H, (self.out_w, self.out_h),
                                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                    borderMode=self.border)
+
+
+@lru_cache(maxsize=4)
+def _ones(h: int, w: int) -> np.ndarray:
+    """A frame of ones (read-only, shared): what ``Piece.outside`` warps, made once per
+    frame size instead of once per call (a 1080p frame's 2 MB)."""
+    ones = np.ones((h, w), np.uint8)
+    ones.flags.writeable = False
+    return ones
 
 
 def _face_crop(c: GuidedConfig, box: Any, side: float, scale: float, size_px: float,
@@ -596,21 +606,31 @@ def _batches(pieces: Sequence[Piece], size: int, margin: int = 0
             for i in range(0, len(g), size)]
 
 
-def mosaics(image: np.ndarray, pieces: Sequence[Piece], cfg: GuidedConfig
+def mosaics(image: np.ndarray, pieces: Sequence[Piece], cfg: GuidedConfig,
+            cuts: dict[int, np.ndarray] | None = None
             ) -> list[tuple[np.ndarray, list[Piece], list[tuple[int, int]]]]:
     """Canvases to run a detector on: every piece of at least ``alone_px`` pixels on its own
     (onnxruntime takes any shape; padding a big piece into a shared canvas wastes more than
-    a call costs), the small ones packed together."""
+    a call costs), the small ones packed together. ``cuts``: where given, gets each piece's
+    cut-out (``Piece.cut``) by ``id`` for a caller that tests the same piece again
+    (``in_regions``' plate-blob test: a rectification fewer per vehicle face); a piece alone
+    is its canvas, which is never written to."""
     out = []
     small = [p for p in pieces if p.out_w * p.out_h < cfg.alone_px]
     for p in pieces:
         if p.out_w * p.out_h >= cfg.alone_px:
-            out.append((p.cut(image), [p], [(0, 0)]))
+            cut = p.cut(image)
+            if cuts is not None:
+                cuts[id(p)] = cut
+            out.append((cut, [p], [(0, 0)]))
     if small:
         pos, cw, ch = pack(small, cfg.mosaic_width, cfg.gap, cfg.pack_fit)
         canvas = np.zeros((ch, cw, 3), np.uint8)
         for p, (px, py) in zip(small, pos, strict=True):
-            canvas[py : py + p.out_h, px : px + p.out_w] = p.cut(image)
+            cut = p.cut(image)
+            if cuts is not None:
+                cuts[id(p)] = cut
+            canvas[py : py + p.out_h, px : px + p.out_w] = cut
         out.append((canvas, small, pos))
     return out
 
@@ -666,6 +686,17 @@ def _piece_of(box: np.ndarray, pieces: Sequence[Piece], pos: Sequence[tuple[int,
         if px <= cx < px + p.out_w and py <= cy < py + p.out_h:
             return i
     return None
+
+
+def _frame_det(kind: str, name: str, b: np.ndarray, score: float, p: Piece,
+               at: tuple[int, int], w: int, h: int) -> Detection | None:
+    """A canvas box of piece ``p`` (placed at ``at``) as a frame detection; None where it is
+    under a pixel wide or tall in the frame (a mirrored piece's mirror image of a face
+    inside the frame)."""
+    box = p.to_frame(np.asarray(b, float) - [at[0], at[1], at[0], at[1]], w, h)
+    if box[2] - box[0] < 1.0 or box[3] - box[1] < 1.0:
+        return None
+    return Detection(kind, box, score, name)
 
 
 BLOB = "plate-blob"
@@ -1063,7 +1094,7 @@ class GuidedDetector:
             + (f":plate-stretch{c.plate_stretch:g}" if c.plate_stretch > 0 else "")
             + (f"<{c.plate_stretch_below:g}"
                if c.plate_stretch > 0 and c.plate_stretch_below > 0 else "")
-            + ("/second-look" if c.plate_stretch > 0 else "")
+            + (f"/second-look{c.plate_whole_min_m:g}m" if c.plate_stretch > 0 else "")
             + (f":plate-canvas{c.plate_canvas_min_w}x{c.plate_canvas_min_h}"
                f"/{c.plate_canvas_fill}" if max(c.plate_canvas_min_w, c.plate_canvas_min_h) > 0
                else ""))
@@ -1481,6 +1512,7 @@ class GuidedDetector:
             pieces = plan_pieces(regions, image.shape, c)
         edge = edge_pieces(regions, image.shape, c) if c.edge_heads else []
         dets: list[Detection] = []
+        cuts: dict[int, np.ndarray] = {}  # the plate pieces' cut-outs, for the blob test
         for kind, det in (("face", self.face), ("plate", self.plate)):
             kp = [p for p in pieces if p.kind == kind
                   and (kind == "face" or p.expected[0] >= c.plate_text_min_px)]
@@ -1489,7 +1521,7 @@ class GuidedDetector:
             if det is None or not kp:
                 continue
             fit = replace(c, pack_fit=True) if kind == "plate" and c.plate_pack_fit else c
-            for canvas, ps, pos in mosaics(image, kp, fit):
+            for canvas, ps, pos in mosaics(image, kp, fit, cuts if kind == "plate" else None):
                 dets += self._in_canvas(kind, det, canvas, ps, pos, w, h)
         if self.plate is not None and c.band_look_px > 0:
             for r in regions:
@@ -1511,7 +1543,8 @@ class GuidedDetector:
                 # view of 160 px ones were missed so): its cut rectangles are tested too
                 if not small and not (c.blob_cut_faces and p.cut_by_frame(w, h)):
                     continue
-                for box, score in plate_blobs(p.cut(image), p.ppm, c, p.outside(image.shape),
+                view = cuts[id(p)] if id(p) in cuts else p.cut(image)
+                for box, score in plate_blobs(view, p.ppm, c, p.outside(image.shape),
                                               cut_only=not small):
                     fb = p.to_frame(box, w, h)
                     # a cut face's blob larger than ``blob_cut_max_share`` of the frame is a
@@ -1556,16 +1589,16 @@ class GuidedDetector:
         return out
 
     def _plate_lines(self, det: TextPlateDetector, view: np.ndarray, ps: Sequence[Piece],
-                     pos: Sequence[tuple[int, int]], w: int, h: int,
-                     pieces: set[int] | None = None) -> list[tuple[np.ndarray, float, int]]:
+                     pos: Sequence[tuple[int, int]], w: int, h: int
+                     ) -> list[tuple[np.ndarray, float, int, float]]:
         """The text detector's lines of plate geometry in a canvas view: (canvas box, score,
-        piece), only in ``pieces`` where given."""
+        piece, the line's length in metres on a rectified face, 0 in a crop)."""
         c = self.config
-        found: list[tuple[np.ndarray, float, int]] = []
+        found: list[tuple[np.ndarray, float, int, float]] = []
         for line in det.lines_view(view):
             b = det.plate_box(line[:5])
             i = _piece_of(b, ps, pos)
-            if i is None or (pieces is not None and i not in pieces):
+            if i is None:
                 continue
             p = ps[i]
             # the line's box in the frame: is it cut by the frame's edge? (canvas
@@ -1586,7 +1619,7 @@ class GuidedDetector:
                 ok = det.plate_ok(rect, w, at_edge=min(fb[0], w - fb[2]) <= 2) and (
                     lo * p.expected[0] <= rect[2] <= hi * p.expected[1])
             if ok:
-                found.append((b, float(line[5]), i))
+                found.append((b, float(line[5]), i, line[2] / p.ppm if p.ppm > 0 else 0.0))
         return found
 
     def _in_canvas(self, kind: str, det: CenterFaceDetector | TextPlateDetector,
@@ -1595,7 +1628,6 @@ class GuidedDetector:
         """Run one detector on one canvas; keep what lies in a piece at the size its boxes
         predict; map it back to the frame."""
         c = self.config
-        found: list[tuple[np.ndarray, float, int]] = []  # canvas box, score, piece
         if isinstance(det, CenterFaceDetector):
             def sized(b: np.ndarray) -> int | None:
                 """The piece holding a canvas box whose face size its region expects."""
@@ -1609,31 +1641,68 @@ class GuidedDetector:
 
             boxes, scores = self._face_view(canvas, c.face_threshold,
                                             lambda b: sized(b) is not None)
+            found: list[tuple[np.ndarray, float, int]] = []  # canvas box, score, piece
             for b, sc in zip(boxes, scores, strict=True):
                 i = sized(b)
                 if sc >= c.face_threshold and i is not None:
                     found.append((b, float(sc), i))
-        else:
-            # the faces as they are; then (``plate_stretch``) a second look, stretched, at the
-            # faces of low contrast on which nothing was found. Not the stretched faces alone:
-            # the stretch clips the levels beyond the face's percentiles, where a plate
-            # sharper than its face lies (its lighter glyph strokes become plate ground, and
-            # a plate half hidden by another car, four glyphs, then reads as too short a line)
-            found += self._plate_lines(det, plate_view(canvas, ps, pos, replace(
-                c, plate_stretch=0.0), (h, w)), ps, pos, w, h)
-            if c.plate_stretch > 0:
-                hit = {i for _b, _s, i in found}
-                redo: list[int] = []
-                view = plate_view(canvas, ps, pos, c, (h, w), lambda k: k not in hit, redo)
-                if redo:
-                    found += self._plate_lines(det, view, ps, pos, w, h, set(redo))
-        out = []
-        for b, score, i in found:
-            px, py = pos[i]
-            box = ps[i].to_frame(np.asarray(b, float) - [px, py, px, py], w, h)
-            if box[2] - box[0] < 1.0 or box[3] - box[1] < 1.0:
-                continue  # a mirrored piece's mirror image of a face inside the frame
-            out.append(Detection(kind, box, score, det.name))
+            return [d for b, sc, i in found
+                    if (d := _frame_det(kind, det.name, b, sc, ps[i], pos[i], w, h)) is not None]
+        # the faces as they are; then (``plate_stretch``) a second look, stretched, at the
+        # faces of low contrast on which no whole plate was found. Not the stretched faces
+        # alone: the stretch clips the levels beyond the face's percentiles, where a plate
+        # sharper than its face lies (its lighter glyph strokes become plate ground, and a
+        # plate half hidden by another car, four glyphs, then reads as too short a line)
+        out: list[tuple[Detection, int]] = []  # and the piece
+        whole: set[int] = set()  # faces where a line could be the whole plate
+        for b, sc, i, long_m in self._plate_lines(det, plate_view(canvas, ps, pos, replace(
+                c, plate_stretch=0.0), (h, w)), ps, pos, w, h):
+            if (d := _frame_det(kind, det.name, b, sc, ps[i], pos[i], w, h)) is not None:
+                out.append((d, i))
+                if long_m >= c.plate_whole_min_m:
+                    whole.add(i)
+        if c.plate_stretch > 0:
+            out += self._second_look(det, canvas, ps, pos, w, h, whole, out)
+        return [d for d, _i in out]
+
+    def _second_look(self, det: TextPlateDetector, canvas: np.ndarray, ps: Sequence[Piece],
+                     pos: Sequence[tuple[int, int]], w: int, h: int, whole: set[int],
+                     first: Sequence[tuple[Detection, int]]) -> list[tuple[Detection, int]]:
+        """The stretch's second look at a plate canvas: its low-contrast rectified faces not in
+        ``whole`` (``plate_view``'s gate), stretched, searched again; where the canvas holds
+        other pieces too, only those faces, repacked into a canvas of their own (the text
+        detector's cost is its pixels). Lines held (0.8 of their box) by a ``first``-look box
+        on the same face are the first look's finds again and are dropped; a longer line
+        holding a first-look part is kept (``nms_plate_parts`` grows the part to it)."""
+        c = self.config
+        redo: list[int] = []
+        view = plate_view(canvas, ps, pos, replace(c, plate_canvas_min_w=0, plate_canvas_min_h=0),
+                          (h, w), lambda k: k not in whole, redo)
+        if not redo:
+            return []
+        vps, vpos = ps, pos
+        if len(redo) < len(ps):  # only the faces looked at again, in a canvas of their own
+            vps = [ps[k] for k in redo]
+            vpos, cw, ch = pack(vps, c.mosaic_width, c.gap, c.plate_pack_fit)
+            again = np.zeros((ch, cw, 3), np.uint8)
+            for k, p, (x, y) in zip(redo, vps, vpos, strict=True):
+                px, py = pos[k]
+                again[y : y + p.out_h, x : x + p.out_w] = view[py : py + p.out_h,
+                                                               px : px + p.out_w]
+            view = again
+        index = redo if vps is not ps else list(range(len(ps)))  # every piece asked for
+        view = plate_view(view, vps, vpos, replace(c, plate_stretch=0.0))  # the floor's padding
+        out: list[tuple[Detection, int]] = []
+        for b, sc, j, _m in self._plate_lines(det, view, vps, vpos, w, h):
+            k = index[j]
+            d = _frame_det("plate", det.name, b, sc, vps[j], vpos[j], w, h)
+            if d is None:
+                continue
+            have = [f.box for f, i in first if i == k]
+            if have and overlapping(np.asarray(d.box, float), np.asarray(have, float),
+                                    iou=np.inf, contain=0.8).any():
+                continue
+            out.append((d, k))
         return out
 
     def detect(self, image: np.ndarray, regions: Sequence[Region] | None = None,
