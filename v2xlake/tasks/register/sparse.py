@@ -593,9 +593,30 @@ def _nearest(tree: object, q: np.ndarray, max_dist_m: float, num_threads: int,
 def _update(T: np.ndarray, dx: np.ndarray) -> np.ndarray:
     """``exp(dx) T`` for a Gauss-Newton step ``dx = [rot, trans]``."""
     D = np.eye(4)
-    D[:3, :3] = so3_exp(dx[:3])
+    D[:3, :3] = _so3_exp1(np.asarray(dx[:3], dtype=np.float64))
     D[:3, 3] = dx[3:]
     return D @ T
+
+
+def _so3_exp1(w: np.ndarray) -> np.ndarray:
+    """``geometry.so3_exp`` of one rotation vector ``w`` (3,), the same bits: the same
+    NumPy operations on the same (1, 1) angle, the branch taken instead of both computed
+    and selected (``np.where``, under ``np.errstate``), ``K`` filled without ellipsis
+    indexing."""
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    if not th[0, 0] < np.inf:  # NaN or infinite: as so3_exp computes it (its warnings off)
+        return so3_exp(w)
+    K = np.zeros((3, 3))
+    K[0, 1], K[0, 2] = -w[2], w[1]
+    K[1, 0], K[1, 2] = w[2], -w[0]
+    K[2, 0], K[2, 1] = -w[1], w[0]
+    if th[0, 0] > 1e-8:
+        a = np.sin(th) / th
+        b = (1.0 - np.cos(th)) / th**2
+    else:
+        a = 1.0 - th**2 / 6.0
+        b = 0.5 - th**2 / 24.0
+    return np.eye(3) + a * K + b * (K @ K)
 
 
 def _held(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
