@@ -23,6 +23,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from numba import njit
 
 from v2xlake.tasks.pngcodec import encode_png
 
@@ -119,19 +120,41 @@ def splat(img: np.ndarray, col: np.ndarray, row: np.ndarray, color: Color,
     ``img`` (H, W, 3 uint8) in place: a pixel hit by n points of this colour gets opacity
     1 - (1 - alpha)^n, as n overlapping markers of opacity ``alpha`` would. Points outside
     the image are dropped."""
-    h, w = img.shape[:2]
-    ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    if not ok.any():
-        return
-    n = np.bincount(row[ok].astype(np.int64) * w + col[ok].astype(np.int64), minlength=h * w)
-    at = np.flatnonzero(n)
-    rr, cc = np.divmod(at, w)
     # the opacity of n points, by table (beyond 255 points a pixel is opaque anyway)
     opacity = (1.0 - (1.0 - alpha) ** np.arange(256)).astype(np.float32)
-    a = opacity[np.minimum(n[at], 255)][:, None]
-    px = img[rr, cc].astype(np.float32)
-    px += (np.asarray(color, np.float32)[None, :] - px) * a
-    img[rr, cc] = np.clip(np.rint(px), 0, 255).astype(np.uint8)
+    _splat_kernel(img, np.asarray(col, np.float64).reshape(-1),
+                  np.asarray(row, np.float64).reshape(-1), np.asarray(color, np.float32),
+                  opacity)
+
+
+@njit(cache=True, nogil=True)
+def _splat_kernel(img: np.ndarray, col: np.ndarray, row: np.ndarray, color: np.ndarray,
+                  opacity: np.ndarray) -> None:
+    """:func:`splat`'s counting and compositing in one compiled pass each, with the
+    operations its NumPy form took (a pixel's float32 value moved toward the colour by the
+    opacity of its count, rounded half to even, clipped): the same pixels. WHY: the
+    ``bincount`` over every pixel of the panel, its ``flatnonzero`` and the fancy-indexed
+    gathers took ~1 ms a layer, eight layers a BEV."""
+    h, w = img.shape[0], img.shape[1]
+    n = np.zeros(h * w, dtype=np.int64)
+    hit = np.empty(len(col), dtype=np.int64)  # the pixels hit, each once
+    m = 0
+    for i in range(len(col)):
+        c, r = col[i], row[i]
+        if c >= 0 and c < w and r >= 0 and r < h:
+            k = int(r) * w + int(c)
+            if n[k] == 0:
+                hit[m] = k
+                m += 1
+            n[k] += 1
+    for e in range(m):
+        k = hit[e]
+        a = opacity[min(n[k], 255)]
+        rr, cc = k // w, k % w
+        for ch in range(3):
+            px = np.float32(img[rr, cc, ch])
+            px += (color[ch] - px) * a
+            img[rr, cc, ch] = np.uint8(min(max(np.rint(px), np.float32(0.0)), np.float32(255.0)))
 
 
 def _fixed(pts: np.ndarray) -> np.ndarray:
