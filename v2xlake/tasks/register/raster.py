@@ -3,8 +3,8 @@
 Why not matplotlib: the stage renders both pictures for every clip, and matplotlib spent
 0.3-0.45 s of one core on the BEV (scatter of 120k points) and 0.4-1.2 s on the timeline
 (ten axes' ticks, grid lines and labels), a fixed cost as large as registering a whole 3 s
-clip. Here a picture is a NumPy RGB array: points are counted into pixels
-(``splat``, one ``bincount`` per layer), lines, markers and bands are drawn anti-aliased by
+clip. Here a picture is a NumPy RGB array: points are counted into pixels (``splat``, one
+compiled counting pass per layer), lines, markers and bands are drawn anti-aliased by
 OpenCV into views of the array (a view clips to its panel), text is drawn last by Pillow with
 FreeType (DejaVu Sans, matplotlib's font, when matplotlib's data is installed) and the PNG is
 written by ``pngcodec`` (rows filtered with UP, ISA-L deflate).
