@@ -91,6 +91,10 @@ def test_ground_fit_over_kept_rows_matches_the_whole_scan_mask() -> None:
     # the kernel as the filter calls it: NaN where fewer than min_points are on the ground
     pts = np.zeros((10, 3))
     assert np.isnan(_ground_fit(pts, np.zeros(10, bool), 0.0, 1e6, 0.05, 30))
+    # ground points all on one line (a wall's foot along the street, no road in range): the
+    # normal equations are singular; no plane, NaN, not a LinAlgError that fails the clip
+    line = np.stack([np.linspace(-14.0, 14.0, 400), np.full(400, 6.0), np.zeros(400)], 1)
+    assert np.isnan(_ground_fit(line, np.zeros(400, bool), 9.0, 225.0, 0.05, 30))
 
 
 def test_one_table_name_as_a_string_is_refused(tmp_path: Path) -> None:

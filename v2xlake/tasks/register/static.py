@@ -274,7 +274,10 @@ def _ground_fit(pts: np.ndarray, above: np.ndarray, r_min2: float, r_max2: float
         if m < min_points:
             return np.nan
         M = np.array([[sxx, sxy, sx], [sxy, syy, sy], [sx, sy, float(m)]])
-        coef = np.linalg.solve(M, np.array([sxz, syz, sz]))
+        try:
+            coef = np.linalg.solve(M, np.array([sxz, syz, sz]))
+        except Exception:  # the points on one line (a wall's foot, no ground): no plane
+            return np.nan
         a, b, c = coef[0], coef[1], coef[2]
         k = 0
         for j in range(m):  # drop the rows farther than trim_m (NaN stays, as before)
@@ -291,10 +294,12 @@ def ground_distance(pts: np.ndarray, min_range_m: float = 3.0, max_range_m: floa
     """Distance (m) from the sensor origin to the ground plane around it: a least-squares
     plane through the ground points (``above_ground`` false) between ``min_range_m`` and
     ``max_range_m`` horizontally, refitted twice without points farther than ``trim_m``.
-    NaN when there are fewer than ``min_points``. With the agent's declared body (ground to
-    roof) this is the LiDAR's height in its ego frame: the extrinsic's z, which driving on a
-    plane never shows otherwise. (Normal equations, a 3x3 solve: x and y span metres to
-    15 m, so they stay well conditioned.)"""
+    NaN when there are fewer than ``min_points`` or they fix no plane (all on one line,
+    where the normal equations are singular: a wall's foot with no ground). With the
+    agent's declared body (ground to roof) this is the LiDAR's height in its ego frame: the
+    extrinsic's z, which driving on a plane never shows otherwise. (Normal equations, a 3x3
+    solve: x and y span metres to 15 m, so they stay well conditioned where they span a
+    plane at all.)"""
     if len(pts) == 0:
         return float("nan")
     p = np.ascontiguousarray(pts, np.float64)
