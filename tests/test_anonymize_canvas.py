@@ -181,12 +181,13 @@ class _BrightLines:
 
     name, version = "stub", "0"
 
-    def __init__(self) -> None:
+    def __init__(self, grow: float = 1.5) -> None:
         self.views: list[tuple[int, ...]] = []
+        self.grow = grow
 
     def lines_view(self, view: np.ndarray) -> list[tuple[float, ...]]:
         self.views.append(view.shape)
-        grow = 1.0 if len(self.views) == 1 else 1.5
+        grow = 1.0 if len(self.views) == 1 else self.grow
         n, _lab, stats, cents = cv2.connectedComponentsWithStats(
             (view.max(axis=2) > 200).astype(np.uint8))
         return [(float(cents[k][0]), float(cents[k][1]), grow * float(stats[k][2]),
@@ -242,3 +243,35 @@ def test_second_look_only_at_faces_without_their_whole_plate() -> None:
     assert match([("plate", (160, 840, 228, 850))], on_c, 0.6)[0][0]  # C's faint plate
     assert len(stub.views) == 2  # the canvas as it is, then B and C alone: fewer pixels
     assert stub.views[1][0] * stub.views[1][1] < stub.views[0][0] * stub.views[0][1]
+
+
+def test_second_look_maps_repacked_faces_back_and_drops_first_finds() -> None:
+    """A crop first in the canvas, then two low-contrast faces X and Y, each with a sharp
+    0.2 m line (a part of a plate: no whole plate), X also a faint whole plate; a detector
+    that reads every line the same on both looks. Both faces are looked at again, repacked
+    without the crop: each partial line is kept once (the second look's copy, held by the
+    first-look box on the same face, dropped) and X's faint plate is found, on X (a repacked
+    face's lines mapped to another face, or the copies kept, give other boxes)."""
+    from v2xlake.tasks.anonymize.guided import GuidedDetector, pack
+
+    rng = np.random.default_rng(5)
+    faces = [(100 + 10 * rng.random((200, 400, 3))).astype(np.uint8) for _ in range(2)]
+    faces[0][30:40, 40:70] = 255  # X: a sharp 30 px = 0.2 m line
+    faces[0][140:150, 200:268] = 120  # X: a faint 68 px plate
+    faces[1][60:70, 300:330] = 255  # Y: a sharp 0.2 m line
+    crop = Piece("plate", np.array([[1.0, 0, 1500], [0, 1.0, 100], [0, 0, 1.0]]), 120, 60,
+                 (40.0, 40.0), 0.0)
+    ps = [crop] + [Piece("plate", np.array([[1.0, 0, x], [0, 1.0, 500], [0, 0, 1.0]]), 400,
+                         200, (78.0, 78.0), 150.0) for x in (100, 900)]
+    cfg = GuidedConfig()
+    pos, cw, ch = pack(ps, cfg.mosaic_width, cfg.gap, cfg.plate_pack_fit)
+    canvas = np.zeros((ch, cw, 3), np.uint8)
+    for f, p, (px, py) in zip(faces, ps[1:], pos[1:], strict=True):
+        canvas[py : py + p.out_h, px : px + p.out_w] = f
+    stub = _BrightLines(grow=1.0)
+    got = GuidedDetector(None, None, cfg)._in_canvas(
+        "plate", stub, canvas, ps, pos, 1920, 1080)  # type: ignore[arg-type]
+    want = [("plate", (140, 530, 170, 540)), ("plate", (300, 640, 368, 650)),
+            ("plate", (1200, 560, 1230, 570))]
+    assert len(stub.views) == 2 and len(got) == 3
+    assert all(match([w], got, 0.8)[0][0] for w in want)

@@ -92,9 +92,13 @@ def test_ground_fit_over_kept_rows_matches_the_whole_scan_mask() -> None:
     pts = np.zeros((10, 3))
     assert np.isnan(_ground_fit(pts, np.zeros(10, bool), 0.0, 1e6, 0.05, 30))
     # ground points all on one line (a wall's foot along the street, no road in range): the
-    # normal equations are singular; no plane, NaN, not a LinAlgError that fails the clip
-    line = np.stack([np.linspace(-14.0, 14.0, 400), np.full(400, 6.0), np.zeros(400)], 1)
-    assert np.isnan(_ground_fit(line, np.zeros(400, bool), 9.0, 225.0, 0.05, 30))
+    # normal equations are singular; no plane, NaN (not a LinAlgError that fails the clip,
+    # nor, the line turned off the axes, an arbitrary plane's height)
+    t = np.linspace(-14.0, 14.0, 400)
+    for a in np.radians([0.0, 10.0, 30.0, 90.0]):
+        line = np.stack([t * np.cos(a) - 6 * np.sin(a), t * np.sin(a) + 6 * np.cos(a),
+                         np.full(400, -1.8)], 1)
+        assert np.isnan(_ground_fit(line, np.zeros(400, bool), 9.0, 225.0, 0.05, 30)), a
 
 
 def test_one_table_name_as_a_string_is_refused(tmp_path: Path) -> None:

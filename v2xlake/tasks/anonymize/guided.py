@@ -806,8 +806,9 @@ def component_boxes(mask: np.ndarray, connectivity: int
     """Label image and (label, x, y, w, h) of each component of ``mask``, in label order:
     the labels and boxes of ``cv2.connectedComponentsWithStats`` (same labelling) without
     its statistics, which cost 3-6x the labelling (a caller that filters by box counts the
-    area of the few components left, ``component_area``). Labelled in 16 bits where the
-    mask has at most 65,535 components (OpenCV raises beyond: then 32), the boxes read
+    area of the few components left, ``component_area``). Labelled in 16 bits, in 32 where
+    OpenCV raises (its provisional labels, not only the final count, overflow 65,535: a
+    long thin mask can be labelled twice), the boxes read
     off the label image in one pass (``plateprop.component_stats``' kernel; faster than
     ``ndimage.find_objects``)."""
     try:
@@ -831,8 +832,8 @@ def _components_sized(mask: np.ndarray, wlo: float, whi: float, hmin: float,
     in label order: (label, x, y, w, h, label image). The same components and order as
     ``cv2.connectedComponentsWithStats`` (same labelling), but its statistics cost ~6x the
     labelling on the far band's 2x masks (15 of 17 ms for 3840 x 690 px, four masks per
-    banded frame: ~8 % of a LiDAR-only clip's CPU): boxes come from
-    ``ndimage.find_objects`` and an area is counted only for a box that passes."""
+    banded frame: ~8 % of a LiDAR-only clip's CPU): boxes come from ``component_boxes``
+    and an area is counted only for a box that passes."""
     lab, boxes = component_boxes(mask, 4)
     return [(i, x, y, w, h, lab) for i, x, y, w, h in boxes
             if wlo <= w <= whi and alo <= w / h <= ahi and h >= hmin

@@ -273,11 +273,14 @@ def _ground_fit(pts: np.ndarray, above: np.ndarray, r_min2: float, r_max2: float
             sz += z
         if m < min_points:
             return np.nan
-        M = np.array([[sxx, sxy, sx], [sxy, syy, sy], [sx, sy, float(m)]])
-        try:
-            coef = np.linalg.solve(M, np.array([sxz, syz, sz]))
-        except Exception:  # the points on one line (a wall's foot, no ground): no plane
+        # the points on one line (a wall's foot, no ground) fix no plane: their centred x-y
+        # scatter is singular (to rounding: a line along an axis makes the solve raise, one
+        # at any other angle solves to an arbitrary plane)
+        cxx, cyy, cxy = sxx - sx * sx / m, syy - sy * sy / m, sxy - sx * sy / m
+        if cxx * cyy - cxy * cxy <= 1e-9 * (cxx + cyy) ** 2:
             return np.nan
+        M = np.array([[sxx, sxy, sx], [sxy, syy, sy], [sx, sy, float(m)]])
+        coef = np.linalg.solve(M, np.array([sxz, syz, sz]))
         a, b, c = coef[0], coef[1], coef[2]
         k = 0
         for j in range(m):  # drop the rows farther than trim_m (NaN stays, as before)
