@@ -275,3 +275,27 @@ def test_second_look_maps_repacked_faces_back_and_drops_first_finds() -> None:
             ("plate", (1200, 560, 1230, 570))]
     assert len(stub.views) == 2 and len(got) == 3
     assert all(match([w], got, 0.8)[0][0] for w in want)
+
+
+def test_second_look_drops_only_its_own_faces_first_finds() -> None:
+    """Two vehicle faces overlapping in the frame (one car behind another): P shows a sharp
+    whole plate, Q (low contrast, no find) only a faint one that lies, in the frame, inside
+    P's plate box. Q is looked at again and its plate kept: a second-look line is a first
+    find again only where the first look found it on the same face."""
+    from v2xlake.tasks.anonymize.guided import GuidedDetector, pack
+
+    rng = np.random.default_rng(6)
+    faces = [(100 + 10 * rng.random((200, 400, 3))).astype(np.uint8) for _ in range(2)]
+    faces[0][90:110, 200:300] = 255  # P: a sharp 100 px = 0.67 m plate, frame (300-400, 590-610)
+    faces[1][95:105, 60:100] = 120  # Q: a faint line, frame (310-350, 595-605)
+    ps = [Piece("plate", np.array([[1.0, 0, x], [0, 1.0, 500], [0, 0, 1.0]]), 400, 200,
+                (78.0, 78.0), 150.0) for x in (100, 250)]
+    cfg = GuidedConfig()
+    pos, cw, ch = pack(ps, cfg.mosaic_width, cfg.gap, cfg.plate_pack_fit)
+    canvas = np.zeros((ch, cw, 3), np.uint8)
+    for f, (px, py) in zip(faces, pos, strict=True):
+        canvas[py : py + 200, px : px + 400] = f
+    got = GuidedDetector(None, None, cfg)._in_canvas(
+        "plate", _BrightLines(grow=1.0), canvas, ps, pos, 1920, 1080)  # type: ignore[arg-type]
+    assert len(got) == 2
+    assert match([("plate", (310, 595, 350, 605))], got, 0.8)[0][0]
