@@ -624,15 +624,23 @@ def mosaics(image: np.ndarray, pieces: Sequence[Piece], cfg: GuidedConfig,
                 cuts[id(p)] = cut
             out.append((cut, [p], [(0, 0)]))
     if small:
-        pos, cw, ch = pack(small, cfg.mosaic_width, cfg.gap, cfg.pack_fit)
-        canvas = np.zeros((ch, cw, 3), np.uint8)
-        for p, (px, py) in zip(small, pos, strict=True):
-            cut = p.cut(image)
-            if cuts is not None:
-                cuts[id(p)] = cut
-            canvas[py : py + p.out_h, px : px + p.out_w] = cut
+        views = [p.cut(image) for p in small]
+        if cuts is not None:
+            cuts.update((id(p), v) for p, v in zip(small, views, strict=True))
+        canvas, pos = packed(small, views, cfg.mosaic_width, cfg.gap, cfg.pack_fit)
         out.append((canvas, small, pos))
     return out
+
+
+def packed(pieces: Sequence[Piece], views: Sequence[np.ndarray], width: int, gap: int,
+           fit: bool) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """Each piece's view (``out_h`` x ``out_w``) placed in one black canvas as ``pack``
+    places it: the canvas and the places."""
+    pos, cw, ch = pack(pieces, width, gap, fit)
+    canvas = np.zeros((ch, cw, 3), np.uint8)
+    for p, v, (x, y) in zip(pieces, views, pos, strict=True):
+        canvas[y : y + p.out_h, x : x + p.out_w] = v
+    return canvas, pos
 
 
 def plate_view(canvas: np.ndarray, ps: Sequence[Piece], pos: Sequence[tuple[int, int]],
@@ -1681,21 +1689,17 @@ class GuidedDetector:
                           (h, w), lambda k: k not in whole, redo)
         if not redo:
             return []
+        # redo lists the pieces in canvas order: all of them (0 .. n - 1) or fewer
         vps, vpos = ps, pos
         if len(redo) < len(ps):  # only the faces looked at again, in a canvas of their own
             vps = [ps[k] for k in redo]
-            vpos, cw, ch = pack(vps, c.mosaic_width, c.gap, c.plate_pack_fit)
-            again = np.zeros((ch, cw, 3), np.uint8)
-            for k, p, (x, y) in zip(redo, vps, vpos, strict=True):
-                px, py = pos[k]
-                again[y : y + p.out_h, x : x + p.out_w] = view[py : py + p.out_h,
-                                                               px : px + p.out_w]
-            view = again
-        index = redo if vps is not ps else list(range(len(ps)))  # every piece asked for
+            view, vpos = packed(vps, [view[pos[k][1] : pos[k][1] + ps[k].out_h,
+                                           pos[k][0] : pos[k][0] + ps[k].out_w] for k in redo],
+                                c.mosaic_width, c.gap, c.plate_pack_fit)
         view = plate_view(view, vps, vpos, replace(c, plate_stretch=0.0))  # the floor's padding
         out: list[tuple[Detection, int]] = []
         for b, sc, j, _m in self._plate_lines(det, view, vps, vpos, w, h):
-            k = index[j]
+            k = redo[j]
             d = _frame_det("plate", det.name, b, sc, vps[j], vpos[j], w, h)
             if d is None:
                 continue
