@@ -158,6 +158,7 @@ def _local_z(g: np.ndarray, mean: np.ndarray, sq: np.ndarray) -> np.ndarray:
             out[y, x] = (g[y, x] - mu) / (np.sqrt(max(v, zero)) + eight)
     return out
 
+
 def window_at(feats: np.ndarray, i: int = 0, j: int = 0) -> np.ndarray:
     """The feature vector of the window whose top-left corner is grid point (``i``, ``j``) of
     ``feats`` (``cell_features``): its cells, one every ``CELL`` px, flattened (rows,

@@ -689,16 +689,16 @@ def _denser_terms(tp: np.ndarray, t_tree: object, t_surf: Surfaces, cand: np.nda
                   max_correspondence_m: float, num_threads: int,
                   t_covisible_with: np.ndarray | None,
                   held: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-                  tp_cand: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+                  tp_cand: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """GICP terms of the target points ``tp[cand]`` (those nearer the source LiDAR; the
-    caller's copy ``tp_cand`` where it has one), each paired with its nearest source point
+    caller gathers them once as ``tp_cand``), each paired with its nearest source point
     within ``max_correspondence_m`` where both surfaces are seen from the other LiDAR's side
     (:func:`align_sparse`)."""
     if not len(cand):
         return np.zeros((6, 6)), np.zeros(6), 0
     R, t = T[:3, :3], T[:3, 3]
     # in the source frame: ``(tp[cand] - t) @ R``, the subtraction by _shift_rows
-    p = _shift_rows(tp[cand] if tp_cand is None else tp_cand, t, -1.0) @ R
+    p = _shift_rows(tp_cand, t, -1.0) @ R
     s_tree = denser.tree
     k, d2 = _nearest(s_tree, p, max_correspondence_m, num_threads, held)
     close = np.flatnonzero(d2 <= max_correspondence_m ** 2)
